@@ -1,0 +1,5 @@
+import sys
+
+from pointfence.cli import main
+
+sys.exit(main())

@@ -1,0 +1,63 @@
+"""The `pointfence` command.
+
+Each subcommand lives in the module named in COMMANDS, which provides
+``add_arguments(parser)`` and ``run(args) -> int``; modules are imported only when used.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from pointfence.kernels.errors import PointfenceError
+
+#: subcommand -> (module, one-line help)
+COMMANDS = {
+    "demo": ("pointfence.service.demo", "run the main job on the embedded defaults (PoCL CPU, synthetic scene)"),
+    "bench": ("pointfence.bench.cli", "benchmarks (frames, query, stress, ...) printing JSON"),
+    "backends": ("pointfence.kernels.cli", "list compute backends and devices available here"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="pointfence", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=_version())
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.set_defaults(_module=module)
+        # Sub-parsers are filled in lazily only for the chosen command (fast start).
+        if name in sys.argv[1:2]:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def _version() -> str:
+    from pointfence import __version__
+
+    return f"pointfence {__version__}"
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    saved = sys.argv
+    sys.argv = [saved[0]] + list(argv)
+    try:
+        parser = build_parser()
+    finally:
+        sys.argv = saved
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(importlib.import_module(args._module).run(args) or 0)
+    except PointfenceError as e:
+        print(f"pointfence {args.command}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
