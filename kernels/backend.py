@@ -1,0 +1,79 @@
+"""What every compute backend provides: a frame pipeline owning double-buffered snapshots."""
+from __future__ import annotations
+
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Sequence
+
+from .camera import Camera
+from .grid import Grid
+from .neighbors import Neighbors, check_queries
+from .params import PipelineParams
+from .rig import Rig
+from .snapshot import HostSnapshot
+
+
+@dataclass(frozen=True)
+class IngestInfo:
+    """What one ingest produced: snapshot number, point counts, and wall time in ms."""
+
+    seq: int
+    n_points: int
+    per_camera: tuple
+    ms: float
+
+
+class FramePipeline(ABC):
+    """Frames in, snapshots out.
+
+    ``ingest(frames)`` validates one frame per camera, builds the snapshot (deproject,
+    transform, noise, radius, selection, crop, counting sort) into the back slot and publishes
+    it; on any error nothing is published and the previous snapshot stays current.
+    Queries (``neighbors``, the proxy kernel) always run against the published snapshot.
+    """
+
+    backend: "Backend"
+
+    def __init__(self, cameras: Sequence[Camera], params: PipelineParams):
+        self.rig = Rig(cameras)
+        self.params = params
+        self.grid = Grid.from_params(params)
+        self.seq = 0
+
+    def ingest(self, frames) -> IngestInfo:
+        t0 = time.perf_counter()
+        ordered = self.rig.order(frames)
+        packed = self.rig.pack(ordered, self.params.lateral_px)  # validates per-frame poses
+        n, per_cam = self._build(ordered, packed)
+        self.seq += 1
+        return IngestInfo(self.seq, n, per_cam, (time.perf_counter() - t0) * 1e3)
+
+    def neighbors(self, queries, radius: float, max_neighbors: int = 64, protected_only: bool = False) -> Neighbors:
+        """Points within ``radius`` (m) of each query (B, 3) in the current snapshot."""
+        q = check_queries(queries, radius, max_neighbors)
+        return self._neighbors(q, float(radius), int(max_neighbors), bool(protected_only))
+
+    @abstractmethod
+    def _build(self, frames: list, packed) -> tuple:
+        """Build and publish; return (n_points, per_camera counts)."""
+
+    @abstractmethod
+    def _neighbors(self, q, radius: float, max_neighbors: int, protected_only: bool) -> Neighbors: ...
+
+    @abstractmethod
+    def host_snapshot(self) -> HostSnapshot:
+        """A host copy of the current snapshot (for tests, visualisation and export)."""
+
+
+class Backend(ABC):
+    """A compute backend: a name, a device, and factories for its kernels."""
+
+    name: str = "?"
+
+    @property
+    @abstractmethod
+    def device_name(self) -> str: ...
+
+    @abstractmethod
+    def pipeline(self, cameras: Sequence[Camera], params: PipelineParams) -> FramePipeline: ...

@@ -1,0 +1,1 @@
+"""OpenCL backend (pyopencl): PoCL on the CPU by default, any OpenCL device on request."""

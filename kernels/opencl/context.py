@@ -1,0 +1,79 @@
+"""Choosing an OpenCL device and building programs for it."""
+from __future__ import annotations
+
+import os
+from importlib import resources
+
+from ..errors import BackendUnavailable
+
+# IEEE-correct division and sqrt, no FMA contraction (see the pragma in every .cl file):
+# the reference backend reproduces the device's float32 arithmetic to the last bit.
+BUILD_OPTIONS = ["-cl-fp32-correctly-rounded-divide-sqrt"]
+
+
+def _cl():
+    try:
+        import pyopencl as cl
+    except ImportError as e:  # pragma: no cover - pyopencl is a hard dependency
+        raise BackendUnavailable(
+            f"the opencl backend needs pyopencl ({e}); install it with: pip install 'pyopencl[pocl]'"
+        ) from None
+    return cl
+
+
+def list_devices() -> list:
+    """(platform name, device name, device type) of every OpenCL device found."""
+    cl = _cl()
+    out = []
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error:
+        return out
+    for p in platforms:
+        for d in p.get_devices():
+            out.append((p.name.strip(), d.name.strip(), cl.device_type.to_string(d.type)))
+    return out
+
+
+def select_device(spec: str | None = None):
+    """The OpenCL device for ``spec``.
+
+    ``spec`` None or "" picks PoCL's CPU device (installed by pip with pyopencl[pocl]); else
+    it is matched case-insensitively against "<platform> <device>" (e.g. "nvidia",
+    "pocl", "H100"); "#k" at the end picks the k-th match.
+    """
+    cl = _cl()
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:
+        platforms = []
+        err = str(e)
+    else:
+        err = ""
+    devices = [(p, d) for p in platforms for d in p.get_devices()]
+    spec = (spec or os.environ.get("POINTFENCE_OPENCL_DEVICE") or "").strip()
+    which = 0
+    if "#" in spec:
+        spec, k = spec.rsplit("#", 1)
+        which = int(k)
+    if not spec:
+        matches = [(p, d) for p, d in devices if "portable computing language" in p.name.lower() or "pocl" in p.name.lower()]
+        matches = [m for m in matches if m[1].type & cl.device_type.CPU] or matches
+    else:
+        needle = spec.lower()
+        matches = [(p, d) for p, d in devices if needle in f"{p.name} {d.name}".lower()]
+    if len(matches) <= which:
+        found = "; ".join(f"{p.name.strip()}: {d.name.strip()}" for p, d in devices) or f"none ({err or 'no OpenCL platform'})"
+        want = repr(spec) if spec else "PoCL's CPU device"
+        raise BackendUnavailable(
+            f"no OpenCL device matches {want}{f' #{which}' if which else ''}. Found: {found}. "
+            "PoCL comes with: pip install 'pyopencl[pocl]'; for NVIDIA GPUs install the driver's OpenCL ICD"
+        )
+    return matches[which][1]
+
+
+def build(ctx, *names: str):
+    """Compile the named .cl files of this package into one program."""
+    cl = _cl()
+    src = "\n".join(resources.files(__package__).joinpath(n).read_text() for n in names)
+    return cl.Program(ctx, src).build(options=BUILD_OPTIONS)

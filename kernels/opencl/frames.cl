@@ -1,0 +1,160 @@
+// Frame pipeline and spatial hash build (SPEC 1). Mirrors kernels/reference/pipeline.py.
+// Launched once per camera with that camera's parameters as uniform arguments:
+//   pose = R (row-major, 9), t (3), unused (4)            camera -> world
+//   cam  = depth_scale, z_min, z_max, noise a, noise b, lateral (m per m of depth), has_color, has_mask
+//   cami = pixel offset in the rig, pixel count, max_code, camera index
+// The hash is a counting sort: classify (cell per pixel), count_runs, scan, scatter.
+#pragma OPENCL FP_CONTRACT OFF
+
+// floor() for |v| < 2^31 without a libm call (PoCL does not vectorise floor).
+inline int ifloor(float v) { int i = (int)v; return i - (v < (float)i); }
+inline int iclamp(int v, int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
+
+// World point of pixel `pix`; returns 1 when the reading is valid and inside the workspace.
+inline int world_point(int pix, __global const ushort *depth, __global const float2 *rays,
+                       float16 pose, float8 cam, int max_code, float4 wmin, float4 wmax,
+                       float *x, float *y, float *w, float *zc) {
+    uint d = depth[pix];
+    float z = (float)d * cam.s0;
+    float2 r = rays[pix];
+    float xc = r.x * z, yc = r.y * z;
+    *x = pose.s0 * xc + pose.s1 * yc + pose.s2 * z + pose.s9;
+    *y = pose.s3 * xc + pose.s4 * yc + pose.s5 * z + pose.sa;
+    *w = pose.s6 * xc + pose.s7 * yc + pose.s8 * z + pose.sb;
+    *zc = z;
+    return d != 0u && d != (uint)max_code && z >= cam.s1 && z <= cam.s2 &&
+           *x >= wmin.x && *y >= wmin.y && *w >= wmin.z && *x < wmax.x && *y < wmax.y && *w < wmax.z;
+}
+
+// grid = (origin.xyz, 1 / cell size); points are inside the workspace, so the floor is in range.
+inline int cell_index(float x, float y, float w, float4 grid, int4 dims) {
+    int ix = iclamp(ifloor((x - grid.x) * grid.w), dims.x - 1);
+    int iy = iclamp(ifloor((y - grid.y) * grid.w), dims.y - 1);
+    int iz = iclamp(ifloor((w - grid.z) * grid.w), dims.z - 1);
+    return (iz * dims.y + iy) * dims.x + ix;
+}
+
+__kernel void zero_ints(__global int *a, int n) {
+    int i = get_global_id(0);
+    if (i < n) a[i] = 0;
+}
+
+// Cell of every pixel of one camera (-1: invalid or outside the workspace).
+__kernel void classify(__global const ushort *depth, __global const float2 *rays,
+                       float16 pose, float8 cam, int4 cami, float4 wmin, float4 wmax, float4 grid, int4 dims,
+                       __global int *pix_cell) {
+    int i = get_global_id(0);
+    if (i >= cami.y) return;
+    int pix = cami.x + i;
+    float x, y, w, z;
+    int ok = world_point(pix, depth, rays, pose, cam, cami.z, wmin, wmax, &x, &y, &w, &z);
+    pix_cell[pix] = ok ? cell_index(x, y, w, grid, dims) : -1;
+}
+
+// Count per cell and rank per pixel over the whole rig. Each work-item walks `per` consecutive
+// pixels; neighbouring pixels of a depth image mostly share a cell, so one atomic_add per run of
+// equal cells replaces one atomic per pixel (per = 1 is the plain form, for GPUs).
+__kernel void count_runs(__global const int *pix_cell, int npix, int per,
+                         volatile __global int *counts, __global int *pix_rank) {
+    int a = get_global_id(0) * per;
+    int e = min(npix, a + per);
+    int pix = a;
+    while (pix < e) {
+        int cell = pix_cell[pix];
+        int first = pix;
+        while (pix < e && pix_cell[pix] == cell) ++pix;
+        if (cell >= 0) {
+            int base = atomic_add(&counts[cell], pix - first);
+            for (int j = first; j < pix; ++j) pix_rank[j] = base + (j - first);
+        }
+    }
+}
+
+// Exclusive scan of counts[0..n) into start[0..n], in nchunks chunks of `chunk` cells.
+__kernel void scan_chunks(__global const int *counts, int n, int chunk,
+                          __global int *start, __global int *partial) {
+    int g = get_global_id(0);
+    int a = g * chunk, b = min(n, a + chunk);
+    int s = 0;
+    for (int i = a; i < b; ++i) { start[i] = s; s += counts[i]; }
+    partial[g] = s;
+}
+
+__kernel void scan_partials(__global int *partial, int nchunks, __global int *start, int n) {
+    if (get_global_id(0) != 0) return;
+    int s = 0;
+    for (int g = 0; g < nchunks; ++g) { int v = partial[g]; partial[g] = s; s += v; }
+    start[n] = s;
+}
+
+__kernel void scan_add(__global int *start, int n, int chunk, __global const int *partial) {
+    int g = get_global_id(0);
+    int a = g * chunk, b = min(n, a + chunk);
+    int off = partial[g];
+    for (int i = a; i < b; ++i) start[i] += off;
+}
+
+// sqrt(lambda_max) of C = sz^2 r r^T + sl^2 (I - e_z e_z^T), r = (rx, ry, 1): on span{(rx, ry, 0), e_z}
+// C is [[sz^2 rho^2 + sl^2, sz^2 rho], [sz^2 rho, sz^2]] (rho^2 = rx^2 + ry^2); its larger eigenvalue is
+// lambda_max (the third, sl^2, is smaller). The discriminant is written as a sum of squares.
+inline float sigma_max(float sz, float sl, float rx, float ry) {
+    float s2 = sz * sz, l2 = sl * sl, rho2 = rx * rx + ry * ry;
+    float t = s2 * (1.0f + rho2);
+    float dd = t - l2;
+    return sqrt(0.5f * (t + l2 + sqrt(dd * dd + 4.0f * l2 * s2 * rho2)));
+}
+
+// One surviving pixel: attributes, selection, and its slot in the snapshot.
+// sel: 0 all, 1 box, 2 colour range, 3 mask.  radius = (r_base, k_sigma, r_max, adaptive).
+inline void write_point(int pix, int cell, __global const ushort *depth, __global const float2 *rays,
+                        float16 pose, float8 cam, int4 cami, float4 wmin, float4 wmax,
+                        __global const int *pix_rank, __global const int *start,
+                        int sel, float4 box_min, float4 box_max, int4 col_lo, int4 col_hi,
+                        __global const uchar *color, __global const uchar *mask, float4 radius,
+                        __global float4 *out_pts, __global float *out_sigma, __global uchar *out_cam,
+                        __global uchar *out_prot, __global int *out_pix) {
+    float x, y, w, z;
+    world_point(pix, depth, rays, pose, cam, cami.z, wmin, wmax, &x, &y, &w, &z);
+    float2 r = rays[pix];
+    float sigma = sigma_max(cam.s3 + cam.s4 * z * z, cam.s5 * z, r.x, r.y);
+    float rf = radius.w != 0.0f ? min(radius.x + radius.y * sigma, radius.z) : radius.x;
+
+    int prot = 1;
+    if (sel == 1) {
+        prot = x >= box_min.x && y >= box_min.y && w >= box_min.z && x <= box_max.x && y <= box_max.y && w <= box_max.z;
+    } else if (sel == 2) {
+        if (cam.s6 == 0.0f) prot = 0;
+        else {
+            int cr = color[3 * pix], cg = color[3 * pix + 1], cb = color[3 * pix + 2];
+            prot = cr >= col_lo.x && cg >= col_lo.y && cb >= col_lo.z && cr <= col_hi.x && cg <= col_hi.y && cb <= col_hi.z;
+        }
+    } else if (sel == 3) {
+        prot = cam.s7 != 0.0f && mask[pix] != 0;
+    }
+
+    int slot = start[cell] + pix_rank[pix];
+    out_pts[slot] = (float4)(x, y, w, rf);
+    out_sigma[slot] = sigma;
+    out_cam[slot] = (uchar)cami.w;
+    out_prot[slot] = (uchar)prot;
+    out_pix[slot] = pix;
+}
+
+// Write every surviving pixel of one camera to its slot; each work-item walks `per` pixels so
+// that the stores of a run of same-cell pixels are consecutive (per = 1 on GPUs).
+__kernel void scatter(__global const ushort *depth, __global const float2 *rays,
+                      float16 pose, float8 cam, int4 cami, int per, float4 wmin, float4 wmax,
+                      __global const int *pix_cell, __global const int *pix_rank, __global const int *start,
+                      int sel, float4 box_min, float4 box_max, int4 col_lo, int4 col_hi,
+                      __global const uchar *color, __global const uchar *mask, float4 radius,
+                      __global float4 *out_pts, __global float *out_sigma, __global uchar *out_cam,
+                      __global uchar *out_prot, __global int *out_pix) {
+    int i0 = get_global_id(0) * per, i1 = min(i0 + per, cami.y);
+    for (int i = i0; i < i1; ++i) {
+        int pix = cami.x + i;
+        int cell = pix_cell[pix];
+        if (cell < 0) continue;
+        write_point(pix, cell, depth, rays, pose, cam, cami, wmin, wmax, pix_rank, start, sel, box_min, box_max,
+                    col_lo, col_hi, color, mask, radius, out_pts, out_sigma, out_cam, out_prot, out_pix);
+    }
+}

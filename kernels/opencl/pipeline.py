@@ -1,0 +1,201 @@
+"""OpenCL frame pipeline: device buffers allocated once, double-buffered snapshots.
+
+Host class in the style of Warp's examples: it owns every buffer, allocates them at
+construction and launches kernels with explicit global sizes. Building runs on its own
+command queue so queries on the front snapshot (another queue) never wait for a build.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..backend import FramePipeline
+from ..double_buffer import DoubleBuffer
+from ..errors import KernelError
+from ..neighbors import Neighbors, search_span
+from ..snapshot import HostSnapshot
+from .context import _cl, build
+
+LOCAL = 64
+SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
+
+
+def _round_up(n: int, m: int = LOCAL) -> int:
+    return max(m, (n + m - 1) // m * m)
+
+
+class _Slot:
+    """Device arrays of one snapshot."""
+
+    def __init__(self, cl, ctx, npix: int, ncells: int):
+        mf = cl.mem_flags
+        n = max(npix, 1)
+        self.pts = cl.Buffer(ctx, mf.READ_WRITE, 16 * n)
+        self.sigma = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
+        self.cam = cl.Buffer(ctx, mf.READ_WRITE, n)
+        self.prot = cl.Buffer(ctx, mf.READ_WRITE, n)
+        self.pix = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
+        self.start = cl.Buffer(ctx, mf.READ_WRITE, 4 * (ncells + 1))
+        self.n_points = 0
+        self.seq = 0
+        self.timestamps = ()
+        self.per_camera = ()
+
+
+class OpenCLPipeline(FramePipeline):
+    def __init__(self, backend, cameras, params):
+        super().__init__(cameras, params)
+        cl = _cl()
+        self.backend = backend
+        self.cl = cl
+        ctx = self.ctx = backend.context
+        self.build_queue = cl.CommandQueue(ctx)
+        self.query_queue = cl.CommandQueue(ctx)
+        self.prg = build(ctx, "frames.cl", "neighbors.cl")
+        self.k_zero = self.prg.zero_ints
+        self.k_classify = self.prg.classify
+        self.k_count = self.prg.count_runs
+        self.k_scan_chunks = self.prg.scan_chunks
+        self.k_scan_partials = self.prg.scan_partials
+        self.k_scan_add = self.prg.scan_add
+        self.k_scatter = self.prg.scatter
+        self.k_neighbors = self.prg.neighbors
+
+        mf = cl.mem_flags
+        rig = self.rig
+        npix, C = rig.n_pixels, self.grid.n_cells
+        self.npix, self.ncells = npix, C
+        # Pixels per classify work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
+        self.per = 64 if backend.device.type & cl.device_type.CPU else 1
+        self.n_runs = (npix + self.per - 1) // self.per
+        self.nchunks = int(min(4096, max(1, C // 64)))
+        self.chunk = (C + self.nchunks - 1) // self.nchunks
+        self.rays = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rig.rays)
+        self.depth = cl.Buffer(ctx, mf.READ_ONLY, 2 * npix)
+        sel = params.selection.kind
+        self.color = cl.Buffer(ctx, mf.READ_ONLY, 3 * npix if sel == "color" else 1)
+        self.mask = cl.Buffer(ctx, mf.READ_ONLY, npix if sel == "mask" else 1)
+        self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * C)
+        self.pix_cell = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
+        self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
+        self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
+        self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C), _Slot(cl, ctx, npix, C)])
+        self._n_host = np.zeros(1, np.int32)
+        self._zero_cell_starts()
+
+        ws, g = params.workspace, self.grid
+        self.wmin = np.array([*ws.min, 0], np.float32)
+        self.wmax = np.array([*ws.max, 0], np.float32)
+        self.gridf = g.as_float4()
+        self.dims = g.as_int4()
+        s, r = params.selection, params.radius
+        self.sel_args = (
+            np.int32(SELECT_CODE[s.kind]), np.array([*s.box_min, 0], np.float32), np.array([*s.box_max, 0], np.float32),
+            np.array([*s.color_lo, 0], np.int32), np.array([*s.color_hi, 0], np.int32),
+        )
+        self.radius_arg = np.array([r.r_base, r.k_sigma, r.r_max, 1.0 if r.adaptive else 0.0], np.float32)
+        # Neighbour-query staging, grown (never shrunk) when a larger batch arrives.
+        self._nq_cap = 0
+        self._nq_K = 0
+
+    def _zero_cell_starts(self):
+        for slot in self.buffers.slots:
+            self.k_zero(self.build_queue, (_round_up(self.ncells + 1),), None, slot.start, np.int32(self.ncells + 1))
+        self.build_queue.finish()
+
+    # --- build -----------------------------------------------------------------------------
+    def _build(self, frames, packed):
+        cl, q, rig = self.cl, self.build_queue, self.rig
+        b = self.buffers.back()
+        slot = self.buffers.slots[b]
+        try:
+            for i, f in enumerate(frames):
+                off = int(rig.offsets[i])
+                cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off, is_blocking=False)
+                if self.params.selection.kind == "color" and f.color is not None:
+                    cl.enqueue_copy(q, self.color, np.ascontiguousarray(f.color), dst_offset=3 * off, is_blocking=False)
+                if self.params.selection.kind == "mask" and f.mask is not None:
+                    m = (np.asarray(f.mask) != 0).astype(np.uint8)
+                    cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False)
+            npix, C = np.int32(self.npix), np.int32(self.ncells)
+            cams = [(packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy(), (_round_up(int(rig.ints[i, 1])),))
+                    for i in range(len(rig))]
+            self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
+            for pose, cam, cami, gsize in cams:
+                self.k_classify(q, gsize, None, self.depth, self.rays, pose, cam, cami,
+                                self.wmin, self.wmax, self.gridf, self.dims, self.pix_cell)
+            self.k_count(q, (_round_up(self.n_runs),), None, self.pix_cell, npix, np.int32(self.per), self.counts, self.pix_rank)
+            chunk = np.int32(self.chunk)
+            self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, slot.start, self.partial)
+            self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), slot.start, C)
+            self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
+            for pose, cam, cami, gsize in cams:
+                self.k_scatter(q, (_round_up((int(cami[1]) + self.per - 1) // self.per),), None, self.depth, self.rays,
+                               pose, cam, cami, np.int32(self.per), self.wmin, self.wmax,
+                               self.pix_cell, self.pix_rank, slot.start, *self.sel_args, self.color, self.mask,
+                               self.radius_arg, slot.pts, slot.sigma, slot.cam, slot.prot, slot.pix)
+            cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
+        except cl.Error as e:
+            raise KernelError(f"OpenCL frame pipeline failed on {self.backend.device_name}: {e}") from e
+        slot.n_points = int(self._n_host[0])
+        slot.seq = self.seq + 1
+        slot.timestamps = tuple(float(f.timestamp) for f in frames)
+        slot.per_camera = self._per_camera(slot) if len(rig) > 1 else (slot.n_points,)
+        self.buffers.publish(b)
+        return slot.n_points, slot.per_camera
+
+    def _per_camera(self, slot) -> tuple:
+        cam = np.empty(slot.n_points, np.uint8)
+        if slot.n_points:
+            self.cl.enqueue_copy(self.build_queue, cam, slot.cam, is_blocking=True)
+        return tuple(int(n) for n in np.bincount(cam, minlength=len(self.rig)))
+
+    # --- queries -------------------------------------------------------------------------
+    def _ensure_query_capacity(self, B: int, K: int):
+        if B <= self._nq_cap and K <= self._nq_K:
+            return
+        cl, ctx, mf = self.cl, self.ctx, self.cl.mem_flags
+        cap, Kc = max(B, 2 * self._nq_cap, 16), max(K, self._nq_K)
+        self._q_host = np.zeros((cap, 4), np.float32)
+        self._q_buf = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
+        self._count = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap)
+        self._index = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap * Kc)
+        self._near = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap)
+        self._near_d = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap)
+        self._nq_cap, self._nq_K = cap, Kc
+
+    def _neighbors(self, q, radius, max_neighbors, protected_only):
+        cl = self.cl
+        B, K = q.shape[0], max_neighbors
+        self._ensure_query_capacity(B, K)
+        self._q_host[:B, :3] = q
+        out = Neighbors(np.empty(B, np.int32), np.empty((B, K), np.int32), np.empty(B, np.int32), np.empty(B, np.float32))
+        qq = self.query_queue
+        with self.buffers.read() as slot:
+            try:
+                cl.enqueue_copy(qq, self._q_buf, self._q_host[:B], is_blocking=False)
+                self.k_neighbors(qq, (_round_up(B),), None, slot.pts, slot.prot, slot.start, self.gridf, self.dims,
+                                 self._q_buf, np.int32(B), np.float32(radius), np.int32(search_span(radius, self.grid.h)),
+                                 np.int32(K), np.int32(protected_only), self._count, self._index, self._near, self._near_d)
+                cl.enqueue_copy(qq, out.count, self._count, is_blocking=False)
+                cl.enqueue_copy(qq, out.index, self._index, is_blocking=False)
+                cl.enqueue_copy(qq, out.nearest, self._near, is_blocking=False)
+                cl.enqueue_copy(qq, out.nearest_dist, self._near_d, is_blocking=True)
+            except cl.Error as e:
+                raise KernelError(f"OpenCL neighbour query failed on {self.backend.device_name}: {e}") from e
+        return out
+
+    def host_snapshot(self) -> HostSnapshot:
+        cl, q = self.cl, self.query_queue
+        with self.buffers.read() as slot:
+            n = slot.n_points
+            pts = np.empty((n, 4), np.float32)
+            sigma = np.empty(n, np.float32)
+            cam = np.empty(n, np.uint8)
+            prot = np.empty(n, np.uint8)
+            pix = np.empty(n, np.int32)
+            start = np.empty(self.ncells + 1, np.int32)
+            if n:
+                for host, dev in ((pts, slot.pts), (sigma, slot.sigma), (cam, slot.cam), (prot, slot.prot), (pix, slot.pix)):
+                    cl.enqueue_copy(q, host, dev, is_blocking=False)
+            cl.enqueue_copy(q, start, slot.start, is_blocking=True)
+            return HostSnapshot(pts, sigma, cam, prot, pix, start, self.grid, slot.timestamps, slot.seq, slot.per_camera)

@@ -1,0 +1,1 @@
+"""The NumPy reference backend: the executable specification every backend is tested against."""

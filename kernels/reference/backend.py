@@ -1,0 +1,59 @@
+"""The NumPy reference backend."""
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+
+from ..backend import Backend, FramePipeline
+from ..double_buffer import DoubleBuffer
+from ..snapshot import HostSnapshot
+from . import neighbors as nb
+from .pipeline import build_snapshot
+
+
+def empty_snapshot(grid) -> HostSnapshot:
+    f = np.float32
+    return HostSnapshot(
+        points=np.zeros((0, 4), f), sigma=np.zeros(0, f), camera=np.zeros(0, np.uint8),
+        protected=np.zeros(0, np.uint8), pixel=np.zeros(0, np.int32),
+        cell_start=np.zeros(grid.n_cells + 1, np.int32), grid=grid,
+    )
+
+
+class NumpyPipeline(FramePipeline):
+    def __init__(self, backend, cameras, params):
+        super().__init__(cameras, params)
+        self.backend = backend
+        self.buffers = DoubleBuffer([empty_snapshot(self.grid), empty_snapshot(self.grid)])
+
+    def _build(self, frames, packed):
+        snap = build_snapshot(self.rig, frames, self.params, self.grid, seq=self.seq + 1, packed=packed)
+        b = self.buffers.back()
+        self.buffers.slots[b] = snap
+        self.buffers.publish(b)
+        return snap.n_points, snap.per_camera
+
+    def _neighbors(self, q, radius, max_neighbors, protected_only):
+        with self.buffers.read() as snap:
+            return nb.neighbors(snap, q, radius, max_neighbors, protected_only)
+
+    def host_snapshot(self) -> HostSnapshot:
+        with self.buffers.read() as snap:
+            return snap
+
+
+class NumpyBackend(Backend):
+    """Reference implementation on the host CPU (clear and exact, not fast)."""
+
+    name = "numpy"
+
+    def __init__(self, device: str | None = None):
+        pass
+
+    @property
+    def device_name(self) -> str:
+        return f"host CPU ({platform.processor() or platform.machine()}), NumPy {np.__version__}"
+
+    def pipeline(self, cameras, params) -> NumpyPipeline:
+        return NumpyPipeline(self, cameras, params)
