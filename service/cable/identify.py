@@ -90,7 +90,7 @@ def _run_stage(plant: SimulatedPlant, start: GrasperParams, names, band, duratio
 
 def identify(plant: SimulatedPlant, start: GrasperParams = INITIAL_GUESS, *, duration1: float = 30.0,
              duration2: float = 30.0, amplitude1: float = 0.06, amplitude2: float = 0.04,
-             rounds: int = 2, seed: int = 0) -> IdentificationResult:
+             rounds: int = 3, seed: int = 0) -> IdentificationResult:
     """Run the two stages on ``plant`` (free motion) and return the identified parameters.
 
     With ``rounds`` > 1 the pair of stages is repeated, starting the cable stage from the

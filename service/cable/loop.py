@@ -18,9 +18,10 @@ from .params import IDX, NP, GrasperParams
 from .ukf import UKF, UKFConfig
 
 #: Default online estimator: states and the external link torque (section 4.5).
-ONLINE_UKF = UKFConfig(estimate=("tau_l",), q_param=(2e-3,), p0_param=(1.0,))
+ONLINE_UKF = UKFConfig(estimate=("tau_l",), q_param=(5e-5,), p0_param=(1.0,), q_state=(1e-9, 1e-9, 2e-3, 2e-3))
 #: Online estimator that also tracks the cable stiffness (slow random walk) for chapter 5.
-ONLINE_UKF_TENSION = UKFConfig(estimate=("tau_l", "k_e"), q_param=(2e-3, 1e-7), p0_param=(1.0, 0.05))
+ONLINE_UKF_TENSION = UKFConfig(estimate=("tau_l", "k_e"), q_param=(5e-5, 1e-9), p0_param=(1.0, 0.05),
+                               q_state=(1e-9, 1e-9, 2e-3, 2e-3))
 
 
 class CableLoop:
