@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib
+import importlib.util
 
 from .backend import Backend
 from .errors import BackendUnavailable
@@ -24,6 +25,10 @@ def get_backend(name: str | None = None, device: str | None = None) -> Backend:
     if name not in BACKENDS:
         raise BackendUnavailable(f"unknown backend {name!r}; available: {', '.join(available())}; known: {', '.join(BACKENDS)}")
     module, cls, needs, how = BACKENDS[name]
+    if importlib.util.find_spec(module.rsplit(".", 1)[0]) is None:
+        raise BackendUnavailable(
+            f"backend {name!r} is not part of this version of pointfence; available: {', '.join(available())}"
+        )
     try:
         mod = importlib.import_module(module)
     except ImportError as e:
@@ -40,7 +45,7 @@ def available() -> list:
     for name, (module, *_rest) in BACKENDS.items():
         try:
             importlib.import_module(module)
-        except ImportError:
+        except ImportError:  # the backend's package or its dependency is missing
             continue
         out.append(name)
     return out

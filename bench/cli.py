@@ -1,0 +1,38 @@
+"""`pointfence bench NAME`: benchmarks that print one JSON object.
+
+Each benchmark is a module ``pointfence.bench.<NAME>`` with ``add_arguments(parser)`` and
+``run(args) -> dict``. Timing belongs here, never in tests.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+
+#: name -> one-line description
+BENCHES = {
+    "frames": "frame ingest (deproject, transform, radius, hash) vs scipy cKDTree and the projective search",
+}
+
+
+def add_arguments(parser):
+    sub = parser.add_subparsers(dest="bench", metavar="NAME", required=True)
+    for name, help_ in BENCHES.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.add_argument("--backend", default="opencl", help="compute backend (numpy, opencl, warp); default opencl")
+        p.add_argument("--device", default=None, help="device spec for the backend (e.g. 'pocl', 'nvidia')")
+        p.add_argument("--json", action="store_true", help="print only the JSON result")
+        p.add_argument("--repeat", type=int, default=None, help="timed repetitions (default: per benchmark)")
+        importlib.import_module(f"pointfence.bench.{name}").add_arguments(p)
+
+
+def run(args) -> int:
+    from pointfence.bench.machine import machine_info
+
+    mod = importlib.import_module(f"pointfence.bench.{args.bench}")
+    result = mod.run(args)
+    result = {"bench": args.bench, **result, "machine": machine_info()}
+    text = json.dumps(result, indent=None if args.json else 2, sort_keys=False)
+    print(text)
+    sys.stdout.flush()
+    return 0

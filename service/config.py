@@ -1,0 +1,229 @@
+"""The scene configuration file (TOML): backend, workspace, cameras, fixture settings.
+
+Every key is checked: a misspelt key is an error that names it and suggests the closest
+known one. Units: metres, seconds; transforms are 16 numbers, row-major, ``T_world_cam``
+mapping camera coordinates to the world (robot base) frame. See README.md for the schema.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Optional
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+import numpy as np
+
+from pointfence.kernels.camera import Camera, NoiseModel
+from pointfence.kernels.errors import InputError
+from pointfence.kernels.params import PipelineParams, RadiusModel, Selection, Workspace
+
+TOP_KEYS = {"backend", "device", "workspace", "fixture", "hash", "camera"}
+WORKSPACE_KEYS = {"min", "max"}
+FIXTURE_KEYS = {"mode", "radius", "adaptive", "k_sigma", "radius_max", "select"}
+SELECT_KEYS = {"kind", "min", "max", "lo", "hi"}
+HASH_KEYS = {"cell_size"}
+CAMERA_KEYS = {"name", "source", "fx", "fy", "cx", "cy", "width", "height", "depth_scale", "T_world_cam",
+               "noise", "dist", "z_min", "z_max", "max_code", "rate_hz", "options"}
+NOISE_KEYS = {"a", "b"}
+INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+#: default radius_max - radius with adaptive radii: room for k_sigma * sigma, m
+ADAPTIVE_MARGIN = 0.02
+#: the proxy's outer band R3 (table 2.1), used for the automatic cell size
+DEFAULT_R3 = 0.010
+
+
+@dataclass
+class CameraConfig:
+    """One ``[[camera]]`` entry: the camera model and where its frames come from."""
+
+    camera: Camera
+    source: str
+    rate_hz: float = 30.0
+    options: dict = field(default_factory=dict)
+
+
+@dataclass
+class SceneConfig:
+    """A parsed, validated configuration file."""
+
+    backend: str = "opencl"
+    device: Optional[str] = None
+    mode: str = "fixture"
+    pipeline: PipelineParams = field(default_factory=PipelineParams)
+    cameras: list = field(default_factory=list)
+    path: Optional[str] = None
+
+    def open_sources(self, **options) -> list:
+        """One open depth source per camera, in configuration order."""
+        from pointfence.service.sources import open_source
+
+        return [open_source(c.source, c.camera, rate_hz=c.rate_hz, **{**c.options, **options}) for c in self.cameras]
+
+
+def _check_keys(table: dict, known: set, where: str) -> None:
+    if not isinstance(table, dict):
+        raise InputError(f"{where}: expected a table, got {type(table).__name__}")
+    for key in table:
+        if key not in known:
+            near = difflib.get_close_matches(key, sorted(known), n=1)
+            hint = f"; did you mean {near[0]!r}?" if near else ""
+            raise InputError(f"{where}: unknown key {key!r}{hint} Known keys: {', '.join(sorted(known))}")
+
+
+def _num(v: Any, where: str, positive: bool = False, minimum: Optional[float] = None) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InputError(f"{where} = {v!r}; expected a finite number")
+    if positive and v <= 0:
+        raise InputError(f"{where} = {v!r}; expected a number > 0")
+    if minimum is not None and v < minimum:
+        raise InputError(f"{where} = {v!r}; expected >= {minimum}")
+    return float(v)
+
+
+def _vec(v: Any, n: int, where: str) -> list:
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        raise InputError(f"{where} = {v!r}; expected a list of {n} numbers")
+    return [_num(x, f"{where}[{i}]") for i, x in enumerate(v)]
+
+
+def _selection(sel: Any, where: str) -> Selection:
+    if sel is None:
+        return Selection("all")
+    if isinstance(sel, str):
+        sel = {"kind": sel}
+    _check_keys(sel, SELECT_KEYS, where)
+    kind = sel.get("kind", "all")
+    if kind == "box":
+        return Selection("box", box_min=tuple(_vec(sel.get("min"), 3, f"{where}.min")),
+                         box_max=tuple(_vec(sel.get("max"), 3, f"{where}.max")))
+    if kind == "color":
+        lo, hi = sel.get("lo"), sel.get("hi")
+        for name, c in (("lo", lo), ("hi", hi)):
+            if not isinstance(c, list) or len(c) != 3 or not all(isinstance(x, int) and 0 <= x <= 255 for x in c):
+                raise InputError(f"{where}.{name} = {c!r}; expected [R, G, B] integers 0..255")
+        return Selection("color", color_lo=tuple(lo), color_hi=tuple(hi))
+    if kind in ("mask", "all"):
+        return Selection(kind)
+    raise InputError(f"{where}.kind = {kind!r}; expected one of all, box, color, mask")
+
+
+def _camera(entry: dict, i: int) -> CameraConfig:
+    where = f"[[camera]] #{i + 1}"
+    _check_keys(entry, CAMERA_KEYS, where)
+    name = entry.get("name", f"cam{i}")
+    if not isinstance(name, str) or not name:
+        raise InputError(f"{where}: name = {name!r}; expected a non-empty string")
+    where = f"[[camera]] {name!r}"
+    source = entry.get("source")
+    if not isinstance(source, str) or ":" not in source:
+        raise InputError(f"{where}: source = {source!r}; expected 'synthetic:<scene>' or 'recorded:<path>'")
+    kw: dict = {}
+    if "noise" in entry:
+        _check_keys(entry["noise"], NOISE_KEYS, f"{where}.noise")
+        kw["noise"] = NoiseModel(*(_num(entry["noise"].get(k, d), f"{where}.noise.{k}", minimum=0)
+                                   for k, d in (("a", 0.0), ("b", 1.42e-3))))
+    for key in ("depth_scale", "z_min", "z_max"):
+        if key in entry:
+            kw[key] = _num(entry[key], f"{where}.{key}", minimum=0)
+    if "max_code" in entry:
+        kw["max_code"] = int(_num(entry["max_code"], f"{where}.max_code", positive=True))
+    if "dist" in entry:
+        kw["dist"] = tuple(_vec(entry["dist"], 5, f"{where}.dist"))
+    if "T_world_cam" in entry:
+        kw["T_world_cam"] = np.array(_vec(entry["T_world_cam"], 16, f"{where}.T_world_cam")).reshape(4, 4)
+
+    given = [k for k in INTRINSIC_KEYS if k in entry]
+    scheme = source.split(":", 1)[0]
+    if len(given) == len(INTRINSIC_KEYS):
+        intr = {k: _num(entry[k], f"{where}.{k}", positive=True) for k in INTRINSIC_KEYS}
+        intr["width"], intr["height"] = int(intr["width"]), int(intr["height"])
+        camera = Camera(name=name, **intr, **kw)
+    elif scheme == "recorded" and not given:
+        from pointfence.service.sources import camera_from_recording
+
+        target = source.split(":", 1)[1].split("?", 1)[0]
+        base = camera_from_recording(target, name=name)
+        camera = base if not kw else Camera(**{**base.__dict__, **kw})
+    elif scheme == "synthetic" and not given:
+        from pointfence.service.sources import default_camera
+
+        camera = default_camera(name, **{k: v for k, v in kw.items()})
+    else:
+        missing = [k for k in INTRINSIC_KEYS if k not in entry]
+        raise InputError(f"{where}: intrinsics incomplete, missing {', '.join(missing)}; give all of "
+                         f"{', '.join(INTRINSIC_KEYS)} (recorded and synthetic sources may omit all of them)")
+    options = entry.get("options", {})
+    if not isinstance(options, dict):
+        raise InputError(f"{where}.options = {options!r}; expected a table of source options")
+    rate = _num(entry.get("rate_hz", 30.0), f"{where}.rate_hz", positive=True)
+    return CameraConfig(camera, source, rate, dict(options))
+
+
+def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
+    """Validate a configuration already read from TOML."""
+    where = path or "config"
+    _check_keys(doc, TOP_KEYS, where)
+    backend = doc.get("backend", "opencl")
+    if not isinstance(backend, str):
+        raise InputError(f"{where}: backend = {backend!r}; expected a name such as 'opencl' or 'numpy'")
+    device = doc.get("device") or None
+
+    ws = doc.get("workspace", {})
+    _check_keys(ws, WORKSPACE_KEYS, "[workspace]")
+    workspace = Workspace(tuple(_vec(ws.get("min", [-0.5] * 3), 3, "[workspace] min")),
+                          tuple(_vec(ws.get("max", [0.5] * 3), 3, "[workspace] max")))
+
+    fx = doc.get("fixture", {})
+    _check_keys(fx, FIXTURE_KEYS, "[fixture]")
+    mode = fx.get("mode", "fixture")
+    if mode not in ("fixture", "rendering"):
+        raise InputError(f"[fixture] mode = {mode!r}; expected 'fixture' or 'rendering'")
+    r_base = _num(fx.get("radius", 0.02), "[fixture] radius", minimum=0)
+    adaptive = fx.get("adaptive", False)
+    if not isinstance(adaptive, bool):
+        raise InputError(f"[fixture] adaptive = {adaptive!r}; expected true or false")
+    radius = RadiusModel(r_base=r_base, adaptive=adaptive,
+                         k_sigma=_num(fx.get("k_sigma", 3.0), "[fixture] k_sigma", minimum=0),
+                         r_max=_num(fx.get("radius_max", r_base + (ADAPTIVE_MARGIN if adaptive else 0.0)),
+                                    "[fixture] radius_max", minimum=0))
+    selection = _selection(fx.get("select"), "[fixture] select")
+
+    hs = doc.get("hash", {})
+    _check_keys(hs, HASH_KEYS, "[hash]")
+    reach = PipelineParams.reach(DEFAULT_R3, radius if mode == "fixture" else None)
+    cell = _num(hs.get("cell_size", reach), "[hash] cell_size", positive=True)
+    if cell < reach:
+        raise InputError(f"[hash] cell_size = {cell} m is below the largest query reach {reach} m "
+                         f"(R3 {'+ radius_max ' if mode == 'fixture' else ''}); use >= {reach}")
+    pipeline = PipelineParams(workspace=workspace, selection=selection, radius=radius, cell_size=cell)
+
+    entries = doc.get("camera", [])
+    if not isinstance(entries, list) or not entries:
+        raise InputError(f"{where}: no [[camera]] entries; at least one camera is needed")
+    cameras = [_camera(e, i) for i, e in enumerate(entries)]
+    names = [c.camera.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise InputError(f"{where}: camera names must be unique, got {names}")
+    return SceneConfig(backend=backend, device=device, mode=mode, pipeline=pipeline, cameras=cameras, path=path)
+
+
+def load(path=None) -> SceneConfig:
+    """Read and validate a configuration file; ``None`` loads the embedded defaults."""
+    if path is None:
+        text = resources.files("pointfence.service").joinpath("defaults.toml").read_text()
+        return parse(tomllib.loads(text), "embedded defaults")
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"configuration file {str(p)!r} not found; pass an existing .toml file (see README.md)")
+    try:
+        doc = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{p}: not valid TOML: {e}") from None
+    return parse(doc, str(p))

@@ -1,0 +1,114 @@
+"""The scene configuration file."""
+import textwrap
+
+import numpy as np
+import pytest
+
+from pointfence.kernels import InputError
+from pointfence.service import config
+
+from kernel_cases import SHARED
+
+GOOD = """
+backend = "numpy"
+[workspace]
+min = [-0.3, -0.3, -0.05]
+max = [0.3, 0.3, 0.3]
+[fixture]
+mode = "fixture"
+radius = 0.015
+adaptive = true
+k_sigma = 2.5
+select = { kind = "box", min = [-0.1, -0.1, 0.0], max = [0.1, 0.1, 0.2] }
+[[camera]]
+name = "left"
+source = "synthetic:plane"
+fx = 500.0
+fy = 501.0
+cx = 159.5
+cy = 119.5
+width = 320
+height = 240
+depth_scale = 0.001
+T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,  0, 0, -1, 0.6,  0, 0, 0, 1]
+noise = { a = 0.0005, b = 0.002 }
+[[camera]]
+name = "right"
+source = "synthetic:plane"
+"""
+
+
+def write(tmp_path, text):
+    p = tmp_path / "scene.toml"
+    p.write_text(textwrap.dedent(text))
+    return p
+
+
+def test_good_config_parses_every_key(tmp_path):
+    c = config.load(write(tmp_path, GOOD))
+    assert c.backend == "numpy" and c.mode == "fixture"
+    left, right = c.cameras[0].camera, c.cameras[1].camera
+    assert (left.fx, left.fy, left.width, left.height) == (500.0, 501.0, 320, 240)
+    assert left.noise.a == 0.0005 and left.noise.b == 0.002
+    np.testing.assert_allclose(left.T_world_cam[2], [0, 0, -1, 0.6])
+    assert right.width == 640  # synthetic default camera
+    p = c.pipeline
+    assert p.selection.kind == "box" and p.selection.box_max == (0.1, 0.1, 0.2)
+    assert p.radius.adaptive and p.radius.k_sigma == 2.5 and p.radius.r_base == 0.015
+    assert p.cell_size >= p.radius.r_max + 0.010
+
+
+def test_defaults_load_and_run_one_frame():
+    from pointfence.kernels import get_backend
+
+    c = config.load(None)
+    pipe = get_backend(c.backend, c.device).pipeline([x.camera for x in c.cameras], c.pipeline)
+    src = c.open_sources()
+    info = pipe.ingest([s.read() for s in src])
+    snap = pipe.host_snapshot()
+    assert info.n_points > 10000
+    assert 0 < snap.protected.sum() < snap.n_points  # the red balloon only
+
+
+@pytest.mark.parametrize("edit, message", [
+    (("radius = 0.015", "radious = 0.015"), "unknown key 'radious'; did you mean 'radius'?"),
+    (("[workspace]", "[workspaces]"), "unknown key 'workspaces'; did you mean 'workspace'?"),
+    (("fx = 500.0", "fx = -500.0"), "fx = -500.0; expected a number > 0"),
+    (("fx = 500.0\n", ""), "intrinsics incomplete, missing fx"),
+    (("T_world_cam = [1, 0, 0, 0,", "T_world_cam = [2, 0, 0, 0,"), "not a rotation"),
+    (("T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,", "T_world_cam = [1, 0, 0, 0,"), "expected a list of 16 numbers"),
+    (('mode = "fixture"', 'mode = "fence"'), "mode = 'fence'; expected 'fixture' or 'rendering'"),
+    (('source = "synthetic:plane"\nfx', 'source = "webcam"\nfx'), "expected 'synthetic:<scene>' or 'recorded:<path>'"),
+    (("noise = { a = 0.0005, b = 0.002 }", "noise = { a = 0.0005, c = 0.002 }"), "unknown key 'c'"),
+    (('kind = "box"', 'kind = "sphere"'), "expected one of all, box, color, mask"),
+])
+def test_config_errors_name_the_value(tmp_path, edit, message):
+    old, new = edit
+    assert old in GOOD
+    with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)").replace("?", r"\?")):
+        config.load(write(tmp_path, GOOD.replace(old, new, 1)))
+
+
+def test_missing_file_and_bad_toml(tmp_path):
+    with pytest.raises(InputError, match="not found"):
+        config.load(tmp_path / "nope.toml")
+    with pytest.raises(InputError, match="not valid TOML"):
+        config.load(write(tmp_path, "backend = \n"))
+
+
+def test_recorded_camera_takes_intrinsics_from_the_recording(tmp_path):
+    if not SHARED.is_dir():
+        pytest.skip("../shared/data not found: real-data tests need the shared folder beside the project")
+    text = f"""
+    [workspace]
+    min = [-3, -3, -3]
+    max = [3, 3, 3]
+    [[camera]]
+    name = "kitchen"
+    source = "recorded:{SHARED / '7scenes_kitchen_50f'}"
+    """
+    c = config.load(write(tmp_path, text))
+    cam = c.cameras[0].camera
+    assert (cam.fx, cam.cx, cam.width) == (585.0, 320.0, 640)
+    frame = c.open_sources()[0].read()
+    assert frame.depth.shape == (480, 640) and frame.T_world_cam is not None
