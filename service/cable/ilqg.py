@@ -12,7 +12,7 @@ back to a one-step Euler model in the backward pass; generated C makes the exact
 The second derivatives of the dynamics are dropped (iLQG rather than full DDP).
 
 A backtracking line search without branches: each iteration rolls out the step sizes
-alpha in {1, 0.5, 0.1} and keeps the cheapest of those and the current plan, so the cost never
+alpha in {1, 0.5, 0.2, 0.05} and keeps the cheapest of those and the current plan, so the cost never
 increases. The whole tick (10 rollouts, 3 backward passes) is one CasADi function, generated
 to C and called on preallocated buffers.
 """
@@ -30,7 +30,7 @@ from .codegen import BufferedCall, compile_functions
 from .model import PREDICTOR_SUBSTEPS, dynamics_expr, implicit_step_expr
 from .params import DT, IDX, NP, NX
 
-ALPHAS = (1.0, 0.5, 0.1)
+ALPHAS = (1.0, 0.5, 0.2, 0.05)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,7 +99,9 @@ def _sx_parts(cfg: MPCConfig):
 
     # one forward-pass stage with feedback
     xh, xnom, k, K, al = ca.SX.sym("xh", NX), ca.SX.sym("xnom", NX), ca.SX.sym("k"), ca.SX.sym("K", NX), ca.SX.sym("al")
-    un = u + al * k + K.T @ (xh - xnom)
+    # the barrier keeps the optimum inside +-tau_max; clamping the trial torque at 1.5 tau_max
+    # keeps a far-off linearisation from proposing absurd steps
+    un = ca.fmin(ca.fmax(u + al * k + K.T @ (xh - xnom), -1.5 * cfg.tau_max), 1.5 * cfg.tau_max)
     fwd = ca.Function("mpc_fwd", [xh, xnom, u, k, K, al, p], [step(xh, un, p), un])
     return step, lin, cost, tcost, tder, back, fwd
 

@@ -1,0 +1,155 @@
+"""UKF, identification, iLQG MPC closed loop, tension curve and alerts, 1 kHz controller thread."""
+import time
+
+import numpy as np
+import pytest
+
+from pointfence.kernels.errors import InputError
+from pointfence.service.cable.controller import CableController
+from pointfence.service.cable.identify import _run_stage, CABLE_PARAMS, INITIAL_GUESS, multisine
+from pointfence.service.cable.ilqg import ILQGController, MPCConfig
+from pointfence.service.cable.loop import ONLINE_UKF, CableLoop
+from pointfence.service.cable.params import GrasperParams, NP
+from pointfence.service.cable.plant import HuntCrossley, LinearSpring, SimulatedPlant
+from pointfence.service.cable.sim import run_closed_loop, tracking_rms
+from pointfence.service.cable.tension import TensionMonitor, fit_tension_curve
+from pointfence.service.cable.trajectories import ramp_hold
+from pointfence.service.cable.ukf import UKF, UKFConfig
+
+
+def test_ukf_estimates_spring_torque_from_motor_encoder_only():
+    truth = GrasperParams()
+    plant = SimulatedPlant(truth, spring=LinearSpring(k=0.08, q0=0.0), seed=1)
+    ukf = UKF(truth, ONLINE_UKF)
+    ukf.reset(plant.measure())
+    up, est, meas = 0.0, [], []
+    for k in range(3000):
+        ukf.step(up, plant.measure())
+        plant.actuate(0.04)
+        up = plant.applied_torque
+        est.append(ukf.estimates()["tau_l"])
+        meas.append(plant.env_torque)
+    est, meas = np.array(est[-500:]), np.array(meas[-500:])
+    assert meas.mean() < -0.02  # the spring is loaded
+    assert abs(est.mean() - meas.mean()) < 0.15 * abs(meas.mean())
+    assert abs(ukf.x[1] - plant.link_angle) < 0.01  # link angle estimated without a link sensor
+
+
+def test_ukf_config_validation():
+    with pytest.raises(InputError, match="unknown parameter 'stiffness'"):
+        UKFConfig(estimate=("stiffness",))
+    with pytest.raises(InputError, match="q_param has 3 entries"):
+        UKFConfig(estimate=("k_e", "b_e"), q_param=(1, 2, 3))
+
+
+def test_identification_stage1_moves_k_e_to_truth():
+    truth = GrasperParams()
+    plant = SimulatedPlant(truth, seed=2)
+    st = _run_stage(plant, INITIAL_GUESS, CABLE_PARAMS, (0.5, 3.5), 10.0, 0.06, (1e-7,), 1e-4, seed=0)
+    k0 = INITIAL_GUESS.k_e
+    assert abs(st.final["k_e"] - truth.k_e) < 0.25 * truth.k_e
+    assert abs(st.final["k_e"] - truth.k_e) < 0.5 * abs(k0 - truth.k_e)
+    assert st.traces.shape == (1000, 2)
+    with pytest.raises(InputError, match="band"):
+        multisine(1.0, 3.0, 1.0, 0.1)
+
+
+def test_mpc_respects_barrier_and_tracks_in_contact():
+    p = GrasperParams().vector()
+    for target, lo, hi in ((0.3, 0.15, 0.21), (1.0, 0.2, 0.26), (3.0, 0.2, 0.3 + 1e-12)):
+        mpc = ILQGController()
+        mpc.qd[:] = target  # far away: the soft barrier (a = 30) holds the torque near tau_max = 0.2
+        for _ in range(20):
+            u = mpc.solve(np.zeros(4), p)
+        assert lo < u < hi, (target, u)
+        assert np.all(np.abs(mpc.plan) < hi)
+    with pytest.raises(InputError, match="horizon"):
+        MPCConfig(horizon=0)
+
+    truth = GrasperParams()
+    qd = ramp_hold([-0.2, 0.25, 0.0], duration_ramp=0.5, duration_hold=0.6)
+    res = run_closed_loop(SimulatedPlant(truth, contact=HuntCrossley(q_contact=0.0), seed=3), CableLoop(truth), qd)
+    contact = res["q_l"] > 0.0
+    assert contact.sum() > 300 and res["tau_env"].min() < -0.03  # real tissue load
+    assert tracking_rms(res) < 0.012
+    hold = (res["t"] > 2.35) & (res["t"] < 2.75)  # holding at 0.25 rad inside the tissue
+    assert abs(np.mean(res["q_l"][hold]) - 0.25) < 0.02
+    # the UKF's external torque matches the tissue torque it never saw
+    assert abs(np.mean(res["tau_l_hat"][hold]) - np.mean(res["tau_env"][hold])) < 0.01
+    assert np.percentile(res["compute_s"], 50) < 1e-3
+
+
+def test_tension_fit_estimate_and_alerts():
+    k = np.array([1.2e4, 1.6e4, 2.1e4, 2.9e4])
+    t = 300.0 + 900.0 * np.log(k / 1e4)
+    curve = fit_tension_curve(t, k)
+    assert curve.estimate(2.0e4) == pytest.approx(300 + 900 * np.log(2.0), rel=1e-9)
+    mon = TensionMonitor(curve, safe_min_g=600, safe_max_g=1000, axis="grasp")
+    t_low, a_low = mon.check(1.3e4)
+    assert a_low is not None and a_low.direction == "increase" and "grasp" in a_low.message
+    assert "tighten" in a_low.message and t_low < 600
+    _, a_high = mon.check(3.5e4)
+    assert a_high.direction == "decrease" and "slacken" in a_high.message
+    assert mon.check(2.0e4)[1] is None
+    with pytest.raises(InputError, match="at least 2"):
+        fit_tension_curve([700], [2e4])
+    with pytest.raises(InputError, match="safe tension range"):
+        TensionMonitor(curve, safe_min_g=900, safe_max_g=800)
+    with pytest.raises(InputError, match="k_e"):
+        curve.estimate(-1.0)
+
+
+def test_controller_thread_tracks_grasp_command_at_1khz():
+    truth = GrasperParams()
+    plant = SimulatedPlant(truth, contact=HuntCrossley(q_contact=0.15), seed=4)
+    curve = fit_tension_curve([500, 1000, 1500], [1.5e4, 2.1e4, 2.6e4])
+    ctl = CableController(plant, truth, tension_monitor=TensionMonitor(curve, 1200, 1600))
+    ctl.start()
+    try:
+        ctl.set_grasp_command(0.3)
+        time.sleep(1.0)
+        s = ctl.status()
+    finally:
+        ctl.stop()
+    assert s.running and s.fault is None
+    assert 800 <= s.ticks <= 1100
+    assert abs(plant.link_angle - 0.3) < 0.03
+    assert s.estimated_link_torque < -0.005  # pressing into the tissue
+    assert s.compute_p50_us < 1000
+    assert s.deadline_misses < 0.1 * s.ticks
+    assert s.estimated_tension_g is not None and s.estimated_tension_g < 1200
+    assert any("tighten" in a for a in s.alerts)
+    with pytest.raises(InputError, match="finite"):
+        ctl.set_grasp_command(float("nan"))
+
+
+class _NaNAfter:
+    """Plant wrapper whose encoder returns NaN after ``n`` reads; records applied torques."""
+
+    def __init__(self, plant, n):
+        self.plant, self.n, self.reads, self.torques = plant, n, 0, []
+
+    def measure(self):
+        self.reads += 1
+        return float("nan") if self.reads > self.n else self.plant.measure()
+
+    def actuate(self, tau):
+        self.torques.append(tau)
+        self.plant.actuate(tau)
+
+
+def test_controller_nan_gives_zero_torque_and_alert():
+    plant = _NaNAfter(SimulatedPlant(seed=5), 200)
+    ctl = CableController(plant, GrasperParams())
+    ctl.start()
+    try:
+        ctl.set_grasp_command(0.3)
+        time.sleep(0.4)
+        s = ctl.status()
+    finally:
+        ctl.stop()
+    assert s.fault is not None and "not finite" in s.fault
+    assert any(a.startswith("FAULT") for a in s.alerts)
+    assert max(abs(t) for t in plant.torques[:150]) > 0.01  # it was driving before
+    assert all(t == 0.0 for t in plant.torques[205:])      # zero torque after the NaN
+    assert s.motor_torque == 0.0
