@@ -3,7 +3,11 @@
 //   pose = R (row-major, 9), t (3), unused (4)            camera -> world
 //   cam  = depth_scale, z_min, z_max, noise a, noise b, lateral (m per m of depth), has_color, has_mask
 //   cami = pixel offset in the rig, pixel count, max_code, camera index
-// The hash is a counting sort: classify (cell per pixel), count_runs, scan, scatter.
+// The hash is a counting sort of pixel indices: classify (attributes and cell per pixel, written
+// in pixel order), count_runs, scan, scatter (4-byte entries only). A snapshot is
+//   pts[pix] = (x, y, z, r_f) and sigma[pix] for every surviving pixel (pixel order), and
+//   order[start[c] .. start[c+1]) = entries of cell c, entry = pix | protected << 31.
+// Moving only 4-byte entries keeps the scattered writes in cache (moving 26-byte points was 15x slower on PoCL).
 #pragma OPENCL FP_CONTRACT OFF
 
 // floor() for |v| < 2^31 without a libm call (PoCL does not vectorise floor).
@@ -39,16 +43,50 @@ __kernel void zero_ints(__global int *a, int n) {
     if (i < n) a[i] = 0;
 }
 
-// Cell of every pixel of one camera (-1: invalid or outside the workspace).
+// sqrt(lambda_max) of C = sz^2 r r^T + sl^2 (I - e_z e_z^T), r = (rx, ry, 1): on span{(rx, ry, 0), e_z}
+// C is [[sz^2 rho^2 + sl^2, sz^2 rho], [sz^2 rho, sz^2]] (rho^2 = rx^2 + ry^2); its larger eigenvalue is
+// lambda_max (the third, sl^2, is smaller). The discriminant is written as a sum of squares.
+inline float sigma_max(float sz, float sl, float rx, float ry) {
+    float s2 = sz * sz, l2 = sl * sl, rho2 = rx * rx + ry * ry;
+    float t = s2 * (1.0f + rho2);
+    float dd = t - l2;
+    return sqrt(0.5f * (t + l2 + sqrt(dd * dd + 4.0f * l2 * s2 * rho2)));
+}
+
+// Attributes and cell of every pixel of one camera (cell -1: invalid or outside the workspace).
+// sel: 0 all, 1 box, 2 colour range, 3 mask.  radius = (r_base, k_sigma, r_max, adaptive).
 __kernel void classify(__global const ushort *depth, __global const float2 *rays,
                        float16 pose, float8 cam, int4 cami, float4 wmin, float4 wmax, float4 grid, int4 dims,
-                       __global int *pix_cell) {
+                       int sel, float4 box_min, float4 box_max, int4 col_lo, int4 col_hi,
+                       __global const uchar *color, __global const uchar *mask, float4 radius,
+                       __global int *pix_cell, __global uchar *pix_prot, __global float4 *pts, __global float *sig) {
     int i = get_global_id(0);
     if (i >= cami.y) return;
     int pix = cami.x + i;
     float x, y, w, z;
-    int ok = world_point(pix, depth, rays, pose, cam, cami.z, wmin, wmax, &x, &y, &w, &z);
-    pix_cell[pix] = ok ? cell_index(x, y, w, grid, dims) : -1;
+    if (!world_point(pix, depth, rays, pose, cam, cami.z, wmin, wmax, &x, &y, &w, &z)) {
+        pix_cell[pix] = -1;
+        return;
+    }
+    pix_cell[pix] = cell_index(x, y, w, grid, dims);
+    float2 r = rays[pix];
+    float sigma = sigma_max(cam.s3 + cam.s4 * z * z, cam.s5 * z, r.x, r.y);
+    float rf = radius.w != 0.0f ? min(radius.x + radius.y * sigma, radius.z) : radius.x;
+    int prot = 1;
+    if (sel == 1) {
+        prot = x >= box_min.x && y >= box_min.y && w >= box_min.z && x <= box_max.x && y <= box_max.y && w <= box_max.z;
+    } else if (sel == 2) {
+        if (cam.s6 == 0.0f) prot = 0;
+        else {
+            int cr = color[3 * pix], cg = color[3 * pix + 1], cb = color[3 * pix + 2];
+            prot = cr >= col_lo.x && cg >= col_lo.y && cb >= col_lo.z && cr <= col_hi.x && cg <= col_hi.y && cb <= col_hi.z;
+        }
+    } else if (sel == 3) {
+        prot = cam.s7 != 0.0f && mask[pix] != 0;
+    }
+    pix_prot[pix] = (uchar)prot;
+    pts[pix] = (float4)(x, y, w, rf);
+    sig[pix] = sigma;
 }
 
 // Count per cell and rank per pixel over the whole rig. Each work-item walks `per` consecutive
@@ -68,6 +106,14 @@ __kernel void count_runs(__global const int *pix_cell, int npix, int per,
             for (int j = first; j < pix; ++j) pix_rank[j] = base + (j - first);
         }
     }
+}
+
+// Points per camera: each work-item counts the surviving pixels of `per` pixels of camera cami.w.
+__kernel void count_camera(__global const int *pix_cell, int4 cami, int per, volatile __global int *cam_counts) {
+    int a = get_global_id(0) * per, e = min(a + per, cami.y);
+    int n = 0;
+    for (int i = a; i < e; ++i) n += pix_cell[cami.x + i] >= 0;
+    if (n) atomic_add(&cam_counts[cami.w], n);
 }
 
 // Exclusive scan of counts[0..n) into start[0..n], in nchunks chunks of `chunk` cells.
@@ -94,67 +140,12 @@ __kernel void scan_add(__global int *start, int n, int chunk, __global const int
     for (int i = a; i < b; ++i) start[i] += off;
 }
 
-// sqrt(lambda_max) of C = sz^2 r r^T + sl^2 (I - e_z e_z^T), r = (rx, ry, 1): on span{(rx, ry, 0), e_z}
-// C is [[sz^2 rho^2 + sl^2, sz^2 rho], [sz^2 rho, sz^2]] (rho^2 = rx^2 + ry^2); its larger eigenvalue is
-// lambda_max (the third, sl^2, is smaller). The discriminant is written as a sum of squares.
-inline float sigma_max(float sz, float sl, float rx, float ry) {
-    float s2 = sz * sz, l2 = sl * sl, rho2 = rx * rx + ry * ry;
-    float t = s2 * (1.0f + rho2);
-    float dd = t - l2;
-    return sqrt(0.5f * (t + l2 + sqrt(dd * dd + 4.0f * l2 * s2 * rho2)));
-}
-
-// One surviving pixel: attributes, selection, and its slot in the snapshot.
-// sel: 0 all, 1 box, 2 colour range, 3 mask.  radius = (r_base, k_sigma, r_max, adaptive).
-inline void write_point(int pix, int cell, __global const ushort *depth, __global const float2 *rays,
-                        float16 pose, float8 cam, int4 cami, float4 wmin, float4 wmax,
-                        __global const int *pix_rank, __global const int *start,
-                        int sel, float4 box_min, float4 box_max, int4 col_lo, int4 col_hi,
-                        __global const uchar *color, __global const uchar *mask, float4 radius,
-                        __global float4 *out_pts, __global float *out_sigma, __global uchar *out_cam,
-                        __global uchar *out_prot, __global int *out_pix) {
-    float x, y, w, z;
-    world_point(pix, depth, rays, pose, cam, cami.z, wmin, wmax, &x, &y, &w, &z);
-    float2 r = rays[pix];
-    float sigma = sigma_max(cam.s3 + cam.s4 * z * z, cam.s5 * z, r.x, r.y);
-    float rf = radius.w != 0.0f ? min(radius.x + radius.y * sigma, radius.z) : radius.x;
-
-    int prot = 1;
-    if (sel == 1) {
-        prot = x >= box_min.x && y >= box_min.y && w >= box_min.z && x <= box_max.x && y <= box_max.y && w <= box_max.z;
-    } else if (sel == 2) {
-        if (cam.s6 == 0.0f) prot = 0;
-        else {
-            int cr = color[3 * pix], cg = color[3 * pix + 1], cb = color[3 * pix + 2];
-            prot = cr >= col_lo.x && cg >= col_lo.y && cb >= col_lo.z && cr <= col_hi.x && cg <= col_hi.y && cb <= col_hi.z;
-        }
-    } else if (sel == 3) {
-        prot = cam.s7 != 0.0f && mask[pix] != 0;
-    }
-
-    int slot = start[cell] + pix_rank[pix];
-    out_pts[slot] = (float4)(x, y, w, rf);
-    out_sigma[slot] = sigma;
-    out_cam[slot] = (uchar)cami.w;
-    out_prot[slot] = (uchar)prot;
-    out_pix[slot] = pix;
-}
-
-// Write every surviving pixel of one camera to its slot; each work-item walks `per` pixels so
-// that the stores of a run of same-cell pixels are consecutive (per = 1 on GPUs).
-__kernel void scatter(__global const ushort *depth, __global const float2 *rays,
-                      float16 pose, float8 cam, int4 cami, int per, float4 wmin, float4 wmax,
-                      __global const int *pix_cell, __global const int *pix_rank, __global const int *start,
-                      int sel, float4 box_min, float4 box_max, int4 col_lo, int4 col_hi,
-                      __global const uchar *color, __global const uchar *mask, float4 radius,
-                      __global float4 *out_pts, __global float *out_sigma, __global uchar *out_cam,
-                      __global uchar *out_prot, __global int *out_pix) {
-    int i0 = get_global_id(0) * per, i1 = min(i0 + per, cami.y);
-    for (int i = i0; i < i1; ++i) {
-        int pix = cami.x + i;
-        int cell = pix_cell[pix];
-        if (cell < 0) continue;
-        write_point(pix, cell, depth, rays, pose, cam, cami, wmin, wmax, pix_rank, start, sel, box_min, box_max,
-                    col_lo, col_hi, color, mask, radius, out_pts, out_sigma, out_cam, out_prot, out_pix);
-    }
+// Entry of every surviving pixel into its cell's slot range.
+__kernel void scatter(__global const int *pix_cell, __global const int *pix_rank, __global const uchar *pix_prot,
+                      int npix, __global const int *start, __global int *order) {
+    int pix = get_global_id(0);
+    if (pix >= npix) return;
+    int cell = pix_cell[pix];
+    if (cell < 0) return;
+    order[start[cell] + pix_rank[pix]] = pix | ((int)pix_prot[pix] << 31);
 }

@@ -1,7 +1,9 @@
 // Fixed-radius neighbours in the spatial hash. Mirrors kernels/reference/neighbors.py.
+// Snapshot layout (frames.cl): pts in pixel order, order[] = pix | protected << 31 sorted by cell.
+// Reported indices are positions in `order` (the host snapshot's point indices).
 #pragma OPENCL FP_CONTRACT OFF
 
-__kernel void neighbors(__global const float4 *pts, __global const uchar *prot, __global const int *start,
+__kernel void neighbors(__global const float4 *pts, __global const int *order, __global const int *start,
                         float4 grid, int4 dims, __global const float4 *queries, int nq,
                         float radius, int span, int K, int protected_only,
                         __global int *count, __global int *index, __global int *nearest, __global float *nearest_d) {
@@ -23,8 +25,9 @@ __kernel void neighbors(__global const float4 *pts, __global const uchar *prot, 
             int base = (iz * dims.y + iy) * dims.x;
             int a = start[base + x0], e = start[base + x1 + 1];
             for (int i = a; i < e; ++i) {
-                if (protected_only && !prot[i]) continue;
-                float4 p = pts[i];
+                int entry = order[i];
+                if (protected_only && entry >= 0) continue;
+                float4 p = pts[entry & 0x7fffffff];
                 float dx = p.x - q.x, dy = p.y - q.y, dz = p.z - q.z;
                 float d2 = dx * dx + dy * dy + dz * dz;
                 if (d2 <= r2) {

@@ -24,16 +24,20 @@ def _round_up(n: int, m: int = LOCAL) -> int:
 
 
 class _Slot:
-    """Device arrays of one snapshot."""
+    """Device arrays of one snapshot (see frames.cl for the layout).
+
+    pts: float4 per rig pixel, (x, y, z, r_f) in pixel order; only pixels listed in ``order``
+    are meaningful. sigma: float per rig pixel. order: int32 per point, sorted by cell,
+    entry = pixel | protected << 31. start: int32 (n_cells + 1), cell c's entries are
+    order[start[c]:start[c+1]].
+    """
 
     def __init__(self, cl, ctx, npix: int, ncells: int):
         mf = cl.mem_flags
         n = max(npix, 1)
         self.pts = cl.Buffer(ctx, mf.READ_WRITE, 16 * n)
         self.sigma = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
-        self.cam = cl.Buffer(ctx, mf.READ_WRITE, n)
-        self.prot = cl.Buffer(ctx, mf.READ_WRITE, n)
-        self.pix = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
+        self.order = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
         self.start = cl.Buffer(ctx, mf.READ_WRITE, 4 * (ncells + 1))
         self.n_points = 0
         self.seq = 0
@@ -54,6 +58,7 @@ class OpenCLPipeline(FramePipeline):
         self.k_zero = self.prg.zero_ints
         self.k_classify = self.prg.classify
         self.k_count = self.prg.count_runs
+        self.k_count_camera = self.prg.count_camera
         self.k_scan_chunks = self.prg.scan_chunks
         self.k_scan_partials = self.prg.scan_partials
         self.k_scan_add = self.prg.scan_add
@@ -64,7 +69,7 @@ class OpenCLPipeline(FramePipeline):
         rig = self.rig
         npix, C = rig.n_pixels, self.grid.n_cells
         self.npix, self.ncells = npix, C
-        # Pixels per classify work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
+        # Pixels per count_runs work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
         self.per = 64 if backend.device.type & cl.device_type.CPU else 1
         self.n_runs = (npix + self.per - 1) // self.per
         self.nchunks = int(min(4096, max(1, C // 64)))
@@ -77,6 +82,9 @@ class OpenCLPipeline(FramePipeline):
         self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * C)
         self.pix_cell = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
         self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
+        self.pix_prot = cl.Buffer(ctx, mf.READ_WRITE, npix)
+        self.cam_counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * len(rig))
+        self._cam_counts_host = np.zeros(len(rig), np.int32)
         self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
         self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C), _Slot(cl, ctx, npix, C)])
         self._n_host = np.zeros(1, np.int32)
@@ -117,37 +125,34 @@ class OpenCLPipeline(FramePipeline):
                     m = (np.asarray(f.mask) != 0).astype(np.uint8)
                     cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False)
             npix, C = np.int32(self.npix), np.int32(self.ncells)
-            cams = [(packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy(), (_round_up(int(rig.ints[i, 1])),))
-                    for i in range(len(rig))]
             self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
-            for pose, cam, cami, gsize in cams:
-                self.k_classify(q, gsize, None, self.depth, self.rays, pose, cam, cami,
-                                self.wmin, self.wmax, self.gridf, self.dims, self.pix_cell)
+            for i in range(len(rig)):
+                pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
+                self.k_classify(q, (_round_up(int(cami[1])),), None, self.depth, self.rays, pose, cam, cami,
+                                self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
+                                self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
             self.k_count(q, (_round_up(self.n_runs),), None, self.pix_cell, npix, np.int32(self.per), self.counts, self.pix_rank)
             chunk = np.int32(self.chunk)
             self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, slot.start, self.partial)
             self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), slot.start, C)
             self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
-            for pose, cam, cami, gsize in cams:
-                self.k_scatter(q, (_round_up((int(cami[1]) + self.per - 1) // self.per),), None, self.depth, self.rays,
-                               pose, cam, cami, np.int32(self.per), self.wmin, self.wmax,
-                               self.pix_cell, self.pix_rank, slot.start, *self.sel_args, self.color, self.mask,
-                               self.radius_arg, slot.pts, slot.sigma, slot.cam, slot.prot, slot.pix)
+            self.k_scatter(q, (_round_up(self.npix),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
+                           slot.start, slot.order)
+            self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
+            for i in range(len(rig)):
+                cami = rig.ints[i].copy()
+                self.k_count_camera(q, (_round_up((int(cami[1]) + 4095) // 4096),), None, self.pix_cell, cami,
+                                    np.int32(4096), self.cam_counts)
+            cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False)
             cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
         except cl.Error as e:
             raise KernelError(f"OpenCL frame pipeline failed on {self.backend.device_name}: {e}") from e
         slot.n_points = int(self._n_host[0])
         slot.seq = self.seq + 1
         slot.timestamps = tuple(float(f.timestamp) for f in frames)
-        slot.per_camera = self._per_camera(slot) if len(rig) > 1 else (slot.n_points,)
+        slot.per_camera = tuple(int(n) for n in self._cam_counts_host)
         self.buffers.publish(b)
         return slot.n_points, slot.per_camera
-
-    def _per_camera(self, slot) -> tuple:
-        cam = np.empty(slot.n_points, np.uint8)
-        if slot.n_points:
-            self.cl.enqueue_copy(self.build_queue, cam, slot.cam, is_blocking=True)
-        return tuple(int(n) for n in np.bincount(cam, minlength=len(self.rig)))
 
     # --- queries -------------------------------------------------------------------------
     def _ensure_query_capacity(self, B: int, K: int):
@@ -173,7 +178,7 @@ class OpenCLPipeline(FramePipeline):
         with self.buffers.read() as slot:
             try:
                 cl.enqueue_copy(qq, self._q_buf, self._q_host[:B], is_blocking=False)
-                self.k_neighbors(qq, (_round_up(B),), None, slot.pts, slot.prot, slot.start, self.gridf, self.dims,
+                self.k_neighbors(qq, (_round_up(B),), None, slot.pts, slot.order, slot.start, self.gridf, self.dims,
                                  self._q_buf, np.int32(B), np.float32(radius), np.int32(search_span(radius, self.grid.h)),
                                  np.int32(K), np.int32(protected_only), self._count, self._index, self._near, self._near_d)
                 cl.enqueue_copy(qq, out.count, self._count, is_blocking=False)
@@ -188,14 +193,16 @@ class OpenCLPipeline(FramePipeline):
         cl, q = self.cl, self.query_queue
         with self.buffers.read() as slot:
             n = slot.n_points
-            pts = np.empty((n, 4), np.float32)
-            sigma = np.empty(n, np.float32)
-            cam = np.empty(n, np.uint8)
-            prot = np.empty(n, np.uint8)
-            pix = np.empty(n, np.int32)
+            order = np.empty(n, np.int32)
             start = np.empty(self.ncells + 1, np.int32)
+            pts = np.empty((max(self.npix, 1), 4), np.float32)
+            sigma = np.empty(max(self.npix, 1), np.float32)
             if n:
-                for host, dev in ((pts, slot.pts), (sigma, slot.sigma), (cam, slot.cam), (prot, slot.prot), (pix, slot.pix)):
-                    cl.enqueue_copy(q, host, dev, is_blocking=False)
+                cl.enqueue_copy(q, order, slot.order, is_blocking=False)
+                cl.enqueue_copy(q, pts, slot.pts, is_blocking=False)
+                cl.enqueue_copy(q, sigma, slot.sigma, is_blocking=False)
             cl.enqueue_copy(q, start, slot.start, is_blocking=True)
-            return HostSnapshot(pts, sigma, cam, prot, pix, start, self.grid, slot.timestamps, slot.seq, slot.per_camera)
+            pix = order & 0x7FFFFFFF
+            cam = (np.searchsorted(self.rig.offsets, pix, side="right") - 1).astype(np.uint8)
+            return HostSnapshot(pts[pix], sigma[pix], cam, (order < 0).astype(np.uint8), pix.astype(np.int32), start,
+                                self.grid, slot.timestamps, slot.seq, slot.per_camera)
