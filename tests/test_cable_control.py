@@ -91,6 +91,12 @@ def test_tension_fit_estimate_and_alerts():
     _, a_high = mon.check(3.5e4)
     assert a_high.direction == "decrease" and "slacken" in a_high.message
     assert mon.check(2.0e4)[1] is None
+    # one failed identification (an outlier) is dropped by the robust fit
+    k_bad = np.append(k, 2.2e4)
+    t_bad = np.append(t, 300.0 + 900.0 * np.log(3.0e4 / 1e4))
+    rob = fit_tension_curve(t_bad, k_bad, robust=True)
+    assert len(rob.k_e_points) == 4 and rob.b == pytest.approx(900.0)
+    assert abs(fit_tension_curve(t_bad, k_bad).b - 900.0) > 10
     with pytest.raises(InputError, match="at least 2"):
         fit_tension_curve([700], [2e4])
     with pytest.raises(InputError, match="safe tension range"):

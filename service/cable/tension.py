@@ -47,8 +47,13 @@ class TensionCurve:
             raise InputError(f"tension calibration {path}: cannot read it ({e}); expected JSON with keys a, b") from e
 
 
-def fit_tension_curve(tensions_g, k_e) -> TensionCurve:
-    """Least-squares logarithmic fit of known tensions [g] against identified k_e [N/m]."""
+def fit_tension_curve(tensions_g, k_e, robust: bool = False) -> TensionCurve:
+    """Least-squares logarithmic fit of known tensions [g] against identified k_e [N/m].
+
+    With ``robust``, a point whose residual exceeds 3x the median absolute residual of the
+    others is dropped and the fit repeated (one failed identification should not skew the
+    curve); at least 3 points are kept. The curve lists only the points it kept.
+    """
     t = np.asarray(tensions_g, dtype=float).ravel()
     k = np.asarray(k_e, dtype=float).ravel()
     if t.size != k.size:
@@ -59,8 +64,17 @@ def fit_tension_curve(tensions_g, k_e) -> TensionCurve:
         raise InputError(f"tensions {t.tolist()} g and k_e {k.tolist()} N/m must be finite and > 0")
     if np.ptp(np.log(k)) < 1e-9:
         raise InputError(f"all k_e values are equal ({k[0]} N/m): cannot fit tension against stiffness")
-    A = np.vstack([np.ones_like(k), np.log(k)]).T
-    (a, b), *_ = np.linalg.lstsq(A, t, rcond=None)
+    while True:
+        A = np.vstack([np.ones_like(k), np.log(k)]).T
+        (a, b), *_ = np.linalg.lstsq(A, t, rcond=None)
+        if not robust or t.size <= 3:
+            break
+        r = np.abs(t - (a + b * np.log(k)))
+        worst = int(np.argmax(r))
+        others = np.delete(r, worst)
+        if r[worst] <= 3.0 * max(np.median(others), 1e-9):
+            break
+        t, k = np.delete(t, worst), np.delete(k, worst)
     return TensionCurve(float(a), float(b), tuple(k.tolist()), tuple(t.tolist()))
 
 

@@ -1,0 +1,43 @@
+"""The `pointfence cable` subcommands that run fast (the demo itself is too long for CI)."""
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from pointfence.kernels.errors import InputError
+from pointfence.service.cable import cli
+from pointfence.service.cable.tension import TensionCurve
+
+
+def _parse(*argv):
+    p = argparse.ArgumentParser()
+    cli.add_arguments(p)
+    return p.parse_args(list(argv))
+
+
+def test_calib_tension_from_points_file(tmp_path, capsys):
+    pts = tmp_path / "pts.csv"
+    pts.write_text("450,14000\n900,20500\n1400,25000\n1900,28900\n")
+    out = tmp_path / "cal.json"
+    assert cli.run(_parse("calib-tension", "--points", str(pts), "--out", str(out))) == 0
+    curve = TensionCurve.load(out)
+    b, a = np.polyfit(np.log([14000, 20500, 25000, 28900]), [450, 900, 1400, 1900], 1)
+    assert curve.b == pytest.approx(b) and curve.a == pytest.approx(a) and curve.b > 0
+    assert "ln(k_e)" in capsys.readouterr().out
+    bad = tmp_path / "bad.csv"
+    bad.write_text("450,14000,3\n")
+    with pytest.raises(InputError, match="expected 2"):
+        cli.run(_parse("calib-tension", "--points", str(bad), "--out", str(out)))
+
+
+def test_cable_run_reports_status(capsys):
+    assert cli.run(_parse("run", "--seconds", "0.4", "--grasp", "0.2")) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["fault"] is None and s["ticks"] > 300
+    assert abs(s["true_link_angle"] - 0.2) < 0.05
+
+
+def test_bad_tension_list_is_rejected():
+    with pytest.raises(SystemExit):
+        _parse("calib-tension", "--tensions", "abc")
