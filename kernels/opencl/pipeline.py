@@ -189,6 +189,12 @@ class OpenCLPipeline(FramePipeline):
                 raise KernelError(f"OpenCL neighbour query failed on {self.backend.device_name}: {e}") from e
         return out
 
+    def proxies(self, positions, params=None, **options):
+        """A batch of proxies on this pipeline, one kernel launch per tick (``kernels/opencl/proxy.py``)."""
+        from .proxy import OpenCLProxies
+
+        return OpenCLProxies(self, positions, params, **options)
+
     def host_snapshot(self) -> HostSnapshot:
         cl, q = self.cl, self.query_queue
         with self.buffers.read() as slot:

@@ -42,6 +42,12 @@ class NumpyPipeline(FramePipeline):
         with self.buffers.read() as snap:
             return snap
 
+    def proxies(self, positions, params=None):
+        """A batch of proxies on this pipeline (``pointfence.kernels.proxy``)."""
+        from .proxy import NumpyProxies
+
+        return NumpyProxies(self, positions, params)
+
 
 class NumpyBackend(Backend):
     """Reference implementation on the host CPU (clear and exact, not fast)."""

@@ -1,0 +1,261 @@
+// Batched proxy movement of one haptic tick (SPEC 2, 3). Mirrors kernels/reference/proxy.py;
+// the algorithm is described in kernels/proxy.py.
+//
+// One work-item per proxy runs every step of the tick. Per tick (and whenever the proxy wanders
+// further than `skin` from where it gathered) it copies the points within reach + skin of its
+// position from the spatial hash into its working set: structure-of-arrays rows of `cap` floats
+// (x, y, z, rho) padded to a multiple of VW with far-away points, which the steps scan VW points
+// at a time with explicit vector types. If more than `cap` points are in reach the proxy scans
+// the hash cells directly instead (slower, same result).
+// Snapshot layout (frames.cl): pts in pixel order, order[] = pixel | protected << 31 sorted by cell.
+#pragma OPENCL FP_CONTRACT OFF
+
+#define VW 16
+typedef float16 vf;
+typedef int16 vi;
+#define VLOAD vload16
+#define FAR 1.0e18f
+
+// Scalar parameters, packed by kernels/opencl/proxy.py (keep in sync):
+// 0 r1, 1 band = r2 - r1, 2 nreach = r3 - r1, 3 step, 4 tol, 5 slack, 6 skin, 7 gather radius,
+// 8 reach (hash scan radius of the direct path)
+#define P_R1 prm[0]
+#define P_BAND prm[1]
+#define P_NREACH prm[2]
+#define P_STEP prm[3]
+#define P_TOL prm[4]
+#define P_SLACK prm[5]
+#define P_SKIN prm[6]
+#define P_GATHER prm[7]
+
+#define FREE 0
+#define CONTACT 1
+#define ENTRENCHED 2
+
+typedef struct {
+    float3 nsum;
+    float min_e;
+} Eval;
+
+inline int4 cell_range(float3 q, float4 grid, int4 dims, int span, int4 *hi) {
+    int cx = (int)clamp(floor((q.x - grid.x) * grid.w), (float)(-span - 1), (float)(dims.x + span));
+    int cy = (int)clamp(floor((q.y - grid.y) * grid.w), (float)(-span - 1), (float)(dims.y + span));
+    int cz = (int)clamp(floor((q.z - grid.z) * grid.w), (float)(-span - 1), (float)(dims.z + span));
+    *hi = (int4)(min(cx + span, dims.x - 1), min(cy + span, dims.y - 1), min(cz + span, dims.z - 1), 0);
+    return (int4)(max(cx - span, 0), max(cy - span, 0), max(cz - span, 0), 0);
+}
+
+// Copy the points within `radius` of X0 into the working set; return how many there are
+// (possibly more than cap: then nothing beyond cap is written and the caller scans the hash).
+inline int gather(__global const float4 *pts, __global const int *order, __global const int *start,
+                  float4 grid, int4 dims, int span, float3 X0, float radius, int fixture, float r1,
+                  __global float *ws, int cap) {
+    int4 hi;
+    int4 lo = cell_range(X0, grid, dims, span, &hi);
+    float r2 = radius * radius;
+    int n = 0;
+    __global float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
+    for (int iz = lo.z; iz <= hi.z; ++iz)
+        for (int iy = lo.y; iy <= hi.y; ++iy) {
+            if (lo.x > hi.x) continue;
+            int base = (iz * dims.y + iy) * dims.x;
+            int a = start[base + lo.x], e = start[base + hi.x + 1];
+            for (int i = a; i < e; ++i) {
+                int entry = order[i];
+                if (fixture && entry >= 0) continue;
+                float4 p = pts[entry & 0x7fffffff];
+                float dx = p.x - X0.x, dy = p.y - X0.y, dz = p.z - X0.z;
+                float d2 = dx * dx + dy * dy + dz * dz;
+                if (d2 <= r2) {
+                    if (n < cap) {
+                        wx[n] = p.x; wy[n] = p.y; wz[n] = p.z; wr[n] = fixture ? p.w : r1;
+                    }
+                    ++n;
+                }
+            }
+        }
+    if (n <= cap) {
+        int padded = min(cap, (n + VW - 1) / VW * VW);
+        for (int i = n; i < padded; ++i) { wx[i] = FAR; wy[i] = FAR; wz[i] = FAR; wr[i] = 0.0f; }
+    }
+    return n;
+}
+
+// ---- evaluation: clearances, normal sum, smallest clearance within the normal band ---------
+inline Eval eval_ws(__global const float *ws, int cap, int n, float3 X, float nreach) {
+    __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
+    vf ax = 0.0f, ay = 0.0f, az = 0.0f, me = INFINITY;
+    for (int i = 0; i < n; i += VW) {
+        vf dx = (vf)(X.x) - VLOAD(0, wx + i);
+        vf dy = (vf)(X.y) - VLOAD(0, wy + i);
+        vf dz = (vf)(X.z) - VLOAD(0, wz + i);
+        vf d2 = dx * dx + dy * dy + dz * dz;
+        vf d = sqrt(d2);
+        vf e = d - VLOAD(0, wr + i);
+        vi inb = e < (vf)(nreach);
+        me = fmin(me, select((vf)(INFINITY), e, inb));
+        vf inv = select((vf)(0.0f), (vf)(1.0f) / d, inb & (d > (vf)(0.0f)));
+        ax += dx * inv; ay += dy * inv; az += dz * inv;
+    }
+    Eval r;
+    float m = INFINITY, sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    for (int k = 0; k < VW; ++k) {
+        m = fmin(m, me[k]);
+        sx += ax[k]; sy += ay[k]; sz += az[k];
+    }
+    r.nsum = (float3)(sx, sy, sz);
+    r.min_e = m;
+    return r;
+}
+
+inline Eval eval_hash(__global const float4 *pts, __global const int *order, __global const int *start,
+                      float4 grid, int4 dims, int span, float3 X, int fixture, float r1, float nreach) {
+    int4 hi;
+    int4 lo = cell_range(X, grid, dims, span, &hi);
+    float m = INFINITY, sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    for (int iz = lo.z; iz <= hi.z; ++iz)
+        for (int iy = lo.y; iy <= hi.y; ++iy) {
+            if (lo.x > hi.x) continue;
+            int base = (iz * dims.y + iy) * dims.x;
+            int a = start[base + lo.x], e_ = start[base + hi.x + 1];
+            for (int i = a; i < e_; ++i) {
+                int entry = order[i];
+                if (fixture && entry >= 0) continue;
+                float4 p = pts[entry & 0x7fffffff];
+                float dx = X.x - p.x, dy = X.y - p.y, dz = X.z - p.z;
+                float d2 = dx * dx + dy * dy + dz * dz;
+                float d = sqrt(d2);
+                float e = d - (fixture ? p.w : r1);
+                if (e < nreach) {
+                    m = fmin(m, e);
+                    if (d > 0.0f) {
+                        float inv = 1.0f / d;
+                        sx += dx * inv; sy += dy * inv; sz += dz * inv;
+                    }
+                }
+            }
+        }
+    Eval r;
+    r.nsum = (float3)(sx, sy, sz);
+    r.min_e = m;
+    return r;
+}
+
+// ---- swept-sphere clipping of a step along u ------------------------------------------------
+inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 u, float off) {
+    __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
+    vf tmin = INFINITY;
+    for (int i = 0; i < n; i += VW) {
+        vf dx = (vf)(X.x) - VLOAD(0, wx + i);
+        vf dy = (vf)(X.y) - VLOAD(0, wy + i);
+        vf dz = (vf)(X.z) - VLOAD(0, wz + i);
+        vf d2 = dx * dx + dy * dy + dz * dz;
+        vf b = (vf)(u.x) * dx + (vf)(u.y) * dy + (vf)(u.z) * dz;
+        vf rc = VLOAD(0, wr + i) + (vf)(off);
+        vf c = d2 - rc * rc;
+        vf disc = b * b - c;
+        vi neg = b < (vf)(0.0f);
+        vi outside = (c >= (vf)(0.0f)) & neg & (disc > (vf)(0.0f));
+        vi inside = (c < (vf)(0.0f)) & neg;
+        vf t_out = c / (-b + sqrt(fmax(disc, (vf)(0.0f))));
+        vf t = select((vf)(INFINITY), t_out, outside);
+        t = select(t, (vf)(-2.0f) * b, inside);
+        tmin = fmin(tmin, t);
+    }
+    float m = INFINITY;
+    for (int k = 0; k < VW; ++k) m = fmin(m, tmin[k]);
+    return m;
+}
+
+inline float clip_hash(__global const float4 *pts, __global const int *order, __global const int *start,
+                       float4 grid, int4 dims, int span, float3 X, float3 u, float off, int fixture, float r1) {
+    int4 hi;
+    int4 lo = cell_range(X, grid, dims, span, &hi);
+    float m = INFINITY;
+    for (int iz = lo.z; iz <= hi.z; ++iz)
+        for (int iy = lo.y; iy <= hi.y; ++iy) {
+            if (lo.x > hi.x) continue;
+            int base = (iz * dims.y + iy) * dims.x;
+            int a = start[base + lo.x], e_ = start[base + hi.x + 1];
+            for (int i = a; i < e_; ++i) {
+                int entry = order[i];
+                if (fixture && entry >= 0) continue;
+                float4 p = pts[entry & 0x7fffffff];
+                float dx = X.x - p.x, dy = X.y - p.y, dz = X.z - p.z;
+                float d2 = dx * dx + dy * dy + dz * dz;
+                float b = u.x * dx + u.y * dy + u.z * dz;
+                float rc = (fixture ? p.w : r1) + off;
+                float c = d2 - rc * rc;
+                float disc = b * b - c;
+                float t = INFINITY;
+                if (c >= 0.0f && b < 0.0f && disc > 0.0f) t = c / (-b + sqrt(disc));
+                else if (c < 0.0f && b < 0.0f) t = -2.0f * b;
+                m = fmin(m, t);
+            }
+        }
+    return m;
+}
+
+inline int state_of(float min_e, float band) {
+    return min_e < 0.0f ? ENTRENCHED : (min_e < band ? CONTACT : FREE);
+}
+
+inline float3 normal_of(float3 ns) {
+    float nn = sqrt(ns.x * ns.x + ns.y * ns.y + ns.z * ns.z);
+    return nn > 0.0f ? ns / nn : (float3)(0.0f);
+}
+
+// out[p] (float8): x, y, z, nearest clearance, nx, ny, nz, packed int: state | converged << 2 | steps << 3
+__kernel void proxy_tick(__global const float4 *pts, __global const int *order, __global const int *start,
+                         float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float4 *hips,
+                         __global float8 *out, __global float *wsbuf, int cap, __constant float *prm,
+                         int fixture, int max_steps, int gspan, int rspan) {
+    int p = get_global_id(0);
+    if (p >= n_proxies) return;
+    __global float *ws = wsbuf + (size_t)p * 4 * cap;
+    float3 X = pos[p].xyz, H = hips[p].xyz, X0 = X;
+    const float r1 = P_R1, band = P_BAND, nreach = P_NREACH, skin2 = P_SKIN * P_SKIN;
+    int n = gather(pts, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
+    int steps = 0, conv = 0, st = FREE;
+    float3 nrm = (float3)(0.0f);
+    float min_e = INFINITY;
+    for (int it = 0; it <= max_steps; ++it) {
+        float3 dx0 = X - X0;
+        if (dx0.x * dx0.x + dx0.y * dx0.y + dx0.z * dx0.z > skin2) {
+            X0 = X;
+            n = gather(pts, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
+        }
+        int direct = n > cap;
+        Eval ev = direct ? eval_hash(pts, order, start, grid, dims, rspan, X, fixture, r1, nreach)
+                         : eval_ws(ws, cap, n, X, nreach);
+        min_e = ev.min_e;
+        st = state_of(min_e, band);
+        nrm = normal_of(ev.nsum);
+        if (it == max_steps) break;  // budget spent: state and normal at the final position
+        float3 v = H - X;
+        float vl = sqrt(v.x * v.x + v.y * v.y + v.z * v.z);
+        float vn = v.x * nrm.x + v.y * nrm.y + v.z * nrm.z;
+        float3 vp = v - vn * nrm;
+        float vpl = sqrt(vp.x * vp.x + vp.y * vp.y + vp.z * vp.z);
+        int has_n = nrm.x != 0.0f || nrm.y != 0.0f || nrm.z != 0.0f;
+        float3 u = (float3)(0.0f);
+        float L = 0.0f;
+        if (st == FREE || (st == CONTACT && vn > 0.0f) || (st == ENTRENCHED && !has_n)) {
+            if (vl > 0.0f) { u = v / vl; L = vl; }
+        } else if (st == ENTRENCHED) {
+            u = nrm; L = 0.5f * band - min_e;
+        } else if (vpl > 0.0f) {
+            u = vp / vpl; L = vpl;
+        }
+        L = fmin(L, P_STEP);
+        float off = st == FREE ? 0.5f * band : -P_SLACK;
+        float t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+                         : clip_ws(ws, cap, n, X, u, off);
+        float s = fmax(fmin(L, t), 0.0f);
+        if (s < P_TOL) { conv = 1; break; }
+        X = X + s * u;
+        ++steps;
+    }
+    pos[p] = (float4)(X, 0.0f);
+    out[p] = (float8)(X.x, X.y, X.z, min_e, nrm.x, nrm.y, nrm.z, as_float(st | (conv << 2) | (steps << 3)));
+}

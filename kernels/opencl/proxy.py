@@ -1,0 +1,133 @@
+"""OpenCL proxy batch: one kernel launch per haptic tick for all proxies (kernels/opencl/proxy.cl).
+
+Device buffers (proxy positions, HIPs, packed outputs, per-proxy working sets) are allocated
+when the batch is created and grow only when the number of proxies grows. The proxies'
+positions stay on the device between ticks. A tick is: one non-blocking HIP upload, the kernel
+(every step inside it) against the front snapshot, one blocking read of the packed outputs into
+a preallocated host array, and a few in-place unpacking copies.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import KernelError
+from ..neighbors import search_span
+from ..proxy import LANES, WS_CAPACITY, ProxyBatch
+from .context import build
+
+#: device memory the working sets of a batch may take together (bytes)
+WS_BUDGET = 512 << 20
+VW = LANES
+
+
+def _program(pipeline):
+    prg = getattr(pipeline, "_proxy_program", None)
+    if prg is None:
+        prg = build(pipeline.ctx, "proxy.cl")
+        pipeline._proxy_program = prg
+    return prg
+
+
+class OpenCLProxies(ProxyBatch):
+    """Proxies on an ``OpenCLPipeline``; create with ``pipeline.proxies(positions, params)``.
+
+    ``ws_capacity``: points per proxy working set (a multiple of 16; shrunk automatically so
+    that a large batch's working sets fit ``WS_BUDGET``). Results never depend on it.
+    ``local_size``: work-group size of the launch (None lets the OpenCL runtime choose).
+    """
+
+    def __init__(self, pipeline, positions, params=None, ws_capacity: int = WS_CAPACITY, local_size=None):
+        self.cl = pipeline.cl
+        self.queue = pipeline.query_queue
+        self.prg = _program(pipeline)
+        self.kernel = self.prg.proxy_tick
+        self._ws_request = max(VW, int(ws_capacity) // VW * VW)
+        self.local_size = local_size
+        self._arg_slot = None
+        super().__init__(pipeline, positions, params)
+        p = self.params
+        gather_r = self.reach + p.skin
+        h = pipeline.grid.h
+        self.prm_host = np.array([p.r1, p.band, p.r3 - p.r1, p.step, p.tolerance, p.slack, p.skin, gather_r,
+                                  self.reach, 0, 0, 0, 0, 0, 0, 0], np.float32)
+        mf = self.cl.mem_flags
+        self.prm = self.cl.Buffer(pipeline.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.prm_host)
+        k = self.kernel
+        k.set_arg(3, pipeline.gridf)
+        k.set_arg(4, pipeline.dims)
+        k.set_arg(11, self.prm)
+        k.set_arg(12, np.int32(p.mode == "fixture"))
+        k.set_arg(13, np.int32(p.max_steps))
+        k.set_arg(14, np.int32(search_span(gather_r, h)))
+        k.set_arg(15, np.int32(search_span(self.reach, h)))
+        self._set_batch_args()
+
+    # --- storage -------------------------------------------------------------------------------
+    def _grow(self, cap: int):
+        cl, ctx, mf = self.cl, self.pipeline.ctx, self.cl.mem_flags
+        self.ws_cap = int(max(256, min(self._ws_request, WS_BUDGET // (16 * cap) // VW * VW)))
+        self._pos = cl.Buffer(ctx, mf.READ_WRITE, 16 * cap)
+        self._hips = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
+        self._out = cl.Buffer(ctx, mf.WRITE_ONLY, 32 * cap)
+        self._ws = cl.Buffer(ctx, mf.READ_WRITE, 16 * self.ws_cap * cap)
+        self._hips_host = np.zeros((cap, 4), np.float32)
+        self._pos_host = np.zeros((cap, 4), np.float32)
+        self._out_host = np.zeros((cap, 8), np.float32)
+        self._info = self._out_host[:, 7].view(np.int32)
+        self._arg_slot = None
+        if hasattr(self, "prm"):
+            self._set_batch_args()
+
+    def _set_batch_args(self):
+        k = self.kernel
+        k.set_arg(6, self._pos)
+        k.set_arg(7, self._hips)
+        k.set_arg(8, self._out)
+        k.set_arg(9, self._ws)
+        k.set_arg(10, np.int32(self.ws_cap))
+        self._n_arg = None
+
+    def _upload_positions(self):
+        n = self.n
+        self._pos_host[:n, :3] = self._positions[:n]
+        self.cl.enqueue_copy(self.queue, self._pos, self._pos_host[:n], is_blocking=True)
+
+    # --- one tick ------------------------------------------------------------------------------
+    def _step(self, hips):
+        cl, n, k = self.cl, self.n, self.kernel
+        if n == 0:
+            return
+        self._hips_host[:n, :3] = hips
+        if self._n_arg != n:
+            k.set_arg(5, np.int32(n))
+            self._n_arg = n
+            ls = self.local_size
+            self._gsize = (n if ls is None else (n + ls - 1) // ls * ls,)
+            self._lsize = None if ls is None else (ls,)
+        q = self.queue
+        out = self._out_host
+        with self.pipeline.buffers.read() as slot:
+            if slot is not self._arg_slot:
+                k.set_arg(0, slot.pts)
+                k.set_arg(1, slot.order)
+                k.set_arg(2, slot.start)
+                self._arg_slot = slot
+            try:
+                cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
+                cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)
+                cl.enqueue_copy(q, out[:n], self._out, is_blocking=True)
+            except cl.Error as e:
+                raise KernelError(f"OpenCL proxy kernel failed on {self.pipeline.backend.device_name}: {e}") from e
+        np.copyto(self._positions[:n], out[:n, :3])
+        np.copyto(self._nearest[:n], out[:n, 3])
+        np.copyto(self._normals[:n], out[:n, 4:7])
+        info = self._info[:n]
+        np.bitwise_and(info, 3, out=self._states[:n])
+        np.right_shift(info, 3, out=self._steps[:n])
+        np.not_equal(np.bitwise_and(info, 4, out=self._tmp[:n]), 0, out=self._converged[:n])
+
+    def _alloc(self, n: int):
+        grew = n > self._cap
+        super()._alloc(n)
+        if grew:
+            self._tmp = np.zeros(self._cap, np.int32)

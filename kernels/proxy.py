@@ -1,0 +1,166 @@
+"""The batched proxy: what every backend's proxy kernel provides (SPEC 2 and 3).
+
+A ``ProxyBatch`` holds B proxies whose state persists between haptic ticks. One call to
+``step(hips)`` runs the whole proxy movement of one tick for all of them (one kernel launch on
+device backends) against the pipeline's current snapshot and fills preallocated host arrays:
+
+* ``positions`` float32 (B, 3): proxy centres X_p (m, world frame);
+* ``normals`` float32 (B, 3): estimated surface normal (eq. 2.1), zero where no point is near;
+* ``states`` int32 (B,): ``FREE`` (0), ``CONTACT`` (1) or ``ENTRENCHED`` (2);
+* ``steps`` int32 (B,): proxy steps taken this tick;
+* ``converged`` bool (B,): the tick ended because the next step was shorter than the
+  tolerance (False: the step budget ran out first);
+* ``nearest`` float32 (B,): the smallest clearance e_i = |X_p - P_i| - rho_i among the points
+  within the normal band (rho_i = r1 in rendering mode, r_f(i) in fixture mode); +inf if none.
+  In rendering mode the distance from the centre to the nearest point is ``nearest + r1``.
+
+Algorithm (identical in the NumPy reference and the device kernels), per step:
+
+1. Evaluate at X_p: clearances e_i, state (entrenched if min e < 0, contact if min e < r2 - r1,
+   else free) and the normal n = normalize(sum (X_p - P_i) / |X_p - P_i|) over e_i < r3 - r1.
+2. Direction u and length L with v = X_hip - X_p (dissertation 2.2.4):
+   free -> along v, L = |v|; contact with v.n > 0 (HIP outside) -> along v, L = |v|;
+   contact with v.n <= 0 (HIP inside) -> along v projected on the plane of n, L = its length
+   (the HIP's projection, never past it); entrenched -> along n, L = (r2 - r1)/2 - min e, so
+   the push-out never overshoots the contact band (with no normal, along v). L <= delta.
+3. Swept-sphere clipping: the step is shortened so that, moving along u, no point's clearance
+   drops below (r2 - r1)/2 (free: the proxy lands in the contact band) or below -slack (other
+   moves: sliding may dig at most ``slack`` deep before step 1 pushes it out again); a point
+   already deeper than that may not end the step closer than it started. Hence a step never
+   carries the proxy through a surface, whatever delta is, and a static scene never gets
+   closer than ``r1 - slack`` to the proxy's centre (``r_f - slack`` for fixtures).
+4. If the clipped step is shorter than ``tolerance``, the tick has converged; else move.
+
+The state, normal and clearance reported are those at the final position.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from .errors import InputError
+from .params_haptics import HapticParams
+
+FREE, CONTACT, ENTRENCHED = 0, 1, 2
+#: points per proxy working set on device backends (more in reach: the kernel scans the hash)
+WS_CAPACITY = 4096
+#: vector width of the device kernels' point loops (the reference sums in the same order)
+LANES = 16
+STATE_NAMES = ("free", "contact", "entrenched")
+
+
+def check_points3(a, what: str, n: int | None = None) -> np.ndarray:
+    """Validate (B, 3) finite positions (m); return C-contiguous float32."""
+    x = np.asarray(a)
+    if x.ndim == 1 and x.shape[0] == 3:
+        x = x[None]
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise InputError(f"{what} shape {x.shape}; expected (B, 3) world positions in metres")
+    if not np.issubdtype(x.dtype, np.number):
+        raise InputError(f"{what} dtype {x.dtype}; expected floating point")
+    if n is not None and x.shape[0] != n:
+        raise InputError(f"{what}: {x.shape[0]} positions for {n} proxies; expected one per proxy "
+                         "(use reset(positions) to change the number of proxies)")
+    x = np.ascontiguousarray(x, dtype=np.float32)
+    bad = ~np.all(np.isfinite(x), axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"{what}[{i}] = {x[i].tolist()} is not finite; expected finite positions in metres")
+    return x
+
+
+def fixture_r_max(pipeline_params) -> float:
+    """The largest fixture radius any point of the pipeline's snapshots can carry (m)."""
+    r = pipeline_params.radius
+    return float(r.r_max if r.adaptive else r.r_base)
+
+
+class ProxyBatch(ABC):
+    """B proxies on one frame pipeline; see the module docstring.
+
+    Create with ``pipeline.proxies(positions, params)``. ``reset(positions)`` moves the proxies
+    (and changes their number); ``step(hips)`` runs one tick. Invalid HIPs (NaN, inf, wrong
+    shape) raise ``InputError`` before anything moves.
+    """
+
+    def __init__(self, pipeline, positions, params: HapticParams | None = None):
+        self.pipeline = pipeline
+        self.params = params if params is not None else HapticParams()
+        if not isinstance(self.params, HapticParams):
+            raise InputError(f"params = {self.params!r}; expected HapticParams")
+        self.r_max = fixture_r_max(pipeline.params)
+        self.reach = self.params.reach(self.r_max)
+        self.n = 0
+        self._cap = 0
+        self.reset(positions)
+
+    # --- host arrays -------------------------------------------------------------------------
+    def _alloc(self, n: int):
+        if n <= self._cap:
+            return
+        cap = max(n, 2 * self._cap, 1)
+        self._positions = np.zeros((cap, 3), np.float32)
+        self._normals = np.zeros((cap, 3), np.float32)
+        self._states = np.zeros(cap, np.int32)
+        self._steps = np.zeros(cap, np.int32)
+        self._converged = np.zeros(cap, bool)
+        self._nearest = np.full(cap, np.inf, np.float32)
+        self._cap = cap
+        self._grow(cap)
+
+    def _grow(self, cap: int) -> None:
+        """Backend hook: (re)allocate per-proxy storage for ``cap`` proxies."""
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self._positions[: self.n]
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self._normals[: self.n]
+
+    @property
+    def states(self) -> np.ndarray:
+        return self._states[: self.n]
+
+    @property
+    def steps(self) -> np.ndarray:
+        return self._steps[: self.n]
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self._converged[: self.n]
+
+    @property
+    def nearest(self) -> np.ndarray:
+        return self._nearest[: self.n]
+
+    def __len__(self) -> int:
+        return self.n
+
+    # --- API ---------------------------------------------------------------------------------
+    def reset(self, positions) -> None:
+        """Place the proxies at ``positions`` (B, 3) (free motion, zero normal); B may change."""
+        x = check_points3(positions, "proxy positions")
+        n = x.shape[0]
+        self._alloc(n)
+        self.n = n
+        self._positions[:n] = x
+        self._normals[:n] = 0
+        self._states[:n] = FREE
+        self._steps[:n] = 0
+        self._converged[:n] = True
+        self._nearest[:n] = np.inf
+        self._upload_positions()
+
+    def step(self, hips) -> None:
+        """Run one haptic tick: move every proxy towards its HIP (B, 3) under the point constraints."""
+        h = check_points3(hips, "hips", self.n)
+        self._step(h)
+
+    @abstractmethod
+    def _upload_positions(self) -> None: ...
+
+    @abstractmethod
+    def _step(self, hips: np.ndarray) -> None: ...
