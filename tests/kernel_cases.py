@@ -10,6 +10,28 @@ from pointfence.kernels import Camera, DepthFrame, PipelineParams, RadiusModel, 
 SHARED = Path(__file__).parents[1].parent / "shared" / "data"
 
 
+def device_backends() -> list:
+    """The accelerated backends to test against the reference: opencl always, warp when installed."""
+    out = ["opencl"]
+    try:
+        import warp  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        out.append("warp")
+    return out
+
+
+def contracts_fma(backend: str) -> bool:
+    """CUDA compiles a*b+c into fused multiply-adds, so positions differ from the reference in
+    the last bit and a point within rounding of a cell boundary may land in the next cell."""
+    if backend != "warp":
+        return False
+    from pointfence.kernels import get_backend
+
+    return get_backend("warp").device.is_cuda
+
+
 def pose(tx=0.0, ty=0.0, tz=0.0, yaw=0.0, pitch=0.0) -> np.ndarray:
     cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
     Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])

@@ -6,9 +6,9 @@ from pointfence.kernels import (BackendUnavailable, Camera, DepthFrame, InputErr
                                 Selection, Workspace, get_backend)
 from pointfence.kernels.opencl.context import select_device
 
-from kernel_cases import params_for, random_rig
+from kernel_cases import device_backends, params_for, random_rig
 
-BACKENDS = ["numpy", "opencl"]
+BACKENDS = ["numpy"] + device_backends()
 
 
 def make(backend, n_cams=2):

@@ -5,9 +5,9 @@ import pytest
 from pointfence.kernels import Camera, DepthFrame, PipelineParams, Workspace, get_backend
 from pointfence.kernels.reference.pipeline import sigma_max
 
-from kernel_cases import SHARED, kitchen_params, kitchen_rig, params_for, pose, random_rig
+from kernel_cases import SHARED, contracts_fma, device_backends, kitchen_params, kitchen_rig, params_for, pose, random_rig
 
-BACKENDS = ["opencl"]
+BACKENDS = device_backends()
 
 
 def by_pixel(snap):
@@ -15,11 +15,21 @@ def by_pixel(snap):
     return {k: getattr(snap, k)[o] for k in ("pixel", "points", "sigma", "camera", "protected")}
 
 
-def assert_same_snapshot(a, b):
-    assert a.n_points == b.n_points
-    assert a.per_camera == b.per_camera
-    np.testing.assert_array_equal(a.cell_start, b.cell_start)
+def assert_same_snapshot(a, b, fma=False):
+    """b equals the reference a; with ``fma`` (CUDA), points within rounding of a cell boundary
+    or of the workspace faces may fall on the other side."""
     A, B = by_pixel(a), by_pixel(b)
+    if fma:
+        keep = np.intersect1d(A["pixel"], B["pixel"])
+        assert a.n_points - keep.size <= 1e-4 * a.n_points and b.n_points - keep.size <= 1e-4 * a.n_points
+        ia, ib = np.searchsorted(A["pixel"], keep), np.searchsorted(B["pixel"], keep)
+        A, B = {k: v[ia] for k, v in A.items()}, {k: v[ib] for k, v in B.items()}
+        ca, cb = a.cell_of()[np.argsort(a.pixel, kind="stable")][ia], b.cell_of()[np.argsort(b.pixel, kind="stable")][ib]
+        assert np.count_nonzero(ca != cb) <= 1e-4 * a.n_points
+    else:
+        assert a.n_points == b.n_points
+        assert a.per_camera == b.per_camera
+        np.testing.assert_array_equal(a.cell_start, b.cell_start)
     np.testing.assert_array_equal(A["pixel"], B["pixel"])
     np.testing.assert_allclose(A["points"][:, :3], B["points"][:, :3], rtol=0, atol=1e-6)
     np.testing.assert_allclose(A["points"][:, 3], B["points"][:, 3], rtol=1e-5, atol=1e-7)
@@ -47,7 +57,7 @@ def test_backend_matches_reference_random_rig(backend, selection):
     assert a.n_points > 10000
     if selection != "all":
         assert 0 < a.protected.sum() < a.n_points
-    assert_same_snapshot(a, b)
+    assert_same_snapshot(a, b, contracts_fma(backend))
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -65,7 +75,7 @@ def test_fixed_radius_and_repeated_ingest(backend):
         assert info.seq == k + 1
         a, b = ref.host_snapshot(), dev.host_snapshot()
         assert np.all(b.points[:, 3] == np.float32(0.004))
-        assert_same_snapshot(a, b)
+        assert_same_snapshot(a, b, contracts_fma(backend))
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -81,7 +91,7 @@ def test_real_two_camera_rig_matches_reference(backend):
     a, b = ref.host_snapshot(), dev.host_snapshot()
     assert min(a.per_camera) > 150000
     assert set(np.unique(b.camera)) == {0, 1}
-    assert_same_snapshot(a, b)
+    assert_same_snapshot(a, b, contracts_fma(backend))
 
 
 def test_reference_deprojects_a_plane_exactly():

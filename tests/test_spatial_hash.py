@@ -7,9 +7,9 @@ import pytest
 from pointfence.kernels import get_backend
 from pointfence.kernels.reference.neighbors import brute_force
 
-from kernel_cases import SHARED, kitchen_params, kitchen_rig, params_for, random_rig
+from kernel_cases import device_backends, SHARED, kitchen_params, kitchen_rig, params_for, random_rig
 
-BACKENDS = ["numpy", "opencl"]
+BACKENDS = ["numpy"] + device_backends()
 
 
 def check_against_brute_force(pipe, queries, radius, K=100000, protected_only=False):
@@ -69,12 +69,13 @@ def test_truncation_keeps_count_and_a_subset(backend):
         assert set(nb.index[i]).issubset(set(bf[i]))
 
 
-def test_real_rig_neighbors_equal_brute_force():
+@pytest.mark.parametrize("backend", device_backends())
+def test_real_rig_neighbors_equal_brute_force(backend):
     if not SHARED.is_dir():
         pytest.skip("../shared/data not found: real-data tests need the shared folder beside the project")
     rng = np.random.default_rng(5)
     cams, frames = kitchen_rig()
-    pipe = get_backend("opencl").pipeline(cams, kitchen_params(cams))
+    pipe = get_backend(backend).pipeline(cams, kitchen_params(cams))
     pipe.ingest(frames)
     snap = pipe.host_snapshot()
     q = surface_queries(rng, snap, 30, 0.005)

@@ -1,0 +1,195 @@
+"""Frame pipeline and spatial-hash build as Warp kernels. Mirrors kernels/opencl/frames.cl.
+
+Snapshot layout (as the OpenCL backend): ``pts[pix] = (x, y, z, r_f)`` and ``sigma[pix]`` in
+pixel order; ``order[start[c]:start[c+1]]`` = entries of cell c, entry = pix | protected << 31.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+
+@wp.struct
+class CamArgs:
+    """One camera of the rig for one frame: pose, depth conversion, noise, validity."""
+
+    R: wp.mat33  # camera -> world rotation
+    t: wp.vec3  # camera -> world translation, m
+    offset: int  # first pixel of this camera in the rig
+    n: int  # pixels
+    index: int  # camera id
+    max_code: wp.uint32
+    depth_scale: float
+    z_min: float
+    z_max: float
+    noise_a: float
+    noise_b: float
+    lateral: float  # lateral_px / min(fx, fy)
+    has_color: int
+    has_mask: int
+
+
+@wp.struct
+class GridArgs:
+    wmin: wp.vec3
+    wmax: wp.vec3
+    origin: wp.vec3
+    inv_h: float
+    nx: int
+    ny: int
+    nz: int
+
+
+@wp.struct
+class SelectArgs:
+    kind: int  # 0 all, 1 box, 2 colour, 3 mask
+    box_min: wp.vec3
+    box_max: wp.vec3
+    lo: wp.vec3i
+    hi: wp.vec3i
+    r_base: float
+    k_sigma: float
+    r_max: float
+    adaptive: int
+
+
+@wp.func
+def cell_coord(v: float, o: float, inv_h: float, n: int) -> int:
+    c = int(wp.floor((v - o) * inv_h))
+    return wp.clamp(c, 0, n - 1)
+
+
+@wp.func
+def sigma_max(sz: float, sl: float, rx: float, ry: float) -> float:
+    """sqrt(lambda_max) of sz^2 r r^T + sl^2 (I - e_z e_z^T), r = (rx, ry, 1) (closed form)."""
+    s2 = sz * sz
+    l2 = sl * sl
+    rho2 = rx * rx + ry * ry
+    t = s2 * (1.0 + rho2)
+    dd = t - l2
+    return wp.sqrt(0.5 * (t + l2 + wp.sqrt(dd * dd + 4.0 * l2 * s2 * rho2)))
+
+
+@wp.kernel
+def classify(depth: wp.array(dtype=wp.uint16), rays: wp.array(dtype=wp.vec2), cam: CamArgs, g: GridArgs,
+             sel: SelectArgs, color: wp.array(dtype=wp.uint8), mask: wp.array(dtype=wp.uint8),
+             pix_cell: wp.array(dtype=int), pix_prot: wp.array(dtype=int), pts: wp.array(dtype=wp.vec4),
+             sig: wp.array(dtype=float)):
+    i = wp.tid()
+    if i >= cam.n:
+        return
+    pix = cam.offset + i
+    d = wp.uint32(depth[pix])
+    z = float(d) * cam.depth_scale
+    r = rays[pix]
+    xc = r[0] * z
+    yc = r[1] * z
+    R = cam.R
+    x = R[0, 0] * xc + R[0, 1] * yc + R[0, 2] * z + cam.t[0]
+    y = R[1, 0] * xc + R[1, 1] * yc + R[1, 2] * z + cam.t[1]
+    w = R[2, 0] * xc + R[2, 1] * yc + R[2, 2] * z + cam.t[2]
+    ok = d != wp.uint32(0) and d != cam.max_code and z >= cam.z_min and z <= cam.z_max
+    ok = ok and x >= g.wmin[0] and y >= g.wmin[1] and w >= g.wmin[2]
+    ok = ok and x < g.wmax[0] and y < g.wmax[1] and w < g.wmax[2]
+    if not ok:
+        pix_cell[pix] = -1
+        return
+    ix = cell_coord(x, g.origin[0], g.inv_h, g.nx)
+    iy = cell_coord(y, g.origin[1], g.inv_h, g.ny)
+    iz = cell_coord(w, g.origin[2], g.inv_h, g.nz)
+    pix_cell[pix] = (iz * g.ny + iy) * g.nx + ix
+    sigma = sigma_max(cam.noise_a + cam.noise_b * z * z, cam.lateral * z, r[0], r[1])
+    rf = sel.r_base
+    if sel.adaptive != 0:
+        rf = wp.min(sel.r_base + sel.k_sigma * sigma, sel.r_max)
+    prot = int(1)
+    if sel.kind == 1:
+        inside = x >= sel.box_min[0] and y >= sel.box_min[1] and w >= sel.box_min[2]
+        inside = inside and x <= sel.box_max[0] and y <= sel.box_max[1] and w <= sel.box_max[2]
+        prot = wp.where(inside, 1, 0)
+    elif sel.kind == 2:
+        prot = 0
+        if cam.has_color != 0:
+            cr = int(color[3 * pix])
+            cg = int(color[3 * pix + 1])
+            cb = int(color[3 * pix + 2])
+            inside = cr >= sel.lo[0] and cg >= sel.lo[1] and cb >= sel.lo[2]
+            inside = inside and cr <= sel.hi[0] and cg <= sel.hi[1] and cb <= sel.hi[2]
+            prot = wp.where(inside, 1, 0)
+    elif sel.kind == 3:
+        prot = 0
+        if cam.has_mask != 0 and mask[pix] != wp.uint8(0):
+            prot = 1
+    pix_prot[pix] = prot
+    pts[pix] = wp.vec4(x, y, w, rf)
+    sig[pix] = sigma
+
+
+@wp.kernel
+def count_cells(pix_cell: wp.array(dtype=int), counts: wp.array(dtype=int), pix_rank: wp.array(dtype=int),
+                cam_counts: wp.array(dtype=int), cam_of: wp.array(dtype=int)):
+    pix = wp.tid()
+    cell = pix_cell[pix]
+    if cell >= 0:
+        pix_rank[pix] = wp.atomic_add(counts, cell, 1)
+        wp.atomic_add(cam_counts, cam_of[pix], 1)
+
+
+@wp.kernel
+def scatter(pix_cell: wp.array(dtype=int), pix_rank: wp.array(dtype=int), pix_prot: wp.array(dtype=int),
+            start: wp.array(dtype=int), order: wp.array(dtype=int)):
+    pix = wp.tid()
+    cell = pix_cell[pix]
+    if cell >= 0:
+        e = pix
+        if pix_prot[pix] != 0:
+            e = pix | (-2147483647 - 1)
+        order[start[cell] + pix_rank[pix]] = e
+
+
+@wp.kernel
+def neighbors(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+              queries: wp.array(dtype=wp.vec3), radius: float, span: int, K: int, protected_only: int,
+              count: wp.array(dtype=int), index: wp.array2d(dtype=int), nearest: wp.array(dtype=int),
+              nearest_d: wp.array(dtype=float)):
+    b = wp.tid()
+    q = queries[b]
+    cx = int(wp.clamp(wp.floor((q[0] - g.origin[0]) * g.inv_h), float(-span - 1), float(g.nx + span)))
+    cy = int(wp.clamp(wp.floor((q[1] - g.origin[1]) * g.inv_h), float(-span - 1), float(g.ny + span)))
+    cz = int(wp.clamp(wp.floor((q[2] - g.origin[2]) * g.inv_h), float(-span - 1), float(g.nz + span)))
+    x0 = wp.max(cx - span, 0)
+    x1 = wp.min(cx + span, g.nx - 1)
+    y0 = wp.max(cy - span, 0)
+    y1 = wp.min(cy + span, g.ny - 1)
+    z0 = wp.max(cz - span, 0)
+    z1 = wp.min(cz + span, g.nz - 1)
+    r2 = radius * radius
+    n = int(0)
+    best = int(-1)
+    best_d2 = float(1.0e30)
+    for iz in range(z0, z1 + 1):
+        for iy in range(y0, y1 + 1):
+            base = (iz * g.ny + iy) * g.nx
+            for i in range(start[base + x0], start[base + x1 + 1]):
+                entry = order[i]
+                if protected_only != 0 and entry >= 0:
+                    continue
+                p = pts[entry & 2147483647]
+                dx = p[0] - q[0]
+                dy = p[1] - q[1]
+                dz = p[2] - q[2]
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 <= r2:
+                    if n < K:
+                        index[b, n] = i
+                    n += 1
+                    if d2 < best_d2:
+                        best_d2 = d2
+                        best = i
+    for j in range(n, K):
+        index[b, j] = -1
+    count[b] = n
+    nearest[b] = best
+    if best >= 0:
+        nearest_d[b] = wp.sqrt(best_d2)
+    else:
+        nearest_d[b] = float(wp.inf)
