@@ -157,9 +157,11 @@ inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 
         vi neg = b < (vf)(0.0f);
         vi outside = (c >= (vf)(0.0f)) & neg & (disc > (vf)(0.0f));
         vi inside = (c < (vf)(0.0f)) & neg;
-        vf t_out = c / (-b + sqrt(fmax(disc, (vf)(0.0f))));
-        vf t = select((vf)(INFINITY), t_out, outside);
-        t = select(t, (vf)(-2.0f) * b, inside);
+        vf t = select((vf)(INFINITY), (vf)(-2.0f) * b, inside);
+        if (any(outside)) {  // most chunks hold no point the step could reach: skip sqrt and divide
+            vf t_out = c / (-b + sqrt(fmax(disc, (vf)(0.0f))));
+            t = select(t, t_out, outside);
+        }
         tmin = fmin(tmin, t);
     }
     float m = INFINITY;

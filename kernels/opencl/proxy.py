@@ -40,7 +40,7 @@ class OpenCLProxies(ProxyBatch):
         self.cl = pipeline.cl
         self.queue = pipeline.query_queue
         self.prg = _program(pipeline)
-        self.kernel = self.prg.proxy_tick
+        self.kernel = self.cl.Kernel(self.prg, "proxy_tick")  # own instance: arguments are per batch
         self._ws_request = max(VW, int(ws_capacity) // VW * VW)
         self.local_size = local_size
         self._arg_slot = None
