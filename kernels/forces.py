@@ -7,8 +7,11 @@ Per haptic tick, for each of B proxies (v = X_hip - X_proxy):
    attached to the middle of the contact band). Fixture mode: k = ``k_s`` (800 N/m) and
    dead_band = (r2 - r1) / 2, i.e. F = k_s (X_proxy - X_hip) once the HIP is past the point
    where the proxy rests (chapter 3);
-2. damping during contact only (state contact or entrenched): F -= b * xdot_hip, with the HIP
-   velocity from consecutive HIPs (zero on the first tick after ``reset``);
+2. damping during contact only: F -= b * xdot_hip while the proxy is in contact or entrenched
+   and the spring is engaged (|v| > dead_band), with the HIP velocity from consecutive HIPs
+   (zero on the first tick after ``reset``). Outside the dead band nothing holds the HIP, so
+   a HIP leaving the surface is not pulled back in by the damper, and the damped force is
+   unilateral: its component along the spring direction -v/|v| is clipped at zero;
 3. a ``fir_taps``-tap FIR low-pass (windowed sinc, Hamming window, cutoff ``fir_cutoff_hz`` at
    ``rate_hz``, taps normalised to unit DC gain, so a constant force passes unchanged);
 4. saturation: the vector is scaled down to ``max_force`` when longer (direction kept).
@@ -74,6 +77,8 @@ class ForceRenderer:
             self._mag = np.zeros(cap)
             self._tmp = np.zeros((cap, 3))
             self._contact = np.zeros(cap, bool)
+            self._engaged = np.zeros(cap, bool)
+            self._dot = np.zeros(cap)
             self._forces = np.zeros((cap, 3))
             self._raw = np.zeros((cap, 3))
             self._sat = np.zeros(cap, bool)
@@ -120,6 +125,8 @@ class ForceRenderer:
         np.subtract(vl, db, out=mag)
         np.maximum(mag, 0.0, out=mag)
         np.multiply(mag, p.stiffness, out=mag)
+        engaged = self._engaged[:n]
+        np.greater(vl, db, out=engaged)
         np.maximum(vl, db, out=vl)  # db > 0: no division by zero; mag is 0 inside the band
         np.divide(mag, vl, out=mag)
         np.multiply(v, mag[:, None], out=raw)
@@ -128,9 +135,20 @@ class ForceRenderer:
         if self._have_prev and p.b > 0:
             contact = self._contact[:n]
             np.not_equal(st, FREE, out=contact)
+            np.logical_and(contact, engaged, out=contact)
             np.subtract(xh, self._prev[:n], out=tmp)
             np.multiply(tmp, contact[:, None], out=tmp)
             np.multiply(tmp, p.b * p.rate_hz, out=tmp)
+            np.subtract(raw, tmp, out=raw)
+            # unilateral contact: damping may cancel the spring but never pull the HIP inwards,
+            # i.e. the component along the spring direction -v/|v| stays >= 0
+            dot = self._dot[:n]
+            np.einsum("ij,ij->i", raw, v, out=dot)  # raw . v  (> 0: pulling inwards)
+            np.maximum(dot, 0.0, out=dot)
+            np.multiply(dot, engaged, out=dot)
+            np.divide(dot, vl, out=dot)
+            np.divide(dot, vl, out=dot)
+            np.multiply(v, dot[:, None], out=tmp)
             np.subtract(raw, tmp, out=raw)
         self._prev[:n] = xh
         self._have_prev = True
