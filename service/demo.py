@@ -53,7 +53,7 @@ def run(args) -> int:
         t0 = time.perf_counter()
         nb = pipe.neighbors(probe, radius=cfg.pipeline.radius.r_base, protected_only=True)
         dt = (time.perf_counter() - t0) * 1e6
-        print(f"  probe 15 mm above the protected structure at {probe.round(3).tolist()}: "
+        print(f"  probe 15 mm above the protected structure at {np.round(probe.astype(float), 3).tolist()} m: "
               f"{nb.count[0]} protected points within {cfg.pipeline.radius.r_base * 1000:.0f} mm, "
               f"nearest {nb.nearest_dist[0] * 1000:.1f} mm ({dt:.0f} us)")
         inside = nb.nearest_dist[0] < cfg.pipeline.radius.r_base

@@ -90,7 +90,7 @@ def test_bad_queries(backend):
 def test_unknown_backend_and_device_name_what_is_available():
     with pytest.raises(BackendUnavailable, match="unknown backend 'cuda'; available: numpy, opencl"):
         get_backend("cuda")
-    with pytest.raises(BackendUnavailable, match="no OpenCL device matches 'no-such-gpu'. Found: .*Portable Computing"):
+    with pytest.raises(BackendUnavailable, match="no OpenCL device matches .no-such-gpu.. Found: .+ PoCL comes with: pip install"):
         select_device("no-such-gpu")
 
 
