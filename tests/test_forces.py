@@ -1,0 +1,102 @@
+"""Force rendering: eq. 2.2 with its dead band, contact damping, the FIR, saturation, fixtures."""
+import numpy as np
+import pytest
+
+from pointfence.kernels import InputError
+from pointfence.kernels.forces import ForceRenderer, fir_lowpass
+from pointfence.kernels.haptics import CONTACT, FREE, HapticParams
+
+P = HapticParams()
+
+
+def settle(r, proxies, hips, states, n=None):
+    for _ in range(n or P.fir_taps + 2):
+        f = r.update(proxies, hips, states)
+    return f.copy()
+
+
+def test_fir_taps_design():
+    h = fir_lowpass(26, 100.0, 1000.0)
+    assert h.size == 26 and h.sum() == pytest.approx(1.0, abs=1e-12)
+    np.testing.assert_allclose(h, h[::-1])  # linear phase
+    w = np.fft.rfftfreq(4096, 1e-3)
+    H = np.abs(np.fft.rfft(h, 4096))
+    assert H[w < 30].min() > 0.9  # passes the haptic band
+    assert H[w > 250].max() < 0.02  # stops the proxy's step jitter
+    assert np.allclose(fir_lowpass(1, 100.0, 1000.0), [1.0])
+
+
+def test_spring_eq_2_2_with_dead_band():
+    r = ForceRenderer(3, P.replace(max_force=100.0, b=0.0))
+    proxies = np.zeros((3, 3))
+    hips = np.array([[0, 0, -0.004], [0, 0, -0.02], [0.01, 0, -0.01]])  # inside band, 2 cm, oblique
+    f = settle(r, proxies, hips, np.full(3, CONTACT))
+    db = (P.r1 + P.r2) / 2
+    np.testing.assert_allclose(f[0], 0, atol=1e-12)
+    np.testing.assert_allclose(f[1], [0, 0, P.k * (0.02 - db)], rtol=1e-9)
+    v = hips[2] - proxies[2]
+    np.testing.assert_allclose(f[2], -v / np.linalg.norm(v) * P.k * (np.linalg.norm(v) - db), rtol=1e-9)
+    np.testing.assert_allclose(r.raw, f, rtol=1e-9)  # constant input: the FIR passes it unchanged
+
+
+def test_saturation_keeps_direction():
+    r = ForceRenderer(1, P.replace(max_force=2.0, b=0.0))
+    f = settle(r, np.zeros((1, 3)), np.array([[0.03, 0.0, -0.04]]), np.array([CONTACT]))
+    assert np.linalg.norm(f[0]) == pytest.approx(2.0)
+    np.testing.assert_allclose(f[0] / 2.0, [-0.6, 0, 0.8], atol=1e-9)
+    assert r.saturated[0]
+
+
+def test_damping_only_in_contact_and_never_pulls_in():
+    p = P.replace(max_force=100.0, fir_taps=1)
+    r = ForceRenderer(2, p)
+    proxies = np.zeros((2, 3))
+    hips = np.array([[0.001, 0, -0.015], [0.001, 0, -0.015]])
+    states = np.array([CONTACT, FREE])
+    r.update(proxies, hips, states)
+    f = r.update(proxies, hips + [0.0, 0, -0.0001], states)  # pressing in at 0.1 m/s
+    spring = p.k * (np.linalg.norm(hips[0] + [0, 0, -0.0001]) - p.dead_band)
+    assert f[0, 2] > f[1, 2] == pytest.approx(spring * 0.99, rel=0.02)
+    assert f[0, 2] - f[1, 2] == pytest.approx(p.b * 0.1, rel=0.02)  # -B xdot, only in contact
+    f = r.update(proxies, hips + [0.0, 0, 0.003], states)  # pulled out at 3 m/s: damping clipped
+    v = hips[0] + [0.0, 0, 0.003]
+    assert f[0] @ (-v) >= -1e-12  # never pulls the HIP inwards along the spring
+    assert f[0] @ (-v) < 1e-3 * np.linalg.norm(v)  # the damper cancelled the spring
+
+
+def test_fixture_form_k_s():
+    p = P.replace(mode="fixture", max_force=100.0, b=0.0)
+    r = ForceRenderer(1, p)
+    prox, hip = np.array([[0.0, 0.0, 0.02]]), np.array([[0.0, 0.003, 0.01]])
+    f = settle(r, prox, hip, np.array([CONTACT]))
+    v = hip[0] - prox[0]
+    want = p.k_s * (prox[0] - hip[0]) * (1 - p.dead_band / np.linalg.norm(v))
+    np.testing.assert_allclose(f[0], want, rtol=1e-9)
+    assert p.dead_band == pytest.approx((p.r2 - p.r1) / 2)
+
+
+def test_never_nan_and_bad_inputs_raise():
+    r = ForceRenderer(2, P)
+    x = np.zeros((2, 3))
+    f = r.update(x, x, np.array([CONTACT, FREE]))  # HIP exactly on the proxy
+    assert np.all(f == 0)
+    for bad in (np.array([[np.nan, 0, 0], [0, 0, 0]]), np.array([[0, 0, 0], [np.inf, 0, 0]])):
+        with pytest.raises(InputError, match="not finite"):
+            r.update(x, bad, np.zeros(2))
+        with pytest.raises(InputError, match="not finite"):
+            r.update(bad, x, np.zeros(2))
+    with pytest.raises(InputError, match="states"):
+        r.update(x, x, np.zeros(3))
+    assert np.all(np.isfinite(r.forces))
+    with pytest.raises(InputError):
+        fir_lowpass(0, 100.0, 1000.0)
+
+
+def test_no_allocation_per_tick():
+    """The arrays returned are the preallocated ones, tick after tick."""
+    r = ForceRenderer(4, P)
+    x = np.zeros((4, 3))
+    h = np.full((4, 3), -0.01)
+    a = r.update(x, h, np.full(4, CONTACT))
+    b = r.update(x, h, np.full(4, CONTACT))
+    assert np.shares_memory(a, b) and np.shares_memory(a, r.forces)
