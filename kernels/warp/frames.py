@@ -70,11 +70,12 @@ def sigma_max(sz: float, sl: float, rx: float, ry: float) -> float:
 
 
 @wp.kernel
-def classify(depth: wp.array(dtype=wp.uint16), rays: wp.array(dtype=wp.vec2), cam: CamArgs, g: GridArgs,
-             sel: SelectArgs, color: wp.array(dtype=wp.uint8), mask: wp.array(dtype=wp.uint8),
+def classify(depth: wp.array(dtype=wp.uint16), rays: wp.array(dtype=wp.vec2), cams: wp.array(dtype=CamArgs),
+             ci: int, g: GridArgs, sel: SelectArgs, color: wp.array(dtype=wp.uint8), mask: wp.array(dtype=wp.uint8),
              pix_cell: wp.array(dtype=int), pix_prot: wp.array(dtype=int), pts: wp.array(dtype=wp.vec4),
              sig: wp.array(dtype=float)):
     i = wp.tid()
+    cam = cams[ci]
     if i >= cam.n:
         return
     pix = cam.offset + i
@@ -132,6 +133,40 @@ def count_cells(pix_cell: wp.array(dtype=int), counts: wp.array(dtype=int), pix_
     if cell >= 0:
         pix_rank[pix] = wp.atomic_add(counts, cell, 1)
         wp.atomic_add(cam_counts, cam_of[pix], 1)
+
+
+@wp.kernel
+def scan_chunks(counts: wp.array(dtype=int), n: int, chunk: int, start: wp.array(dtype=int),
+                partial: wp.array(dtype=int)):
+    """Exclusive scan of counts[0..n) into start, chunk by chunk (as frames.cl)."""
+    g = wp.tid()
+    a = g * chunk
+    b = wp.min(n, a + chunk)
+    s = int(0)
+    for i in range(a, b):
+        start[i] = s
+        s += counts[i]
+    partial[g] = s
+
+
+@wp.kernel
+def scan_partials(partial: wp.array(dtype=int), nchunks: int, start: wp.array(dtype=int), n: int):
+    s = int(0)
+    for g in range(nchunks):
+        v = partial[g]
+        partial[g] = s
+        s += v
+    start[n] = s
+
+
+@wp.kernel
+def scan_add(start: wp.array(dtype=int), n: int, chunk: int, partial: wp.array(dtype=int)):
+    g = wp.tid()
+    a = g * chunk
+    b = wp.min(n, a + chunk)
+    off = partial[g]
+    for i in range(a, b):
+        start[i] = start[i] + off
 
 
 @wp.kernel

@@ -1,5 +1,11 @@
 """Warp frame pipeline: buffers allocated once, double-buffered snapshots, builds on their own
-CUDA stream so that a build never stalls a query on the front snapshot."""
+CUDA stream so that a build never stalls a query on the front snapshot.
+
+On CUDA the whole build of a slot (depth and camera uploads from pinned memory, the kernels,
+the scan, the point-count downloads) is one CUDA graph, captured on the first build into that
+slot and replayed afterwards: an ingest is a host-side copy into pinned memory plus one graph
+launch. Per-frame values (depth, poses) live in device arrays, so the graph never goes stale.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -49,6 +55,12 @@ class WarpPipeline(FramePipeline):
         self.color = wp.zeros(3 * npix if sel == "color" else 1, dtype=wp.uint8, device=dev)
         self.mask = wp.zeros(npix if sel == "mask" else 1, dtype=wp.uint8, device=dev)
         self.counts = wp.zeros(C + 1, dtype=int, device=dev)
+        self.nchunks = int(min(1024, max(1, C // 64)))
+        self.chunk = (C + self.nchunks - 1) // self.nchunks
+        self.partial = wp.zeros(self.nchunks, dtype=int, device=dev)
+        self._cams_host = wp.zeros(len(rig), dtype=k.CamArgs, device="cpu", pinned=self.cuda)
+        self._cams = wp.zeros(len(rig), dtype=k.CamArgs, device=dev)
+        self._graphs = {}
         self.pix_cell = wp.zeros(max(npix, 1), dtype=int, device=dev)
         self.pix_rank = wp.zeros(max(npix, 1), dtype=int, device=dev)
         self.pix_prot = wp.zeros(max(npix, 1), dtype=int, device=dev)
@@ -71,7 +83,8 @@ class WarpPipeline(FramePipeline):
         sa.box_min, sa.box_max = wp.vec3(*s.box_min), wp.vec3(*s.box_max)
         sa.lo, sa.hi = wp.vec3i(*s.color_lo), wp.vec3i(*s.color_hi)
         sa.r_base, sa.k_sigma, sa.r_max, sa.adaptive = r.r_base, r.k_sigma, r.r_max, int(r.adaptive)
-        self.cam_args = [k.CamArgs() for _ in rig.cameras]
+        ch = self._cams_host.numpy()
+        ch["offset"], ch["n"], ch["max_code"], ch["index"] = (rig.ints[:, j] for j in range(4))
         self._nq_cap = self._nq_K = 0
 
     def _stream(self, s):
@@ -79,39 +92,34 @@ class WarpPipeline(FramePipeline):
 
     # --- build -----------------------------------------------------------------------------
     def _build(self, frames, packed):
-        rig, dev = self.rig, self.device
+        rig = self.rig
         b = self.buffers.back()
         slot = self.buffers.slots[b]
         host = self._depth_host.numpy()
         for i, f in enumerate(frames):
             host[rig.offsets[i]:rig.offsets[i + 1]] = f.depth.reshape(-1)
+        ch = self._cams_host.numpy()
+        ch["R"] = packed[:, 0:9].reshape(-1, 3, 3)
+        ch["t"] = packed[:, 9:12]
+        for j, name in enumerate(("depth_scale", "z_min", "z_max", "noise_a", "noise_b", "lateral")):
+            ch[name] = packed[:, 16 + j]
+        ch["has_color"], ch["has_mask"] = packed[:, 22], packed[:, 23]
         try:
-            with self._stream(self.build_stream):
-                wp.copy(self.depth, self._depth_host)
-                if self.params.selection.kind in ("color", "mask"):
-                    self._upload_selection(frames)
-                self.counts.zero_()
-                self.cam_counts.zero_()
-                for i, f in enumerate(frames):
-                    ca = self.cam_args[i]
-                    P = packed[i]
-                    ca.R = wp.mat33(*P[0:9])
-                    ca.t = wp.vec3(*P[9:12])
-                    ca.offset, ca.n, ca.max_code, ca.index = (int(x) for x in rig.ints[i, [0, 1, 2, 3]])
-                    ca.depth_scale, ca.z_min, ca.z_max, ca.noise_a, ca.noise_b, ca.lateral = (float(x) for x in P[16:22])
-                    ca.has_color, ca.has_mask = int(P[22]), int(P[23])
-                    wp.launch(k.classify, dim=ca.n, inputs=[self.depth, self.rays, ca, self.grid_args, self.select_args,
-                              self.color, self.mask, self.pix_cell, self.pix_prot, slot.pts, slot.sigma])
-                if self.npix:
-                    wp.launch(k.count_cells, dim=self.npix,
-                              inputs=[self.pix_cell, self.counts, self.pix_rank, self.cam_counts, self.cam_of])
-                wp.utils.array_scan(self.counts, slot.start, inclusive=False)
-                if self.npix:
-                    wp.launch(k.scatter, dim=self.npix,
-                              inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.order])
-                wp.copy(self._n_host, slot.start, src_offset=self.ncells, count=1)
-                wp.copy(self._cam_host, self.cam_counts)
-            if self.build_stream is not None:
+            if self.params.selection.kind in ("color", "mask"):
+                self._upload_selection(frames)
+            if not self.cuda:
+                self._record(slot)
+            else:
+                with wp.ScopedStream(self.build_stream):
+                    graph = self._graphs.get(b)
+                    if graph is None:
+                        wp.capture_begin(device=self.device, stream=self.build_stream)
+                        try:
+                            self._record(slot)
+                        finally:
+                            graph = wp.capture_end(device=self.device, stream=self.build_stream)
+                        self._graphs[b] = graph
+                    wp.capture_launch(graph, stream=self.build_stream)
                 wp.synchronize_stream(self.build_stream)
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp frame pipeline failed on {self.backend.device_name}: {e}") from e
@@ -121,6 +129,29 @@ class WarpPipeline(FramePipeline):
         slot.per_camera = tuple(int(n) for n in self._cam_host.numpy())
         self.buffers.publish(b)
         return slot.n_points, slot.per_camera
+
+    def _record(self, slot):
+        """Enqueue one whole build into ``slot`` (captured into a graph on CUDA)."""
+        dev, C = self.device, self.ncells
+        wp.copy(self.depth, self._depth_host)
+        wp.copy(self._cams, self._cams_host)
+        self.counts.zero_()
+        self.cam_counts.zero_()
+        for i in range(len(self.rig)):
+            wp.launch(k.classify, dim=int(self.rig.ints[i, 1]), device=dev,
+                      inputs=[self.depth, self.rays, self._cams, i, self.grid_args, self.select_args,
+                              self.color, self.mask, self.pix_cell, self.pix_prot, slot.pts, slot.sigma])
+        if self.npix:
+            wp.launch(k.count_cells, dim=self.npix, device=dev,
+                      inputs=[self.pix_cell, self.counts, self.pix_rank, self.cam_counts, self.cam_of])
+        wp.launch(k.scan_chunks, dim=self.nchunks, device=dev, inputs=[self.counts, C, self.chunk, slot.start, self.partial])
+        wp.launch(k.scan_partials, dim=1, device=dev, inputs=[self.partial, self.nchunks, slot.start, C])
+        wp.launch(k.scan_add, dim=self.nchunks, device=dev, inputs=[slot.start, C, self.chunk, self.partial])
+        if self.npix:
+            wp.launch(k.scatter, dim=self.npix, device=dev,
+                      inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.order])
+        wp.copy(self._n_host, slot.start, src_offset=C, count=1)
+        wp.copy(self._cam_host, self.cam_counts)
 
     def _upload_selection(self, frames):
         rig = self.rig
