@@ -12,6 +12,7 @@ import sys
 #: name -> one-line description
 BENCHES = {
     "frames": "frame ingest (deproject, transform, radius, hash) vs scipy cKDTree and the projective search",
+    "floor": "launch + copy floor of the device (what a tick costs with no work in it)",
 }
 
 

@@ -1,0 +1,109 @@
+"""`pointfence bench floor`: the launch + copy floor of a device, the least a tick can cost.
+
+Measured the way a proxy tick runs: a small upload (one HIP), one kernel launch, a small
+download (one result) and the wait for it, as plain calls and (Warp on CUDA) as one replayed
+CUDA graph. Other figures are reported as distance from this floor.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pointfence.kernels import get_backend
+
+from .stats import pct
+
+
+def add_arguments(p):
+    pass
+
+
+def _time_us(fn, n):
+    for _ in range(50):
+        fn()
+    ts = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        ts.append((time.perf_counter() - t0) * 1e6)
+    return ts
+
+
+def _warp(backend, n):
+    import warp as wp
+
+    @wp.kernel
+    def touch(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3)):
+        i = wp.tid()
+        b[i] = a[i]
+
+    dev = backend.device
+    pinned = dev.is_cuda
+    h_in = wp.zeros(1, dtype=wp.vec3, device="cpu", pinned=pinned)
+    h_out = wp.zeros(1, dtype=wp.vec3, device="cpu", pinned=pinned)
+    d_in = wp.zeros(1, dtype=wp.vec3, device=dev)
+    d_out = wp.zeros(1, dtype=wp.vec3, device=dev)
+    stream = wp.Stream(dev) if dev.is_cuda else None
+
+    def record():
+        wp.copy(d_in, h_in)
+        wp.launch(touch, dim=1, inputs=[d_in, d_out], device=dev)
+        wp.copy(h_out, d_out)
+
+    def plain():
+        record()
+        wp.synchronize_device(dev)
+
+    out = {"launch_copy_us_p50": None}
+    t = _time_us(plain, n)
+    out.update(launch_copy_us_p50=round(pct(t, 50), 2), launch_copy_us_p99=round(pct(t, 99), 2))
+    if dev.is_cuda:
+        with wp.ScopedStream(stream):
+            wp.capture_begin(device=dev, stream=stream)
+            record()
+            graph = wp.capture_end(device=dev, stream=stream)
+
+        def replay():
+            wp.capture_launch(graph, stream=stream)
+            wp.synchronize_stream(stream)
+
+        t = _time_us(replay, n)
+        out.update(graph_us_p50=round(pct(t, 50), 2), graph_us_p99=round(pct(t, 99), 2))
+    return out
+
+
+def _opencl(backend, n):
+    import pyopencl as cl
+
+    ctx = backend.context
+    q = cl.CommandQueue(ctx)
+    prg = cl.Program(ctx, "__kernel void touch(__global const float4 *a, __global float4 *b) { b[0] = a[0]; }").build()
+    k = cl.Kernel(prg, "touch")
+    h_in = np.zeros(4, np.float32)
+    h_out = np.zeros(4, np.float32)
+    mf = cl.mem_flags
+    d_in = cl.Buffer(ctx, mf.READ_ONLY, 16)
+    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, 16)
+    k.set_args(d_in, d_out)
+
+    def plain():
+        cl.enqueue_copy(q, d_in, h_in, is_blocking=False)
+        cl.enqueue_nd_range_kernel(q, k, (1,), None)
+        cl.enqueue_copy(q, h_out, d_out, is_blocking=True)
+
+    t = _time_us(plain, n)
+    return {"launch_copy_us_p50": round(pct(t, 50), 2), "launch_copy_us_p99": round(pct(t, 99), 2)}
+
+
+def run(args) -> dict:
+    n = args.repeat or 5000
+    backend = get_backend(args.backend, args.device)
+    out = {"backend": backend.name, "device": backend.device_name, "repeat": n}
+    if backend.name == "warp":
+        out.update(_warp(backend, n))
+    elif backend.name == "opencl":
+        out.update(_opencl(backend, n))
+    else:
+        out["note"] = "the numpy backend launches nothing: its floor is zero"
+    return out
