@@ -28,6 +28,9 @@ class HapticParams:
         step: proxy step length delta (1 mm); at most ``r3 - r1`` so that the normal
             neighbourhood always holds every point a step can reach.
         max_steps: step budget of one haptic tick (all steps run inside one kernel launch).
+            20 steps of 1 mm let a free proxy follow a HIP at 20 m/s, far beyond hand speeds;
+            in sliding contact against a deep HIP the normal estimate (eq. 2.1) keeps changing
+            and the proxy wanders within a fraction of a millimetre, which spends the budget.
         tolerance: a tick has converged when the step it would take is shorter than this (m).
         slack: how deep (m) a sliding step may dig into the point cloud before the next
             step pushes the proxy back out along the normal. Steps are clipped by a swept-sphere
@@ -49,7 +52,7 @@ class HapticParams:
     r2: float = 0.0051
     r3: float = 0.010
     step: float = 0.001
-    max_steps: int = 50
+    max_steps: int = 20
     tolerance: float = 1e-6
     slack: float = 0.0002
     skin: float = 0.002

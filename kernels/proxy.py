@@ -26,9 +26,11 @@ Algorithm (identical in the NumPy reference and the device kernels), per step:
 3. Swept-sphere clipping: the step is shortened so that, moving along u, no point's clearance
    drops below (r2 - r1)/2 (free: the proxy lands in the contact band) or below -slack (other
    moves: sliding may dig at most ``slack`` deep before step 1 pushes it out again); a point
-   already deeper than that may not end the step closer than it started. Hence a step never
-   carries the proxy through a surface, whatever delta is, and a static scene never gets
-   closer than ``r1 - slack`` to the proxy's centre (``r_f - slack`` for fixtures).
+   already deeper than that (the scene moved into the proxy) may not end a free, contact or
+   sliding step closer than it started, and does not block the push-out along n (else a
+   proxy buried by a new frame could stay stuck). Hence a step never carries the proxy
+   through a surface, whatever delta is, and in a static scene no point comes closer than
+   about ``r1 - slack`` to the proxy's centre (``r_f - slack`` for fixtures).
 4. If the clipped step is shorter than ``tolerance``, the tick has converged; else move.
 
 The state, normal and clearance reported are those at the final position.

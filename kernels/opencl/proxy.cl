@@ -142,7 +142,7 @@ inline Eval eval_hash(__global const float4 *pts, __global const int *order, __g
 }
 
 // ---- swept-sphere clipping of a step along u ------------------------------------------------
-inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 u, float off) {
+inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 u, float off, int push) {
     __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
     vf tmin = INFINITY;
     for (int i = 0; i < n; i += VW) {
@@ -156,7 +156,7 @@ inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 
         vf disc = b * b - c;
         vi neg = b < (vf)(0.0f);
         vi outside = (c >= (vf)(0.0f)) & neg & (disc > (vf)(0.0f));
-        vi inside = (c < (vf)(0.0f)) & neg;
+        vi inside = (c < (vf)(0.0f)) & neg & (vi)(push ? 0 : -1);
         vf t = select((vf)(INFINITY), (vf)(-2.0f) * b, inside);
         if (any(outside)) {  // most chunks hold no point the step could reach: skip sqrt and divide
             vf t_out = c / (-b + sqrt(fmax(disc, (vf)(0.0f))));
@@ -170,7 +170,7 @@ inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 
 }
 
 inline float clip_hash(__global const float4 *pts, __global const int *order, __global const int *start,
-                       float4 grid, int4 dims, int span, float3 X, float3 u, float off, int fixture, float r1) {
+                       float4 grid, int4 dims, int span, float3 X, float3 u, float off, int push, int fixture, float r1) {
     int4 hi;
     int4 lo = cell_range(X, grid, dims, span, &hi);
     float m = INFINITY;
@@ -191,7 +191,7 @@ inline float clip_hash(__global const float4 *pts, __global const int *order, __
                 float disc = b * b - c;
                 float t = INFINITY;
                 if (c >= 0.0f && b < 0.0f && disc > 0.0f) t = c / (-b + sqrt(disc));
-                else if (c < 0.0f && b < 0.0f) t = -2.0f * b;
+                else if (c < 0.0f && b < 0.0f && !push) t = -2.0f * b;
                 m = fmin(m, t);
             }
         }
@@ -240,20 +240,28 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         float3 vp = v - vn * nrm;
         float vpl = sqrt(vp.x * vp.x + vp.y * vp.y + vp.z * vp.z);
         int has_n = nrm.x != 0.0f || nrm.y != 0.0f || nrm.z != 0.0f;
-        float3 u = (float3)(0.0f);
-        float L = 0.0f;
-        if (st == FREE || (st == CONTACT && vn > 0.0f) || (st == ENTRENCHED && !has_n)) {
-            if (vl > 0.0f) { u = v / vl; L = vl; }
-        } else if (st == ENTRENCHED) {
-            u = nrm; L = 0.5f * band - min_e;
+        // contact rules (rule 3/4): along v with the HIP outside or no normal, else along vp
+        float3 u2 = (float3)(0.0f);
+        float L2 = 0.0f;
+        if (st == FREE || vn > 0.0f || !has_n) {
+            if (vl > 0.0f) { u2 = v / vl; L2 = vl; }
         } else if (vpl > 0.0f) {
-            u = vp / vpl; L = vpl;
+            u2 = vp / vpl; L2 = vpl;
         }
-        L = fmin(L, P_STEP);
+        L2 = fmin(L2, P_STEP);
+        int push = st == ENTRENCHED && has_n;  // push-out along n first
+        float3 u = push ? nrm : u2;
+        float L = push ? fmin(0.5f * band - min_e, P_STEP) : L2;
         float off = st == FREE ? 0.5f * band : -P_SLACK;
-        float t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
-                         : clip_ws(ws, cap, n, X, u, off);
+        float t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, push, fixture, r1)
+                         : clip_ws(ws, cap, n, X, u, off, push);
         float s = fmax(fmin(L, t), 0.0f);
+        if (push && s < P_TOL) {  // push-out blocked: the contact rule's direction instead
+            u = u2;
+            t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, 0, fixture, r1)
+                       : clip_ws(ws, cap, n, X, u, off, 0);
+            s = fmax(fmin(L2, t), 0.0f);
+        }
         if (s < P_TOL) { conv = 1; break; }
         X = X + s * u;
         ++steps;

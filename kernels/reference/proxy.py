@@ -162,39 +162,49 @@ def evaluate(X: np.ndarray, ws: WorkingSet, p: HapticParams, direct=None, lanes:
 
 
 def direction(X, H, state, normal, min_e, p: HapticParams):
-    """Unit step direction u (B, 3) and step length bound L (B,) from the movement rules."""
+    """Step directions and length bounds from the movement rules.
+
+    Returns (u, L, push, u2, L2, retry): the first choice u (B, 3) with its bound L (B,) and
+    ``push`` (B,) where it is the push-out along n; where ``retry``, the push-out is blocked by
+    the swept-sphere test the step goes along (u2, L2) instead: along v with the HIP outside
+    (v.n > 0), along v projected on the plane of n with it inside (rule 3/4 for entrenched).
+    """
     v = (H - X).astype(F)
     vl = np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
     vn = v[:, 0] * normal[:, 0] + v[:, 1] * normal[:, 1] + v[:, 2] * normal[:, 2]
     vp = v - vn[:, None] * normal
     vpl = np.sqrt(vp[:, 0] * vp[:, 0] + vp[:, 1] * vp[:, 1] + vp[:, 2] * vp[:, 2])
     has_n = np.any(normal != 0, axis=1)
-    along_v = (state == FREE) | ((state == CONTACT) & (vn > 0)) | ((state == ENTRENCHED) & ~has_n)
     along_n = (state == ENTRENCHED) & has_n
-    along_p = ~along_v & ~along_n
-    u = np.zeros_like(v)
-    L = np.zeros(X.shape[0], F)
-    sv = along_v & (vl > 0)
-    u[sv] = v[sv] / vl[sv, None]
-    L[sv] = vl[sv]
-    sp = along_p & (vpl > 0)
-    u[sp] = vp[sp] / vpl[sp, None]
-    L[sp] = vpl[sp]
+    # the contact rules: along v (HIP outside or no normal) or along its projection
+    rule_v = (state == FREE) | (vn > 0) | ~has_n
+    u2 = np.zeros_like(v)
+    L2 = np.zeros(X.shape[0], F)
+    sv = rule_v & (vl > 0)
+    u2[sv] = v[sv] / vl[sv, None]
+    L2[sv] = vl[sv]
+    sp = ~rule_v & (vpl > 0)
+    u2[sp] = vp[sp] / vpl[sp, None]
+    L2[sp] = vpl[sp]
+    L2 = np.minimum(L2, F(p.step))
+    u, L = u2.copy(), L2.copy()
     u[along_n] = normal[along_n]
-    L[along_n] = F(p.band / 2) - min_e[along_n]
-    L = np.minimum(L, F(p.step))
-    return u, L
+    L[along_n] = np.minimum(F(p.band / 2) - min_e[along_n], F(p.step))
+    return u, L, along_n, u2, L2, along_n
 
 
-def clip_step(u, L, state, w, d2, ws: WorkingSet, p: HapticParams):
-    """Longest step <= L along u before a point's clearance reaches its limit (swept sphere)."""
+def clip_step(u, L, state, push, w, d2, ws: WorkingSet, p: HapticParams):
+    """Longest step <= L along u before a point's clearance reaches its limit (swept sphere).
+
+    ``push`` (B,): the step is the push-out along n, which points already deeper than the
+    limit do not block."""
     b = u[:, None, 0] * w[..., 0] + u[:, None, 1] * w[..., 1] + u[:, None, 2] * w[..., 2]
     off = np.where(state == FREE, F(p.band / 2), F(-p.slack)).astype(F)
     rc = ws.rho + off[:, None]
     c = d2 - rc * rc
     disc = b * b - c
     outside = ws.valid & (c >= 0) & (b < 0) & (disc > 0)
-    inside = ws.valid & (c < 0) & (b < 0)
+    inside = ws.valid & (c < 0) & (b < 0) & ~push[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         t_out = c / (-b + np.sqrt(np.maximum(disc, F(0))))
     t = np.where(outside, t_out, INF)
@@ -245,8 +255,13 @@ def run_tick(X: np.ndarray, H: np.ndarray, gather, p: HapticParams, cap: int = W
         wa = ws.take(active)
         Xa, Ha = X[active], H[active]
         st, nrm, me, w, d2 = evaluate(Xa, wa, p, count[active] > cap, lanes)
-        u, L = direction(Xa, Ha, st, nrm, me, p)
-        s = clip_step(u, L, st, w, d2, wa, p)
+        u, L, push, u2, L2, retry = direction(Xa, Ha, st, nrm, me, p)
+        s = clip_step(u, L, st, push, w, d2, wa, p)
+        retry &= s < F(p.tolerance)
+        if retry.any():  # push-out blocked: the contact rule's direction instead
+            r = np.flatnonzero(retry)
+            s2 = clip_step(u2[r], L2[r], st[r], np.zeros(r.size, bool), w[r], d2[r], wa.take(r), p)
+            u[r], s[r] = u2[r], s2
         done = s < F(p.tolerance)
         normal[active], state[active], near[active] = nrm, st, me
         conv[active[done]] = True
