@@ -93,6 +93,9 @@ def run(args) -> int:
         m = json.loads((path.parent / "metrics.json").read_text())
         print(f"tracking r.m.s. error: free motion {m['tracking_rms_free_rad']:.4f} rad, with tissue "
               f"{m['tracking_rms_tissue_rad']:.4f} rad (seed: 0.0069 rad)")
+        for T, row in m["chapter5"].items():
+            print(f"chapter 5 @ {float(T):.0f} g: hand-trajectory r.m.s. error nominal (743 g) parameters "
+                  f"{row['nominal']['hand_rms_rad']:.4f} rad, re-identified {row['adjusted']['hand_rms_rad']:.4f} rad")
         print(f"report: {path}")
         return 0
     if cmd == "identify":
