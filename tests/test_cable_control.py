@@ -160,3 +160,23 @@ def test_controller_nan_gives_zero_torque_and_alert():
     assert max(abs(t) for t in plant.torques[:150]) > 0.01  # it was driving before
     assert all(t == 0.0 for t in plant.torques[205:])      # zero torque after the NaN
     assert s.motor_torque == 0.0
+
+
+def test_chapter5_nominal_parameters_degrade_at_high_tension_and_reidentified_restore():
+    """Chapter 5 conditions: plant at 1929 g, states-only UKF, parameters held fixed. With the
+    743 g parameters the model's cable is too soft; the re-identified (here: true) ones track."""
+    from pointfence.service.cable.experiments import STATES_ONLY, peak_errors
+    from pointfence.service.cable.params import true_params_at_tension
+    from pointfence.service.cable.trajectories import hand_trajectory, peaks_of
+
+    hand = hand_trajectory()
+    truth = true_params_at_tension(1929.0)
+    res = {}
+    for lab, prm in (("nominal", true_params_at_tension(743.0)), ("adjusted", truth)):
+        r = run_closed_loop(SimulatedPlant(truth, seed=7), CableLoop(prm, STATES_ONLY), hand)
+        res[lab] = (tracking_rms(r), peak_errors(r, peaks_of(hand))["peak_error_rad"],
+                    float(np.sqrt(np.mean((r["q_l_hat"] - r["q_l"]) ** 2))))
+    (rms_n, pk_n, est_n), (rms_a, pk_a, est_a) = res["nominal"], res["adjusted"]
+    assert rms_a < 0.003 and rms_n > 2.5 * rms_a, res
+    assert pk_n > 2.0 * pk_a, res
+    assert est_n > 3.0 * est_a, res  # the link estimate is what the wrong cable model spoils
