@@ -41,3 +41,15 @@ def test_cable_run_reports_status(capsys):
 def test_bad_tension_list_is_rejected():
     with pytest.raises(SystemExit):
         _parse("calib-tension", "--tensions", "abc")
+
+
+def test_calib_tension_entry_point_matches_cable_calib_tension(tmp_path):
+    from pointfence.service.cable import calib_tension
+
+    p = argparse.ArgumentParser()
+    calib_tension.add_arguments(p)
+    pts = tmp_path / "pts.csv"
+    pts.write_text("450,14000\n900,20500\n1400,25000\n")
+    out = tmp_path / "cal.json"
+    assert calib_tension.run(p.parse_args(["--points", str(pts), "--out", str(out)])) == 0
+    assert TensionCurve.load(out).b > 0
