@@ -24,16 +24,18 @@ inertia J          0.06    0.04    0.40 kg    2e-5    2e-5    2e-5    (kg m^2 un
 viscous b          0.05    0.04    2.0 Ns/m   1e-5    1e-5    1e-5    (Nm s/rad)
 bandwidth wn       120     120     150        200     200     200     (rad/s)
 damping ratio      0.8     0.8     0.8        0.8     0.8     0.8
-integral rate wi   2       2       2          2       2       2       (1/s: Ki = Kp wi)
+integral rate wi   10      10      10         10      10      10      (1/s: Ki = Kp wi)
 tau_max            8       8       40 N       0.05    0.05    0.05    (Nm)
 v_max              3       3       0.3 m/s    10      10      10      (rad/s)
 fault_error        0.3     0.3     0.05 m     1.0     1.0     1.0     (rad)
 integral_band      1e-3    1e-3    1e-4 m     5e-3    5e-3    5e-3    (rad)
 =================  ======  ======  =========  ======  ======  ======
 
-The integral only accumulates while |e| <= integral_band (conditional integration): it removes
-static offsets (the gravity residual) without winding up during motion, so the lag while
-moving stays that of the PD loop and a stop settles without an integral overshoot.
+The integral only accumulates while the joint's setpoint rests and |e| <= integral_band
+(conditional integration, clamped to a quarter of the torque range): it removes static offsets
+(the gravity residual) once a setpoint is held, but is frozen while setpoints stream, so during
+motion the arm behaves as the PD loop (lag and a small gravity droop) and a stop settles
+without an integral overshoot.
 
 Kp = J wn^2, Kd = 2 zeta wn J - b. With these, a 5 cm/s straight line of the tool tip is
 followed with about 0.3-0.7 mm of error (depending on the direction and the pose) and a stop
@@ -56,7 +58,7 @@ DEFAULTS = dict(
     damping=(0.05, 0.04, 2.0, 1e-5, 1e-5, 1e-5),
     bandwidth=(120.0, 120.0, 150.0, 200.0, 200.0, 200.0),
     damping_ratio=(0.8,) * 6,
-    integral_rate=(2.0,) * 6,
+    integral_rate=(10.0,) * 6,
     max_torque=(8.0, 8.0, 40.0, 0.05, 0.05, 0.05),
     max_velocity=(3.0, 3.0, 0.3, 10.0, 10.0, 10.0),
     fault_error=(0.3, 0.3, 0.05, 1.0, 1.0, 1.0),
@@ -140,6 +142,7 @@ class Raven2(Robot):
         self._c_imax, self._c_band = i_max.tolist(), self.integral_band.tolist()
         self._c_tmax, self._c_vmax = self.max_torque.tolist(), self.max_velocity.tolist()
         self._int = [0.0] * 6
+        self._qd_prev = [0.0] * 6
         self._grav = [0.0] * 6
         self._h = -1.0
         self._c_hj = [0.0] * 6
@@ -207,6 +210,7 @@ class Raven2(Robot):
         if h != self._h:
             self._set_period(h)
         q, dq, tau, qd, integ, grav = self._q, self._dq, self._tau, self._q_d, self._int, self._grav
+        qprev = self._qd_prev
         kp, ki, kd, imax, band = self._c_kp, self._c_ki, self._c_kd, self._c_imax, self._c_band
         tmax, vmax, hj, iv, lo, hi = self._c_tmax, self._c_vmax, self._c_hj, self._c_iv, self._lo, self._hi
         gravity, comp = self.gravity, self.gravity_compensation
@@ -216,11 +220,14 @@ class Raven2(Robot):
             for i in range(6):
                 qi = q[i]
                 e = qd[i] - qi
-                # conditional integration with anti-windup clamp
-                if -band[i] <= e <= band[i]:
-                    v = integ[i] + e * h
-                    m = imax[i]
-                    integ[i] = m if v > m else (-m if v < -m else v)
+                # conditional integration (setpoint at rest, error in the band), clamped
+                if qd[i] == qprev[i]:
+                    if -band[i] <= e <= band[i]:
+                        v = integ[i] + e * h
+                        m = imax[i]
+                        integ[i] = m if v > m else (-m if v < -m else v)
+                else:
+                    qprev[i] = qd[i]
                 g = grav[i]
                 t = kp[i] * e + ki[i] * integ[i] - kd[i] * dq[i] - comp * g
                 m = tmax[i]

@@ -1,0 +1,131 @@
+"""Building a robot by model name, and the ``[robot]`` table of the scene configuration.
+
+TOML shape (every key but ``model`` is an option of that model; unknown keys are errors that
+name the key and suggest the closest known one)::
+
+    [robot]
+    model = "raven2"              # "raven2" (default) | "point-mass"
+    # raven2 options (SI units; per-joint lists have 6 values: shoulder, elbow, insertion,
+    # tool roll, wrist, grasper yaw):
+    arm = "right"                 # "right" (green) | "left" (gold)
+    q0 = [0.5236, 1.5708, 0.40, 0.0, 0.0, 0.0]   # start joints (rad, rad, m, rad, rad, rad)
+    T_world_base = [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1]   # mount, 16 numbers row-major
+    mount_tool_down = [0.0, 0.0, 0.15]   # or: RCM at this world point, tool shaft pointing down at q0
+    workspace_min = [-0.1, -0.1, 0.0]    # optional world box the tip must stay in
+    workspace_max = [0.1, 0.1, 0.2]
+    joint_lower = [...]            # optional, narrower than the Raven's limits
+    joint_upper = [...]
+    inertia = [0.06, 0.04, 0.40, 2e-5, 2e-5, 2e-5]
+    damping = [0.05, 0.04, 2.0, 1e-5, 1e-5, 1e-5]
+    bandwidth = [120, 120, 150, 200, 200, 200]     # rad/s; or kp / kd / ki explicitly
+    damping_ratio = [0.8, 0.8, 0.8, 0.8, 0.8, 0.8]
+    integral_rate = [2, 2, 2, 2, 2, 2]
+    integral_band = [1e-3, 1e-3, 1e-4, 5e-3, 5e-3, 5e-3]
+    max_torque = [8, 8, 40, 0.05, 0.05, 0.05]
+    max_velocity = [3, 3, 0.3, 10, 10, 10]
+    fault_error = [0.3, 0.3, 0.05, 1, 1, 1]
+    gravity = true
+    gravity_vector = [0, 0, -9.81]
+    tool_mass = 0.3
+    gravity_compensation = 0.9
+    control_rate_hz = 1000
+
+    [robot]
+    model = "point-mass"
+    mass = 0.5
+    damping = 2.0
+    bandwidth = 100.0              # or kp / kd
+    damping_ratio = 0.9
+    max_force = 10.0
+    max_velocity = 0.5
+    workspace_min = [-0.5, -0.5, -0.5]
+    workspace_max = [0.5, 0.5, 0.5]
+    x0 = [0.0, 0.0, 0.1]
+    T_world_base = [...]
+    fault_error = 0.05
+    control_rate_hz = 1000
+"""
+from __future__ import annotations
+
+import difflib
+import inspect
+
+import numpy as np
+
+from pointfence.kernels.errors import InputError
+
+from .base import Robot, as_vector
+from .point_mass import PointMass
+from .raven2 import Raven2
+
+MODELS = {"raven2": Raven2, "point-mass": PointMass}
+#: options handled here rather than by a model's constructor
+_EXTRA = {"raven2": {"mount_tool_down"}, "point-mass": set()}
+
+
+def model_options(model: str) -> set:
+    """The option names a model accepts (its constructor's keyword arguments)."""
+    cls = _model(model)
+    params = inspect.signature(cls.__init__).parameters
+    return {n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY} | _EXTRA[model]
+
+
+def _model(model) -> type:
+    if model not in MODELS:
+        near = difflib.get_close_matches(str(model), MODELS, n=1)
+        hint = f"; did you mean {near[0]!r}?" if near else ""
+        raise InputError(f"robot model {model!r} is not known{hint} Known models: {', '.join(MODELS)}")
+    return MODELS[model]
+
+
+def _suggest(key: str, known: set, where: str) -> InputError:
+    near = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.5)
+    hint = f"; did you mean {near[0]!r}?" if near else ""
+    others = [m for m, c in MODELS.items() if key in model_options(m)]
+    other = f" ({key!r} is an option of model {others[0]!r})" if others else ""
+    return InputError(f"{where}: unknown key {key!r}{hint}{other} Known keys: {', '.join(sorted(known))}")
+
+
+def make_robot(model: str = "raven2", **options) -> Robot:
+    """A simulated robot: ``model`` is 'raven2' (the default robot) or 'point-mass'; ``options``
+    are that model's keyword options (see the module docstring). Raises InputError on an
+    unknown model or option (naming it and suggesting the closest) or a bad value."""
+    cls = _model(model)
+    known = model_options(model)
+    for key in options:
+        if key not in known:
+            raise _suggest(key, known, f"robot model {model!r}")
+    if "mount_tool_down" in options:
+        rcm = options.pop("mount_tool_down")
+        if options.get("T_world_base") is not None:
+            raise InputError("robot: give T_world_base or mount_tool_down, not both")
+        options["T_world_base"] = Raven2.mount_tool_down(as_vector(rcm, 3, "mount_tool_down"),
+                                                         arm=options.get("arm", "right"), q=options.get("q0"))
+    if options.get("T_world_base") is not None:
+        T = np.asarray(options["T_world_base"], dtype=object)
+        if T.size != 16:
+            raise InputError(f"T_world_base has {T.size} numbers; expected 16 (a 4x4, row-major)")
+        options["T_world_base"] = as_vector(np.asarray(T, dtype=float).ravel(), 16, "T_world_base").reshape(4, 4)
+    return cls(**options)
+
+
+def robot_from_config(table: dict) -> Robot:
+    """Build the robot described by a parsed ``[robot]`` TOML table (see the module docstring).
+    ``model`` defaults to 'raven2'; every other key is an option of that model."""
+    if table is None:
+        table = {}
+    if not isinstance(table, dict):
+        raise InputError(f"[robot]: expected a table, got {type(table).__name__}")
+    opts = dict(table)
+    model = opts.pop("model", "raven2")
+    if not isinstance(model, str):
+        raise InputError(f"[robot] model = {model!r}; expected 'raven2' or 'point-mass'")
+    _model(model)
+    known = model_options(model)
+    for key in opts:
+        if key not in known:
+            raise _suggest(key, known | {"model"}, "[robot]")
+    try:
+        return make_robot(model, **opts)
+    except InputError as e:
+        raise InputError(f"[robot] {e}") from None
