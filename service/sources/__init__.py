@@ -3,11 +3,13 @@
 ``open_source(spec, camera=None, **options)`` opens a source from a string:
 
 * ``synthetic:<scene>``: an analytic scene (``scenes.SCENES``) ray-cast with Kinect-like noise;
-* ``recorded:<path>``: a folder of depth frames (layout auto-detected) or one frame file.
+* ``recorded:<path>``: a folder of depth frames (layout auto-detected) or one frame file;
+* ``openni2:<device uri | any | file.oni>``: an OpenNI2 camera or recording (``openni2.py``);
+* ``depthai:<device id or empty>``: a Luxonis OAK stereo camera (``depthai_source.py``).
 
 Options may also follow the spec as a query string, ``synthetic:sphere?radius=0.05&seed=3``;
-keyword options win over query options. Live cameras (``openni2:``, ``depthai:``) plug in later
-by adding one entry to ``SCHEMES``.
+keyword options win over query options. The live-camera modules import their vendor library
+only when a source of that scheme is opened.
 """
 from __future__ import annotations
 
@@ -25,9 +27,23 @@ from .synthetic import SyntheticSource, default_camera, look_at
 SCHEMES: dict[str, Callable[..., DepthSource]] = {
     "synthetic": lambda target, camera, **o: SyntheticSource(target, camera, **o),
     "recorded": lambda target, camera, **o: RecordedSource(target, camera, **o),
+    "openni2": lambda target, camera, **o: _openni2_source(target, camera, **o),
+    "depthai": lambda target, camera, **o: _depthai_source(target, camera, **o),
 }
 #: schemes announced but not implemented yet (named in error messages).
-PLANNED = ("openni2", "depthai")
+PLANNED: tuple = ()
+
+
+def _openni2_source(target, camera, **options) -> DepthSource:
+    from .openni2 import OpenNI2Source
+
+    return OpenNI2Source(target, camera, **options)
+
+
+def _depthai_source(target, camera, **options) -> DepthSource:
+    from .depthai_source import DepthAISource
+
+    return DepthAISource(target, camera, **options)
 
 
 def _value(text: str):
@@ -71,7 +87,7 @@ def open_source(spec: str, camera: Optional[Camera] = None, **options) -> DepthS
     if scheme not in SCHEMES:
         later = f" ({', '.join(p + ':' for p in PLANNED)} come later)" if PLANNED else ""
         raise InputError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(s + ':' for s in SCHEMES)}{later}")
-    if not target:
+    if not target and scheme not in ("openni2", "depthai"):  # live cameras: empty = the first one attached
         raise InputError(f"source spec {spec!r} names no {'scene' if scheme == 'synthetic' else 'target'} after '{scheme}:'")
     try:
         return SCHEMES[scheme](target, camera, **{**query, **options})
