@@ -46,6 +46,37 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
     return a.r1
 
 
+@wp.func
+def clip_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+                 a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float, push: bool, x0: int, x1: int, y0: int, y1: int,
+                 z0: int, z1: int, lane: int, bd: int) -> float:
+    """This thread's share of the swept-sphere limit: the longest step along u before a point's
+    clearance reaches ``off``; points already deeper clip only non-push steps (kernels/proxy.py)."""
+    tm = float(wp.inf)
+    if x0 <= x1:
+        for iz in range(z0, z1 + 1):
+            for iy in range(y0, y1 + 1):
+                base = (iz * g.ny + iy) * g.nx
+                for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
+                    entry = order[i]
+                    if a.fixture != 0 and entry >= 0:
+                        continue
+                    q = pts[entry & 2147483647]
+                    dx = X[0] - q[0]
+                    dy = X[1] - q[1]
+                    dz = X[2] - q[2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    b = u[0] * dx + u[1] * dy + u[2] * dz
+                    rc = clearance_radius(q, a) + off
+                    c = d2 - rc * rc
+                    disc = b * b - c
+                    if c >= 0.0 and b < 0.0 and disc > 0.0:
+                        tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
+                    elif c < 0.0 and b < 0.0 and not push:
+                        tm = wp.min(tm, -2.0 * b)
+    return tm
+
+
 @wp.kernel
 def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
@@ -111,48 +142,36 @@ def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: 
         vp = v - vn * nrm
         vpl = wp.length(vp)
         has_n = nn > 0.0
-        u = wp.vec3(0.0)
-        L = float(0.0)
-        if st == 0 or (st == 1 and vn > 0.0) or (st == 2 and not has_n):
+        # contact rules (3/4): along v with the HIP outside or no normal, else along vp
+        u2 = wp.vec3(0.0)
+        L2 = float(0.0)
+        if st == 0 or vn > 0.0 or not has_n:
             if vl > 0.0:
-                u = v / vl
-                L = vl
-        elif st == 2:
-            u = nrm
-            L = 0.5 * a.band - min_e
+                u2 = v / vl
+                L2 = vl
         elif vpl > 0.0:
-            u = vp / vpl
-            L = vpl
-        L = wp.min(L, a.step)
+            u2 = vp / vpl
+            L2 = vpl
+        L2 = wp.min(L2, a.step)
+        u = u2
+        L = L2
         off = -a.slack
         if st == 0:
             off = 0.5 * a.band
 
-        # 3. swept-sphere clipping
-        tm = float(wp.inf)
-        if x0 <= x1:
-            for iz in range(z0, z1 + 1):
-                for iy in range(y0, y1 + 1):
-                    base = (iz * g.ny + iy) * g.nx
-                    for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
-                        entry = order[i]
-                        if a.fixture != 0 and entry >= 0:
-                            continue
-                        q = pts[entry & 2147483647]
-                        dx = X[0] - q[0]
-                        dy = X[1] - q[1]
-                        dz = X[2] - q[2]
-                        d2 = dx * dx + dy * dy + dz * dz
-                        b = u[0] * dx + u[1] * dy + u[2] * dz
-                        rc = clearance_radius(q, a) + off
-                        c = d2 - rc * rc
-                        disc = b * b - c
-                        if c >= 0.0 and b < 0.0 and disc > 0.0:
-                            tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
-                        elif c < 0.0 and b < 0.0:
-                            tm = wp.min(tm, -2.0 * b)
+        # 3. swept-sphere clipping (block-wide minimum)
+        push = st == 2 and has_n
+        if push:
+            u = nrm
+            L = wp.min(0.5 * a.band - min_e, a.step)
+        tm = clip_partial(pts, order, start, g, a, X, u, off, push, x0, x1, y0, y1, z0, z1, lane, bd)
         t = wp.tile_min(wp.tile(tm))[0]
         s = wp.max(wp.min(L, t), 0.0)
+        if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
+            u = u2
+            tm = clip_partial(pts, order, start, g, a, X, u, off, False, x0, x1, y0, y1, z0, z1, lane, bd)
+            t = wp.tile_min(wp.tile(tm))[0]
+            s = wp.max(wp.min(L2, t), 0.0)
         if s < a.tol:
             conv = 1
             break
