@@ -112,22 +112,25 @@ def as_vector(v, n: int, what: str) -> np.ndarray:
 
 
 def as_pose(T, what: str = "pose") -> np.ndarray:
-    """``T`` as a finite rigid 4x4 transform (proper rotation), or InputError naming it."""
+    """``T`` as a finite rigid 4x4 transform (proper rotation), or InputError naming it (a copy)."""
     try:
         a = np.array(T, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"{what} = {T!r}; expected a 4x4 transform") from None
     if a.shape != (4, 4):
         raise InputError(f"{what} has shape {a.shape}; expected (4, 4) or a position (3,)")
-    if not np.all(np.isfinite(a)):
+    (r00, r01, r02, x), (r10, r11, r12, y), (r20, r21, r22, z), last = a.tolist()
+    if not math.isfinite(r00 + r01 + r02 + x + r10 + r11 + r12 + y + r20 + r21 + r22 + z + sum(last)):
         raise InputError(f"{what} is not finite: {a.tolist()}")
-    if np.max(np.abs(a[3] - (0.0, 0.0, 0.0, 1.0))) > RIGID_TOL:
+    if max(abs(last[0]), abs(last[1]), abs(last[2]), abs(last[3] - 1.0)) > RIGID_TOL:
         raise InputError(f"{what} last row = {_fmt(a[3])}; expected [0, 0, 0, 1]")
-    R = a[:3, :3]
-    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    # R^T R - I, scalar (cheaper than NumPy on a 3x3)
+    err = max(abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0), abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
+              abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0), abs(r00 * r01 + r10 * r11 + r20 * r21),
+              abs(r00 * r02 + r10 * r12 + r20 * r22), abs(r01 * r02 + r11 * r12 + r21 * r22))
     if err > RIGID_TOL:
-        raise InputError(f"{what} rotation is not orthonormal (max |R^T R - I| = {err:.3g}): {R.tolist()}")
-    det = float(np.linalg.det(R))
+        raise InputError(f"{what} rotation is not orthonormal (max |R^T R - I| = {err:.3g}): {a[:3, :3].tolist()}")
+    det = (r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20))
     if det < 0:
         raise InputError(f"{what} rotation has determinant {det:.6g}; expected +1 (a reflection is not a pose)")
     return a

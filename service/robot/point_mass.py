@@ -93,8 +93,7 @@ class PointMass(Robot):
     def servo_cp(self, T) -> bool:
         applied = super().servo_cp(T)
         if applied:
-            R_base = self._T_d[:3, :3] if np.array_equal(self._T_world_base, np.eye(4)) else \
-                self._T_base_world[:3, :3] @ self._T_d[:3, :3]
+            R_base = self._T_d[:3, :3] if self._identity_mount else self._T_base_world[:3, :3] @ self._T_d[:3, :3]
             if not np.array_equal(R_base, self._R):
                 self._R[...] = R_base
                 self._T_meas_ok = False
