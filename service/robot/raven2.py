@@ -38,13 +38,13 @@ motion the arm behaves as the PD loop (lag and a small gravity droop) and a stop
 without an integral overshoot.
 
 Kp = J wn^2, Kd = 2 zeta wn J - b. With these, a 5 cm/s straight line of the tool tip is
-followed with about 0.3-0.7 mm of error (depending on the direction and the pose) and a stop
+followed with about 0.5-0.7 mm of error (depending on the direction and the pose) and a stop
 settles to < 0.05 mm within a few tens of ms (see tests/test_robot_raven2.py).
 """
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 
