@@ -126,13 +126,25 @@ def classify(depth: wp.array(dtype=wp.uint16), rays: wp.array(dtype=wp.vec2), ca
 
 
 @wp.kernel
-def count_cells(pix_cell: wp.array(dtype=int), counts: wp.array(dtype=int), pix_rank: wp.array(dtype=int),
-                cam_counts: wp.array(dtype=int), cam_of: wp.array(dtype=int)):
-    pix = wp.tid()
-    cell = pix_cell[pix]
-    if cell >= 0:
-        pix_rank[pix] = wp.atomic_add(counts, cell, 1)
-        wp.atomic_add(cam_counts, cam_of[pix], 1)
+def count_runs(pix_cell: wp.array(dtype=int), cam_of: wp.array(dtype=int), npix: int, per: int,
+               counts: wp.array(dtype=int), pix_rank: wp.array(dtype=int), cam_counts: wp.array(dtype=int)):
+    """Count per cell and rank per pixel, one atomic per run of same-cell pixels of one camera
+    (each thread walks ``per`` consecutive pixels; neighbouring pixels mostly share a cell)."""
+    a = wp.tid() * per
+    e = wp.min(npix, a + per)
+    pix = a
+    while pix < e:
+        cell = pix_cell[pix]
+        cam = cam_of[pix]
+        first = pix
+        while pix < e and pix_cell[pix] == cell and cam_of[pix] == cam:
+            pix += 1
+        if cell >= 0:
+            n = pix - first
+            base = wp.atomic_add(counts, cell, n)
+            wp.atomic_add(cam_counts, cam, n)
+            for j in range(first, pix):
+                pix_rank[j] = base + (j - first)
 
 
 @wp.kernel

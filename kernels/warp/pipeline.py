@@ -8,6 +8,8 @@ launch. Per-frame values (depth, poses) live in device arrays, so the graph neve
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import warp as wp
 
@@ -19,6 +21,9 @@ from ..snapshot import HostSnapshot
 from . import frames as k
 
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
+#: pixels per counting thread: one atomic per run of same-cell pixels instead of one per pixel
+#: (32 adjacent pixels of a warp hitting one counter serialise on the GPU)
+RUN_PIXELS = int(os.environ.get("POINTFENCE_WARP_RUN_PIXELS", "16"))
 
 
 class _Slot:
@@ -142,8 +147,9 @@ class WarpPipeline(FramePipeline):
                       inputs=[self.depth, self.rays, self._cams, i, self.grid_args, self.select_args,
                               self.color, self.mask, self.pix_cell, self.pix_prot, slot.pts, slot.sigma])
         if self.npix:
-            wp.launch(k.count_cells, dim=self.npix, device=dev,
-                      inputs=[self.pix_cell, self.counts, self.pix_rank, self.cam_counts, self.cam_of])
+            per = RUN_PIXELS
+            wp.launch(k.count_runs, dim=(self.npix + per - 1) // per, device=dev,
+                      inputs=[self.pix_cell, self.cam_of, self.npix, per, self.counts, self.pix_rank, self.cam_counts])
         wp.launch(k.scan_chunks, dim=self.nchunks, device=dev, inputs=[self.counts, C, self.chunk, slot.start, self.partial])
         wp.launch(k.scan_partials, dim=1, device=dev, inputs=[self.partial, self.nchunks, slot.start, C])
         wp.launch(k.scan_add, dim=self.nchunks, device=dev, inputs=[slot.start, C, self.chunk, self.partial])

@@ -12,6 +12,8 @@ once per snapshot slot into a CUDA graph and replayed each tick; nothing is allo
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import warp as wp
 
@@ -22,8 +24,9 @@ from .frames import GridArgs
 
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
-#: threads per proxy on CUDA (one block each); Warp's CPU device runs one thread per block
-BLOCK_DIM = 64
+#: threads per proxy on CUDA (one block each; POINTFENCE_WARP_BLOCK_DIM overrides); Warp's CPU
+#: device runs one thread per block
+BLOCK_DIM = int(os.environ.get("POINTFENCE_WARP_BLOCK_DIM", "256"))
 
 
 @wp.struct
