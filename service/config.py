@@ -1,4 +1,5 @@
-"""The scene configuration file (TOML): backend, workspace, cameras, fixture settings.
+"""The scene configuration file (TOML): backend, workspace, cameras, fixture settings, haptics,
+teleoperation, robot and the real-time service's timing.
 
 Every key is checked: a misspelt key is an error that names it and suggests the closest
 known one. Units: metres, seconds; transforms are 16 numbers, row-major, ``T_world_cam``
@@ -24,7 +25,7 @@ from pointfence.kernels.camera import Camera, NoiseModel
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.params import PipelineParams, RadiusModel, Selection, Workspace
 
-TOP_KEYS = {"backend", "device", "workspace", "fixture", "hash", "camera"}
+TOP_KEYS = {"backend", "device", "workspace", "fixture", "hash", "camera", "haptics", "teleop", "robot", "service"}
 WORKSPACE_KEYS = {"min", "max"}
 FIXTURE_KEYS = {"mode", "radius", "adaptive", "k_sigma", "radius_max", "select"}
 SELECT_KEYS = {"kind", "min", "max", "lo", "hi"}
@@ -32,6 +33,11 @@ HASH_KEYS = {"cell_size"}
 CAMERA_KEYS = {"name", "source", "fx", "fy", "cx", "cy", "width", "height", "depth_scale", "T_world_cam",
                "noise", "dist", "z_min", "z_max", "max_code", "rate_hz", "options"}
 NOISE_KEYS = {"a", "b"}
+HAPTICS_KEYS = {"r1", "r2", "r3", "step", "k_spring", "damping", "fir_taps", "max_force", "max_steps"}
+TELEOP_KEYS = {"architecture", "scale", "max_robot_speed", "T_world_master", "haptics", "teleop"}
+ARCHITECTURES = ("I", "II", "III")
+ROBOT_MODELS = ("raven2", "point-mass", "none")
+SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s"}
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 #: default radius_max - radius with adaptive radii: room for k_sigma * sigma, m
 ADAPTIVE_MARGIN = 0.02
@@ -50,6 +56,32 @@ class CameraConfig:
 
 
 @dataclass
+class TeleopConfig:
+    """``[teleop]``: the fixture architecture (eqs. 3.1-3.3), motion scaling, the robot's speed
+    limit and the master-to-world registration; ``haptics`` / ``teleop``: engaged at start."""
+
+    architecture: str = "III"
+    scale: float = 0.5
+    max_robot_speed: float = 0.05
+    T_world_master: np.ndarray = field(default_factory=lambda: np.eye(4))
+    haptics: bool = True
+    teleop: bool = True
+
+
+@dataclass
+class ServiceConfig:
+    """``[service]``: the haptic loop's rate and its degraded-mode thresholds (s)."""
+
+    rate_hz: float = 1000.0
+    proxies: int = 1
+    stale_s: float = 0.1
+    max_frame_age_s: float = 0.5
+    force_ramp_s: float = 0.05
+    max_lateness_s: float = 0.003
+    recover_s: float = 0.1
+
+
+@dataclass
 class SceneConfig:
     """A parsed, validated configuration file."""
 
@@ -59,6 +91,11 @@ class SceneConfig:
     pipeline: PipelineParams = field(default_factory=PipelineParams)
     cameras: list = field(default_factory=list)
     path: Optional[str] = None
+    haptics: Optional[Any] = None          #: HapticParams (mode from [fixture] mode)
+    teleop: TeleopConfig = field(default_factory=TeleopConfig)
+    robot: dict = field(default_factory=lambda: {"model": "raven2"})
+    service: ServiceConfig = field(default_factory=ServiceConfig)
+    cell_size_given: bool = False
 
     def open_sources(self, **options) -> list:
         """One open depth source per camera, in configuration order."""
@@ -166,6 +203,78 @@ def _camera(entry: dict, i: int) -> CameraConfig:
     return CameraConfig(camera, source, rate, dict(options))
 
 
+def _haptics(tbl: Any, mode: str):
+    from pointfence.kernels.params_haptics import HapticParams
+
+    _check_keys(tbl, HAPTICS_KEYS, "[haptics]")
+    kw: dict = {"mode": mode}
+    for key in ("r1", "r2", "r3", "step", "max_force"):
+        if key in tbl:
+            kw[key] = _num(tbl[key], f"[haptics] {key}", positive=True)
+    if "damping" in tbl:
+        kw["b"] = _num(tbl["damping"], "[haptics] damping", minimum=0)
+    if "k_spring" in tbl:  # the stiffness of the configured mode: k (rendering) or k_s (fixture)
+        kw["k" if mode == "rendering" else "k_s"] = _num(tbl["k_spring"], "[haptics] k_spring", minimum=0)
+    for key in ("fir_taps", "max_steps"):
+        if key in tbl:
+            v = tbl[key]
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise InputError(f"[haptics] {key} = {v!r}; expected an integer >= 1")
+            kw[key] = v
+    try:
+        return HapticParams(**kw)
+    except InputError as e:
+        raise InputError(f"[haptics]: {e}") from None
+
+
+def _teleop(tbl: Any) -> TeleopConfig:
+    _check_keys(tbl, TELEOP_KEYS, "[teleop]")
+    arch = tbl.get("architecture", "III")
+    if arch not in ARCHITECTURES:
+        raise InputError(f"[teleop] architecture = {arch!r}; expected one of {', '.join(repr(a) for a in ARCHITECTURES)}")
+    T = np.eye(4)
+    if "T_world_master" in tbl:
+        T = np.array(_vec(tbl["T_world_master"], 16, "[teleop] T_world_master")).reshape(4, 4)
+        R = T[:3, :3]
+        if (np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6 or np.abs(R.T @ R - np.eye(3)).max() > 1e-6
+                or np.linalg.det(R) < 0):
+            raise InputError(f"[teleop] T_world_master = {T.ravel().tolist()}; expected a rigid transform "
+                             "(orthonormal rotation, det +1, last row 0 0 0 1), 16 numbers row-major")
+    flags = {}
+    for key in ("haptics", "teleop"):
+        v = tbl.get(key, True)
+        if not isinstance(v, bool):
+            raise InputError(f"[teleop] {key} = {v!r}; expected true or false (engaged at start)")
+        flags[key] = v
+    return TeleopConfig(architecture=arch, scale=_num(tbl.get("scale", 0.5), "[teleop] scale", positive=True),
+                        max_robot_speed=_num(tbl.get("max_robot_speed", 0.05), "[teleop] max_robot_speed", positive=True),
+                        T_world_master=T, **flags)
+
+
+def _robot(tbl: Any) -> dict:
+    if not isinstance(tbl, dict):
+        raise InputError(f"[robot]: expected a table, got {type(tbl).__name__}")
+    model = tbl.get("model", "raven2")
+    if model not in ROBOT_MODELS:
+        near = difflib.get_close_matches(str(model), ROBOT_MODELS, n=1)
+        hint = f"; did you mean {near[0]!r}?" if near else ""
+        raise InputError(f"[robot] model = {model!r}{hint} Expected one of {', '.join(repr(m) for m in ROBOT_MODELS)}")
+    return {**tbl, "model": model}
+
+
+def _service(tbl: Any) -> ServiceConfig:
+    _check_keys(tbl, SERVICE_KEYS, "[service]")
+    d = ServiceConfig()
+    kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True) for k in SERVICE_KEYS - {"proxies"}}
+    proxies = tbl.get("proxies", 1)
+    if isinstance(proxies, bool) or not isinstance(proxies, int) or proxies < 1:
+        raise InputError(f"[service] proxies = {proxies!r}; expected an integer >= 1")
+    if kw["max_frame_age_s"] < kw["stale_s"]:
+        raise InputError(f"[service] max_frame_age_s = {kw['max_frame_age_s']} s is below stale_s = {kw['stale_s']} s; "
+                         "a camera is reported stale first, then the robot holds")
+    return ServiceConfig(proxies=proxies, **kw)
+
+
 def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
     """Validate a configuration already read from TOML."""
     where = path or "config"
@@ -195,9 +304,10 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
                                     "[fixture] radius_max", minimum=0))
     selection = _selection(fx.get("select"), "[fixture] select")
 
+    haptics = _haptics(doc.get("haptics", {}), mode)
     hs = doc.get("hash", {})
     _check_keys(hs, HASH_KEYS, "[hash]")
-    reach = PipelineParams.reach(DEFAULT_R3, radius if mode == "fixture" else None)
+    reach = PipelineParams.reach(max(DEFAULT_R3, haptics.r3), radius if mode == "fixture" else None)
     cell = _num(hs.get("cell_size", reach), "[hash] cell_size", positive=True)
     if cell < reach:
         raise InputError(f"[hash] cell_size = {cell} m is below the largest query reach {reach} m "
@@ -211,7 +321,9 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
     names = [c.camera.name for c in cameras]
     if len(set(names)) != len(names):
         raise InputError(f"{where}: camera names must be unique, got {names}")
-    return SceneConfig(backend=backend, device=device, mode=mode, pipeline=pipeline, cameras=cameras, path=path)
+    return SceneConfig(backend=backend, device=device, mode=mode, pipeline=pipeline, cameras=cameras, path=path,
+                       haptics=haptics, teleop=_teleop(doc.get("teleop", {})), robot=_robot(doc.get("robot", {})),
+                       service=_service(doc.get("service", {})), cell_size_given="cell_size" in hs)
 
 
 def load(path=None) -> SceneConfig:

@@ -1,0 +1,442 @@
+"""The service: configuration -> backend, frame pipeline, proxies, forces, robots, masters, and
+the per-tick work the haptic loop runs (``Service.tick``).
+
+One tick, for B master-robot pairs (one proxy each):
+
+1. poll every master (position, pedal, validity); a non-finite sample is a device fault;
+2. health: loop overrun, oldest camera frame older than ``max_frame_age_s``, kernel failure,
+   robot fault, master fault. Any of them puts the affected arms on hold: the force gain ramps
+   to zero within ``force_ramp_s`` and the robot holds its setpoint. A condition must be clear
+   for ``recover_s`` before the arm comes back (re-anchored: the robot does not move);
+3. teleoperation (``teleop.Teleop``): master motion -> X_m, re-anchoring of arms that (re)couple,
+   the HIP by architecture (continuous across switches);
+4. ONE proxy launch for all B proxies against the current snapshot (through the publish gate, so
+   the snapshot number is exact), then forces (``kernels.forces.ForceRenderer``: dead band,
+   contact damping, FIR, saturation) times the per-arm gain, sent to the masters;
+5. robot commands by architecture, rate-limited, ``servo_cp`` for coupled arms; robots step;
+6. publish (a small lock-protected copy for ``status()``) and record.
+
+Nothing in a tick allocates arrays except the robot model's own ``servo_cp`` and the proxy's
+input check; there is no logging I/O and no per-point Python loop.
+"""
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import replace
+from typing import Optional, Sequence
+
+import numpy as np
+
+from pointfence.kernels import get_backend
+from pointfence.kernels.errors import InputError, KernelError
+from pointfence.kernels.forces import ForceRenderer
+from pointfence.kernels.haptics import haptic_pipeline_params
+from pointfence.kernels.params_haptics import HapticParams
+
+from .frames import PublishGate
+from .record import C, Recorder
+from .teleop import ARCHITECTURES, Teleop, arch_code
+
+# hold reasons (bit mask)
+OVERRUN, STALE, KERNEL, MASTER, ROBOT, EXCEPTION = 1, 2, 4, 8, 16, 32
+REASONS = {OVERRUN: "overrun", STALE: "frames too old", KERNEL: "kernel failure", MASTER: "master input invalid",
+           ROBOT: "robot fault or rejected command", EXCEPTION: "tick exception"}
+
+
+def reason_names(mask: int) -> list:
+    return [name for bit, name in REASONS.items() if mask & bit]
+
+
+class Service:
+    """Everything one haptic tick touches; see the module docstring.
+
+    Args:
+        cfg: a parsed ``config.SceneConfig``.
+        masters: one ``masters.Master`` per arm (B = len(masters)).
+        robots: one robot per arm (``service.robot`` interface) or None per arm for an ideal
+            robot (X_r = X_r*); default: built from ``cfg.robot`` (model "none": ideal).
+        backend, device: override the configured compute backend.
+        record: ticks to record (0: no recording).
+    """
+
+    def __init__(self, cfg, masters: Sequence, robots: Optional[Sequence] = None, backend: Optional[str] = None,
+                 device: Optional[str] = None, record: int = 0, architecture: Optional[str] = None):
+        self.cfg = cfg
+        sc = cfg.service
+        self.rate_hz = sc.rate_hz
+        self.dt = 1.0 / sc.rate_hz
+        self.masters = list(masters)
+        n = self.n = len(self.masters)
+        if n < 1:
+            raise InputError("the service needs at least one master (one per proxy)")
+        hp: HapticParams = cfg.haptics if cfg.haptics is not None else HapticParams(mode=cfg.mode)
+        self.params = hp.replace(rate_hz=sc.rate_hz) if hp.rate_hz != sc.rate_hz else hp
+        pp = cfg.pipeline if cfg.cell_size_given else haptic_pipeline_params(self.params, cfg.pipeline)
+        self.backend = get_backend(backend or cfg.backend, device or cfg.device)
+        self.pipeline = self.backend.pipeline([c.camera for c in cfg.cameras], pp)
+        self.gate = PublishGate(self.pipeline)
+        if robots is None:
+            robots = [self._make_robot(cfg.robot) for _ in range(n)]
+        if len(robots) != n:
+            raise InputError(f"{len(robots)} robots for {n} masters; expected one per master (None: ideal robot)")
+        self.robots = list(robots)
+        tc = cfg.teleop
+        self.teleop = Teleop(n, tc.T_world_master, tc.scale, tc.max_robot_speed, self.dt,
+                             architecture or tc.architecture)
+        self.R = self.teleop.R
+        # per-arm arrays
+        z3 = lambda: np.zeros((n, 3))  # noqa: E731
+        self.dev = z3()
+        self.xr = z3()
+        self.f_out = z3()
+        self.f_master = z3()
+        self._fin = np.zeros((n, 3), bool)
+        self.pedal = np.zeros(n, bool)
+        self.m_ok = np.zeros(n, bool)
+        self.gain = np.zeros(n)
+        self._gtarget = np.zeros(n)
+        self._gstep = np.zeros(n)
+        self.coupled = np.zeros(n, bool)
+        self._coupled_prev = np.zeros(n, bool)
+        self._newly = np.zeros(n, bool)
+        self._arm_ok = np.zeros(n, bool)
+        self._rowok = np.zeros(n, bool)
+        self._notb = np.zeros(n, bool)
+        self._flag = np.zeros(n, bool)
+        self._want = np.zeros(n, bool)
+        self._tn = np.zeros(n)
+        self._ti = np.zeros(n, np.int64)
+        self._master_bad_t = np.full(n, -math.inf)
+        self._robot_bad_t = np.full(n, -math.inf)
+        self._bad_t = np.full(8, -math.inf)       # per global reason bit index
+        self._T4 = np.zeros((n, 4, 4))
+        self.hold_mask = 0
+        self.arm_hold = np.zeros(n, np.int64)
+        # control state (set from other threads through the methods below; applied at tick start)
+        self.haptics_on = bool(cfg.teleop.haptics)
+        self.teleop_on = bool(cfg.teleop.teleop)
+        self._haptics_running = False
+        self._pending_arch: Optional[int] = None
+        self._ctl = threading.Lock()
+        # results and counters
+        self.kernel_errors = 0
+        self.robot_errors = 0
+        self.last_error: Optional[str] = None
+        self.frame_seq = 0
+        self.snapshot_first_tick: dict = {}
+        self.feeder = None
+        self._poll_tick = self._poll = False
+        self.recorder = Recorder(record, n) if record else None
+        self._pub_lock = threading.Lock()
+        self._pub = {k: np.zeros((n, 3)) for k in ("xm", "hip", "proxy", "cmd", "xr", "force")}
+        self._pub_state = np.zeros(n, np.int32)
+        self._pub_t = 0.0
+        self._pub_k = 0
+        # initial state
+        self.batch = None
+        self.renderer = ForceRenderer(n, self.params)
+        self._started = False
+
+    # --- construction helpers -----------------------------------------------------------------
+    @staticmethod
+    def _make_robot(table: dict):
+        if table.get("model", "raven2") == "none":
+            return None
+        from .robot import robot_from_config
+
+        return robot_from_config(table)
+
+    def attach_frames(self, feeder) -> None:
+        """The frame feeder (``frames.LiveFrames``/``SimFrames``/``ScheduledFrames``) whose
+        ``max_age(now)`` the ticks check (offline feeders are polled inside the tick)."""
+        self.feeder = feeder
+        self._poll_tick = hasattr(feeder, "poll_tick")
+        self._poll = hasattr(feeder, "poll")
+
+    def start(self) -> None:
+        """Place everything at its initial state (call after the first snapshot exists)."""
+        for b, m in enumerate(self.masters):
+            m.poll(0.0)
+            self.dev[b] = m.position
+        xr = None
+        if any(r is not None for r in self.robots):
+            xr = np.zeros((self.n, 3))
+            for b, r in enumerate(self.robots):
+                xr[b] = r.measured_cp()[:3, 3] if r is not None else 0.0
+            if any(r is None for r in self.robots):
+                reg = self.teleop.register(np.nan_to_num(self.dev), np.zeros((self.n, 3)))
+                for b, r in enumerate(self.robots):
+                    if r is None:
+                        xr[b] = reg[b]
+        self.teleop.start(self.dev, xr)
+        self.xr[:] = self.teleop.cmd
+        self.batch = self.pipeline.proxies(self.teleop.hip, self.params)
+        self.renderer.reset()
+        self._haptics_running = self.haptics_on
+        for r in self.robots:
+            if r is not None:
+                r.hold()   # until the arm couples (pedal down, teleoperation engaged, healthy)
+        self._started = True
+
+    # --- control (any thread; applied at the start of the next tick) ----------------------------
+    def set_architecture(self, architecture) -> None:
+        with self._ctl:
+            self._pending_arch = arch_code(architecture)
+
+    def engage_haptics(self, on: bool = True) -> None:
+        with self._ctl:
+            self.haptics_on = bool(on)
+
+    def engage_teleop(self, on: bool = True) -> None:
+        with self._ctl:
+            self.teleop_on = bool(on)
+
+    def clear_faults(self) -> None:
+        """Re-enable robots in FAULT (their setpoint re-seats: no motion) and forget latched errors."""
+        with self._ctl:
+            for r in self.robots:
+                if r is not None and int(r.state) == 2:
+                    r.enable()
+                    r.hold()
+            self._bad_t[:] = -math.inf
+            self._robot_bad_t[:] = -math.inf
+            self.last_error = None
+
+    @property
+    def architecture(self) -> str:
+        return self.teleop.architecture
+
+    # --- the tick --------------------------------------------------------------------------------
+    def tick(self, k: int, t: float, dt: float, overrun: bool, now: float) -> None:
+        if not self._started:
+            self.start()
+        n, tp = self.n, self.teleop
+        with self._ctl:
+            if self._pending_arch is not None:
+                tp.set_architecture(self._pending_arch)
+                self._pending_arch = None
+            haptics_on, teleop_on = self.haptics_on, self.teleop_on
+        # 1. masters
+        for b in range(n):
+            m = self.masters[b]
+            m.poll(t)
+            self.dev[b] = m.position
+            self.pedal[b] = m.clutch
+            self.m_ok[b] = m.ok
+        np.isfinite(self.dev, out=self._fin)
+        np.all(self._fin, axis=1, out=self._rowok)
+        np.logical_and(self.m_ok, self._rowok, out=self.m_ok)
+        # 2. health
+        feeder = self.feeder
+        if feeder is not None:
+            if self._poll_tick:
+                feeder.poll_tick(k, t)
+            elif self._poll:
+                feeder.poll(t)
+        age = feeder.max_age(now) if feeder is not None else 0.0
+        rec = self.cfg.service.recover_s
+        if overrun:
+            self._bad_t[0] = t
+        if age > self.cfg.service.max_frame_age_s:
+            self._bad_t[1] = t
+        np.logical_not(self.m_ok, out=self._notb)
+        np.copyto(self._master_bad_t, t, where=self._notb)
+        for b, r in enumerate(self.robots):
+            if r is not None and int(r.state) == 2:
+                self._robot_bad_t[b] = t
+        hold = 0
+        for i in range(6):
+            if t - self._bad_t[i] < rec:
+                hold |= 1 << i
+        self.hold_mask = hold
+        arm = self.arm_hold
+        np.subtract(t, self._master_bad_t, out=self._tn)
+        np.less(self._tn, rec, out=self._flag)
+        np.multiply(self._flag, MASTER, out=arm)
+        np.bitwise_or(arm, hold, out=arm)
+        np.subtract(t, self._robot_bad_t, out=self._tn)
+        np.less(self._tn, rec, out=self._flag)
+        np.multiply(self._flag, ROBOT, out=self._ti)
+        np.bitwise_or(arm, self._ti, out=arm)
+        np.equal(arm, 0, out=self._arm_ok)
+        # 3. teleoperation
+        tp.map_masters(self.dev, self.pedal, self.m_ok)
+        np.logical_and(self._arm_ok, self.pedal, out=self.coupled)
+        if not teleop_on:
+            self.coupled[:] = False
+        np.logical_not(self._coupled_prev, out=self._notb)
+        np.logical_and(self.coupled, self._notb, out=self._newly)
+        if self._newly.any():
+            tp.reanchor(self._newly)
+        for b, r in enumerate(self.robots):
+            if r is None:
+                continue
+            r.measured_cp(out=self._T4[b])
+            self.xr[b] = self._T4[b, :3, 3]
+        for b, r in enumerate(self.robots):
+            if r is None:
+                self.xr[b] = tp.cmd[b]
+        hip = tp.update_hip(self.xr)
+        # 4. proxies and forces
+        if haptics_on and not self._haptics_running:
+            self.batch.reset(hip)
+            self.renderer.reset()
+        self._haptics_running = haptics_on
+        if haptics_on:
+            try:
+                with self.gate.lock:
+                    seq = self.gate.front_seq()
+                    self.batch.step(hip)
+                if seq != self.frame_seq:
+                    self.frame_seq = seq
+                    self.snapshot_first_tick.setdefault(seq, k)
+                self.renderer.update(self.batch.positions, hip, self.batch.states)
+            except KernelError as e:
+                self._bad_t[2] = t
+                self.hold_mask |= KERNEL
+                self.arm_hold |= KERNEL
+                self._arm_ok[:] = False
+                self.coupled[:] = False
+                self.kernel_errors += 1
+                self.last_error = f"tick {k}: {e}"
+        F = self.renderer.forces
+        np.logical_and(self._arm_ok, self.pedal, out=self._want)
+        if not haptics_on:
+            self._want[:] = False
+        np.subtract(self._want, self.gain, out=self._gstep)
+        np.clip(self._gstep, -dt / self.cfg.service.force_ramp_s, dt / self.cfg.service.force_ramp_s, out=self._gstep)
+        self.gain += self._gstep
+        np.multiply(F, self.gain[:, None], out=self.f_out)
+        np.matmul(self.f_out, self.R, out=self.f_master)          # world -> master frame: R^T f
+        for b in range(n):
+            self.masters[b].send_force(self.f_master[b])
+        # 5. robot commands
+        proxies = self.batch.positions
+        tp.command_goal(proxies, haptics_on)
+        tp.limit_command(self.coupled)
+        for b, r in enumerate(self.robots):
+            if r is None:
+                continue
+            if self.coupled[b]:
+                if not self._coupled_prev[b]:
+                    r.resume()
+                try:
+                    r.servo_cp(tp.cmd[b])
+                except InputError as e:   # unreachable: the robot keeps its setpoint; so does X_r*
+                    self.robot_errors += 1
+                    self.last_error = f"tick {k}: robot {b}: {e}"
+                    r.setpoint_cp(out=self._T4[b])
+                    tp.cmd[b] = self._T4[b, :3, 3]
+                    self._robot_bad_t[b] = t
+            elif self._coupled_prev[b]:
+                r.hold()
+            r.step(dt)
+        for b, r in enumerate(self.robots):
+            if r is None and self.coupled[b]:
+                self.xr[b] = tp.cmd[b]
+        self._coupled_prev[:] = self.coupled
+        # 6. publish and record
+        self._publish(k, t, proxies)
+        self._record(k, t, dt, overrun, age, proxies, haptics_on, teleop_on)
+
+    def safe_tick(self, k: int, t: float, dt: float, now: float) -> None:
+        """The loop's fallback after an exception: ramp forces down, hold robots, keep stepping."""
+        self._bad_t[5] = t
+        self.hold_mask |= EXCEPTION
+        step = dt / self.cfg.service.force_ramp_s
+        np.subtract(self.gain, step, out=self.gain)
+        np.maximum(self.gain, 0.0, out=self.gain)
+        np.multiply(self.renderer.forces, self.gain[:, None], out=self.f_out)
+        np.matmul(self.f_out, self.R, out=self.f_master)
+        for b, m in enumerate(self.masters):
+            m.send_force(self.f_master[b])
+        for r in self.robots:
+            if r is not None:
+                r.hold()
+                r.step(dt)
+        self.coupled[:] = False
+        self._coupled_prev[:] = False
+
+    # --- publishing ------------------------------------------------------------------------------
+    def _publish(self, k, t, proxies) -> None:
+        p, tp = self._pub, self.teleop
+        with self._pub_lock:
+            p["xm"][:] = tp.X_m
+            p["hip"][:] = tp.hip
+            p["proxy"][:] = proxies
+            p["cmd"][:] = tp.cmd
+            p["xr"][:] = self.xr
+            p["force"][:] = self.f_out
+            self._pub_state[:] = self.batch.states
+            self._pub_t, self._pub_k = t, k
+
+    def snapshot(self) -> dict:
+        """The last tick's published values (copies), for the control API and the demo."""
+        with self._pub_lock:
+            out = {k: v.copy() for k, v in self._pub.items()}
+            out["state"] = self._pub_state.copy()
+            out["t"], out["tick"] = self._pub_t, self._pub_k
+        return out
+
+    def status(self, now: Optional[float] = None) -> dict:
+        st = {
+            "architecture": self.architecture, "haptics": self.haptics_on, "teleop": self.teleop_on,
+            "hold": reason_names(self.hold_mask), "arms_holding": [reason_names(int(m)) for m in self.arm_hold],
+            "coupled": self.coupled.tolist(), "force_gain": self.gain.round(3).tolist(),
+            "kernel_errors": self.kernel_errors, "robot_errors": self.robot_errors, "last_error": self.last_error,
+            "frame_seq": self.frame_seq, "backend": self.backend.name, "device": self.backend.device_name,
+            "robots": [None if r is None else {"model": r.model, "mode": r.state.name, "fault": r.fault_reason}
+                       for r in self.robots],
+        }
+        if self.feeder is not None and now is not None:
+            st["frames"] = self.feeder.status(now)
+        return st
+
+    def _record(self, k, t, dt, overrun, age, proxies, haptics_on, teleop_on) -> None:
+        rec = self.recorder
+        if rec is None:
+            return
+        i = rec.next_row()
+        if i < 0:
+            return
+        tp, row = self.teleop, rec.rows[i]
+        row[0] = t
+        row[1:4] = tp.X_m[0]
+        row[4:7] = tp.hip[0]
+        row[7:10] = proxies[0]
+        row[10:13] = tp.cmd[0]
+        row[13:16] = self.xr[0]
+        row[16:19] = self.f_out[0]
+        row[19] = self.batch.states[0]
+        row[20] = self.frame_seq
+        inp = rec.inputs[i]
+        inp[0], inp[1], inp[2], inp[3] = k, dt, overrun, min(age, 1e9)
+        inp[4], inp[5], inp[6] = tp.arch, haptics_on, teleop_on
+        m = rec.masters[i]
+        m[:, :3] = self.dev
+        m[:, 3] = self.pedal
+        m[:, 4] = self.m_ok
+        rec.robots[i, :, :3] = self.xr
+        rec.robots[i, :, 3:] = tp.cmd
+        rec.masters_world[i] = tp.X_m
+
+    def note_tick_us(self, us: float) -> None:
+        """The loop's wall-clock compute time of the tick just recorded."""
+        rec = self.recorder
+        if rec is not None and 0 < rec.count and not rec.full:
+            rec.rows[rec.count - 1, C["tick_us"]] = us
+
+    def close(self) -> None:
+        if self.feeder is not None:
+            stop = getattr(self.feeder, "stop", None)
+            if stop is not None:
+                stop()
+            self.feeder.close()
+
+
+def architectures() -> tuple:
+    return ARCHITECTURES
+
+
+__all__ = ["Service", "reason_names", "REASONS", "replace"]

@@ -1,0 +1,52 @@
+"""Clocks for the haptic loop: the real monotonic clock and a fake one for deterministic tests.
+
+The loop asks a clock for ``now()`` (seconds, monotonic) and ``sleep_until(t)``. ``RealClock``
+sleeps with ``time.sleep`` until ``spin_s`` before the deadline and spins on
+``time.perf_counter`` for the rest (sub-10 us wake-up precision on an idle core). ``FakeClock``
+never sleeps: ``sleep_until`` jumps to the deadline and ``advance(dt)`` lets a test (or a
+simulated slow component) make time pass inside a tick, so deadline accounting can be checked
+exactly.
+"""
+from __future__ import annotations
+
+import time
+
+
+class RealClock:
+    """``time.perf_counter``; ``sleep_until`` sleeps, then spins for the last ``spin_s`` seconds."""
+
+    simulated = False
+
+    def __init__(self, spin_s: float = 0.0004):
+        self.spin_s = float(spin_s)
+
+    @staticmethod
+    def now() -> float:
+        return time.perf_counter()
+
+    def sleep_until(self, t: float) -> None:
+        pc = time.perf_counter
+        rest = t - pc() - self.spin_s
+        if rest > 0:
+            time.sleep(rest)
+        while pc() < t:
+            pass
+
+
+class FakeClock:
+    """A clock that only moves when told: ``sleep_until`` jumps forward, ``advance`` adds time."""
+
+    simulated = True
+
+    def __init__(self, t0: float = 0.0):
+        self.t = float(t0)
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep_until(self, t: float) -> None:
+        if t > self.t:
+            self.t = float(t)
+
+    def advance(self, dt: float) -> None:
+        self.t += float(dt)

@@ -1,0 +1,221 @@
+"""Feeding camera frames into the frame pipeline's double-buffered snapshots.
+
+Every snapshot is built from the latest frame of EVERY camera: a camera that stalls keeps
+contributing its last frame, so its fixtures never vanish. Its age (time since that frame
+arrived) is watched: beyond ``stale_s`` (default 100 ms) the camera is reported stale; beyond
+``max_age_s`` the service holds the robot (``frames_ok`` is False) until frames flow again.
+
+* ``PublishGate`` makes a snapshot become visible only between haptic ticks, so each tick knows
+  exactly which snapshot (``seq``) its one proxy launch used (recorded for replay).
+* ``LiveFrames``: one reader thread per camera (blocking ``source.read`` at the camera's pace)
+  and one ingest thread that builds a snapshot whenever some camera delivered a new frame.
+* ``SimFrames``: the deterministic offline counterpart for replays and tests: at loop time t a
+  camera's frames with (timestamp - first timestamp) <= t have arrived; ingest runs inside the
+  tick, before the proxy launch.
+* ``ScheduledFrames``: re-creates a recorded run's snapshots exactly (which frames of which
+  camera formed the snapshot that became visible at which tick).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Optional, Sequence
+
+from pointfence.kernels.errors import PointfenceError
+
+
+class PublishGate:
+    """Wraps the pipeline's snapshot publication in a lock that the haptic tick holds while it
+    reads the front snapshot's number and launches the proxy kernel."""
+
+    def __init__(self, pipeline):
+        self.lock = threading.Lock()
+        self._pipeline = pipeline
+        self._buf = getattr(pipeline, "buffers", None)
+        if self._buf is not None and not getattr(self._buf, "_pointfence_gated", False):
+            original = self._buf.publish
+            lock = self.lock
+
+            def publish(i, _original=original, _lock=lock):
+                with _lock:
+                    _original(i)
+
+            self._buf.publish = publish
+            self._buf._pointfence_gated = True
+
+    def front_seq(self) -> int:
+        """Number of the snapshot queries run against now (call while holding ``lock``)."""
+        buf = self._buf
+        if buf is None:
+            return int(self._pipeline.seq)
+        return int(getattr(buf.slots[buf.front_index], "seq", 0) or 0)
+
+
+class _FeedBase:
+    """What the service asks of a frame feeder, every tick: ``max_age(now)``, plus status."""
+
+    def __init__(self, pipeline, sources: Sequence, stale_s: float, max_age_s: float):
+        self.pipeline = pipeline
+        self.sources = list(sources)
+        self.names = [s.camera.name for s in self.sources]
+        self.stale_s = float(stale_s)
+        self.max_age_s = float(max_age_s)
+        n = len(self.sources)
+        self.latest: list = [None] * n
+        self.arrival = [-math.inf] * n     # loop/clock time each camera's latest frame arrived
+        self.frames_in = [0] * n
+        self.snapshots = 0
+        self.ingest_errors = 0
+        self.last_error: Optional[str] = None
+        self.snapshot_frames: dict = {}    # snapshot seq -> tuple of frame seqs (rig order of names)
+        self.snapshot_tick: dict = {}      # snapshot seq -> first tick that used it (filled by the service)
+
+    def max_age(self, now: float) -> float:
+        """Age (s) of the oldest camera's latest frame; inf until every camera delivered one."""
+        oldest = min(self.arrival)
+        return now - oldest
+
+    def ages(self, now: float) -> dict:
+        return {n: (now - a if a > -math.inf else None) for n, a in zip(self.names, self.arrival)}
+
+    def stale(self, now: float) -> list:
+        return [n for n, a in zip(self.names, self.arrival) if now - a > self.stale_s]
+
+    def _ingest(self, frames: list) -> bool:
+        if any(f is None for f in frames):
+            return False
+        try:
+            info = self.pipeline.ingest(list(frames))
+        except PointfenceError as e:   # bad frame: the previous snapshot stays current
+            self.ingest_errors += 1
+            self.last_error = f"ingest: {e}"
+            return False
+        self.snapshots += 1
+        self.snapshot_frames[info.seq] = tuple(int(f.seq) for f in frames)
+        return True
+
+    def status(self, now: float) -> dict:
+        return {"cameras": self.names, "frames": dict(zip(self.names, self.frames_in)), "ages_s": self.ages(now),
+                "stale": self.stale(now), "snapshots": self.snapshots, "ingest_errors": self.ingest_errors,
+                "last_error": self.last_error}
+
+    def close(self) -> None:
+        for s in self.sources:
+            s.close()
+
+
+class SimFrames(_FeedBase):
+    """Offline frames on the loop clock (see the module docstring). ``poll(t)`` ingests at most
+    one snapshot from the frames due by ``t`` and returns True if it did."""
+
+    def __init__(self, pipeline, sources, stale_s: float = 0.1, max_age_s: float = 0.5):
+        super().__init__(pipeline, sources, stale_s, max_age_s)
+        self._pending = [s.read() for s in self.sources]
+        self._t0 = [f.timestamp if f is not None else 0.0 for f in self._pending]
+
+    def poll(self, t: float) -> bool:
+        changed = False
+        for i, src in enumerate(self.sources):
+            f = self._pending[i]
+            while f is not None and f.timestamp - self._t0[i] <= t + 1e-9:
+                self.latest[i] = f
+                self.arrival[i] = f.timestamp - self._t0[i]
+                self.frames_in[i] += 1
+                changed = True
+                f = src.read()
+            self._pending[i] = f
+        return self._ingest(self.latest) if changed else False
+
+
+class ScheduledFrames(_FeedBase):
+    """Re-create recorded snapshots: ``schedule`` maps a tick index to the frame seqs (one per
+    camera, configuration order) of the snapshot that became visible at that tick."""
+
+    def __init__(self, pipeline, sources, schedule: dict, stale_s: float = 0.1, max_age_s: float = 0.5):
+        super().__init__(pipeline, sources, stale_s, max_age_s)
+        self.schedule = {int(k): tuple(v) for k, v in schedule.items()}
+
+    def poll_tick(self, k: int, t: float) -> bool:
+        seqs = self.schedule.get(k)
+        if seqs is None:
+            return False
+        for i, (src, seq) in enumerate(zip(self.sources, seqs)):
+            f = self.latest[i]
+            if f is None or f.seq != seq:
+                self.latest[i] = src._frame(int(seq))  # random access: frames depend only on their seq
+                self.frames_in[i] += 1
+            self.arrival[i] = t
+        return self._ingest(self.latest)
+
+
+class LiveFrames(_FeedBase):
+    """Real-time frames: a ``sources.threaded.CameraReader`` per camera (its own thread and
+    pace) and an ingest thread that builds a snapshot whenever some camera delivered a new
+    frame. ``clock`` must be the loop's clock so that frame ages compare with loop time."""
+
+    def __init__(self, pipeline, sources, clock, stale_s: float = 0.1, max_age_s: float = 0.5):
+        super().__init__(pipeline, sources, stale_s, max_age_s)
+        from .sources.threaded import CameraReader
+
+        self.clock = clock
+        self._new = threading.Event()
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.readers = [CameraReader(s, stale_after=self.stale_s, on_frame=self._callback(i), clock=clock.now)
+                        for i, s in enumerate(self.sources)]
+        self._thread: Optional[threading.Thread] = None
+        self.ingest_ms: list = []
+
+    def _callback(self, i: int):
+        def on_frame(frame, _i=i):
+            with self._lock:
+                self.latest[_i] = frame
+                self.arrival[_i] = self.clock.now()
+                self.frames_in[_i] += 1
+            self._new.set()
+        return on_frame
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        for r in self.readers:
+            r.start()
+        self._thread = threading.Thread(target=self._ingest_loop, name="pointfence-ingest", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._new.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for r in self.readers:
+            r.stop(close=False)
+
+    def wait_first_snapshot(self, timeout: float = 10.0) -> bool:
+        end = time.monotonic() + timeout
+        while self.snapshots == 0 and time.monotonic() < end:
+            time.sleep(0.005)
+        return self.snapshots > 0
+
+    def status(self, now: float) -> dict:
+        st = super().status(now)
+        st["readers"] = {r.name: r.status().reason for r in self.readers}
+        return st
+
+    def _ingest_loop(self) -> None:
+        while not self._stop.is_set():
+            if not self._new.wait(0.05):
+                continue
+            self._new.clear()
+            if self._stop.is_set():
+                return
+            with self._lock:
+                frames = list(self.latest)
+            t0 = time.perf_counter()
+            if self._ingest(frames):
+                self.ingest_ms.append((time.perf_counter() - t0) * 1e3)
+                if len(self.ingest_ms) > 4096:
+                    del self.ingest_ms[:2048]

@@ -1,0 +1,187 @@
+"""The 1 kHz haptic loop: absolute-deadline scheduling, per-tick timing, deadline misses.
+
+Tick k is due at ``t0 + k * period`` (absolute deadlines: no drift however long the ticks
+take). The loop sleeps until the deadline (``clock.sleep_until``), runs ``target.tick`` and
+measures, into preallocated ring buffers, the tick's lateness (start - deadline) and compute
+time (end - start). A tick that ends after its period is a deadline miss; if the loop falls
+whole periods behind, those periods are skipped (not run in a burst), counted as misses, and
+the next tick advances the simulation by the elapsed time (``dt`` = periods x period). A tick
+that starts more than ``max_lateness_s`` late is an overrun: the target is told, and goes into
+its degraded mode (force ramps to zero, robot holds).
+
+The loop never stops silently: an exception escaping ``target.tick`` is counted and kept in
+``error``; from then on the loop runs ``target.safe_tick`` (forces ramp down, robots hold)
+until ``clear_error()``, so a broken tick cannot leave forces applied or a robot moving. Only
+``stop()`` ends the loop.
+
+``target`` provides ``tick(k, t, dt, overrun, now)`` and ``safe_tick(k, t, dt, now)``; ``t`` is
+loop time (``k * period``, exact) and ``now`` the clock reading at the tick's start.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .clock import RealClock
+
+RING = 1 << 16
+
+
+@dataclass(frozen=True)
+class LoopTiming:
+    """Timing of the ticks so far (the last ``RING`` ticks for the percentiles), microseconds."""
+
+    ticks: int
+    periods: int
+    misses: int
+    overruns: int
+    compute_us_p50: float
+    compute_us_p99: float
+    compute_us_max: float
+    late_us_p50: float
+    late_us_p99: float
+    late_us_max: float
+
+    @property
+    def miss_ratio(self) -> float:
+        return self.misses / self.periods if self.periods else 0.0
+
+    def as_dict(self) -> dict:
+        d = {k: (round(v, 2) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+        d["miss_ratio"] = round(self.miss_ratio, 6)
+        return d
+
+
+class HapticLoop:
+    """Runs ``target``'s ticks at ``rate_hz`` on ``clock`` (see the module docstring)."""
+
+    def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
+                 switch_interval_s: Optional[float] = 0.0005):
+        self.target = target
+        self.clock = clock if clock is not None else RealClock()
+        self.period = 1.0 / float(rate_hz)
+        self.max_lateness = float(max_lateness_s)
+        self.switch_interval_s = switch_interval_s
+        self.compute = np.zeros(RING)
+        self.late = np.zeros(RING)
+        self.tick_us = np.zeros(RING)   # wall-clock compute (perf_counter), whatever the clock
+        self.ticks = 0                  # ticks run
+        self.k = 0                      # next period index
+        self._k_prev = -1
+        self.misses = 0
+        self.overruns = 0
+        self.t0: Optional[float] = None
+        self.error: Optional[str] = None
+        self.errors = 0
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._saved_switch = None
+        self._note = getattr(target, "note_tick_us", None)
+
+    # --- one tick ---------------------------------------------------------------------------------
+    def run_ticks(self, n: int) -> None:
+        """Run ``n`` ticks in the calling thread (tests, replays on a simulated clock)."""
+        for _ in range(int(n)):
+            self._one()
+
+    def _one(self) -> None:
+        clock, P = self.clock, self.period
+        if self.t0 is None:
+            self.t0 = clock.now()
+        due = self.t0 + self.k * P
+        clock.sleep_until(due)
+        start = clock.now()
+        w0 = time.perf_counter()
+        late = start - due
+        if late >= P:                     # whole periods lost: skip them, they are misses
+            skip = int(late // P)
+            self.misses += skip
+            self.k += skip
+        k = self.k
+        dt = P if self._k_prev < 0 else (k - self._k_prev) * P
+        overrun = late > self.max_lateness
+        if overrun:
+            self.overruns += 1
+        try:
+            if self.error is None:
+                self.target.tick(k, k * P, dt, overrun, start)
+            else:
+                self.target.safe_tick(k, k * P, dt, start)
+        except Exception as e:  # surfaced in status(); the next ticks run safe_tick
+            self.errors += 1
+            self.error = f"tick {k}: {type(e).__name__}: {e}"
+            self.error_trace = traceback.format_exc()
+            try:
+                self.target.safe_tick(k, k * P, dt, start)
+            except Exception as e2:
+                self.error += f"; safe_tick failed too: {type(e2).__name__}: {e2}"
+        end = clock.now()
+        i = self.ticks & (RING - 1)
+        self.compute[i] = end - start
+        self.late[i] = late
+        us = (time.perf_counter() - w0) * 1e6
+        self.tick_us[i] = us
+        if self._note is not None:
+            self._note(us)
+        if end > self.t0 + (k + 1) * P:
+            self.misses += 1
+        self.ticks += 1
+        self._k_prev = k
+        self.k = k + 1
+
+    def clear_error(self) -> None:
+        self.error = None
+
+    # --- thread -------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Run the loop in its own thread until ``stop()``."""
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        if self.switch_interval_s:
+            self._saved_switch = sys.getswitchinterval()
+            sys.setswitchinterval(self.switch_interval_s)  # the loop waits less for the GIL
+        self._thread = threading.Thread(target=self._run, name="pointfence-haptic-loop", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._one()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        if self._saved_switch is not None:
+            sys.setswitchinterval(self._saved_switch)
+            self._saved_switch = None
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # --- results ------------------------------------------------------------------------------------
+    def mark(self) -> tuple:
+        """A point to measure from (``timing(since=mark)``), e.g. after a warm-up."""
+        return (self.ticks, self.k, self.misses, self.overruns)
+
+    def timing(self, since: tuple = (0, 0, 0, 0)) -> LoopTiming:
+        t0, k0, m0, o0 = since
+        lo = max(t0, self.ticks - RING)
+        n = self.ticks - lo
+        if n <= 0:
+            return LoopTiming(0, 0, 0, 0, *([0.0] * 6))
+        idx = np.arange(lo, self.ticks) & (RING - 1)
+        c = self.compute[idx] * 1e6
+        lt = self.late[idx] * 1e6
+        p = np.percentile
+        return LoopTiming(self.ticks - t0, self.k - k0, self.misses - m0, self.overruns - o0,
+                          float(p(c, 50)), float(p(c, 99)), float(c.max()),
+                          float(p(lt, 50)), float(p(lt, 99)), float(lt.max()))

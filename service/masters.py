@@ -1,0 +1,139 @@
+"""Master devices: what the haptic loop reads (position, clutch, buttons) and drives (force).
+
+A ``Master`` is polled once per haptic tick with ``poll(t)``; afterwards ``position`` (3,),
+``clutch`` (True while the foot pedal is pressed: the master drives the robot), ``buttons`` (a
+bit mask) and ``ok`` (False when the device is absent or silent) describe it. The loop hands
+the force for the operator to ``send_force(f)`` (N, master frame). Positions are in the
+master's own frame (m); the service maps them to the world with ``[teleop] T_world_master``
+and ``scale``. Networked masters (UDP clients, issue 6) implement the same four members.
+
+``ScriptedMaster`` plays a trajectory (times, positions, optional clutch) with linear
+interpolation: the dissertation's "master device simulated by a computer program" (fig. 3.8).
+"""
+from __future__ import annotations
+
+import bisect
+import csv
+import math
+from abc import ABC, abstractmethod
+from pathlib import Path
+
+import numpy as np
+
+from pointfence.kernels.errors import InputError
+
+
+class Master(ABC):
+    """A haptic master device as the loop sees it (see the module docstring)."""
+
+    name: str = "master"
+
+    def __init__(self):
+        self.position = np.zeros(3)   #: master frame, m (written in place by poll)
+        self.clutch = True            #: pedal pressed: teleoperation coupled
+        self.buttons = 0
+        self.ok = True                #: False: no valid sample (device absent, silent or faulty)
+        self.force = np.zeros(3)      #: last force sent, N (master frame)
+
+    @abstractmethod
+    def poll(self, t: float) -> None:
+        """Refresh ``position``, ``clutch``, ``buttons`` and ``ok`` for loop time ``t`` (s)."""
+
+    def send_force(self, f: np.ndarray) -> None:
+        """Display force ``f`` (3,) N (master frame) to the operator."""
+        self.force[:] = f
+
+
+class ScriptedMaster(Master):
+    """Trajectory playback: ``times`` (N,) s increasing, ``positions`` (N, 3) m, ``clutch`` (N,)
+    optional (pedal state, held from each sample to the next). Before the first and after the
+    last sample the end positions hold. ``t0`` shifts the script in loop time.
+    Non-finite positions are passed through (the loop must treat them as a device fault)."""
+
+    name = "scripted"
+
+    def __init__(self, times, positions, clutch=None, t0: float = 0.0, name: str = "scripted"):
+        super().__init__()
+        t = np.asarray(times, dtype=float).reshape(-1)
+        p = np.asarray(positions, dtype=float)
+        if t.size == 0 or p.shape != (t.size, 3):
+            raise InputError(f"scripted master: {t.size} times and positions of shape {p.shape}; expected (N, 3) with N >= 1")
+        if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+            raise InputError("scripted master: times must be finite and strictly increasing (s)")
+        c = np.ones(t.size, bool) if clutch is None else np.asarray(clutch).astype(bool).reshape(-1)
+        if c.shape != t.shape:
+            raise InputError(f"scripted master: {c.size} clutch values for {t.size} samples")
+        self.name = name
+        self.times = t
+        self.positions = p
+        self.clutches = c
+        self._tl = t.tolist()
+        self._d = np.diff(p, axis=0) if t.size > 1 else np.zeros((0, 3))
+        self.t0 = float(t0)
+        self.poll(self.t0 + t[0])
+
+    @property
+    def duration(self) -> float:
+        return float(self.times[-1] - self.times[0])
+
+    def poll(self, t: float) -> None:
+        s = t - self.t0
+        tl = self._tl
+        i = bisect.bisect_right(tl, s) - 1
+        p = self.positions
+        if i < 0:
+            self.position[:] = p[0]
+            self.clutch = bool(self.clutches[0])
+        elif i >= len(tl) - 1:
+            self.position[:] = p[-1]
+            self.clutch = bool(self.clutches[-1])
+        else:
+            w = (s - tl[i]) / (tl[i + 1] - tl[i])
+            np.multiply(self._d[i], w, out=self.position)
+            np.add(self.position, p[i], out=self.position)
+            self.clutch = bool(self.clutches[i])
+        self.ok = math.isfinite(self.position[0] + self.position[1] + self.position[2])
+
+    # --- files ---------------------------------------------------------------------------------
+    @classmethod
+    def from_csv(cls, path, t0: float = 0.0) -> "ScriptedMaster":
+        """Read a trajectory CSV with header ``t,x,y,z`` and optionally ``clutch`` (0/1)."""
+        t, p, c = read_trajectory(path)
+        return cls(t, p, c, t0=t0, name=Path(path).stem)
+
+    def to_csv(self, path) -> None:
+        write_trajectory(path, self.times, self.positions, self.clutches)
+
+
+def read_trajectory(path):
+    """(times (N,), positions (N, 3), clutch (N,) bool) from a ``t,x,y,z[,clutch]`` CSV."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"trajectory {str(p)!r} not found; expected a CSV with columns t,x,y,z[,clutch]")
+    with p.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise InputError(f"{p}: empty; expected a header t,x,y,z[,clutch] and rows")
+    head = [h.strip() for h in rows[0]]
+    need = ["t", "x", "y", "z"]
+    if head[:4] != need or (len(head) > 4 and head[4:] != ["clutch"]):
+        raise InputError(f"{p}: header {','.join(head)}; expected t,x,y,z or t,x,y,z,clutch")
+    try:
+        data = np.array([[float(v) for v in r] for r in rows[1:] if r], dtype=float)
+    except ValueError as e:
+        raise InputError(f"{p}: {e}") from None
+    if data.ndim != 2 or data.shape[0] < 1 or data.shape[1] != len(head):
+        raise InputError(f"{p}: expected rows of {len(head)} numbers")
+    clutch = data[:, 4] != 0 if len(head) == 5 else np.ones(len(data), bool)
+    return data[:, 0], data[:, 1:4], clutch
+
+
+def write_trajectory(path, times, positions, clutch=None) -> None:
+    with Path(path).open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "x", "y", "z"] + (["clutch"] if clutch is not None else []))
+        for i in range(len(times)):
+            row = [repr(float(times[i]))] + [repr(float(v)) for v in positions[i]]
+            if clutch is not None:
+                row.append(int(bool(clutch[i])))
+            w.writerow(row)

@@ -1,0 +1,184 @@
+"""`pointfence replay`: a deterministic offline run of the whole service on a simulated clock.
+
+    pointfence replay --config F --trajectory T.csv --out DIR [--architecture A] [--backend B]
+    pointfence replay --config F --recording RUN_DIR --out DIR      # re-run a recorded run
+
+With ``--trajectory`` a scripted master plays ``t,x,y,z[,clutch]`` (master frame, m, s) at 1 ms
+ticks; camera frames arrive at their own timestamps (synthetic: seq / rate_hz) and are ingested
+inside the tick that first sees them. With ``--recording`` the ticks of a recorded run (its
+``inputs.npz``: every master sample, each tick's dt, overrun flag and frame age, the control
+state, and the camera frames of every snapshot with the tick it became visible at) are played
+again exactly. Same inputs, same backend: identical ``ticks.csv`` except the ``tick_us``
+column (this machine's compute time of each tick).
+
+Writes ``DIR/ticks.csv`` (``record.TICK_COLUMNS``), ``DIR/summary.json`` (architecture, ticks,
+frames, the 6.1 measures, tick_us_p50/p99, deadline_misses = ticks whose compute exceeded the
+period, backend, device) and ``DIR/inputs.npz``.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from . import config as config_mod
+from . import measures
+from .app import Service
+from .clock import FakeClock
+from .frames import ScheduledFrames, SimFrames
+from .loop import HapticLoop
+from .masters import Master, ScriptedMaster
+from .record import load_inputs
+
+
+def add_arguments(p):
+    p.add_argument("--config", default=None, help="scene configuration (TOML); default: the embedded defaults")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--trajectory", help="master trajectory CSV: t,x,y,z[,clutch] (master frame, m, s)")
+    src.add_argument("--recording", help="folder of a recorded run (its inputs.npz) to play again exactly")
+    p.add_argument("--out", required=True, help="output folder for ticks.csv, summary.json, inputs.npz")
+    p.add_argument("--architecture", choices=("I", "II", "III"), default=None, help="override [teleop] architecture")
+    p.add_argument("--backend", default=None, help="override the configured backend (numpy, opencl, warp)")
+    p.add_argument("--device", default=None, help="override the configured device")
+    p.add_argument("--duration", type=float, default=None, help="seconds to run (default: the trajectory's end + 0.5 s)")
+
+
+class PlaybackMaster(Master):
+    """Recorded master samples, one row per tick (``row`` set by the replay driver)."""
+
+    name = "playback"
+
+    def __init__(self, samples: np.ndarray):
+        super().__init__()
+        self.samples = np.asarray(samples, dtype=float)   # (N, 5): x, y, z, pedal, ok
+        self.row = 0
+
+    def poll(self, t: float) -> None:
+        s = self.samples[min(self.row, len(self.samples) - 1)]
+        self.position[:] = s[:3]
+        self.clutch = bool(s[3])
+        self.ok = bool(s[4])
+
+
+class _RecordedAges(ScheduledFrames):
+    """Recorded snapshots whose ages are the recorded ones (the service's staleness decisions)."""
+
+    def __init__(self, *a, ages, **kw):
+        super().__init__(*a, **kw)
+        self.ages_by_tick = ages
+        self.row = 0
+
+    def max_age(self, now: float) -> float:
+        return float(self.ages_by_tick[min(self.row, len(self.ages_by_tick) - 1)])
+
+
+def simulate(cfg, masters, duration: float, *, architecture: Optional[str] = None, backend: Optional[str] = None,
+             device: Optional[str] = None, events: Optional[dict] = None, robots=None, sources=None,
+             record: bool = True):
+    """Run the service offline for ``duration`` s with ``masters`` (FakeClock, frames at their
+    timestamps). ``events`` maps a tick index to a callable(service) run before that tick
+    (architecture switches, engage/disengage). Returns (service, loop, sources)."""
+    rate = cfg.service.rate_hz
+    n_ticks = int(round(duration * rate))
+    svc = Service(cfg, masters, robots=robots, backend=backend, device=device, record=n_ticks if record else 0,
+                  architecture=architecture)
+    sources = sources if sources is not None else cfg.open_sources()
+    feeder = SimFrames(svc.pipeline, sources, cfg.service.stale_s, cfg.service.max_frame_age_s)
+    svc.attach_frames(feeder)
+    feeder.poll(0.0)
+    loop = HapticLoop(svc, FakeClock(), rate, cfg.service.max_lateness_s, switch_interval_s=None)
+    events = events or {}
+    for k in range(n_ticks):
+        ev = events.get(k)
+        if ev is not None:
+            ev(svc)
+        loop.run_ticks(1)
+    return svc, loop, sources
+
+
+def replay_recording(cfg, rec_dir, *, backend=None, device=None):
+    """Play a recorded run's ticks again exactly (see the module docstring)."""
+    data = load_inputs(Path(rec_dir) / "inputs.npz")
+    inputs, samples = data["inputs"], data["masters"]
+    n_ticks, n_arms = samples.shape[0], samples.shape[1]
+    masters = [PlaybackMaster(samples[:, b]) for b in range(n_arms)]
+    meta = data["meta"]
+    svc = Service(cfg, masters, backend=backend or meta.get("backend"), device=device or meta.get("device_spec"),
+                  record=n_ticks, architecture=meta.get("architecture"))
+    sources = cfg.open_sources()
+    schedule = {}
+    for seq, tick in data["meta"]["snapshot_ticks"].items():
+        frames = data["schedule"].get(int(seq))
+        if frames is not None:
+            schedule[int(tick)] = frames
+    feeder = _RecordedAges(svc.pipeline, sources, schedule, cfg.service.stale_s, cfg.service.max_frame_age_s,
+                           ages=inputs[:, 3])
+    svc.attach_frames(feeder)
+    names = {1: "I", 2: "II", 3: "III"}
+    P = 1.0 / cfg.service.rate_hz
+    import time
+
+    for i in range(n_ticks):
+        k, dt, overrun, _, arch, hap, tel = inputs[i]
+        for m in masters:
+            m.row = i
+        feeder.row = i
+        if names[int(arch)] != svc.architecture:
+            svc.set_architecture(names[int(arch)])
+        svc.haptics_on, svc.teleop_on = bool(hap), bool(tel)
+        w0 = time.perf_counter()
+        svc.tick(int(k), int(k) * P, float(dt), bool(overrun), int(k) * P)
+        svc.note_tick_us((time.perf_counter() - w0) * 1e6)
+    return svc, sources
+
+
+def summary(svc, sources, cfg, frames: int) -> dict:
+    rec = svc.recorder
+    rows = rec.ticks()
+    region = measures.region_for(cfg, sources, svc.pipeline)
+    teleop = rec.inputs[: rec.count, 6] > 0
+    m = measures.compute(rows[:, 0], rec.robots[: rec.count, 0, :3], rec.robots[: rec.count, 0, 3:],
+                         rec.masters_world[: rec.count, 0], region, mask=teleop)
+    us = rows[:, -1]
+    return {
+        "architecture": svc.architecture, "ticks": int(rec.count), "frames": int(frames), **m,
+        "tick_us_p50": round(float(np.percentile(us, 50)), 1) if len(us) else None,
+        "tick_us_p99": round(float(np.percentile(us, 99)), 1) if len(us) else None,
+        "deadline_misses": int((us > 1e6 / svc.rate_hz).sum()),
+        "backend": svc.backend.name, "device": svc.backend.device_name,
+    }
+
+
+def write_outputs(svc, sources, cfg, out_dir, frames: int, backend_spec=None) -> dict:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = svc.recorder
+    rec.write_csv(out / "ticks.csv")
+    fe = svc.feeder
+    meta = {"architecture": svc.architecture, "backend": svc.backend.name, "device_spec": svc.cfg.device,
+            "rate_hz": svc.rate_hz, "cameras": fe.names,
+            "snapshot_ticks": {str(s): int(k) for s, k in svc.snapshot_first_tick.items()}}
+    rec.save_inputs(out / "inputs.npz", fe.snapshot_frames, meta)
+    s = summary(svc, sources, cfg, frames)
+    (out / "summary.json").write_text(json.dumps(s, indent=2) + "\n")
+    return s
+
+
+def run(args) -> int:
+    cfg = config_mod.load(args.config)
+    if args.recording:
+        svc, sources = replay_recording(cfg, args.recording, backend=args.backend, device=args.device)
+    else:
+        master = ScriptedMaster.from_csv(args.trajectory)
+        duration = args.duration if args.duration is not None else master.times[-1] + 0.5
+        svc, _, sources = simulate(cfg, [master], duration, architecture=args.architecture, backend=args.backend,
+                                   device=args.device)
+    try:
+        s = write_outputs(svc, sources, cfg, args.out, svc.feeder.snapshots)
+    finally:
+        for src in sources:
+            src.close()
+    print(json.dumps(s, indent=2))
+    return 0

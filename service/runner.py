@@ -1,0 +1,64 @@
+"""Running the service live: the haptic loop in its own thread on the real clock, frames from
+camera reader threads, for a fixed time with timed control events (the demo and the loop
+benchmark use it; ``pointfence serve`` will wrap the same pieces)."""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+from .app import Service
+from .clock import RealClock
+from .frames import LiveFrames
+from .loop import HapticLoop
+
+
+class LiveRun:
+    """Service + live frames + loop thread. ``start()``, then ``wait(seconds)`` or control the
+    service from this thread, then ``stop()``. The loop's timing excludes the start-up ticks
+    before ``mark()``."""
+
+    def __init__(self, cfg, masters, *, architecture: Optional[str] = None, backend: Optional[str] = None,
+                 device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None):
+        self.cfg = cfg
+        self.clock = RealClock()
+        self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
+                               record=int(record_s * cfg.service.rate_hz), architecture=architecture)
+        self.sources = sources if sources is not None else cfg.open_sources(realtime=True)
+        self.frames = LiveFrames(self.service.pipeline, self.sources, self.clock, cfg.service.stale_s,
+                                 cfg.service.max_frame_age_s)
+        self.service.attach_frames(self.frames)
+        self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s)
+        self._mark = (0, 0, 0, 0)
+
+    def start(self, first_frame_timeout: float = 20.0) -> None:
+        self.frames.start()
+        if not self.frames.wait_first_snapshot(first_frame_timeout):
+            self.stop()
+            raise RuntimeError(f"no snapshot within {first_frame_timeout} s: {self.frames.status(self.clock.now())}")
+        self.service.start()
+        self.loop.start()
+
+    def mark(self) -> None:
+        self._mark = self.loop.mark()
+
+    def wait(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            if not self.loop.running:
+                raise RuntimeError(f"haptic loop thread ended: {self.loop.error}")
+            time.sleep(min(0.05, max(0.0, end - time.monotonic())))
+
+    def timing(self):
+        return self.loop.timing(self._mark)
+
+    def status(self) -> dict:
+        st = self.service.status(self.clock.now())
+        st["loop"] = self.loop.timing(self._mark).as_dict()
+        st["loop_error"] = self.loop.error
+        return st
+
+    def stop(self) -> None:
+        self.loop.stop()
+        self.frames.stop()
+        for s in self.sources:
+            s.close()

@@ -1,0 +1,87 @@
+"""The haptic loop's deadline accounting on a fake clock (deterministic, no wall-clock timing)."""
+import numpy as np
+import pytest
+
+from pointfence.service.clock import FakeClock
+from pointfence.service.loop import HapticLoop
+
+
+class ScriptedWork:
+    """A tick target that 'computes' for scripted durations by advancing the fake clock."""
+
+    def __init__(self, clock, durations, fail_at=()):
+        self.clock = clock
+        self.durations = list(durations)
+        self.calls = []
+        self.safe = []
+        self.fail_at = set(fail_at)
+
+    def tick(self, k, t, dt, overrun, now):
+        self.calls.append((k, t, dt, overrun, now))
+        if k in self.fail_at:
+            raise RuntimeError("boom")
+        self.clock.advance(self.durations[len(self.calls) - 1] if len(self.calls) <= len(self.durations) else 1e-4)
+
+    def safe_tick(self, k, t, dt, now):
+        self.safe.append(k)
+
+
+def test_deadlines_misses_skips_and_lateness():
+    clock = FakeClock()
+    ms = 1e-3
+    work = ScriptedWork(clock, [0.2 * ms, 1.5 * ms, 0.2 * ms, 3.5 * ms, 0.2 * ms, 0.2 * ms])
+    loop = HapticLoop(work, clock, rate_hz=1000.0, max_lateness_s=3e-3)
+    loop.run_ticks(6)
+    ks = [c[0] for c in work.calls]
+    assert ks == [0, 1, 2, 3, 6, 7]                      # periods 4 and 5 were skipped, not burst
+    np.testing.assert_allclose([c[2] for c in work.calls], [ms, ms, ms, ms, 3 * ms, ms])
+    np.testing.assert_allclose([c[1] for c in work.calls], [k * ms for k in ks])   # loop time is k * period
+    tm = loop.timing()
+    assert tm.ticks == 6 and tm.periods == 8
+    assert tm.misses == 4                                # tick 1 and 3 ended late, periods 4 and 5 lost
+    np.testing.assert_allclose(loop.late[:6] * 1e3, [0, 0, 0.5, 0, 2.5, 0], atol=1e-9)
+    np.testing.assert_allclose(loop.compute[:6] * 1e3, [0.2, 1.5, 0.2, 3.5, 0.2, 0.2], atol=1e-9)
+    assert tm.overruns == 0 and not any(c[3] for c in work.calls)
+    assert tm.compute_us_max == pytest.approx(3500, abs=1e-3)
+
+
+def test_overrun_flag_beyond_max_lateness():
+    clock = FakeClock()
+    work = ScriptedWork(clock, [0.1e-3, 4.2e-3, 0.1e-3])
+    loop = HapticLoop(work, clock, 1000.0, max_lateness_s=3e-3)
+    loop.run_ticks(3)
+    assert [c[3] for c in work.calls] == [False, False, True]
+    assert loop.timing().overruns == 1
+
+
+def test_no_drift_with_long_ticks():
+    clock = FakeClock(t0=5.0)
+    work = ScriptedWork(clock, [0.95e-3] * 2000)
+    loop = HapticLoop(work, clock, 1000.0)
+    loop.run_ticks(2000)
+    starts = np.array([c[4] for c in work.calls]) - 5.0
+    np.testing.assert_allclose(starts, np.arange(2000) * 1e-3, atol=1e-9)
+    assert loop.timing().misses == 0 and loop.timing().late_us_max < 1e-3
+
+
+def test_exception_is_surfaced_and_safe_ticks_follow():
+    clock = FakeClock()
+    work = ScriptedWork(clock, [1e-4] * 10, fail_at={3})
+    loop = HapticLoop(work, clock, 1000.0)
+    loop.run_ticks(6)
+    assert loop.error is not None and "boom" in loop.error and loop.errors == 1
+    assert work.safe == [3, 4, 5]        # the loop kept running, in its safe mode
+    loop.clear_error()
+    loop.run_ticks(1)
+    assert work.calls[-1][0] == 6
+
+
+def test_timing_since_mark():
+    clock = FakeClock()
+    work = ScriptedWork(clock, [2.5e-3] + [1e-4] * 20)
+    loop = HapticLoop(work, clock, 1000.0)
+    loop.run_ticks(1)
+    m = loop.mark()
+    loop.run_ticks(10)
+    tm = loop.timing(m)
+    assert tm.ticks == 10 and tm.compute_us_p99 == pytest.approx(100, abs=1e-6)
