@@ -66,7 +66,32 @@ def test_params_validation_and_vector_roundtrip():
     with pytest.raises(InputError, match="tension"):
         true_params_at_tension(-5)
     lo, hi = true_params_at_tension(500), true_params_at_tension(1900)
-    assert hi.k_e > lo.k_e and hi.Fc_m > lo.Fc_m
+    assert hi.k_e > lo.k_e and hi.Fc_m > lo.Fc_m and hi.Fc_l > lo.Fc_l and hi.Fv_m > lo.Fv_m
+
+
+def test_plant_stiffness_law_is_logarithmic_fig_5_5a():
+    """Tension is linear in ln(k_e) on the simulated plant (the relation the dissertation measured),
+    so the chapter-5 logarithmic fit on exact k_e recovers any tension; b_e keeps a constant
+    cable damping ratio (b_e ~ sqrt(k_e))."""
+    from pointfence.service.cable.params import K_E_LOG_SLOPE_G, NOMINAL_TENSION_G, k_e_at_tension
+    from pointfence.service.cable.tension import fit_tension_curve
+
+    nom = GrasperParams()
+    assert true_params_at_tension(NOMINAL_TENSION_G) == nom
+    Ts = np.array([300.0, 432.5, 743.0, 1177.0, 1691.5, 2500.0])
+    k = np.array([true_params_at_tension(t).k_e for t in Ts])
+    assert np.allclose(k, [k_e_at_tension(t) for t in Ts])
+    assert np.allclose(NOMINAL_TENSION_G + K_E_LOG_SLOPE_G * np.log(k / nom.k_e), Ts, atol=1e-9)
+    # equal tension steps multiply k_e by equal factors (a power law would not)
+    r = [k_e_at_tension(t + 400.0) / k_e_at_tension(t) for t in (400.0, 900.0, 1500.0)]
+    assert np.allclose(r, r[0]) and r[0] == pytest.approx(math.exp(400.0 / K_E_LOG_SLOPE_G))
+    curve = fit_tension_curve(Ts[[0, 2, 4, 5]], k[[0, 2, 4, 5]])
+    assert curve.b == pytest.approx(K_E_LOG_SLOPE_G)
+    for t, kk in zip(Ts, k):
+        assert curve.estimate(kk) == pytest.approx(t, abs=1e-6)
+    hi = true_params_at_tension(1929.0)
+    assert hi.k_e / nom.k_e == pytest.approx(1.81, abs=0.01)  # chapter-5 stiffening 743 -> 1929 g
+    assert hi.b_e / nom.b_e == pytest.approx(math.sqrt(hi.k_e / nom.k_e))
 
 
 def test_plant_encoder_quantised_and_loads():

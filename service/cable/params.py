@@ -100,21 +100,43 @@ def check_tension(tension_g: float) -> float:
     return t
 
 
+#: Simulated stiffness law (chapter 5, fig. 5.5a): tension is linear in ln(k_e),
+#: tension_g = NOMINAL_TENSION_G + K_E_LOG_SLOPE_G * ln(k_e / k_e(743 g)).
+#: Source and choice of the coefficients: the dissertation measured this form on the pulley
+#: board ("a logarithmic fit along with the points used to derive the curve", fig. 5.5a) but
+#: prints neither the fitted coefficients nor the (tension, k_e) points; table 5.1 gives only
+#: measured and estimated tensions. So the form is the dissertation's and the two coefficients
+#: are ours: the offset puts the nominal k_e (``GrasperParams.k_e``) at the nominal 743 g, and
+#: the slope, 2000 g per e-fold of k_e (k_e doubles every ~1390 g), keeps the stiffening over
+#: the chapter-5 range (743 -> 1929 g: x1.81, cable mode x1.34 in frequency) what the earlier
+#: power law k_e ~ T^0.6 gave (x1.77), so the chapter-5 model mismatch is of the same size.
+K_E_LOG_SLOPE_G = 2000.0
+
+
+def k_e_at_tension(tension_g: float, k_e_nominal: float = GrasperParams.k_e) -> float:
+    """Cable stiffness [N/m] of the simulated plant at a tension [g] (inverse of fig. 5.5a's law)."""
+    t = check_tension(tension_g)
+    return float(k_e_nominal) * math.exp((t - NOMINAL_TENSION_G) / K_E_LOG_SLOPE_G)
+
+
 def true_params_at_tension(tension_g: float, base: GrasperParams | None = None) -> GrasperParams:
     """"True" parameters of the simulated plant at a cable tension [g].
 
-    Stand-in for the physics that the dissertation measured (ch. 5): cable stiffness grows with
-    pretension (strands straighten and seat in the pulley grooves), and capstan friction grows
-    with the normal force the cable puts on the pulleys. The law is a power law, deliberately
-    *not* the logarithmic curve that the tension estimator fits, so the fit has model error as
-    it had on the real pulley board.
+    Stand-in for the physics that the dissertation measured (ch. 5). Cable stiffness follows
+    the relation measured on the pulley board, tension linear in ln(k_e) (fig. 5.5a;
+    ``k_e_at_tension``), so a logarithmic calibration has no model error here and table 5.1's
+    error is the identification's. Cable damping scales with sqrt(k_e) (a constant damping
+    ratio of the cable mode). Friction grows with the normal force the cable puts on the
+    pulleys and bearings, sub-linearly since part of it (motor brushes, seals) does not depend
+    on tension: Coulomb ~ T^0.5, viscous ~ T^0.2.
     """
     t = check_tension(tension_g)
     b = base or GrasperParams()
     s = t / NOMINAL_TENSION_G
+    k_e = k_e_at_tension(t, b.k_e)
     return b.replace(
-        k_e=b.k_e * s ** 0.6,
-        b_e=b.b_e * s ** 0.3,
+        k_e=k_e,
+        b_e=b.b_e * math.sqrt(k_e / b.k_e),
         Fc_m=b.Fc_m * s ** 0.5,
         Fc_l=b.Fc_l * s ** 0.5,
         Fv_m=b.Fv_m * s ** 0.2,
