@@ -1,0 +1,80 @@
+"""``pointfence calib <step> ...``: camera calibration steps, each printing residuals and writing
+``[[camera]]`` keys (a snippet on stdout, ``--out FILE``, or merged into ``--config scene.toml``).
+
+Each step is a module with ``add_arguments(parser)`` and ``run(args) -> int``, listed in
+``SUBCOMMANDS``; another step (e.g. ``tension`` from the cable-instrument service) plugs in by
+adding one entry there. Modules are imported only for the chosen step.
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+
+#: step -> (module, one-line help)
+SUBCOMMANDS = {
+    "intrinsics": ("pointfence.calib.intrinsics", "fx, fy, cx, cy and distortion from checkerboard images (OpenCV)"),
+    "extrinsics": ("pointfence.calib.extrinsics",
+                   "camera -> robot base from ArUco/AprilTag markers at known poses (low-pass filtered) or point pairs (Kabsch)"),
+    "multi": ("pointfence.calib.multi", "refine one camera's pose against another by ICP on overlapping depth"),
+    "noise": ("pointfence.calib.noise", "fit sigma_z = a + b Z^2 from depth captures of a plane at several distances"),
+}
+
+
+def add_arguments(parser) -> None:
+    sub = parser.add_subparsers(dest="calib_step", metavar="STEP")
+    chosen = _chosen_step()
+    for name, (module, help_) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_ + "\n\n" + (_doc(module) if name == chosen else ""),
+                           formatter_class=__import__("argparse").RawDescriptionHelpFormatter)
+        p.set_defaults(_calib_module=module)
+        if name == chosen:
+            importlib.import_module(module).add_arguments(p)
+
+
+def _chosen_step():
+    """The step named on the command line (``pointfence calib STEP``), so only its module loads."""
+    argv = sys.argv[1:]
+    for i, a in enumerate(argv):
+        if a == "calib" and i + 1 < len(argv):
+            return argv[i + 1]
+    return argv[0] if argv and argv[0] in SUBCOMMANDS else None
+
+
+def _doc(module: str) -> str:
+    return (importlib.import_module(module).__doc__ or "").strip()
+
+
+def run(args) -> int:
+    module = getattr(args, "_calib_module", None)
+    if module is None:
+        print("usage: pointfence calib {" + ",".join(SUBCOMMANDS) + "} ...", file=sys.stderr)
+        for name, (_, help_) in SUBCOMMANDS.items():
+            print(f"  {name:<11} {help_}", file=sys.stderr)
+        return 2
+    return int(importlib.import_module(module).run(args) or 0)
+
+
+def main(argv=None) -> int:
+    """``python -m pointfence.calib.cli STEP ...`` (the same as ``pointfence calib STEP ...``)."""
+    import argparse
+
+    from pointfence.kernels.errors import PointfenceError
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    saved = sys.argv
+    sys.argv = [saved[0], "calib"] + argv
+    try:
+        parser = argparse.ArgumentParser(prog="pointfence calib", description=__doc__.splitlines()[0])
+        add_arguments(parser)
+    finally:
+        sys.argv = saved
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except PointfenceError as e:
+        print(f"pointfence calib: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
