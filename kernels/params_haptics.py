@@ -33,9 +33,14 @@ class HapticParams:
             and the proxy wanders within a fraction of a millimetre, which spends the budget.
         tolerance: a tick has converged when the step it would take is shorter than this (m).
         slack: how deep (m) a sliding step may dig into the point cloud before the next
-            step pushes the proxy back out along the normal. Steps are clipped by a swept-sphere
-            test so that no point ever comes closer than ``r1 - slack`` (``r_f - slack`` for
-            fixtures) during a step, unless the scene itself moved into the proxy.
+            step pushes the proxy back out along the normal. Steps are clipped (swept sphere)
+            so that in a static scene no point ever comes closer than ``r1 - slack``
+            (``r_f - slack`` for fixtures) to the proxy's centre; where the scene moved into the
+            proxy, its deepest penetration never grows (kernels/proxy.py, step 3).
+        margin: rounding margin of the clipping rule (1 um, about ten float32 roundings of a
+            position near 1 m): a clipped step ends ``margin`` above its limit, and a point
+            within ``margin`` of the limit counts as at the limit, so that no decision turns
+            on the last bit of a clearance. At most (r2 - r1)/4.
         skin: margin (m) of the per-tick working set gathered around the proxy (performance
             only: results do not depend on it).
         mode: ``"rendering"`` (all points, chapter 2) or ``"fixture"`` (protected points with
@@ -55,6 +60,7 @@ class HapticParams:
     max_steps: int = 20
     tolerance: float = 1e-6
     slack: float = 0.0002
+    margin: float = 1e-6
     skin: float = 0.002
     mode: str = "rendering"
     k: float = 350.0
@@ -66,13 +72,13 @@ class HapticParams:
     max_force: float = 3.3
 
     def __post_init__(self):
-        for key in ("r1", "r2", "r3", "step", "tolerance", "slack", "skin", "k", "k_s", "b",
+        for key in ("r1", "r2", "r3", "step", "tolerance", "slack", "margin", "skin", "k", "k_s", "b",
                     "fir_cutoff_hz", "rate_hz", "max_force"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise InputError(f"haptic parameter {key} = {v!r}; expected a finite number")
             object.__setattr__(self, key, float(v))
-        for key in ("r1", "step", "tolerance", "rate_hz", "fir_cutoff_hz"):
+        for key in ("r1", "step", "tolerance", "margin", "rate_hz", "fir_cutoff_hz"):
             if getattr(self, key) <= 0:
                 raise InputError(f"haptic parameter {key} = {getattr(self, key)!r}; expected > 0")
         for key in ("slack", "skin", "k", "k_s", "b", "max_force"):
@@ -86,6 +92,9 @@ class HapticParams:
             raise InputError(
                 f"step = {self.step} m > r3 - r1 = {self.r3 - self.r1:.6g} m; a step must stay inside the "
                 "normal neighbourhood (the dissertation uses 1 mm with r3 - r1 = 5 mm)")
+        if self.margin > (self.r2 - self.r1) / 4:
+            raise InputError(f"margin = {self.margin} m; expected at most (r2 - r1)/4 = {(self.r2 - self.r1) / 4:.6g} m "
+                             "(a rounding margin, 1e-6 m by default)")
         if self.slack >= self.r1:
             raise InputError(f"slack = {self.slack} m; expected below r1 = {self.r1} m (0.2 mm by default)")
         if self.mode not in MODES:

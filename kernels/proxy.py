@@ -23,15 +23,36 @@ Algorithm (identical in the NumPy reference and the device kernels), per step:
    contact with v.n <= 0 (HIP inside) -> along v projected on the plane of n, L = its length
    (the HIP's projection, never past it); entrenched -> along n, L = (r2 - r1)/2 - min e, so
    the push-out never overshoots the contact band (with no normal, along v). L <= delta.
-3. Swept-sphere clipping: the step is shortened so that, moving along u, no point's clearance
-   drops below (r2 - r1)/2 (free: the proxy lands in the contact band) or below -slack (other
-   moves: sliding may dig at most ``slack`` deep before step 1 pushes it out again); a point
-   already deeper than that (the scene moved into the proxy) may not end a free, contact or
-   sliding step closer than it started, and does not block the push-out along n (else a
-   proxy buried by a new frame could stay stuck). Hence a step never carries the proxy
-   through a surface, whatever delta is, and in a static scene no point comes closer than
-   about ``r1 - slack`` to the proxy's centre (``r_f - slack`` for fixtures).
+3. Clipping. The step has a limit F on the clearances: F = (r2 - r1)/2 for a free step (the
+   proxy lands in the contact band), F = -slack for the others (sliding may dig at most
+   ``slack`` deep before step 1 pushes the proxy out again), and F = min e where the proxy is
+   *buried* (min e < -slack - margin, which only the scene moving into the proxy, or a reset,
+   can cause). With b_i = u.(X_p - P_i) (< 0: the step approaches P_i), each point is, at the
+   step's start, either
+   - clear (e_i >= F + margin): the step is shortened so that its clearance does not drop
+     below F + margin anywhere along the step (swept sphere of radius rho_i + F + margin), or
+   - at the limit (e_i < F + margin): it may not be approached at all (b_i < 0 -> no step).
+   ``margin`` (1 um) absorbs float32 rounding: a clipped step ends a margin above the limit, and
+   clearances within a margin of it all count as at the limit, so no decision turns on the
+   last bit of a clearance (the reference, OpenCL and Warp take the same branches).
+   If the push-out along n is blocked (step below ``tolerance``), the step goes by the contact
+   rule's direction instead (along v with v.n > 0, else along v projected on the plane of n);
+   if the proxy is buried and that is blocked too, it goes along the direction away from the
+   points at the limit, normalize(sum (X_p - P_i)/|X_p - P_i|) over e_i < F + margin, with
+   the push-out's length. All three use the same limit.
+   Guarantees, whatever delta is: a step never carries the proxy through a surface; in a
+   static scene a proxy whose clearances are all >= -slack keeps them >= -slack, i.e. no point
+   comes closer than ``r1 - slack`` to its centre (``r_f - slack`` for fixtures), up to float32
+   rounding of the position (< 1e-7 m near 1 m, inside the margin); and a step never leaves
+   min e below min(-slack, min e at its start), so a buried proxy is never pushed deeper. It gets
+   out along n, by the contact rule, or away from its deepest points; it can only be held
+   where those points surround its centre (the scene closed a pocket narrower than the proxy
+   around it), and then rests at the pocket's widest place until the scene or the HIP frees it.
 4. If the clipped step is shorter than ``tolerance``, the tick has converged; else move.
+
+Decisions that remain thresholds on computed values (the states at e = 0 and e = r2 - r1, the
+normal band e < r3 - r1, ``tolerance``) can still part two backends when a step happens to end
+within rounding of one of them; no proxy rests on one by construction.
 
 The state, normal and clearance reported are those at the final position.
 """

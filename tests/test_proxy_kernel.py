@@ -113,6 +113,8 @@ def test_bad_hips_raise_and_change_nothing(backend):
     (dict(fir_cutoff_hz=600.0), "Nyquist"),
     (dict(max_force=-1.0), "max_force"),
     (dict(slack=0.005), "slack"),
+    (dict(margin=0.0), "margin"),
+    (dict(margin=1e-4), "margin"),
 ])
 def test_bad_params_raise_naming_the_value(changes, match):
     with pytest.raises(InputError, match=match):

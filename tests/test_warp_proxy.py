@@ -55,8 +55,9 @@ def test_warp_proxies_agree_with_reference(mode):
         dev.step(h)
         ref.step(h)
         same = np.abs(dev.positions - ref.positions).max(axis=1) <= 1e-5
-        # A proxy resting exactly at clearance -slack converges or keeps pushing out depending
-        # on the last bit of the clearance; then the two may part within a tick.
+        # Clearances near the clipping limit are decided with a margin (kernels/proxy.py), but a
+        # step may still end within rounding of a state threshold (e = 0) by chance; then the
+        # two may part within a tick (about one proxy-tick in 10^4).
         parted += np.count_nonzero(~same)
         np.testing.assert_array_equal(dev.states[same], ref.states[same])
         np.testing.assert_allclose(dev.nearest[same], ref.nearest[same], atol=1e-5, rtol=0)

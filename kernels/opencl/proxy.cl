@@ -18,7 +18,7 @@ typedef int16 vi;
 
 // Scalar parameters, packed by kernels/opencl/proxy.py (keep in sync):
 // 0 r1, 1 band = r2 - r1, 2 nreach = r3 - r1, 3 step, 4 tol, 5 slack, 6 skin, 7 gather radius,
-// 8 reach (hash scan radius of the direct path)
+// 8 reach (hash scan radius of the direct path), 9 margin
 #define P_R1 prm[0]
 #define P_BAND prm[1]
 #define P_NREACH prm[2]
@@ -27,6 +27,7 @@ typedef int16 vi;
 #define P_SLACK prm[5]
 #define P_SKIN prm[6]
 #define P_GATHER prm[7]
+#define P_MARGIN prm[9]
 
 #define FREE 0
 #define CONTACT 1
@@ -141,8 +142,11 @@ inline Eval eval_hash(__global const float4 *pts, __global const int *order, __g
     return r;
 }
 
-// ---- swept-sphere clipping of a step along u ------------------------------------------------
-inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 u, float off, int push) {
+// ---- clipping of a step along u (kernels/proxy.py, step 3) ---------------------------------
+// off = limit F + margin. A clear point (c = d2 - (rho + off)^2 >= 0) stops the step where its
+// clearance reaches F + margin (swept sphere); a point at the limit (c < 0) may not be
+// approached at all (b < 0 gives 0).
+inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 u, float off) {
     __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
     vf tmin = INFINITY;
     for (int i = 0; i < n; i += VW) {
@@ -156,8 +160,8 @@ inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 
         vf disc = b * b - c;
         vi neg = b < (vf)(0.0f);
         vi outside = (c >= (vf)(0.0f)) & neg & (disc > (vf)(0.0f));
-        vi inside = (c < (vf)(0.0f)) & neg & (vi)(push ? 0 : -1);
-        vf t = select((vf)(INFINITY), (vf)(-2.0f) * b, inside);
+        vi atlim = (c < (vf)(0.0f)) & neg;
+        vf t = select((vf)(INFINITY), (vf)(0.0f), atlim);
         if (any(outside)) {  // most chunks hold no point the step could reach: skip sqrt and divide
             vf t_out = c / (-b + sqrt(fmax(disc, (vf)(0.0f))));
             t = select(t, t_out, outside);
@@ -170,7 +174,7 @@ inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 
 }
 
 inline float clip_hash(__global const float4 *pts, __global const int *order, __global const int *start,
-                       float4 grid, int4 dims, int span, float3 X, float3 u, float off, int push, int fixture, float r1) {
+                       float4 grid, int4 dims, int span, float3 X, float3 u, float off, int fixture, float r1) {
     int4 hi;
     int4 lo = cell_range(X, grid, dims, span, &hi);
     float m = INFINITY;
@@ -191,11 +195,59 @@ inline float clip_hash(__global const float4 *pts, __global const int *order, __
                 float disc = b * b - c;
                 float t = INFINITY;
                 if (c >= 0.0f && b < 0.0f && disc > 0.0f) t = c / (-b + sqrt(disc));
-                else if (c < 0.0f && b < 0.0f && !push) t = -2.0f * b;
+                else if (c < 0.0f && b < 0.0f) t = 0.0f;
                 m = fmin(m, t);
             }
         }
     return m;
+}
+
+// ---- direction away from the points at the limit (c < 0), summed like the normal ----------
+inline float3 away_ws(__global const float *ws, int cap, int n, float3 X, float off) {
+    __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
+    vf ax = 0.0f, ay = 0.0f, az = 0.0f;
+    for (int i = 0; i < n; i += VW) {
+        vf dx = (vf)(X.x) - VLOAD(0, wx + i);
+        vf dy = (vf)(X.y) - VLOAD(0, wy + i);
+        vf dz = (vf)(X.z) - VLOAD(0, wz + i);
+        vf d2 = dx * dx + dy * dy + dz * dz;
+        vf d = sqrt(d2);
+        vf rc = VLOAD(0, wr + i) + (vf)(off);
+        vf c = d2 - rc * rc;
+        vf inv = select((vf)(0.0f), (vf)(1.0f) / d, (c < (vf)(0.0f)) & (d > (vf)(0.0f)));
+        ax += dx * inv; ay += dy * inv; az += dz * inv;
+    }
+    float sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    for (int k = 0; k < VW; ++k) { sx += ax[k]; sy += ay[k]; sz += az[k]; }
+    return (float3)(sx, sy, sz);
+}
+
+inline float3 away_hash(__global const float4 *pts, __global const int *order, __global const int *start,
+                        float4 grid, int4 dims, int span, float3 X, float off, int fixture, float r1) {
+    int4 hi;
+    int4 lo = cell_range(X, grid, dims, span, &hi);
+    float sx = 0.0f, sy = 0.0f, sz = 0.0f;
+    for (int iz = lo.z; iz <= hi.z; ++iz)
+        for (int iy = lo.y; iy <= hi.y; ++iy) {
+            if (lo.x > hi.x) continue;
+            int base = (iz * dims.y + iy) * dims.x;
+            int a = start[base + lo.x], e_ = start[base + hi.x + 1];
+            for (int i = a; i < e_; ++i) {
+                int entry = order[i];
+                if (fixture && entry >= 0) continue;
+                float4 p = pts[entry & 0x7fffffff];
+                float dx = X.x - p.x, dy = X.y - p.y, dz = X.z - p.z;
+                float d2 = dx * dx + dy * dy + dz * dz;
+                float d = sqrt(d2);
+                float rc = (fixture ? p.w : r1) + off;
+                float c = d2 - rc * rc;
+                if (c < 0.0f && d > 0.0f) {
+                    float inv = 1.0f / d;
+                    sx += dx * inv; sy += dy * inv; sz += dz * inv;
+                }
+            }
+        }
+    return (float3)(sx, sy, sz);
 }
 
 inline int state_of(float min_e, float band) {
@@ -251,16 +303,28 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         L2 = fmin(L2, P_STEP);
         int push = st == ENTRENCHED && has_n;  // push-out along n first
         float3 u = push ? nrm : u2;
-        float L = push ? fmin(0.5f * band - min_e, P_STEP) : L2;
-        float off = st == FREE ? 0.5f * band : -P_SLACK;
-        float t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, push, fixture, r1)
-                         : clip_ws(ws, cap, n, X, u, off, push);
+        float Lp = fmin(0.5f * band - min_e, P_STEP);
+        float L = push ? Lp : L2;
+        // limit F: mid-band for a free step, -slack otherwise, min e where buried (the deepest
+        // penetration never grows); off = F + margin
+        int buried = st == ENTRENCHED && min_e < -P_SLACK - P_MARGIN;
+        float lim = st == FREE ? 0.5f * band : (buried ? min_e : -P_SLACK);
+        float off = lim + P_MARGIN;
+        float t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+                         : clip_ws(ws, cap, n, X, u, off);
         float s = fmax(fmin(L, t), 0.0f);
         if (push && s < P_TOL) {  // push-out blocked: the contact rule's direction instead
             u = u2;
-            t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, 0, fixture, r1)
-                       : clip_ws(ws, cap, n, X, u, off, 0);
+            t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+                       : clip_ws(ws, cap, n, X, u, off);
             s = fmax(fmin(L2, t), 0.0f);
+            if (buried && s < P_TOL) {  // both blocked: away from the deepest points
+                u = normal_of(direct ? away_hash(pts, order, start, grid, dims, rspan, X, off, fixture, r1)
+                                     : away_ws(ws, cap, n, X, off));
+                t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+                           : clip_ws(ws, cap, n, X, u, off);
+                s = u.x != 0.0f || u.y != 0.0f || u.z != 0.0f ? fmax(fmin(Lp, t), 0.0f) : 0.0f;
+            }
         }
         if (s < P_TOL) { conv = 1; break; }
         X = X + s * u;

@@ -49,7 +49,7 @@ class OpenCLProxies(ProxyBatch):
         gather_r = self.reach + p.skin
         h = pipeline.grid.h
         self.prm_host = np.array([p.r1, p.band, p.r3 - p.r1, p.step, p.tolerance, p.slack, p.skin, gather_r,
-                                  self.reach, 0, 0, 0, 0, 0, 0, 0], np.float32)
+                                  self.reach, p.margin, 0, 0, 0, 0, 0, 0], np.float32)
         mf = self.cl.mem_flags
         self.prm = self.cl.Buffer(pipeline.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.prm_host)
         k = self.kernel

@@ -164,10 +164,10 @@ def evaluate(X: np.ndarray, ws: WorkingSet, p: HapticParams, direct=None, lanes:
 def direction(X, H, state, normal, min_e, p: HapticParams):
     """Step directions and length bounds from the movement rules.
 
-    Returns (u, L, push, u2, L2, retry): the first choice u (B, 3) with its bound L (B,) and
-    ``push`` (B,) where it is the push-out along n; where ``retry``, the push-out is blocked by
-    the swept-sphere test the step goes along (u2, L2) instead: along v with the HIP outside
-    (v.n > 0), along v projected on the plane of n with it inside (rule 3/4 for entrenched).
+    Returns (u, L, push, u2, L2): the first choice u (B, 3) with its bound L (B,) and ``push``
+    (B,) where it is the push-out along n; where the push-out is blocked by the clipping test
+    the step goes along (u2, L2) instead: along v with the HIP outside (v.n > 0), along v
+    projected on the plane of n with it inside (rule 3/4 for entrenched).
     """
     v = (H - X).astype(F)
     vl = np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
@@ -189,28 +189,63 @@ def direction(X, H, state, normal, min_e, p: HapticParams):
     L2 = np.minimum(L2, F(p.step))
     u, L = u2.copy(), L2.copy()
     u[along_n] = normal[along_n]
-    L[along_n] = np.minimum(F(p.band / 2) - min_e[along_n], F(p.step))
-    return u, L, along_n, u2, L2, along_n
+    L[along_n] = push_length(min_e[along_n], p)
+    return u, L, along_n, u2, L2
 
 
-def clip_step(u, L, state, push, w, d2, ws: WorkingSet, p: HapticParams):
-    """Longest step <= L along u before a point's clearance reaches its limit (swept sphere).
+def push_length(min_e, p: HapticParams):
+    """Length bound of a push-out: to the middle of the contact band, at most delta."""
+    return np.minimum(F(p.band / 2) - min_e, F(p.step)).astype(F)
 
-    ``push`` (B,): the step is the push-out along n, which points already deeper than the
-    limit do not block."""
+
+def floor_of(state, min_e, p: HapticParams):
+    """(limit F, buried) per proxy: the clearance a step may not take a point below.
+
+    F = (r2 - r1)/2 for a free step; -slack for the others, or min e where the proxy is buried
+    (min e < -slack - margin: only the scene moving into the proxy puts it there), so that the
+    deepest penetration never grows."""
+    deep = F(-p.slack) - F(p.margin)
+    buried = (state == ENTRENCHED) & (min_e < deep)
+    lim = np.where(state == FREE, F(p.band / 2), np.where(buried, min_e, F(-p.slack))).astype(F)
+    return lim, buried
+
+
+def limit_c(w, d2, lim, ws: WorkingSet, p: HapticParams):
+    """c_i = |X - P_i|^2 - (rho_i + F + margin)^2 (B, K): >= 0 for the clear points, < 0 for
+    those at the limit (clearance below F + margin)."""
+    rc = ws.rho + (lim + F(p.margin))[:, None]
+    return d2 - rc * rc
+
+
+def clip_step(u, L, c, w, ws: WorkingSet):
+    """Longest step <= L along u under the clipping rule (kernels/proxy.py, step 3).
+
+    ``c`` from ``limit_c``: a clear point (c >= 0) stops the step where its clearance reaches
+    F + margin (swept sphere); a point at the limit (c < 0) may not be approached at all
+    (b = u.(X - P) < 0 gives step 0)."""
     b = u[:, None, 0] * w[..., 0] + u[:, None, 1] * w[..., 1] + u[:, None, 2] * w[..., 2]
-    off = np.where(state == FREE, F(p.band / 2), F(-p.slack)).astype(F)
-    rc = ws.rho + off[:, None]
-    c = d2 - rc * rc
     disc = b * b - c
-    outside = ws.valid & (c >= 0) & (b < 0) & (disc > 0)
-    inside = ws.valid & (c < 0) & (b < 0) & ~push[:, None]
+    ahead = ws.valid & (b < 0)
+    hit = ahead & (c >= 0) & (disc > 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         t_out = c / (-b + np.sqrt(np.maximum(disc, F(0))))
-    t = np.where(outside, t_out, INF)
-    t = np.where(inside, F(-2) * b, t)
+    t = np.where(hit, t_out, INF)
+    t = np.where(ahead & (c < 0), F(0), t)
     tmin = np.min(t, axis=1, initial=INF)
     return np.maximum(np.minimum(L, tmin), F(0)).astype(F)
+
+
+def away_direction(c, w, d2, ws: WorkingSet, direct, lanes: int):
+    """Unit direction away from the points at the limit: normalize(sum (X - P_i)/|X - P_i|) over
+    c_i < 0, summed in the order of the normal (zero if the sum vanishes)."""
+    d = np.sqrt(d2)
+    use = ws.valid & (c < 0) & (d > 0)
+    with np.errstate(divide="ignore"):
+        inv = np.where(use, F(1) / np.where(use, d, F(1)), F(0))
+    s = lane_sum(w * inv[..., None], direct, lanes)
+    nn = np.sqrt(s[:, 0] * s[:, 0] + s[:, 1] * s[:, 1] + s[:, 2] * s[:, 2])
+    has = nn > 0
+    return np.where(has[:, None], s / np.where(has, nn, F(1))[:, None], F(0)).astype(F)
 
 
 def _sq(a: np.ndarray) -> np.ndarray:
@@ -254,14 +289,25 @@ def run_tick(X: np.ndarray, H: np.ndarray, gather, p: HapticParams, cap: int = W
         regather()
         wa = ws.take(active)
         Xa, Ha = X[active], H[active]
-        st, nrm, me, w, d2 = evaluate(Xa, wa, p, count[active] > cap, lanes)
-        u, L, push, u2, L2, retry = direction(Xa, Ha, st, nrm, me, p)
-        s = clip_step(u, L, st, push, w, d2, wa, p)
-        retry &= s < F(p.tolerance)
+        direct = count[active] > cap
+        st, nrm, me, w, d2 = evaluate(Xa, wa, p, direct, lanes)
+        u, L, push, u2, L2 = direction(Xa, Ha, st, nrm, me, p)
+        lim, buried = floor_of(st, me, p)
+        c = limit_c(w, d2, lim, wa, p)
+        s = clip_step(u, L, c, w, wa)
+        retry = push & (s < F(p.tolerance))
         if retry.any():  # push-out blocked: the contact rule's direction instead
             r = np.flatnonzero(retry)
-            s2 = clip_step(u2[r], L2[r], st[r], np.zeros(r.size, bool), w[r], d2[r], wa.take(r), p)
+            wr = wa.take(r)
+            s2 = clip_step(u2[r], L2[r], c[r], w[r], wr)
             u[r], s[r] = u2[r], s2
+            away = buried[r] & (s2 < F(p.tolerance))
+            if away.any():  # buried and both blocked: away from the deepest points
+                a = r[away]
+                ua = away_direction(c[a], w[a], d2[a], wa.take(a), direct[a], lanes)
+                u[a] = ua
+                sa = clip_step(ua, L[a], c[a], w[a], wa.take(a))
+                s[a] = np.where(np.any(ua != 0, axis=1), sa, F(0))
         done = s < F(p.tolerance)
         normal[active], state[active], near[active] = nrm, st, me
         conv[active[done]] = True

@@ -37,6 +37,7 @@ class ProxyArgs:
     step: float
     tol: float
     slack: float
+    margin: float
     fixture: int
     max_steps: int
     span: int  # cells searched on each side (reach)
@@ -51,10 +52,11 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
 
 @wp.func
 def clip_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
-                 a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float, push: bool, x0: int, x1: int, y0: int, y1: int,
+                 a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int,
                  z0: int, z1: int, lane: int, bd: int) -> float:
-    """This thread's share of the swept-sphere limit: the longest step along u before a point's
-    clearance reaches ``off``; points already deeper clip only non-push steps (kernels/proxy.py)."""
+    """This thread's share of the step limit along u (kernels/proxy.py, step 3); off = F + margin:
+    a clear point stops the step where its clearance reaches off (swept sphere), a point at the
+    limit (clearance below off) may not be approached at all."""
     tm = float(wp.inf)
     if x0 <= x1:
         for iz in range(z0, z1 + 1):
@@ -75,9 +77,33 @@ def clip_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start
                     disc = b * b - c
                     if c >= 0.0 and b < 0.0 and disc > 0.0:
                         tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
-                    elif c < 0.0 and b < 0.0 and not push:
-                        tm = wp.min(tm, -2.0 * b)
+                    elif c < 0.0 and b < 0.0:
+                        tm = 0.0
     return tm
+
+
+@wp.func
+def away_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+                 a: ProxyArgs, X: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int, z0: int, z1: int,
+                 lane: int, bd: int) -> wp.vec3:
+    """This thread's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
+    ns = wp.vec3(0.0)
+    if x0 <= x1:
+        for iz in range(z0, z1 + 1):
+            for iy in range(y0, y1 + 1):
+                base = (iz * g.ny + iy) * g.nx
+                for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
+                    entry = order[i]
+                    if a.fixture != 0 and entry >= 0:
+                        continue
+                    q = pts[entry & 2147483647]
+                    dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
+                    d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
+                    d = wp.sqrt(d2)
+                    rc = clearance_radius(q, a) + off
+                    if d2 - rc * rc < 0.0 and d > 0.0:
+                        ns = ns + dv / d
+    return ns
 
 
 @wp.kernel
@@ -158,23 +184,41 @@ def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: 
         L2 = wp.min(L2, a.step)
         u = u2
         L = L2
-        off = -a.slack
+        Lp = wp.min(0.5 * a.band - min_e, a.step)
+        # limit F: mid-band for a free step, -slack otherwise, min e where buried (the deepest
+        # penetration never grows); off = F + margin
+        buried = st == 2 and min_e < -a.slack - a.margin
+        lim = -a.slack
         if st == 0:
-            off = 0.5 * a.band
+            lim = 0.5 * a.band
+        elif buried:
+            lim = min_e
+        off = lim + a.margin
 
-        # 3. swept-sphere clipping (block-wide minimum)
+        # 3. clipping (block-wide minimum)
         push = st == 2 and has_n
         if push:
             u = nrm
-            L = wp.min(0.5 * a.band - min_e, a.step)
-        tm = clip_partial(pts, order, start, g, a, X, u, off, push, x0, x1, y0, y1, z0, z1, lane, bd)
+            L = Lp
+        tm = clip_partial(pts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
         t = wp.tile_min(wp.tile(tm))[0]
         s = wp.max(wp.min(L, t), 0.0)
         if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
             u = u2
-            tm = clip_partial(pts, order, start, g, a, X, u, off, False, x0, x1, y0, y1, z0, z1, lane, bd)
+            tm = clip_partial(pts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
             t = wp.tile_min(wp.tile(tm))[0]
             s = wp.max(wp.min(L2, t), 0.0)
+            if buried and s < a.tol:  # both blocked: away from the deepest points
+                av = away_partial(pts, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
+                at = wp.tile_sum(wp.tile(av), axis=1)
+                asum = wp.vec3(at[0], at[1], at[2])
+                al = wp.length(asum)
+                s = 0.0
+                if al > 0.0:
+                    u = asum / al
+                    tm = clip_partial(pts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+                    t = wp.tile_min(wp.tile(tm))[0]
+                    s = wp.max(wp.min(Lp, t), 0.0)
         if s < a.tol:
             conv = 1
             break
@@ -200,6 +244,7 @@ class WarpProxies(ProxyBatch):
         a = self.args = ProxyArgs()
         a.r1, a.band, a.nreach, a.step = p.r1, p.band, p.r3 - p.r1, p.step
         a.tol, a.slack, a.fixture, a.max_steps = p.tolerance, p.slack, int(p.mode == "fixture"), p.max_steps
+        a.margin = p.margin
         a.span = search_span(self.reach, pipeline.grid.h)
 
     def _grow(self, cap: int):
