@@ -36,6 +36,8 @@ def add_arguments(p):
     p.add_argument("--frames", default="49", help="apc_shelfbin_50f frame indices fused into one snapshot with their poses (default 49)")
     p.add_argument("--ticks", type=int, default=None, help="timed ticks per case (default: --repeat or 2000)")
     p.add_argument("--data", default=str(SHARED), help="the shared data folder (default ../shared/data)")
+    p.add_argument("--big", type=int, default=0, help="also time one batch of this many proxies (e.g. 65536): "
+                   "tick_us_<N>proxy_p50/p99 and proxies_per_s")
 
 
 def apc_rig(indices, data=SHARED):
@@ -185,15 +187,17 @@ def run(args) -> dict:
     out["steps_per_s_1proxy"] = int(steps / tt)
     out["steps_per_tick_in_steps_run_mean"] = round(steps / max(20, n_ticks // 50), 1)
 
-    # 64 and 1024 proxies on spots spread over the frame
-    for B in (64, 1024):
+    # 64 and 1024 (and --big) proxies on spots spread over the frame
+    for B in (64, 1024) + ((args.big,) if args.big else ()):
         spots, _, _ = dense_spots(pts, B, target=int(np.median(tree.query_ball_point(pts[::97], R3, return_length=True))), seed=B)
         ob = outward(spots, cams)
-        hb = trajectory(spots, ob, min(n_ticks, 600 if B <= 64 else 300) + 50)
+        hb = trajectory(spots, ob, min(n_ticks, 600 if B <= 64 else 300 if B <= 1024 else 60) + 50)
         pb = hs.pipeline.proxies(spots + 0.02 * ob, p)
         tb = time_ticks(pb.step, hb, warm=50)
         out[f"tick_us_{B}proxy_p50"] = round(pct(tb, 50), 2)
         out[f"tick_us_{B}proxy_p99"] = round(pct(tb, 99), 2)
+        if B == args.big:
+            out["proxies_per_s"] = int(B / (pct(tb, 50) * 1e-6))
 
     # peer: cKDTree neighbourhoods + the same algorithm in NumPy
     state, peer_step = ckdtree_peer(pts, tree, p)
