@@ -160,7 +160,8 @@ def _camera(entry: dict, i: int) -> CameraConfig:
     where = f"[[camera]] {name!r}"
     source = entry.get("source")
     if not isinstance(source, str) or ":" not in source:
-        raise InputError(f"{where}: source = {source!r}; expected 'synthetic:<scene>' or 'recorded:<path>'")
+        raise InputError(f"{where}: source = {source!r}; expected 'synthetic:<scene>', 'recorded:<path>', "
+                         "'openni2:<uri or file.oni>' or 'depthai:<device id>'")
     kw: dict = {}
     if "noise" in entry:
         _check_keys(entry["noise"], NOISE_KEYS, f"{where}.noise")
@@ -188,6 +189,12 @@ def _camera(entry: dict, i: int) -> CameraConfig:
         target = source.split(":", 1)[1].split("?", 1)[0]
         base = camera_from_recording(target, name=name)
         camera = base if not kw else Camera(**{**base.__dict__, **kw})
+    elif scheme in ("openni2", "depthai") and not given:
+        from pointfence.service.sources import open_source
+
+        with open_source(source) as probe:  # the device (or recording) reports its intrinsics
+            base = probe.camera
+        camera = Camera(**{**base.__dict__, "name": name, **kw})
     elif scheme == "synthetic" and not given:
         from pointfence.service.sources import default_camera
 
@@ -195,7 +202,7 @@ def _camera(entry: dict, i: int) -> CameraConfig:
     else:
         missing = [k for k in INTRINSIC_KEYS if k not in entry]
         raise InputError(f"{where}: intrinsics incomplete, missing {', '.join(missing)}; give all of "
-                         f"{', '.join(INTRINSIC_KEYS)} (recorded and synthetic sources may omit all of them)")
+                         f"{', '.join(INTRINSIC_KEYS)} (recorded, synthetic, openni2 and depthai sources may omit all of them)")
     options = entry.get("options", {})
     if not isinstance(options, dict):
         raise InputError(f"{where}.options = {options!r}; expected a table of source options")

@@ -78,7 +78,7 @@ def test_defaults_load_and_run_one_frame():
     (("T_world_cam = [1, 0, 0, 0,", "T_world_cam = [2, 0, 0, 0,"), "not a rotation"),
     (("T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,", "T_world_cam = [1, 0, 0, 0,"), "expected a list of 16 numbers"),
     (('mode = "fixture"', 'mode = "fence"'), "mode = 'fence'; expected 'fixture' or 'rendering'"),
-    (('source = "synthetic:plane"\nfx', 'source = "webcam"\nfx'), "expected 'synthetic:<scene>' or 'recorded:<path>'"),
+    (('source = "synthetic:plane"\nfx', 'source = "webcam"\nfx'), "expected 'synthetic:<scene>', 'recorded:<path>', 'openni2:<uri or file.oni>' or 'depthai:<device id>'"),
     (("noise = { a = 0.0005, b = 0.002 }", "noise = { a = 0.0005, c = 0.002 }"), "unknown key 'c'"),
     (('kind = "box"', 'kind = "sphere"'), "expected one of all, box, color, mask"),
 ])
@@ -112,3 +112,23 @@ def test_recorded_camera_takes_intrinsics_from_the_recording(tmp_path):
     assert (cam.fx, cam.cx, cam.width) == (585.0, 320.0, 640)
     frame = c.open_sources()[0].read()
     assert frame.depth.shape == (480, 640) and frame.T_world_cam is not None
+
+
+def test_openni2_camera_takes_intrinsics_from_the_recording(tmp_path):
+    pytest.importorskip("openni", reason="OpenNI2 Python bindings missing: pip install openni (and apt-get install libopenni2-0)")
+    if not SHARED.is_dir():
+        pytest.skip("../shared/data not found: real-data tests need the shared folder beside the project")
+    from pointfence.service.sources.openni2 import OpenNI2Unavailable
+
+    text = f"""
+    [[camera]]
+    name = "primesense"
+    source = "openni2:{SHARED / 'oni_3dj' / 'test.oni'}"
+    """
+    try:
+        c = config.load(write(tmp_path, text))
+    except OpenNI2Unavailable as e:
+        pytest.skip(f"OpenNI2 runtime missing: {e}")
+    cam = c.cameras[0].camera
+    assert cam.name == "primesense" and (cam.width, cam.height) == (640, 480)
+    assert abs(cam.fx - 575.8157) < 0.01 and (cam.cx, cam.cy) == (320.0, 240.0)
