@@ -179,6 +179,13 @@ class Service:
                 r.hold()   # until the arm couples (pedal down, teleoperation engaged, healthy)
         self._started = True
 
+    def warm_up(self) -> None:
+        """Launch the proxy kernel once on a throw-away batch (same program and batch size), so
+        that a just-in-time compiling runtime (PoCL) compiles it before the loop's first tick."""
+        probe = self.pipeline.proxies(self.teleop.hip, self.params)
+        with self.gate.lock:
+            probe.step(self.teleop.hip)
+
     # --- control (any thread; applied at the start of the next tick) ----------------------------
     def set_architecture(self, architecture) -> None:
         with self._ctl:

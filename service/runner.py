@@ -36,7 +36,16 @@ class LiveRun:
             self.stop()
             raise RuntimeError(f"no snapshot within {first_frame_timeout} s: {self.frames.status(self.clock.now())}")
         self.service.start()
+        self.service.warm_up()
         self.loop.start()
+
+    def wait_ticks(self, n: int, timeout: float = 30.0) -> None:
+        """Wait until the loop has run ``n`` ticks in all (or ``timeout`` s)."""
+        end = time.monotonic() + timeout
+        while self.loop.ticks < n and time.monotonic() < end:
+            if not self.loop.running:
+                raise RuntimeError(f"haptic loop thread ended: {self.loop.error}")
+            time.sleep(0.005)
 
     def mark(self) -> None:
         self._mark = self.loop.mark()
