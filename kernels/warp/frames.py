@@ -1,7 +1,8 @@
 """Frame pipeline and spatial-hash build as Warp kernels. Mirrors kernels/opencl/frames.cl.
 
 Snapshot layout (as the OpenCL backend): ``pts[pix] = (x, y, z, r_f)`` and ``sigma[pix]`` in
-pixel order; ``order[start[c]:start[c+1]]`` = entries of cell c, entry = pix | protected << 31.
+pixel order; ``order[start[c]:start[c+1]]`` = entries of cell c, entry = pix | protected << 31;
+plus ``sorted_pts``, the points in ``order``'s order (the GPU reads them coalesced).
 """
 from __future__ import annotations
 
@@ -183,14 +184,19 @@ def scan_add(start: wp.array(dtype=int), n: int, chunk: int, partial: wp.array(d
 
 @wp.kernel
 def scatter(pix_cell: wp.array(dtype=int), pix_rank: wp.array(dtype=int), pix_prot: wp.array(dtype=int),
-            start: wp.array(dtype=int), order: wp.array(dtype=int)):
+            start: wp.array(dtype=int), pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int),
+            sorted_pts: wp.array(dtype=wp.vec4)):
+    """Entries into their cell's slots, and (GPU layout) a cell-sorted copy of the points so that
+    queries read consecutive points with one coalesced load instead of two dependent ones."""
     pix = wp.tid()
     cell = pix_cell[pix]
     if cell >= 0:
         e = pix
         if pix_prot[pix] != 0:
             e = pix | (-2147483647 - 1)
-        order[start[cell] + pix_rank[pix]] = e
+        slot = start[cell] + pix_rank[pix]
+        order[slot] = e
+        sorted_pts[slot] = pts[pix]
 
 
 @wp.kernel

@@ -34,6 +34,7 @@ class _Slot:
         self.pts = wp.zeros(n, dtype=wp.vec4, device=device)
         self.sigma = wp.zeros(n, dtype=float, device=device)
         self.order = wp.zeros(n, dtype=int, device=device)
+        self.sorted_pts = wp.zeros(n, dtype=wp.vec4, device=device)
         self.start = wp.zeros(ncells + 1, dtype=int, device=device)
         self.n_points = 0
         self.seq = 0
@@ -155,7 +156,8 @@ class WarpPipeline(FramePipeline):
         wp.launch(k.scan_add, dim=self.nchunks, device=dev, inputs=[slot.start, C, self.chunk, self.partial])
         if self.npix:
             wp.launch(k.scatter, dim=self.npix, device=dev,
-                      inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.order])
+                      inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.pts, slot.order,
+                              slot.sorted_pts])
         wp.copy(self._n_host, slot.start, src_offset=C, count=1)
         wp.copy(self._cam_host, self.cam_counts)
 
