@@ -7,8 +7,9 @@ that wanders further than ``skin``), then the steps run on those arrays until ev
 converged or spent the step budget. Results do not depend on the working sets (they always
 hold every point within reach), only speed does.
 
-Arithmetic is float32 in the device kernel's operation order; reductions (the normal sum,
-minima) may be ordered differently, so backends agree to rounding, not bit for bit.
+Arithmetic is float32 in the OpenCL kernel's operation order, and the normal sums are taken in
+its order too (``lane_sum``), so the reference and OpenCL agree bit for bit; Warp's block
+reductions sum in another order and agree to rounding.
 """
 from __future__ import annotations
 
