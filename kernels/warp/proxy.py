@@ -9,6 +9,8 @@ decision from the reduced values, so the step loop stays uniform across the bloc
 
 On CUDA the tick (HIP upload from pinned memory, the launch, the result download) is captured
 once per snapshot slot into a CUDA graph and replayed each tick; nothing is allocated per tick.
+Candidates are read from the snapshot's cell-sorted copy of the points: the lanes of a block
+read consecutive points (one coalesced load each) instead of an index and then a point.
 """
 from __future__ import annotations
 
@@ -51,7 +53,7 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
 
 
 @wp.func
-def clip_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+def clip_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                  a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int,
                  z0: int, z1: int, lane: int, bd: int) -> float:
     """This thread's share of the step limit along u (kernels/proxy.py, step 3); off = F + margin:
@@ -63,10 +65,9 @@ def clip_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start
             for iy in range(y0, y1 + 1):
                 base = (iz * g.ny + iy) * g.nx
                 for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
-                    entry = order[i]
-                    if a.fixture != 0 and entry >= 0:
+                    if a.fixture != 0 and order[i] >= 0:
                         continue
-                    q = pts[entry & 2147483647]
+                    q = spts[i]
                     dx = X[0] - q[0]
                     dy = X[1] - q[1]
                     dz = X[2] - q[2]
@@ -83,7 +84,7 @@ def clip_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start
 
 
 @wp.func
-def away_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+def away_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                  a: ProxyArgs, X: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int, z0: int, z1: int,
                  lane: int, bd: int) -> wp.vec3:
     """This thread's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
@@ -93,10 +94,9 @@ def away_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start
             for iy in range(y0, y1 + 1):
                 base = (iz * g.ny + iy) * g.nx
                 for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
-                    entry = order[i]
-                    if a.fixture != 0 and entry >= 0:
+                    if a.fixture != 0 and order[i] >= 0:
                         continue
-                    q = pts[entry & 2147483647]
+                    q = spts[i]
                     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
                     d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
                     d = wp.sqrt(d2)
@@ -107,7 +107,7 @@ def away_partial(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start
 
 
 @wp.kernel
-def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
                out: wp.array(dtype=vec8)):
     p, lane = wp.tid()
@@ -138,10 +138,9 @@ def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: 
                 for iy in range(y0, y1 + 1):
                     base = (iz * g.ny + iy) * g.nx
                     for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
-                        entry = order[i]
-                        if a.fixture != 0 and entry >= 0:
+                        if a.fixture != 0 and order[i] >= 0:
                             continue
-                        q = pts[entry & 2147483647]
+                        q = spts[i]
                         dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
                         d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
                         e = d - clearance_radius(q, a)
@@ -200,23 +199,23 @@ def proxy_tick(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: 
         if push:
             u = nrm
             L = Lp
-        tm = clip_partial(pts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+        tm = clip_partial(spts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
         t = wp.tile_min(wp.tile(tm))[0]
         s = wp.max(wp.min(L, t), 0.0)
         if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
             u = u2
-            tm = clip_partial(pts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+            tm = clip_partial(spts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
             t = wp.tile_min(wp.tile(tm))[0]
             s = wp.max(wp.min(L2, t), 0.0)
             if buried and s < a.tol:  # both blocked: away from the deepest points
-                av = away_partial(pts, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
+                av = away_partial(spts, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
                 at = wp.tile_sum(wp.tile(av), axis=1)
                 asum = wp.vec3(at[0], at[1], at[2])
                 al = wp.length(asum)
                 s = 0.0
                 if al > 0.0:
                     u = asum / al
-                    tm = clip_partial(pts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+                    tm = clip_partial(spts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
                     t = wp.tile_min(wp.tile(tm))[0]
                     s = wp.max(wp.min(Lp, t), 0.0)
         if s < a.tol:
@@ -265,7 +264,7 @@ class WarpProxies(ProxyBatch):
 
     def _record(self, slot, n):
         wp.copy(self._hips, self._hips_host, count=n)
-        wp.launch_tiled(proxy_tick, dim=[n], inputs=[slot.pts, slot.order, slot.start, self.pipeline.grid_args,
+        wp.launch_tiled(proxy_tick, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
                         self.args, self._pos, self._hips, self.block_dim, self._out], block_dim=self.block_dim,
                         device=self.dev)
         wp.copy(self._out_host, self._out, count=n)
