@@ -8,8 +8,10 @@ rest; it measures each tick's compute time and lateness and counts deadline miss
 finishes after its period ends). ``status()`` returns a ``CableStatus`` snapshot for the
 control API.
 
-Safe behaviour: a non-finite encoder reading, estimate or torque latches a fault: the motor
-torque is zero from that tick on and an alert says why, until ``clear_fault()``.
+Safe behaviour: a non-finite encoder reading, estimate or torque, or an estimated parameter
+outside its physical range, latches a fault: the motor torque is zero from that tick on and an
+alert says why, until ``clear_fault()``. Without compiled C (no compiler, or compiling failed)
+the loop runs interpreted and ``status()`` carries a DEGRADED alert.
 """
 from __future__ import annotations
 
@@ -180,6 +182,9 @@ class CableController:
         alerts = []
         if fault:
             alerts.append(f"FAULT: {fault}; motor torque is held at zero (clear_fault() to resume)")
+        if "interpreted" in (self.loop.ukf.how, self.loop.mpc.how):
+            alerts.append("DEGRADED: C code generation failed or no C compiler (POINTFENCE_CC); the UKF/MPC "
+                          "run in CasADi's interpreter, several times slower (see the CodegenFallbackWarning)")
         if self._tension_alert is not None:
             alerts.append(self._tension_alert.message)
         if misses:

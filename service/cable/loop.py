@@ -4,7 +4,8 @@
 (``controller.CableController``) and the offline simulations (``experiments``): it owns the
 UKF (states + external link torque, optionally the cable stiffness for online tension
 estimation) and the MPC, and produces the motor torque for the next period. Non-finite
-measurements, estimates or torques latch a fault: the torque is zero until ``reset()``.
+measurements, estimates or torques, and an estimated parameter that leaves its physical range
+(e.g. k_e <= 0, a negative friction or damping), latch a fault: the torque is zero until ``reset()``.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import time
 import numpy as np
 
 from .ilqg import ILQGController, MPCConfig
-from .params import IDX, NP, GrasperParams
+from .params import _NONNEG, _POSITIVE, IDX, NP, PARAM_NAMES, GrasperParams
 from .ukf import UKF, UKFConfig
 
 #: Default online estimator: states and the external link torque (section 4.5).
@@ -30,6 +31,9 @@ class CableLoop:
         self.params = params
         self.ukf = UKF(params, ukf_config or ONLINE_UKF)
         self.mpc = ILQGController(mpc_config)
+        # physical range of each estimated parameter: (index, lower bound, strict)
+        self._ranges = tuple((i, 0.0, PARAM_NAMES[i] in _POSITIVE) for i in self.ukf.est_idx
+                             if PARAM_NAMES[i] in _POSITIVE or PARAM_NAMES[i] in _NONNEG)
         self.N = self.mpc.N
         self._p = np.zeros(NP)
         self.u_prev = 0.0
@@ -72,7 +76,11 @@ class CableLoop:
         self.ukf.step(self.u_prev, y)
         if not self.ukf.healthy():
             return self._trip("state estimator produced NaN/inf")
-        self.ukf.params_vector(self._p)
+        p = self.ukf.params_vector(self._p)
+        for i, lo, strict in self._ranges:
+            if p[i] < lo or (strict and p[i] == lo):
+                return self._trip(f"estimated parameter {PARAM_NAMES[i]}={p[i]:.4g} left its physical range "
+                                  f"({'>' if strict else '>='} {lo:g})")
         u = self.mpc.solve(self.ukf.x, self._p)
         if not math.isfinite(u):
             return self._trip("MPC produced a non-finite torque")
