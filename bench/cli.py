@@ -14,6 +14,7 @@ BENCHES = {
     "frames": "frame ingest (deproject, transform, radius, hash) vs scipy cKDTree and the projective search",
     "floor": "launch + copy floor of the device (what a tick costs with no work in it)",
     "query": "haptic tick: batched proxy kernel on a real close-range frame (1/64/1024 proxies, steps/s) vs the same algorithm over scipy cKDTree",
+    "cable": "cable controller: UKF step vs filterpy's UnscentedKalmanFilter (same model), iLQG MPC tick (horizon 10, 3 iterations, compiled C) and Ipopt on the same horizon, first compile and cached start",
     "stress": "raise proxies and cameras until the 1 kHz tick (p99 <= 1 ms) or the 30 Hz ingest (p99 <= 33 ms) no longer fits",
 }
 
