@@ -1,0 +1,409 @@
+"""The Python client SDK: a haptic device as a master of a pointfence service.
+
+Two ways to use it::
+
+    from pointfence.clients import Client, Command
+
+    with Client("127.0.0.1", 47800, key, device_id=7, max_force=3.3,
+                workspace=((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1))) as c:
+        c.connect()
+        # 1. your own loop: send a sample, read the force
+        c.send_state(device.position(), clutch=device.pedal())
+        fb = c.poll()                  # newest FEEDBACK (or None); c.force is zero when stale
+        device.set_force(c.force)
+
+        # 2. libfranka style: one callback per tick, the SDK keeps the timing contract
+        def tick(t):                   # t: Tick (index, time, period, force, feedback, ...)
+            device.set_force(t.force)
+            return Command(device.position(), clutch=device.pedal())   # finished=True ends
+        c.control(tick)
+
+``control`` runs the callback once per tick at the device rate, phase-locked to the service's
+ticks so that each sample arrives just before the tick that uses it (``lead_us`` ahead). It
+raises :class:`TimingError` when the callback (or the process) breaks the timing contract
+(``late_limit`` consecutive ticks later than a period), :class:`LinkLost` when the service is
+silent for longer than the session timeout (the force is zero from then on), and passes the
+callback's own exceptions through after closing the session. Forces are in the master frame, N;
+positions in the master frame, m.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+
+from pointfence.kernels.errors import PointfenceError
+
+from . import protocol as P
+
+RING = 4096
+
+
+class ClientError(PointfenceError, RuntimeError):
+    """Base class of the client SDK's errors."""
+
+
+class Rejected(ClientError):
+    """The service refused the HELLO (``code``: busy, full, capability, ...)."""
+
+    def __init__(self, code: int):
+        self.code = code
+        super().__init__(f"the service refused the session: {P.ERROR_NAMES.get(code, code)}")
+
+
+class LinkLost(ClientError):
+    """No feedback for longer than the session timeout: the force is zero, the robot holds."""
+
+
+class TimingError(ClientError):
+    """The per-tick timing contract was broken (callback or process too slow)."""
+
+
+@dataclass
+class Command:
+    """What a control callback returns: the device's sample for this tick."""
+
+    position: Sequence[float]
+    clutch: bool = True
+    orientation: Optional[Sequence[float]] = None     # w, x, y, z
+    grasp: Optional[float] = None
+    buttons: int = 0
+    finished: bool = False
+
+
+@dataclass
+class Tick:
+    """What a control callback receives."""
+
+    index: int                       # tick number since control() started
+    time: float                      # s since control() started
+    period: float                    # s since the previous tick started
+    force: np.ndarray                # N, master frame (zero when no fresh feedback)
+    feedback: Optional[P.Feedback]   # newest FEEDBACK (None before the first)
+    fresh: bool                      # feedback within the session timeout
+
+
+@dataclass
+class LinkStats:
+    sent: int = 0
+    echoed: int = 0
+    feedback: int = 0
+    rejected_in: int = 0             # datagrams this client dropped (bad tag, replay, ...)
+    rtt_us: list = field(default_factory=list)
+
+
+class Client:
+    """One haptic device's link to the service (see the module docstring).
+
+    Args:
+        host, port: the service (``pointfence serve``).
+        key: the pre-shared key (bytes) or a key file path.
+        device_id: this device's id (unique among the service's clients).
+        max_force: the device's force limit, N.
+        workspace: ((min x, y, z), (max x, y, z)) of the device, master frame, m.
+        rate_hz: the rate this client sends at.
+        timeout_ms: session timeout asked for (the service may lower it).
+        caps: capability bits (``protocol.CAP_*``).
+        model: device model, ASCII, up to 16 characters.
+    """
+
+    def __init__(self, host: str, port: int, key, device_id: int, *, max_force: float = 3.3,
+                 workspace=((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)), rate_hz: float = 1000.0,
+                 timeout_ms: int = P.DEFAULT_TIMEOUT_MS, caps: int = P.CAP_FORCE | P.CAP_CLUTCH, model: str = "python"):
+        self.psk = P.check_key(key) if isinstance(key, (bytes, bytearray)) else P.load_key(key)
+        self.addr = (socket.gethostbyname(host), int(port))
+        self.device_id = int(device_id)
+        self.hello = P.Hello(b"", float(max_force), tuple(workspace[0]), tuple(workspace[1]), float(rate_hz),
+                             int(timeout_ms), int(caps), model)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.connect(self.addr)        # only the service's datagrams arrive
+        self.sock.setblocking(False)
+        self._buf = bytearray(P.MAX_DATAGRAM)
+        self._view = memoryview(self._buf)
+        self.session = 0
+        self.key = b""
+        self.welcome: Optional[P.Welcome] = None
+        self.window = P.ReplayWindow()
+        self.seq = 0
+        self._prev = None
+        self.feedback: Optional[P.Feedback] = None
+        self.force = np.zeros(3)
+        self.last_rx_ns = 0
+        self.timeout_ns = int(timeout_ms) * 1_000_000
+        self._sent_ns = np.zeros(RING, np.int64)
+        self._sent_seq = np.zeros(RING, np.int64)
+        self._echo = 0
+        self._off_ns = None                 # min(recv - sent): clock offset + shortest transit
+        self.stats = LinkStats()
+
+    # --- session ------------------------------------------------------------------------------------
+    def connect(self, timeout: float = 5.0, retry: float = 0.1) -> P.Welcome:
+        """Handshake: HELLO (fresh nonce) every ``retry`` s until a WELCOME or REJECT, or raise."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            self.hello_send()
+            w = self.hello_wait(min(retry, max(0.0, end - time.monotonic())))
+            if w is not None:
+                return w
+        raise ClientError(f"no answer from the service at {self.addr[0]}:{self.addr[1]} within {timeout} s "
+                          "(is `pointfence serve` running there, with the same key?)")
+
+    def hello_send(self) -> bytes:
+        """Send a HELLO with a fresh nonce (the first half of ``connect``); returns the nonce."""
+        self._nonce = os.urandom(16)
+        self.hello.nonce = self._nonce
+        self._hellos = getattr(self, "_hellos", 0) + 1
+        try:
+            self.sock.send(self.hello.encode(self.psk, self.device_id, self._hellos))
+        except OSError:
+            pass
+        return self._nonce
+
+    def hello_wait(self, timeout: float) -> Optional[P.Welcome]:
+        """Wait up to ``timeout`` s for the answer to the last HELLO: the WELCOME (session set up),
+        None, or raise :class:`Rejected`."""
+        nonce = self._nonce
+        until = time.monotonic() + timeout
+        while True:
+            data = self._recv_wait(until - time.monotonic())
+            if data is not None:
+                try:
+                    h = P.parse_header(data)
+                    if h.type not in (P.WELCOME, P.REJECT) or h.device_id != self.device_id:
+                        raise P.ProtocolError(P.E_DIRECTION)
+                    P.verify(data, self.psk)
+                    if h.type == P.REJECT:
+                        r = P.Reject.decode(data)
+                        if r.client_nonce == nonce:
+                            raise Rejected(r.error)
+                        raise P.ProtocolError(P.E_STALE)
+                    w = P.Welcome.decode(data)
+                    if w.client_nonce != nonce:
+                        raise P.ProtocolError(P.E_STALE)
+                except P.ProtocolError:
+                    self.stats.rejected_in += 1
+                else:
+                    self._start_session(h.session, nonce, w)
+                    return w
+            if time.monotonic() >= until:
+                return None
+
+    def _start_session(self, session: int, nonce: bytes, w: P.Welcome) -> None:
+        self.session = session
+        self.key = P.session_key(self.psk, nonce, w.server_nonce, self.device_id, session)
+        self.welcome = w
+        self.timeout_ns = w.timeout_ms * 1_000_000
+        self.window = P.ReplayWindow()
+        self.seq = 0
+        self._prev = None
+        self.feedback = None
+        self._echo = 0
+        self._off_ns = None
+        self.force[:] = 0.0
+        self.last_rx_ns = time.perf_counter_ns()
+
+    def _recv_wait(self, timeout: float):
+        if timeout <= 0:
+            try:
+                n = self.sock.recv_into(self._buf)
+                return bytes(self._view[:n])
+            except OSError:
+                return None
+        self.sock.settimeout(timeout)
+        try:
+            n = self.sock.recv_into(self._buf)
+            return bytes(self._view[:n])
+        except OSError:      # timeout, would block, ICMP refused
+            return None
+        finally:
+            self.sock.setblocking(False)
+
+    @property
+    def connected(self) -> bool:
+        return self.session != 0
+
+    def close(self) -> None:
+        """End the session (BYE) and close the socket; the force is zero."""
+        if self.session:
+            try:
+                self.seq += 1
+                self.sock.send(P.Bye(P.E_OK).encode(self.key, self.device_id, self.session, self.seq))
+            except OSError:
+                pass
+            self.session = 0
+        self.force[:] = 0.0
+        self.sock.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # --- samples and forces --------------------------------------------------------------------------
+    def send_state(self, position, *, clutch: bool = True, orientation=None, grasp=None, buttons: int = 0,
+                   now_ns: Optional[int] = None) -> int:
+        """Send one sample (master frame, m); returns its sequence number. Increments are computed
+        from the previous sample (zero for the first)."""
+        if not self.session:
+            raise ClientError("not connected: call connect() first")
+        pos = (float(position[0]), float(position[1]), float(position[2]))
+        prev = self._prev if self._prev is not None else pos
+        inc = (pos[0] - prev[0], pos[1] - prev[1], pos[2] - prev[2])
+        self._prev = pos
+        flags = (P.F_CLUTCH if clutch else 0) | (P.F_ORIENTATION if orientation is not None else 0) | \
+                (P.F_GRASP if grasp is not None else 0)
+        fb = self.feedback
+        self.seq += 1
+        t = time.perf_counter_ns() if now_ns is None else now_ns
+        st = P.State(t, fb.t_sent_ns if fb is not None else 0, pos, inc,
+                     tuple(orientation) if orientation is not None else (1.0, 0.0, 0.0, 0.0),
+                     float(grasp) if grasp is not None else 0.0, int(buttons), flags)
+        data = st.encode(self.key, self.device_id, self.session, self.seq)
+        i = self.seq & (RING - 1)
+        self._sent_ns[i] = t
+        self._sent_seq[i] = self.seq
+        try:
+            self.sock.send(data)
+        except OSError:          # ICMP unreachable from an earlier datagram; UDP is lossy anyway
+            pass
+        self.stats.sent += 1
+        return self.seq
+
+    def poll(self) -> Optional[P.Feedback]:
+        """Read every waiting FEEDBACK (never blocks); returns the newest new one, or None.
+        Keeps ``force`` (zeroed once feedback is older than the timeout)."""
+        newest = None
+        while True:
+            try:
+                n = self.sock.recv_into(self._buf)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                continue
+            now = time.perf_counter_ns()
+            fb = self._accept(self._view[:n], now)
+            if fb is not None:
+                newest = fb
+        if time.perf_counter_ns() - self.last_rx_ns > self.timeout_ns:
+            self.force[:] = 0.0
+        return newest
+
+    def _accept(self, data, now: int) -> Optional[P.Feedback]:
+        try:
+            h = P.parse_header(data)
+            if h.session != self.session or h.device_id != self.device_id or not self.session:
+                raise P.ProtocolError(P.E_NO_SESSION)
+            if h.type == P.BYE:
+                P.verify(data, self.key)
+                self.window.check(h.seq)
+                self.window.commit(h.seq)
+                self.session = 0
+                self.force[:] = 0.0
+                raise LinkLost("the service ended the session")
+            if h.type != P.FEEDBACK:
+                raise P.ProtocolError(P.E_DIRECTION)
+            P.verify(data, self.key)
+            self.window.check(h.seq)
+            if not self.window.commit(h.seq):
+                raise P.ProtocolError(P.E_STALE)
+            fb = P.Feedback.decode(data)
+        except P.ProtocolError:
+            self.stats.rejected_in += 1
+            return None
+        self.feedback = fb
+        self.last_rx_ns = now
+        self.force[:] = fb.force
+        self.stats.feedback += 1
+        off = now - fb.t_sent_ns
+        if self._off_ns is None or off < self._off_ns:
+            self._off_ns = off
+        if fb.echo_seq > self._echo:
+            self._echo = fb.echo_seq
+            i = fb.echo_seq & (RING - 1)
+            if self._sent_seq[i] == fb.echo_seq:
+                self.stats.echoed += 1
+                self.stats.rtt_us.append((now - int(self._sent_ns[i])) / 1000.0)
+        return fb
+
+    @property
+    def fresh(self) -> bool:
+        return self.feedback is not None and time.perf_counter_ns() - self.last_rx_ns <= self.timeout_ns
+
+    def next_service_tick_ns(self, after_ns: int) -> Optional[int]:
+        """The first service tick deadline after ``after_ns`` in this client's clock (estimated from
+        the feedback's tick deadlines and the smallest observed send-to-receive delay)."""
+        fb = self.feedback
+        if fb is None or self._off_ns is None or self.welcome is None:
+            return None
+        P_ns = 1e9 / self.welcome.rate_hz
+        g0 = fb.t_tick_ns + self._off_ns
+        k = int(np.ceil((after_ns - g0) / P_ns))
+        return int(g0 + k * P_ns)
+
+    # --- libfranka-style control loop ----------------------------------------------------------------
+    def control(self, callback: Callable[[Tick], Command], *, rate_hz: Optional[float] = None,
+                duration: Optional[float] = None, lead_us: float = 250.0, late_limit: int = 20,
+                spin_us: float = 300.0) -> int:
+        """Run ``callback`` once per tick until it returns ``Command(..., finished=True)`` or
+        ``duration`` s pass; returns the number of ticks. See the module docstring for the errors."""
+        if not self.session:
+            raise ClientError("not connected: call connect() first")
+        rate = float(rate_hz or self.hello.rate_hz)
+        period = int(1e9 / rate)
+        lead = int(lead_us * 1000)
+        spin = int(spin_us * 1000)
+        pc = time.perf_counter_ns
+        t0 = pc()
+        deadline = t0
+        prev_start = t0
+        k = 0
+        late_run = 0
+        end = None if duration is None else t0 + int(duration * 1e9)
+        try:
+            while True:
+                rest = deadline - pc() - spin
+                if rest > 0:
+                    time.sleep(rest / 1e9)
+                while pc() < deadline:
+                    pass
+                start = pc()
+                self.poll()
+                fresh = self.fresh
+                if self.feedback is not None and not fresh:
+                    raise LinkLost(f"no feedback for {(start - self.last_rx_ns) / 1e6:.1f} ms "
+                                   f"(timeout {self.timeout_ns / 1e6:.0f} ms): force zeroed, the robot holds")
+                if self.feedback is None and start - self.last_rx_ns > max(self.timeout_ns, 200_000_000):
+                    raise LinkLost("the service never answered a sample: force zero")
+                tick = Tick(k, (start - t0) / 1e9, (start - prev_start) / 1e9, self.force.copy(), self.feedback, fresh)
+                cmd = callback(tick)
+                if not isinstance(cmd, Command):
+                    raise ClientError(f"control callback returned {type(cmd).__name__}; expected a Command")
+                self.send_state(cmd.position, clutch=cmd.clutch, orientation=cmd.orientation, grasp=cmd.grasp,
+                                buttons=cmd.buttons)
+                k += 1
+                if cmd.finished or (end is not None and pc() >= end):
+                    return k
+                done = pc()
+                # lateness: this tick ended after the next one was due
+                if done - deadline > period:
+                    late_run += 1
+                    if late_run >= late_limit:
+                        raise TimingError(f"{late_run} consecutive ticks overran the {period / 1e3:.0f} us period "
+                                          f"(last: callback {(done - start) / 1e3:.0f} us, woke "
+                                          f"{(start - deadline) / 1e3:.0f} us late)")
+                else:
+                    late_run = 0
+                prev_start = start
+                nxt = deadline + period
+                g = self.next_service_tick_ns(nxt - period // 2 + lead)
+                if g is not None and self.welcome is not None and abs(self.welcome.rate_hz - rate) < 1e-6:
+                    nxt = g - lead               # phase lock: arrive just before the service tick
+                deadline = max(nxt, done) if nxt - done < -period else nxt
+        except BaseException:
+            self.force[:] = 0.0          # whatever went wrong, the device displays no force
+            raise

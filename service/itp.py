@@ -1,0 +1,171 @@
+"""Raven II ITP master adapter (optional, off by default; ``pointfence serve --itp``).
+
+Existing Raven II masters send the ITP ``u_struct`` over UDP: 124 bytes, packed, little-endian
+on the x86 hosts that run them::
+
+    uint32 sequence, pactyp, version
+    int32  delx[2], dely[2], delz[2]        position increments per arm, micrometres
+    double Qx[2], Qy[2], Qz[2], Qw[2]       orientation quaternions per arm
+    int32  buttonstate[2], grasp[2]         buttons; grasp in milliradians
+    int32  surgeon_mode                     1: pedal down (engaged), 0: up
+    int32  checksum
+
+THIS LINK IS UNAUTHENTICATED: anyone who can send a datagram to the port can move the robot
+(the published Raven II vulnerability). The adapter therefore binds to loopback unless told
+otherwise, and exists only so that existing masters can be used on a trusted host; use the
+authenticated protocol (``clients/PROTOCOL.md``) for anything else. It still rejects what it
+can: wrong size, bad checksum (``checksum="sum"``: the unsigned 32-bit sum of bytes 0..119; use
+``"none"`` for masters that leave the field unset), a sequence not newer than the last one
+(32-bit, wrapping), non-finite or non-unit quaternions, increments above ``max_step_um`` per
+packet and surgeon modes other than 0/1. Rejected packets are counted and change nothing. An arm
+whose packets stop for longer than the timeout reports ``ok = False`` (its robot holds).
+Positions are the increments integrated from zero (master frame, m); the adapter sends no force
+back.
+"""
+from __future__ import annotations
+
+import math
+import socket
+import struct
+
+import numpy as np
+
+from .masters import Master
+
+ITP = struct.Struct("<III2i2i2i2d2d2d2d2i2iii")
+ITP_SIZE = ITP.size   # 124
+assert ITP_SIZE == 124
+
+
+def itp_checksum(data) -> int:
+    """The adapter's checksum rule: unsigned 32-bit sum of bytes 0..119."""
+    return sum(bytes(data[:120])) & 0xFFFFFFFF
+
+
+def pack_itp(sequence, delta_um, quats, buttons=(0, 0), grasp_mrad=(0, 0), surgeon_mode=1, pactyp=0, version=0,
+             checksum=None) -> bytes:
+    """An ITP master packet: ``delta_um`` (2, 3) int, ``quats`` (2, 4) as x, y, z, w."""
+    d = np.asarray(delta_um, dtype=np.int64).reshape(2, 3)
+    q = np.asarray(quats, dtype=float).reshape(2, 4)
+    body = ITP.pack(sequence, pactyp, version, *d[:, 0].tolist(), *d[:, 1].tolist(), *d[:, 2].tolist(),
+                    *q[:, 0].tolist(), *q[:, 1].tolist(), *q[:, 2].tolist(), *q[:, 3].tolist(),
+                    *[int(b) for b in buttons], *[int(g) for g in grasp_mrad], int(surgeon_mode), 0)
+    c = itp_checksum(body) if checksum is None else checksum
+    return body[:120] + struct.pack("<I", c & 0xFFFFFFFF)
+
+
+class ItpArmMaster(Master):
+    """One arm of the ITP master as a ``Master`` of the haptic loop."""
+
+    name = "itp"
+
+    def __init__(self, receiver: "ItpReceiver", arm: int, poll_also=None):
+        super().__init__()
+        self.receiver = receiver
+        self.arm = arm
+        self.name = f"itp{arm}"
+        self.poll_also = poll_also
+        self.ok = False
+        self.clutch = False
+        self.orientation = np.array([1.0, 0.0, 0.0, 0.0])
+        self.grasp = 0.0
+        self.last_t = -math.inf
+
+    def poll(self, t: float) -> None:
+        r = self.receiver
+        if t != r.t:
+            r.drain(t)
+        hub = self.poll_also
+        if hub is not None and t != hub.t:
+            hub.drain(t)
+        self.ok = r.seen and t - self.last_t <= r.timeout_s
+
+
+class ItpReceiver:
+    """The ITP socket and its two arms (see the module docstring)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 36000, timeout_ms: int = 50, checksum: str = "sum",
+                 max_step_um: int = 10000, budget: int = 64):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind((host, int(port)))
+        self.sock.setblocking(False)
+        self.timeout_s = timeout_ms / 1000.0
+        self.checksum = checksum
+        self.max_step_um = int(max_step_um)
+        self.budget = int(budget)
+        self.arms = [None, None]
+        self.t = None
+        self.seq = None
+        self.seen = False
+        self._buf = bytearray(2048)
+        self.accepted = 0
+        self.counters = {"size": 0, "checksum": 0, "stale": 0, "non_finite": 0, "range": 0}
+
+    @property
+    def address(self):
+        return self.sock.getsockname()
+
+    def arm_master(self, arm: int, poll_also=None) -> ItpArmMaster:
+        m = ItpArmMaster(self, arm, poll_also)
+        self.arms[arm] = m
+        return m
+
+    def drain(self, t: float) -> None:
+        self.t = t
+        for _ in range(self.budget):
+            try:
+                n = self.sock.recv_into(self._buf)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                continue
+            self.handle(memoryview(self._buf)[:n], t)
+
+    def handle(self, data, t: float) -> bool:
+        if len(data) != ITP_SIZE:
+            self.counters["size"] += 1
+            return False
+        v = ITP.unpack_from(data, 0)
+        if self.checksum == "sum" and (v[22] & 0xFFFFFFFF) != itp_checksum(data):
+            self.counters["checksum"] += 1
+            return False
+        seq = v[0]
+        if self.seq is not None and not 0 < (seq - self.seq) & 0xFFFFFFFF < 0x80000000:
+            self.counters["stale"] += 1
+            return False
+        dx, dy, dz = v[3:5], v[5:7], v[7:9]
+        qx, qy, qz, qw = v[9:11], v[11:13], v[13:15], v[15:17]
+        if not all(math.isfinite(x) for x in v[9:17]):
+            self.counters["non_finite"] += 1
+            return False
+        mode = v[21]
+        for a in range(2):
+            n = math.sqrt(qx[a] ** 2 + qy[a] ** 2 + qz[a] ** 2 + qw[a] ** 2)
+            if (self.arms[a] is not None and abs(n - 1.0) > 1e-3) or max(abs(dx[a]), abs(dy[a]), abs(dz[a])) > self.max_step_um:
+                self.counters["range"] += 1
+                return False
+        if mode not in (0, 1):
+            self.counters["range"] += 1
+            return False
+        self.seq = seq
+        self.seen = True
+        self.accepted += 1
+        for a, m in enumerate(self.arms):
+            if m is None:
+                continue
+            m.position[0] += dx[a] * 1e-6
+            m.position[1] += dy[a] * 1e-6
+            m.position[2] += dz[a] * 1e-6
+            m.orientation[:] = (qw[a], qx[a], qy[a], qz[a])
+            m.buttons = v[17 + a] & 0xFFFFFFFF
+            m.grasp = v[19 + a] * 1e-3
+            m.clutch = mode == 1
+            m.last_t = t
+        return True
+
+    def status(self) -> dict:
+        return {"address": list(self.address), "accepted": self.accepted, "rejected": dict(self.counters),
+                "authenticated": False}
+
+    def close(self) -> None:
+        self.sock.close()

@@ -1,0 +1,157 @@
+"""`pointfence serve`: the live service with authenticated UDP clients as its masters.
+
+    pointfence serve --new-key pf.key                      # write a fresh 32-byte key and exit
+    pointfence serve --key-file pf.key [--config F] [--clients N] [--port 47800] [--bind 127.0.0.1]
+                     [--timeout-ms 50] [--duration S] [--itp 127.0.0.1:36000 --itp-slots 0,1]
+
+Each client (``pointfence.clients.Client``, the C SDK, ``pointfence device-sim``) opens a
+session with a HELLO tagged with the key and then drives one master slot, i.e. one proxy and
+one robot, of the haptic loop; ``--clients`` slots exist (default ``[service] proxies``). A
+client silent for longer than its timeout is dropped (its robot holds, its force ramps to zero).
+Status lines go to stderr every ``--status-every`` s; the final status (sessions, per-reason
+rejection counters, loop timing) is printed as JSON on exit and written to ``--stats-file``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from pointfence.clients import protocol as P
+from pointfence.kernels.errors import InputError
+
+DEFAULT_PORT = 47800
+
+
+def add_arguments(p):
+    p.add_argument("--config", default=None, help="scene configuration (TOML); default: the embedded defaults")
+    p.add_argument("--key-file", default=os.environ.get("POINTFENCE_KEY_FILE"),
+                   help="pre-shared key file (hex on the first line); default $POINTFENCE_KEY_FILE")
+    p.add_argument("--new-key", metavar="FILE", default=None, help="write a new random 32-byte key to FILE (mode 600) and exit")
+    p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1, loopback only)")
+    p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"UDP port (default {DEFAULT_PORT}; 0: any free port)")
+    p.add_argument("--clients", type=int, default=None, help="master slots = proxies (default: [service] proxies)")
+    p.add_argument("--timeout-ms", type=int, default=P.DEFAULT_TIMEOUT_MS,
+                   help=f"drop a client silent this long (default {P.DEFAULT_TIMEOUT_MS} ms; clients may ask for less)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--status-every", type=float, default=5.0, help="status line period on stderr, s (0: none)")
+    p.add_argument("--stats-file", default=None, help="write the final status JSON here")
+    p.add_argument("--ready-file", default=None, help="write the bound address here once the loop runs")
+    p.add_argument("--architecture", choices=("I", "II", "III"), default=None, help="override [teleop] architecture")
+    p.add_argument("--backend", default=None, help="override the configured backend (numpy, opencl, warp)")
+    p.add_argument("--device", default=None, help="override the configured device")
+    p.add_argument("--itp", default=None, metavar="[HOST:]PORT",
+                   help="also accept Raven II ITP master packets here (UNAUTHENTICATED; default off; host defaults to 127.0.0.1)")
+    p.add_argument("--itp-slots", default="0", help="master slots the ITP arms 0 and 1 drive, e.g. '0,1' (default '0')")
+    p.add_argument("--itp-checksum", choices=("sum", "none"), default="sum", help="ITP checksum rule (see service/itp.py)")
+
+
+def new_key(path) -> None:
+    p = Path(path)
+    if p.exists():
+        raise InputError(f"{p} exists; refusing to overwrite a key (delete it first)")
+    fd = os.open(str(p), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as fh:
+        fh.write(os.urandom(32).hex() + "\n")
+
+
+def _itp_address(spec: str):
+    host, _, port = spec.rpartition(":")
+    try:
+        return (host or "127.0.0.1"), int(port)
+    except ValueError:
+        raise InputError(f"--itp {spec!r}; expected [HOST:]PORT, e.g. 127.0.0.1:36000") from None
+
+
+def run(args) -> int:
+    if args.new_key:
+        new_key(args.new_key)
+        print(f"pointfence serve: wrote a new 32-byte key to {args.new_key}; give the same file to every client")
+        return 0
+    if not args.key_file:
+        raise InputError("no key: pass --key-file FILE (or set POINTFENCE_KEY_FILE); make one with --new-key FILE")
+    psk = P.load_key(args.key_file)
+    from . import config as config_mod
+    from .masters import Master
+    from .runner import LiveRun
+    from .udp_server import UdpHub
+
+    cfg = config_mod.load(args.config)
+    slots = args.clients if args.clients is not None else cfg.service.proxies
+    max_force = cfg.haptics.max_force if cfg.haptics is not None else 10.0
+    hub = UdpHub(psk, slots, args.bind, args.port, args.timeout_ms, cfg.service.rate_hz, max_force)
+    masters: list = list(hub.masters)
+    itp = None
+    if args.itp:
+        from .itp import ItpReceiver
+
+        host, port = _itp_address(args.itp)
+        idx = [int(s) for s in args.itp_slots.split(",") if s.strip()]
+        if not 1 <= len(idx) <= 2 or any(not 0 <= i < slots for i in idx) or len(set(idx)) != len(idx):
+            raise InputError(f"--itp-slots {args.itp_slots!r}; expected one or two distinct slots in 0..{slots - 1}")
+        itp = ItpReceiver(host, port, timeout_ms=args.timeout_ms, checksum=args.itp_checksum)
+        for arm, i in enumerate(idx):   # the ITP arm replaces the UDP slot i (the hub keeps the rest)
+            masters[i] = itp.arm_master(arm, poll_also=hub)
+            hub.masters[i].session = _Reserved()
+    run_ = LiveRun(cfg, masters, architecture=args.architecture, backend=args.backend, device=args.device)
+    hub.attach(run_.service)
+    stop = {"now": False}
+
+    def on_signal(sig, frame):
+        stop["now"] = True
+
+    old = signal.signal(signal.SIGTERM, on_signal)
+    print(f"pointfence serve: {slots} master slot(s) on udp://{hub.address[0]}:{hub.address[1]} "
+          f"(timeout {args.timeout_ms} ms), backend {run_.service.backend.name} on {run_.service.backend.device_name}"
+          + (f"; ITP (unauthenticated) on udp://{itp.address[0]}:{itp.address[1]}" if itp else ""), file=sys.stderr)
+    t_start = time.monotonic()
+    try:
+        run_.start()
+        run_.wait_ticks(10)
+        run_.mark()
+        if args.ready_file:
+            Path(args.ready_file).write_text(json.dumps({"host": hub.address[0], "port": hub.address[1]}) + "\n")
+        last = time.monotonic()
+        while not stop["now"]:
+            if args.duration is not None and time.monotonic() - t_start >= args.duration:
+                break
+            time.sleep(0.05)
+            if not run_.loop.running:
+                raise RuntimeError(f"haptic loop thread ended: {run_.loop.error}")
+            if args.status_every and time.monotonic() - last >= args.status_every:
+                last = time.monotonic()
+                st = hub.status()
+                lt = run_.timing()
+                print(f"[serve] sessions {len(st['sessions'])}/{slots}, accepted {st['accepted']}, "
+                      f"rejected {st['rejected_total']}, timeouts {st['sessions_timed_out']}, "
+                      f"tick p99 {lt.compute_us_p99:.0f} us, misses {lt.misses}", file=sys.stderr)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        run_.stop()
+        status = {"udp": hub.status(), "loop": run_.timing().as_dict(), "service": _jsonable(run_.service.status())}
+        if itp is not None:
+            status["itp"] = itp.status()
+            itp.close()
+        hub.close()
+        text = json.dumps(status)
+        if args.stats_file:
+            Path(args.stats_file).write_text(text + "\n")
+        print(text)
+        sys.stdout.flush()
+    return 0
+
+
+class _Reserved:
+    """Marks a UDP slot taken by the ITP adapter (never a real session)."""
+
+    id = -1
+    has_state = False
+
+
+def _jsonable(d):
+    return json.loads(json.dumps(d, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
