@@ -25,7 +25,7 @@ from pointfence.kernels.errors import PointfenceError
 VERSION = 1
 MAGIC = b"PF"
 TAG_LEN = 16
-HEADER = struct.Struct("<2sBBIIQ")          # magic, version, type, device id, session id, seq
+HEADER = struct.Struct("<2sBBIIQI")         # magic, version, type, device id, session id, seq, reserved (0)
 HEADER_LEN = HEADER.size                    # 24
 MAX_DATAGRAM = 2048                         # receive buffer: anything longer is "oversized" anyway
 
@@ -160,7 +160,7 @@ def parse_header(buf) -> Header:
     n = len(buf)
     if n < HEADER_LEN + TAG_LEN:
         raise ProtocolError(E_TRUNCATED, f"{n} bytes, below the smallest message ({HEADER_LEN + TAG_LEN})")
-    magic, version, typ, dev, sess, seq = HEADER.unpack_from(buf, 0)
+    magic, version, typ, dev, sess, seq, rsv = HEADER.unpack_from(buf, 0)
     if magic != MAGIC:
         raise ProtocolError(E_MALFORMED, "bad magic")
     if version != VERSION:
@@ -172,6 +172,8 @@ def parse_header(buf) -> Header:
         raise ProtocolError(E_TRUNCATED, f"{TYPE_NAMES[typ]} of {n} bytes, expected {size}")
     if n > size:
         raise ProtocolError(E_OVERSIZED, f"{TYPE_NAMES[typ]} of {n} bytes, expected {size}")
+    if rsv:
+        raise ProtocolError(E_MALFORMED, "header reserved field set")
     return Header(typ, dev, sess, seq)
 
 
@@ -188,7 +190,7 @@ def _seal(key: bytes, head: bytes, payload: bytes) -> bytes:
 
 
 def _head(typ: int, device_id: int, session: int, seq: int) -> bytes:
-    return HEADER.pack(MAGIC, VERSION, typ, device_id & 0xFFFFFFFF, session & 0xFFFFFFFF, seq & 0xFFFFFFFFFFFFFFFF)
+    return HEADER.pack(MAGIC, VERSION, typ, device_id & 0xFFFFFFFF, session & 0xFFFFFFFF, seq & 0xFFFFFFFFFFFFFFFF, 0)
 
 
 def _finite(values, what: str) -> None:
