@@ -126,6 +126,7 @@ class Service:
         self.frame_seq = 0
         self.snapshot_first_tick: dict = {}
         self.feeder = None
+        self.scene_time_offset = 0.0   # scene (camera) time at loop time 0
         self._poll_tick = self._poll = False
         self.recorder = Recorder(record, n) if record else None
         self._pub_lock = threading.Lock()

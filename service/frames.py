@@ -172,6 +172,9 @@ class LiveFrames(_FeedBase):
             with self._lock:
                 self.latest[_i] = frame
                 self.arrival[_i] = self.clock.now()
+                if self.frames_in[_i] == 0 and _i == 0:
+                    #: clock time minus frame timestamp of the first frame (maps loop to scene time)
+                    self.clock_minus_stamp = self.arrival[_i] - float(frame.timestamp)
                 self.frames_in[_i] += 1
             self._new.set()
         return on_frame

@@ -19,6 +19,7 @@ loop time (``k * period``, exact) and ``now`` the clock reading at the tick's st
 """
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
@@ -62,7 +63,7 @@ class HapticLoop:
     """Runs ``target``'s ticks at ``rate_hz`` on ``clock`` (see the module docstring)."""
 
     def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
-                 switch_interval_s: Optional[float] = 0.0005):
+                 switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0):
         self.target = target
         self.clock = clock if clock is not None else RealClock()
         self.period = 1.0 / float(rate_hz)
@@ -83,6 +84,8 @@ class HapticLoop:
         self._thread: Optional[threading.Thread] = None
         self._saved_switch = None
         self._note = getattr(target, "note_tick_us", None)
+        self.rt_priority = int(rt_priority)
+        self.scheduling = "normal"
 
     # --- one tick ---------------------------------------------------------------------------------
     def run_ticks(self, n: int) -> None:
@@ -151,6 +154,12 @@ class HapticLoop:
         self._thread.start()
 
     def _run(self) -> None:
+        if self.rt_priority > 0:   # SCHED_FIFO for this thread only, where the OS allows it
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+                self.scheduling = f"SCHED_FIFO {self.rt_priority}"
+            except (AttributeError, OSError) as e:
+                self.scheduling = f"normal (SCHED_FIFO refused: {e})"
         while not self._stop.is_set():
             self._one()
 

@@ -61,7 +61,8 @@ class SceneRegion:
             if len(surf) == 0:
                 continue
             dist, _ = cKDTree(surf).query(p[sel])
-            out[sel] = dist - self.radius
+            inside = self.scene.distance(p[sel], float(key) * self.time_step) < 0   # in the solid itself
+            out[sel] = np.where(inside, -dist, dist) - self.radius
         return out
 
 

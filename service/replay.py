@@ -139,7 +139,7 @@ def summary(svc, sources, cfg, frames: int) -> dict:
     rows = rec.ticks()
     region = measures.region_for(cfg, sources, svc.pipeline)
     teleop = rec.inputs[: rec.count, 6] > 0
-    m = measures.compute(rows[:, 0], rec.robots[: rec.count, 0, :3], rec.robots[: rec.count, 0, 3:],
+    m = measures.compute(rows[:, 0] + svc.scene_time_offset, rec.robots[: rec.count, 0, :3], rec.robots[: rec.count, 0, 3:],
                          rec.masters_world[: rec.count, 0], region, mask=teleop)
     us = rows[:, -1]
     return {

@@ -18,7 +18,8 @@ class LiveRun:
     before ``mark()``."""
 
     def __init__(self, cfg, masters, *, architecture: Optional[str] = None, backend: Optional[str] = None,
-                 device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None):
+                 device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None,
+                 rt_priority: int = 0):
         self.cfg = cfg
         self.clock = RealClock()
         self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
@@ -27,7 +28,8 @@ class LiveRun:
         self.frames = LiveFrames(self.service.pipeline, self.sources, self.clock, cfg.service.stale_s,
                                  cfg.service.max_frame_age_s)
         self.service.attach_frames(self.frames)
-        self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s)
+        self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
+                               rt_priority=rt_priority)
         self._mark = (0, 0, 0, 0)
 
     def start(self, first_frame_timeout: float = 20.0) -> None:
@@ -38,6 +40,10 @@ class LiveRun:
         self.service.start()
         self.service.warm_up()
         self.loop.start()
+        while self.loop.t0 is None and self.loop.running:
+            time.sleep(0.001)
+        # scene time of loop time 0 (for ground-truth measures on moving synthetic scenes)
+        self.service.scene_time_offset = self.loop.t0 - getattr(self.frames, "clock_minus_stamp", self.loop.t0)
 
     def wait_ticks(self, n: int, timeout: float = 30.0) -> None:
         """Wait until the loop has run ``n`` ticks in all (or ``timeout`` s)."""
