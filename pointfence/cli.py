@@ -15,6 +15,7 @@ from pointfence.kernels.errors import PointfenceError
 COMMANDS = {
     "demo": ("pointfence.service.demo", "run the main job on the embedded defaults (PoCL CPU, synthetic scene)"),
     "bench": ("pointfence.bench.cli", "benchmarks (frames, query, stress, ...) printing JSON"),
+    "replay": ("pointfence.service.replay", "deterministic offline run of the whole service (scripted master or a recording): ticks.csv, summary.json"),
     "backends": ("pointfence.kernels.cli", "list compute backends and devices available here"),
     "calib": ("pointfence.calib.cli", "camera calibration: intrinsics, extrinsics, multi (ICP), noise; cable tension"),
     "cable": ("pointfence.service.cable.cli", "cable-driven grasper: demo, identify, calib-tension, run (simulated plant)"),
