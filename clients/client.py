@@ -138,6 +138,7 @@ class Client:
         self._sent_seq = np.zeros(RING, np.int64)
         self._echo = 0
         self._off_ns = None                 # min(recv - sent): clock offset + shortest transit
+        self.last_datagram = b""
         self.stats = LinkStats()
 
     # --- session ------------------------------------------------------------------------------------
@@ -271,6 +272,7 @@ class Client:
             self.sock.send(data)
         except OSError:          # ICMP unreachable from an earlier datagram; UDP is lossy anyway
             pass
+        self.last_datagram = data
         self.stats.sent += 1
         return self.seq
 

@@ -155,3 +155,23 @@ class _Reserved:
 
 def _jsonable(d):
     return json.loads(json.dumps(d, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+
+
+def main(argv=None) -> int:
+    """``python -m pointfence.service.serve`` (the same as ``pointfence serve``)."""
+    import argparse
+
+    from pointfence.kernels.errors import PointfenceError
+
+    p = argparse.ArgumentParser(prog="pointfence serve", description=__doc__.splitlines()[0])
+    add_arguments(p)
+    args = p.parse_args(argv)
+    try:
+        return run(args)
+    except PointfenceError as e:
+        print(f"pointfence serve: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
