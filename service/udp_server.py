@@ -191,9 +191,8 @@ class UdpHub:
                     raise P.ProtocolError(P.E_NO_SESSION)
                 P.verify(data, session.key)
                 session.window.check(h.seq)
-                newest = session.window.commit(h.seq)
                 st = P.State.decode(data, session.workspace)
-                if not newest:
+                if not session.window.commit(h.seq):
                     raise P.ProtocolError(P.E_STALE, "older than the newest sample")
                 self._apply(session, h, st, addr, t)
                 return P.E_OK
@@ -213,8 +212,8 @@ class UdpHub:
                     raise P.ProtocolError(P.E_NO_SESSION)
                 P.verify(data, session.key)
                 session.window.check(h.seq)
-                session.window.commit(h.seq)
                 P.Bye.decode(data)
+                session.window.commit(h.seq)
                 self.sessions_closed += 1
                 self._end(session)
                 return P.E_OK

@@ -174,7 +174,6 @@ def test_client_refuses_forged_and_replayed_feedback(hub):
         forged = P.Feedback(force=(50.0, 0, 0)).encode(bytes(32), 8, c.session, 10**6)
         replay = P.Feedback(force=(50.0, 0, 0)).encode(s.key, 8, c.session, 1)   # seq 1 was used
         for d in (forged, replay):   # from the service's own address: only the tag can tell
-
             hub.sock.sendto(d, c.sock.getsockname())
         time.sleep(0.01)
         c.poll()
