@@ -12,7 +12,9 @@ bad tag, unknown session; in turn) go to the same port from another socket.
 Reports ``rtt_us_p50/p99/max`` (a state's send -> arrival of the first force computed from it),
 ``loss_ratio`` (states never answered / states sent), ``feedback_gaps`` (service ticks whose
 feedback never arrived), the service's ``rejected`` counters, its loop timing and the client's
-timing violations. Target (2-core CPU, loopback): rtt p99 <= 1 ms, zero loss over 60 s.
+timing violations. When the link is lost (no feedback for the session timeout: the service or
+this process stalled) the client reconnects and ``link_lost`` counts it. Target (2-core CPU,
+loopback): rtt p99 <= 1 ms, zero loss over 60 s.
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pointfence.clients import Client, Command
+from pointfence.clients import Client, Command, LinkLost, TimingError
 from pointfence.clients import protocol as P
 
 
@@ -70,6 +72,7 @@ def add_arguments(p):
                    help="service configuration (default: the embedded defaults' scene with a 160x120 camera; "
                         "'defaults' for the embedded defaults as they are)")
     p.add_argument("--lead-us", type=float, default=250.0, help="client sends this long before the service tick (default 250)")
+    p.add_argument("--spin-us", type=float, default=300.0, help="client busy-waits this long before each tick (default 300)")
     p.add_argument("--attack-hz", type=float, default=10.0, help="hostile datagrams per second (default 10; 0: none)")
     p.add_argument("--startup-timeout", type=float, default=180.0, help="seconds to wait for the service to run")
 
@@ -126,35 +129,63 @@ def run(args) -> dict:
             time.sleep(0.1)
         addr = json.loads(ready.read_text())
         host, port = addr["host"], addr["port"]
-        client = Client(host, port, key_path, 1, max_force=3.3, workspace=((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)),
-                        model="bench-e2e")
         attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         attack_every = int(1000 / args.attack_hz) if args.attack_hz > 0 else 0
         ticks_seen = []
         sent_attacks = [0]
+        holder = {}
 
         def tick(t):
             if attack_every and t.index % attack_every == attack_every // 2:
-                _attack(attacker, (host, port), client, sent_attacks[0])
+                _attack(attacker, (host, port), holder["c"], sent_attacks[0])
                 sent_attacks[0] += 1
             if t.feedback is not None:
                 ticks_seen.append(t.feedback.tick)
-            a = 2 * math.pi * t.time / 8.0
+            a = 2 * math.pi * (time.perf_counter() - t_start) / 8.0
             return Command((0.02 * math.cos(a) - 0.02, 0.02 * math.sin(a), 0.0), clutch=True)
 
-        client.connect(timeout=30.0)
+        def new_client():
+            c = Client(host, port, key_path, 1, max_force=3.3, workspace=((-0.1, -0.1, -0.1), (0.1, 0.1, 0.1)),
+                       model="bench-e2e")
+            c.connect(timeout=30.0)
+            holder["c"] = c
+            return c
+
+        t_start = time.perf_counter()
+        client = new_client()
         # warm-up second (phase lock, first kernel launches), then the measured run
-        client.control(tick, duration=1.0, lead_us=args.lead_us)
+        client.control(tick, duration=1.0, lead_us=args.lead_us, spin_us=args.spin_us)
         client.stats = type(client.stats)()
         ticks_seen.clear()
+        totals = {"sent": 0, "echoed": 0, "feedback": 0, "rejected_in": 0, "rtt": [], "ticks": 0}
+        link_lost, timing_errors, lost_msgs = 0, 0, []
         t0 = time.perf_counter()
-        n = client.control(tick, duration=args.duration, lead_us=args.lead_us)
+        while True:
+            left = args.duration - (time.perf_counter() - t0)
+            if left <= 0.01:
+                break
+            try:
+                client.control(tick, duration=left, lead_us=args.lead_us, spin_us=args.spin_us)
+            except LinkLost as e:            # the service (or this process) stalled beyond the timeout
+                link_lost += 1
+                lost_msgs.append(str(e))
+            except TimingError as e:
+                timing_errors += 1
+                lost_msgs.append(str(e))
+            end = time.monotonic() + 0.05
+            while time.monotonic() < end:
+                client.poll()
+            st = client.stats
+            totals["sent"] += st.sent
+            totals["ticks"] += st.sent
+            totals["echoed"] += st.echoed
+            totals["feedback"] += st.feedback
+            totals["rejected_in"] += st.rejected_in
+            totals["rtt"] += st.rtt_us
+            client.close()
+            if time.perf_counter() - t0 < args.duration - 0.01:
+                client = new_client()
         wall = time.perf_counter() - t0
-        end = time.monotonic() + 0.05
-        while time.monotonic() < end:
-            client.poll()
-        st = client.stats
-        client.close()
         attacker.close()
     finally:
         if proc.poll() is None:
@@ -165,18 +196,20 @@ def run(args) -> dict:
                 proc.kill()
         log.close()
     service = json.loads(stats.read_text()) if stats.exists() else {}
-    rtt = np.asarray(st.rtt_us) if st.rtt_us else np.array([math.nan])
+    rtt = np.asarray(totals["rtt"]) if totals["rtt"] else np.array([math.nan])
     seen = np.unique(np.asarray(ticks_seen))
     gaps = int((seen[-1] - seen[0] + 1) - len(seen)) if len(seen) else None
     udp = service.get("udp", {})
     return {
-        "duration_s": round(wall, 2), "ticks": n, "states_sent": st.sent, "states_answered": st.echoed,
+        "duration_s": round(wall, 2), "ticks": totals["ticks"], "states_sent": totals["sent"],
+        "states_answered": totals["echoed"],
         "rtt_us_p50": round(float(np.percentile(rtt, 50)), 1), "rtt_us_p99": round(float(np.percentile(rtt, 99)), 1),
         "rtt_us_max": round(float(np.max(rtt)), 1),
-        "loss_ratio": round(1.0 - st.echoed / st.sent, 6) if st.sent else None,
-        "feedback_received": st.feedback, "feedback_gaps": gaps, "lead_us": args.lead_us,
+        "loss_ratio": round(1.0 - totals["echoed"] / totals["sent"], 6) if totals["sent"] else None,
+        "link_lost": link_lost, "timing_errors": timing_errors, "link_events": lost_msgs[:5],
+        "feedback_received": totals["feedback"], "feedback_gaps": gaps, "lead_us": args.lead_us, "spin_us": args.spin_us,
         "config": args.config or "light (160x120 camera)", "attacks_sent": sent_attacks[0], "rejected": {k: v for k, v in udp.get("rejected", {}).items() if v},
-        "rejected_total": udp.get("rejected_total"), "client_rejected": st.rejected_in,
+        "rejected_total": udp.get("rejected_total"), "client_rejected": totals["rejected_in"],
         "sessions_timed_out": udp.get("sessions_timed_out"),
         "service_loop": service.get("loop"), "targets": {"rtt_us_p99": 1000, "loss_ratio": 0.0},
     }
