@@ -16,6 +16,8 @@ BENCHES = {
     "query": "haptic tick: batched proxy kernel on a real close-range frame (1/64/1024 proxies, steps/s) vs the same algorithm over scipy cKDTree",
     "cable": "cable controller: UKF step vs filterpy's UnscentedKalmanFilter (same model), iLQG MPC tick (horizon 10, 3 iterations, compiled C) and Ipopt on the same horizon, first compile and cached start",
     "loop": "the live 1 kHz haptic loop on a synthetic scene: tick compute and lateness p50/p99, deadline misses, 1 and 4 proxies",
+    "e2e": "one client at 1 kHz over loopback against a live `serve` process: rtt_us p50/p99, loss_ratio, rejected counts (--duration, default 60 s)",
+    "fuzz": "random and mutated datagrams (default 1,000,000) through the service's packet handler: no crash, no accepted forgery",
     "stress": "raise proxies and cameras until the 1 kHz tick (p99 <= 1 ms) or the 30 Hz ingest (p99 <= 33 ms) no longer fits",
 }
 

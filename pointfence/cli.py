@@ -15,6 +15,8 @@ from pointfence.kernels.errors import PointfenceError
 COMMANDS = {
     "demo": ("pointfence.service.demo", "run the main job on the embedded defaults (PoCL CPU, synthetic scene)"),
     "bench": ("pointfence.bench.cli", "benchmarks (frames, query, stress, ...) printing JSON"),
+    "serve": ("pointfence.service.serve", "the live service with authenticated UDP haptic clients (clients/PROTOCOL.md); --new-key FILE makes a key"),
+    "device-sim": ("pointfence.clients.device_sim", "a simulated haptic device (trajectory CSV or scripted motion) against a live service"),
     "replay": ("pointfence.service.replay", "deterministic offline run of the whole service (scripted master or a recording): ticks.csv, summary.json"),
     "backends": ("pointfence.kernels.cli", "list compute backends and devices available here"),
     "calib": ("pointfence.calib.cli", "camera calibration: intrinsics, extrinsics, multi (ICP), noise; cable tension"),
