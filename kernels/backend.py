@@ -8,6 +8,7 @@ from typing import Sequence
 
 from .camera import Camera
 from .grid import Grid
+from .motion import MotionEstimator
 from .neighbors import Neighbors, check_queries
 from .params import PipelineParams
 from .rig import Rig
@@ -39,7 +40,18 @@ class FramePipeline(ABC):
         self.rig = Rig(cameras)
         self.params = params
         self.grid = Grid.from_params(params)
+        self.motion = MotionEstimator(params.motion, self.grid)
         self.seq = 0
+
+    def _estimate_motion(self, moments_fn, timestamps):
+        """Per-cell velocities of the snapshot being built: (cell velocities (n_cells, 3) float32
+        or None, largest speed m/s). ``moments_fn()`` returns its cell moments (count, sum x, y,
+        z) per cell; it is not called while motion estimation is off."""
+        if not self.params.motion.enabled:
+            return None, 0.0
+        from .motion import snapshot_time
+
+        return self.motion.update(moments_fn(), snapshot_time(timestamps))
 
     def ingest(self, frames) -> IngestInfo:
         t0 = time.perf_counter()

@@ -77,11 +77,13 @@ class HapticScene:
         self.batch.reset(positions)
         self.renderer.resize(len(self.batch))
 
-    def step(self, hips) -> np.ndarray:
+    def step(self, hips, now: float | None = None, dt: float | None = None) -> np.ndarray:
         """One haptic tick: move all proxies towards ``hips`` (B, 3) (one kernel launch) and
-        render their forces. Returns ``forces`` (B, 3), N. Non-finite HIPs raise InputError."""
+        render their forces. Returns ``forces`` (B, 3), N. Non-finite HIPs raise InputError.
+        ``now`` (the tick's time on the frames' clock) or ``dt`` drive motion prediction when
+        ``PipelineParams.motion`` enables it (``ProxyBatch.step``)."""
         h = check_points3(hips, "hips", len(self.batch))
-        self.batch.step(h)
+        self.batch.step(h, now, dt)
         return self.renderer.update(self.batch.positions, h, self.batch.states)
 
     # --- results of the last tick -------------------------------------------------------------

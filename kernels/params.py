@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
+from .motion import MotionModel
 
 SELECT_KINDS = ("all", "box", "color", "mask")
 
@@ -106,6 +107,8 @@ class PipelineParams:
     query reach (R3 in rendering mode; r_max + R3 in fixture mode); use
     ``PipelineParams.reach(...)`` to compute it.
     max_cells: refuse grids larger than this (memory guard).
+    motion: motion estimation between snapshots and fixture prediction (``kernels/motion.py``;
+    off by default).
     """
 
     workspace: Workspace = field(default_factory=Workspace)
@@ -114,10 +117,13 @@ class PipelineParams:
     cell_size: float = 0.03
     lateral_px: float = LATERAL_NOISE_PX
     max_cells: int = 1 << 24
+    motion: MotionModel = field(default_factory=MotionModel)
 
     def __post_init__(self):
         if not isinstance(self.cell_size, (int, float)) or not math.isfinite(self.cell_size) or self.cell_size <= 0:
             raise InputError(f"cell_size = {self.cell_size!r}; expected a finite length > 0 m")
+        if not isinstance(self.motion, MotionModel):
+            raise InputError(f"motion = {self.motion!r}; expected a MotionModel")
         n = self.grid_dims()
         if n[0] * n[1] * n[2] > self.max_cells:
             raise InputError(

@@ -116,6 +116,8 @@ class ProxyBatch(ABC):
         self.reach = self.params.reach(self.r_max)
         self.n = 0
         self._cap = 0
+        self._now = self._dt_request = None
+        self.last_dt = 0.0
         self.reset(positions)
 
     # --- host arrays -------------------------------------------------------------------------
@@ -177,10 +179,24 @@ class ProxyBatch(ABC):
         self._nearest[:n] = np.inf
         self._upload_positions()
 
-    def step(self, hips) -> None:
-        """Run one haptic tick: move every proxy towards its HIP (B, 3) under the point constraints."""
+    def step(self, hips, now: float | None = None, dt: float | None = None) -> None:
+        """Run one haptic tick: move every proxy towards its HIP (B, 3) under the point constraints.
+
+        With motion prediction on (``PipelineParams.motion``), the points are taken where they
+        will be ``dt`` seconds after the snapshot (``kernels/motion.py``): ``now`` is the tick's
+        time on the frames' clock (dt = now - snapshot time + latency), or ``dt`` is given
+        directly; both are clamped to the model's horizon. Without either, dt = 0. The dt used
+        is left in ``last_dt``."""
         h = check_points3(hips, "hips", self.n)
+        if now is not None and not np.isfinite(now):
+            raise InputError(f"now = {now!r}; expected a finite time in seconds (the frames' clock)")
+        self._now, self._dt_request = now, dt
         self._step(h)
+
+    def _tick_dt(self, t_snapshot: float, vmax: float) -> float:
+        """dt of this tick for a snapshot taken at ``t_snapshot`` whose fastest point moves at ``vmax``."""
+        self.last_dt = self.pipeline.params.motion.tick_dt(self._now, t_snapshot, vmax, self._dt_request)
+        return self.last_dt
 
     @abstractmethod
     def _upload_positions(self) -> None: ...

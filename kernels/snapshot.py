@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 
@@ -22,6 +23,9 @@ class HostSnapshot:
         grid: the grid geometry.
         timestamps: capture time of each camera's frame, s.
         seq: snapshot counter.
+        velocity: float32 (N, 3) or None: each point's estimated velocity, m/s (None: all 0;
+            ``kernels/motion.py``).
+        vmax: the largest speed in ``velocity``, m/s.
     """
 
     points: np.ndarray
@@ -34,6 +38,13 @@ class HostSnapshot:
     timestamps: tuple = ()
     seq: int = 0
     per_camera: tuple = field(default=())
+    velocity: Optional[np.ndarray] = None
+    vmax: float = 0.0
+
+    @property
+    def time(self) -> float:
+        """The time the snapshot shows: its oldest frame's timestamp (s)."""
+        return float(min(self.timestamps)) if self.timestamps else 0.0
 
     @property
     def n_points(self) -> int:

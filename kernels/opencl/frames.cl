@@ -149,3 +149,36 @@ __kernel void scatter(__global const int *pix_cell, __global const int *pix_rank
     if (cell < 0) return;
     order[start[cell] + pix_rank[pix]] = pix | ((int)pix_prot[pix] << 31);
 }
+
+// ---- motion estimation (kernels/motion.py) ----------------------------------------------------
+// Per cell: number of points, sums of x, y, z and of xx, xy, xz, yy, yz, zz (10 floats per
+// cell), in coordinates relative to the cell's lower corner (small numbers: float32 sums).
+__kernel void cell_moments(__global const float4 *pts, __global const int *order, __global const int *start,
+                           float4 grid, int4 dims, __global float *mom) {
+    int c = get_global_id(0);
+    int ncells = dims.x * dims.y * dims.z;
+    if (c >= ncells) return;
+    float h = 1.0f / grid.w;
+    int ix = c % dims.x, iy = (c / dims.x) % dims.y, iz = c / (dims.x * dims.y);
+    float ox = grid.x + ix * h, oy = grid.y + iy * h, oz = grid.z + iz * h;
+    int a = start[c], e = start[c + 1];
+    float s[9] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    for (int i = a; i < e; ++i) {
+        float4 p = pts[order[i] & 0x7fffffff];
+        float x = p.x - ox, y = p.y - oy, z = p.z - oz;
+        s[0] += x; s[1] += y; s[2] += z;
+        s[3] += x * x; s[4] += x * y; s[5] += x * z; s[6] += y * y; s[7] += y * z; s[8] += z * z;
+    }
+    __global float *m = mom + (size_t)c * 10;
+    m[0] = (float)(e - a);
+    for (int k = 0; k < 9; ++k) m[k + 1] = s[k];
+}
+
+// Every point's velocity, in the cell-sorted order of `order`, from its cell's velocity.
+__kernel void expand_velocity(__global const float4 *cell_vel, __global const int *start, int ncells,
+                              __global float4 *vel) {
+    int c = get_global_id(0);
+    if (c >= ncells) return;
+    float4 v = cell_vel[c];
+    for (int i = start[c]; i < start[c + 1]; ++i) vel[i] = v;
+}

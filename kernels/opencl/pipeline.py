@@ -11,6 +11,7 @@ import numpy as np
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
 from ..errors import KernelError
+from ..motion import N_MOMENTS
 from ..neighbors import Neighbors, search_span
 from ..snapshot import HostSnapshot
 from .context import _cl, build
@@ -29,7 +30,8 @@ class _Slot:
     pts: float4 per rig pixel, (x, y, z, r_f) in pixel order; only pixels listed in ``order``
     are meaningful. sigma: float per rig pixel. order: int32 per point, sorted by cell,
     entry = pixel | protected << 31. start: int32 (n_cells + 1), cell c's entries are
-    order[start[c]:start[c+1]].
+    order[start[c]:start[c+1]]. vel: float4 per point in ``order``'s order, the estimated
+    velocity (kernels/motion.py; meaningful only while ``vmax`` > 0).
     """
 
     def __init__(self, cl, ctx, npix: int, ncells: int):
@@ -39,6 +41,8 @@ class _Slot:
         self.sigma = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
         self.order = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
         self.start = cl.Buffer(ctx, mf.READ_WRITE, 4 * (ncells + 1))
+        self.vel = cl.Buffer(ctx, mf.READ_WRITE, 16 * n)  # per point, cell-sorted order (motion)
+        self.vmax = 0.0
         self.n_points = 0
         self.seq = 0
         self.timestamps = ()
@@ -64,6 +68,8 @@ class OpenCLPipeline(FramePipeline):
         self.k_scan_add = self.prg.scan_add
         self.k_scatter = self.prg.scatter
         self.k_neighbors = self.prg.neighbors
+        self.k_moments = self.prg.cell_moments
+        self.k_expand = self.prg.expand_velocity
 
         mf = cl.mem_flags
         rig = self.rig
@@ -86,6 +92,11 @@ class OpenCLPipeline(FramePipeline):
         self.cam_counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * len(rig))
         self._cam_counts_host = np.zeros(len(rig), np.int32)
         self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
+        if params.motion.enabled:
+            self.moments = cl.Buffer(ctx, mf.READ_WRITE, 4 * N_MOMENTS * C)
+            self.cell_vel = cl.Buffer(ctx, mf.READ_ONLY, 16 * C)
+            self._moments_host = np.zeros((C, N_MOMENTS), np.float32)
+            self._cell_vel_host = np.zeros((C, 4), np.float32)
         self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C), _Slot(cl, ctx, npix, C)])
         self._n_host = np.zeros(1, np.int32)
         self._zero_cell_starts()
@@ -145,6 +156,7 @@ class OpenCLPipeline(FramePipeline):
                                     np.int32(4096), self.cam_counts)
             cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False)
             cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
+            slot.vmax = self._motion(slot, frames)
         except cl.Error as e:
             raise KernelError(f"OpenCL frame pipeline failed on {self.backend.device_name}: {e}") from e
         slot.n_points = int(self._n_host[0])
@@ -153,6 +165,27 @@ class OpenCLPipeline(FramePipeline):
         slot.per_camera = tuple(int(n) for n in self._cam_counts_host)
         self.buffers.publish(b)
         return slot.n_points, slot.per_camera
+
+    def _motion(self, slot, frames) -> float:
+        """Estimate the slot's velocities (kernels/motion.py) before it is published; return vmax."""
+        if not self.params.motion.enabled:
+            return 0.0
+        cl, q, C = self.cl, self.build_queue, np.int32(self.ncells)
+
+        def moments():
+            self.k_moments(q, (_round_up(self.ncells),), None, slot.pts, slot.order, slot.start, self.gridf, self.dims,
+                           self.moments)
+            cl.enqueue_copy(q, self._moments_host, self.moments, is_blocking=True)
+            return self._moments_host.astype(np.float64)
+
+        cell_v, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
+        if cell_v is not None and vmax > 0:
+            self._cell_vel_host[:, :3] = cell_v
+            cl.enqueue_copy(q, self.cell_vel, self._cell_vel_host, is_blocking=False)
+            self.k_expand(q, (_round_up(self.ncells),), None, self.cell_vel, slot.start, C, slot.vel)
+            q.finish()
+            return vmax
+        return 0.0
 
     # --- queries -------------------------------------------------------------------------
     def _ensure_query_capacity(self, B: int, K: int):
@@ -207,8 +240,14 @@ class OpenCLPipeline(FramePipeline):
                 cl.enqueue_copy(q, order, slot.order, is_blocking=False)
                 cl.enqueue_copy(q, pts, slot.pts, is_blocking=False)
                 cl.enqueue_copy(q, sigma, slot.sigma, is_blocking=False)
+            vel = None
+            if n and slot.vmax > 0:
+                vel4 = np.empty((n, 4), np.float32)
+                cl.enqueue_copy(q, vel4, slot.vel, is_blocking=False)
+                vel = vel4[:, :3]
             cl.enqueue_copy(q, start, slot.start, is_blocking=True)
             pix = order & 0x7FFFFFFF
             cam = (np.searchsorted(self.rig.offsets, pix, side="right") - 1).astype(np.uint8)
             return HostSnapshot(pts[pix], sigma[pix], cam, (order < 0).astype(np.uint8), pix.astype(np.int32), start,
-                                self.grid, slot.timestamps, slot.seq, slot.per_camera)
+                                self.grid, slot.timestamps, slot.seq, slot.per_camera,
+                                None if vel is None else np.ascontiguousarray(vel), slot.vmax if vel is not None else 0.0)

@@ -7,7 +7,9 @@
 // (x, y, z, rho) padded to a multiple of VW with far-away points, which the steps scan VW points
 // at a time with explicit vector types. If more than `cap` points are in reach the proxy scans
 // the hash cells directly instead (slower, same result).
-// Snapshot layout (frames.cl): pts in pixel order, order[] = pixel | protected << 31 sorted by cell.
+// Snapshot layout (frames.cl): pts in pixel order, order[] = pixel | protected << 31 sorted by cell,
+// vel[] = each point's velocity in the order of order[] (kernels/motion.py). With dt > 0 every
+// point is taken at p + v dt and the spans gspan / rspan include the motion's extra reach.
 #pragma OPENCL FP_CONTRACT OFF
 
 #define VW 16
@@ -38,6 +40,19 @@ typedef struct {
     float min_e;
 } Eval;
 
+// Point `entry` (at position i of the cell-sorted order) where the tick predicts it: p + v dt
+// (kernels/motion.py); dt = 0 leaves it untouched.
+inline float4 point_at(__global const float4 *pts, __global const float4 *vel, int i, int entry, float dt) {
+    float4 p = pts[entry & 0x7fffffff];
+    if (dt > 0.0f) {
+        float4 v = vel[i];
+        p.x = p.x + v.x * dt;
+        p.y = p.y + v.y * dt;
+        p.z = p.z + v.z * dt;
+    }
+    return p;
+}
+
 inline int4 cell_range(float3 q, float4 grid, int4 dims, int span, int4 *hi) {
     int cx = (int)clamp(floor((q.x - grid.x) * grid.w), (float)(-span - 1), (float)(dims.x + span));
     int cy = (int)clamp(floor((q.y - grid.y) * grid.w), (float)(-span - 1), (float)(dims.y + span));
@@ -48,8 +63,8 @@ inline int4 cell_range(float3 q, float4 grid, int4 dims, int span, int4 *hi) {
 
 // Copy the points within `radius` of X0 into the working set; return how many there are
 // (possibly more than cap: then nothing beyond cap is written and the caller scans the hash).
-inline int gather(__global const float4 *pts, __global const int *order, __global const int *start,
-                  float4 grid, int4 dims, int span, float3 X0, float radius, int fixture, float r1,
+inline int gather(__global const float4 *pts, __global const float4 *vel, float dt,
+                  __global const int *order, __global const int *start, float4 grid, int4 dims, int span, float3 X0, float radius, int fixture, float r1,
                   __global float *ws, int cap) {
     int4 hi;
     int4 lo = cell_range(X0, grid, dims, span, &hi);
@@ -64,7 +79,7 @@ inline int gather(__global const float4 *pts, __global const int *order, __globa
             for (int i = a; i < e; ++i) {
                 int entry = order[i];
                 if (fixture && entry >= 0) continue;
-                float4 p = pts[entry & 0x7fffffff];
+                float4 p = point_at(pts, vel, i, entry, dt);
                 float dx = p.x - X0.x, dy = p.y - X0.y, dz = p.z - X0.z;
                 float d2 = dx * dx + dy * dy + dz * dz;
                 if (d2 <= r2) {
@@ -109,7 +124,8 @@ inline Eval eval_ws(__global const float *ws, int cap, int n, float3 X, float nr
     return r;
 }
 
-inline Eval eval_hash(__global const float4 *pts, __global const int *order, __global const int *start,
+inline Eval eval_hash(__global const float4 *pts, __global const float4 *vel, float dt,
+                      __global const int *order, __global const int *start,
                       float4 grid, int4 dims, int span, float3 X, int fixture, float r1, float nreach) {
     int4 hi;
     int4 lo = cell_range(X, grid, dims, span, &hi);
@@ -122,7 +138,7 @@ inline Eval eval_hash(__global const float4 *pts, __global const int *order, __g
             for (int i = a; i < e_; ++i) {
                 int entry = order[i];
                 if (fixture && entry >= 0) continue;
-                float4 p = pts[entry & 0x7fffffff];
+                float4 p = point_at(pts, vel, i, entry, dt);
                 float dx = X.x - p.x, dy = X.y - p.y, dz = X.z - p.z;
                 float d2 = dx * dx + dy * dy + dz * dz;
                 float d = sqrt(d2);
@@ -173,7 +189,8 @@ inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 
     return m;
 }
 
-inline float clip_hash(__global const float4 *pts, __global const int *order, __global const int *start,
+inline float clip_hash(__global const float4 *pts, __global const float4 *vel, float dt,
+                      __global const int *order, __global const int *start,
                        float4 grid, int4 dims, int span, float3 X, float3 u, float off, int fixture, float r1) {
     int4 hi;
     int4 lo = cell_range(X, grid, dims, span, &hi);
@@ -186,7 +203,7 @@ inline float clip_hash(__global const float4 *pts, __global const int *order, __
             for (int i = a; i < e_; ++i) {
                 int entry = order[i];
                 if (fixture && entry >= 0) continue;
-                float4 p = pts[entry & 0x7fffffff];
+                float4 p = point_at(pts, vel, i, entry, dt);
                 float dx = X.x - p.x, dy = X.y - p.y, dz = X.z - p.z;
                 float d2 = dx * dx + dy * dy + dz * dz;
                 float b = u.x * dx + u.y * dy + u.z * dz;
@@ -222,7 +239,8 @@ inline float3 away_ws(__global const float *ws, int cap, int n, float3 X, float 
     return (float3)(sx, sy, sz);
 }
 
-inline float3 away_hash(__global const float4 *pts, __global const int *order, __global const int *start,
+inline float3 away_hash(__global const float4 *pts, __global const float4 *vel, float dt,
+                      __global const int *order, __global const int *start,
                         float4 grid, int4 dims, int span, float3 X, float off, int fixture, float r1) {
     int4 hi;
     int4 lo = cell_range(X, grid, dims, span, &hi);
@@ -235,7 +253,7 @@ inline float3 away_hash(__global const float4 *pts, __global const int *order, _
             for (int i = a; i < e_; ++i) {
                 int entry = order[i];
                 if (fixture && entry >= 0) continue;
-                float4 p = pts[entry & 0x7fffffff];
+                float4 p = point_at(pts, vel, i, entry, dt);
                 float dx = X.x - p.x, dy = X.y - p.y, dz = X.z - p.z;
                 float d2 = dx * dx + dy * dy + dz * dz;
                 float d = sqrt(d2);
@@ -263,13 +281,13 @@ inline float3 normal_of(float3 ns) {
 __kernel void proxy_tick(__global const float4 *pts, __global const int *order, __global const int *start,
                          float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float4 *hips,
                          __global float8 *out, __global float *wsbuf, int cap, __constant float *prm,
-                         int fixture, int max_steps, int gspan, int rspan) {
+                         int fixture, int max_steps, int gspan, int rspan, __global const float4 *vel, float dt) {
     int p = get_global_id(0);
     if (p >= n_proxies) return;
     __global float *ws = wsbuf + (size_t)p * 4 * cap;
     float3 X = pos[p].xyz, H = hips[p].xyz, X0 = X;
     const float r1 = P_R1, band = P_BAND, nreach = P_NREACH, skin2 = P_SKIN * P_SKIN;
-    int n = gather(pts, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
+    int n = gather(pts, vel, dt, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
     int steps = 0, conv = 0, st = FREE;
     float3 nrm = (float3)(0.0f);
     float min_e = INFINITY;
@@ -277,10 +295,10 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         float3 dx0 = X - X0;
         if (dx0.x * dx0.x + dx0.y * dx0.y + dx0.z * dx0.z > skin2) {
             X0 = X;
-            n = gather(pts, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
+            n = gather(pts, vel, dt, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
         }
         int direct = n > cap;
-        Eval ev = direct ? eval_hash(pts, order, start, grid, dims, rspan, X, fixture, r1, nreach)
+        Eval ev = direct ? eval_hash(pts, vel, dt, order, start, grid, dims, rspan, X, fixture, r1, nreach)
                          : eval_ws(ws, cap, n, X, nreach);
         min_e = ev.min_e;
         st = state_of(min_e, band);
@@ -310,18 +328,18 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         int buried = st == ENTRENCHED && min_e < -P_SLACK - P_MARGIN;
         float lim = st == FREE ? 0.5f * band : (buried ? min_e : -P_SLACK);
         float off = lim + P_MARGIN;
-        float t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+        float t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
                          : clip_ws(ws, cap, n, X, u, off);
         float s = fmax(fmin(L, t), 0.0f);
         if (push && s < P_TOL) {  // push-out blocked: the contact rule's direction instead
             u = u2;
-            t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+            t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
                        : clip_ws(ws, cap, n, X, u, off);
             s = fmax(fmin(L2, t), 0.0f);
             if (buried && s < P_TOL) {  // both blocked: away from the deepest points
-                u = normal_of(direct ? away_hash(pts, order, start, grid, dims, rspan, X, off, fixture, r1)
+                u = normal_of(direct ? away_hash(pts, vel, dt, order, start, grid, dims, rspan, X, off, fixture, r1)
                                      : away_ws(ws, cap, n, X, off));
-                t = direct ? clip_hash(pts, order, start, grid, dims, rspan, X, u, off, fixture, r1)
+                t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
                            : clip_ws(ws, cap, n, X, u, off);
                 s = u.x != 0.0f || u.y != 0.0f || u.z != 0.0f ? fmax(fmin(Lp, t), 0.0f) : 0.0f;
             }

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import KernelError
+from ..motion import extra_span
 from ..neighbors import search_span
 from ..proxy import LANES, WS_CAPACITY, ProxyBatch
 from .context import build
@@ -44,6 +45,7 @@ class OpenCLProxies(ProxyBatch):
         self._ws_request = max(VW, int(ws_capacity) // VW * VW)
         self.local_size = local_size
         self._arg_slot = None
+        self._dt_arg = 0.0
         super().__init__(pipeline, positions, params)
         p = self.params
         gather_r = self.reach + p.skin
@@ -58,9 +60,20 @@ class OpenCLProxies(ProxyBatch):
         k.set_arg(11, self.prm)
         k.set_arg(12, np.int32(p.mode == "fixture"))
         k.set_arg(13, np.int32(p.max_steps))
-        k.set_arg(14, np.int32(search_span(gather_r, h)))
-        k.set_arg(15, np.int32(search_span(self.reach, h)))
+        self._gather_r = gather_r
+        self._spans = None
+        self._set_spans(0.0)
+        k.set_arg(17, np.float32(0.0))
         self._set_batch_args()
+
+    def _set_spans(self, extra: float):
+        """Hash spans of the gather and of the direct path, grown by ``extra`` m (motion)."""
+        h = self.pipeline.grid.h
+        spans = (search_span(self._gather_r + extra, h), search_span(self.reach + extra, h))
+        if spans != self._spans:
+            self.kernel.set_arg(14, np.int32(spans[0]))
+            self.kernel.set_arg(15, np.int32(spans[1]))
+            self._spans = spans
 
     # --- storage -------------------------------------------------------------------------------
     def _grow(self, cap: int):
@@ -111,7 +124,13 @@ class OpenCLProxies(ProxyBatch):
                 k.set_arg(0, slot.pts)
                 k.set_arg(1, slot.order)
                 k.set_arg(2, slot.start)
+                k.set_arg(16, slot.vel)
                 self._arg_slot = slot
+            dt = self._tick_dt(min(slot.timestamps) if slot.timestamps else 0.0, slot.vmax)
+            if dt != self._dt_arg:
+                k.set_arg(17, np.float32(dt))
+                self._dt_arg = dt
+            self._set_spans(extra_span(slot.vmax, dt))
             try:
                 cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
                 cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)

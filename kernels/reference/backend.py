@@ -7,6 +7,7 @@ import numpy as np
 
 from ..backend import Backend, FramePipeline
 from ..double_buffer import DoubleBuffer
+from ..motion import cell_moments, expand
 from ..snapshot import HostSnapshot
 from . import neighbors as nb
 from .pipeline import build_snapshot
@@ -29,6 +30,8 @@ class NumpyPipeline(FramePipeline):
 
     def _build(self, frames, packed):
         snap = build_snapshot(self.rig, frames, self.params, self.grid, seq=self.seq + 1, packed=packed)
+        cell_v, snap.vmax = self._estimate_motion(lambda: cell_moments(snap.points, snap.cell_start, self.grid), snap.timestamps)
+        snap.velocity = expand(cell_v, snap.cell_start)
         b = self.buffers.back()
         self.buffers.slots[b] = snap
         self.buffers.publish(b)

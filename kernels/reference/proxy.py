@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..motion import extra_span
 from ..neighbors import search_span
 from ..params_haptics import HapticParams
 from ..proxy import CONTACT, ENTRENCHED, FREE, LANES, WS_CAPACITY, ProxyBatch
@@ -57,7 +58,8 @@ class WorkingSet:
 
 
 def pack_rows(owner: np.ndarray, idx: np.ndarray, B: int, points: np.ndarray, rho: np.ndarray) -> WorkingSet:
-    """Working set from (owner proxy, point index) pairs sorted by owner."""
+    """Working set from (owner proxy, point index) pairs sorted by owner; ``points`` (M, 3+)
+    and ``rho`` (M,) are indexed by ``idx``."""
     counts = np.bincount(owner, minlength=B) if owner.size else np.zeros(B, np.int64)
     K = int(counts.max()) if B else 0
     first = np.zeros(B + 1, np.int64)
@@ -72,19 +74,22 @@ def pack_rows(owner: np.ndarray, idx: np.ndarray, B: int, points: np.ndarray, rh
     return WorkingSet(xyz, r, valid)
 
 
-def gather_hash(snap: HostSnapshot, X0: np.ndarray, radius: float, fixture: bool, r1: float) -> WorkingSet:
+def gather_hash(snap: HostSnapshot, X0: np.ndarray, radius: float, fixture: bool, r1: float,
+                dt: float = 0.0, extra: float = 0.0) -> WorkingSet:
     """Points of the snapshot within ``radius`` of each X0 (B, 3), vectorised over B.
 
-    The cells within ``search_span(radius, h)`` of each proxy's cell are scanned (the same cells
-    as ``reference.neighbors.query_cells`` and the device kernels); fixture mode keeps only
-    protected points and uses their r_f as rho, rendering mode all points with rho = r1.
+    The cells within ``search_span(radius + extra, h)`` of each proxy's cell are scanned (the
+    same cells as ``reference.neighbors.query_cells`` and the device kernels); fixture mode keeps
+    only protected points and uses their r_f as rho, rendering mode all points with rho = r1.
+    With ``dt`` > 0 and a snapshot velocity, every point is taken at p + v dt (float32, the
+    device kernels' arithmetic); ``extra`` >= |v| dt bounds how far a point moved.
     """
     B = X0.shape[0]
     if B == 0 or snap.n_points == 0:
         return WorkingSet.empty(B)
     g = snap.grid
     n = np.asarray(g.dims, np.int64)
-    span = search_span(radius, g.h)
+    span = search_span(radius + extra, g.h)
     c = np.floor((X0 - np.asarray(g.origin, F)) * g.inv_h)
     c = np.clip(c, -(span + 1), n + span).astype(np.int64)
     lo = np.maximum(c - span, 0)
@@ -111,12 +116,15 @@ def gather_hash(snap: HostSnapshot, X0: np.ndarray, radius: float, fixture: bool
     if fixture:
         keep = snap.protected[idx] != 0
         idx, own = idx[keep], own[keep]
-    d = snap.points[idx, :3] - X0[own]
+    P = snap.points[idx, :3]
+    if dt > 0 and snap.velocity is not None:
+        P = (P + snap.velocity[idx] * F(dt)).astype(F)
+    d = P - X0[own]
     d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
     keep = d2 <= F(radius) * F(radius)
-    idx, own = idx[keep], own[keep]
-    rho = snap.points[:, 3] if fixture else np.full(snap.n_points, F(r1), F)
-    return pack_rows(own, idx, B, snap.points, rho)
+    idx, own, P = idx[keep], own[keep], P[keep]
+    rho = snap.points[idx, 3] if fixture else np.full(idx.size, F(r1), F)
+    return pack_rows(own, np.arange(idx.size), B, P, rho)
 
 
 def lane_sum(c: np.ndarray, direct: np.ndarray, lanes: int) -> np.ndarray:
@@ -345,8 +353,11 @@ class NumpyProxies(ProxyBatch):
         fixture = p.mode == "fixture"
         radius = self.reach + p.skin
 
+        dt = self._tick_dt(snap.time, snap.vmax)
+        extra = extra_span(snap.vmax, dt)
+
         def gather(X0):
-            return gather_hash(snap, X0, radius, fixture, p.r1)
+            return gather_hash(snap, X0, radius, fixture, p.r1, dt, extra)
 
         n = self.n
         X, nrm, st, steps, conv, near = run_tick(self._positions[:n], hips, gather, p, self.ws_cap, self.lanes)

@@ -246,3 +246,56 @@ def neighbors(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: w
         nearest_d[b] = wp.sqrt(best_d2)
     else:
         nearest_d[b] = float(wp.inf)
+
+
+@wp.kernel
+def cell_moments(sorted_pts: wp.array(dtype=wp.vec4), start: wp.array(dtype=int), g: GridArgs,
+                 mom: wp.array2d(dtype=float)):
+    """Motion estimation (kernels/motion.py): per cell the number of points, the sums of x, y, z
+    and of xx, xy, xz, yy, yz, zz, relative to the cell's lower corner."""
+    c = wp.tid()
+    h = 1.0 / g.inv_h
+    ix = c % g.nx
+    iy = (c / g.nx) % g.ny
+    iz = c / (g.nx * g.ny)
+    o = wp.vec3(g.origin[0] + float(ix) * h, g.origin[1] + float(iy) * h, g.origin[2] + float(iz) * h)
+    a = start[c]
+    e = start[c + 1]
+    s = wp.vec3(0.0)
+    sxx = float(0.0)
+    sxy = float(0.0)
+    sxz = float(0.0)
+    syy = float(0.0)
+    syz = float(0.0)
+    szz = float(0.0)
+    for i in range(a, e):
+        q = sorted_pts[i]
+        x = q[0] - o[0]
+        y = q[1] - o[1]
+        z = q[2] - o[2]
+        s = s + wp.vec3(x, y, z)
+        sxx += x * x
+        sxy += x * y
+        sxz += x * z
+        syy += y * y
+        syz += y * z
+        szz += z * z
+    mom[c, 0] = float(e - a)
+    mom[c, 1] = s[0]
+    mom[c, 2] = s[1]
+    mom[c, 3] = s[2]
+    mom[c, 4] = sxx
+    mom[c, 5] = sxy
+    mom[c, 6] = sxz
+    mom[c, 7] = syy
+    mom[c, 8] = syz
+    mom[c, 9] = szz
+
+
+@wp.kernel
+def expand_velocity(cell_vel: wp.array(dtype=wp.vec4), start: wp.array(dtype=int), sorted_vel: wp.array(dtype=wp.vec4)):
+    """Every sorted point's velocity from its cell's."""
+    c = wp.tid()
+    v = cell_vel[c]
+    for i in range(start[c], start[c + 1]):
+        sorted_vel[i] = v

@@ -16,6 +16,7 @@ import warp as wp
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
 from ..errors import KernelError
+from ..motion import N_MOMENTS
 from ..neighbors import Neighbors, search_span
 from ..snapshot import HostSnapshot
 from . import frames as k
@@ -35,6 +36,8 @@ class _Slot:
         self.sigma = wp.zeros(n, dtype=float, device=device)
         self.order = wp.zeros(n, dtype=int, device=device)
         self.sorted_pts = wp.zeros(n, dtype=wp.vec4, device=device)
+        self.sorted_vel = wp.zeros(n, dtype=wp.vec4, device=device)  # motion: per sorted point
+        self.vmax = 0.0
         self.start = wp.zeros(ncells + 1, dtype=int, device=device)
         self.n_points = 0
         self.seq = 0
@@ -72,6 +75,9 @@ class WarpPipeline(FramePipeline):
         self.pix_prot = wp.zeros(max(npix, 1), dtype=int, device=dev)
         self.cam_counts = wp.zeros(len(rig), dtype=int, device=dev)
         cam_of = np.repeat(np.arange(len(rig), dtype=np.int32), np.diff(rig.offsets))
+        if params.motion.enabled:
+            self.moments = wp.zeros((C, N_MOMENTS), dtype=float, device=dev)
+            self.cell_vel = wp.zeros(C, dtype=wp.vec4, device=dev)
         self.cam_of = wp.array(cam_of if npix else np.zeros(1, np.int32), dtype=int, device=dev)
         self.buffers = DoubleBuffer([_Slot(dev, npix, C), _Slot(dev, npix, C)])
         self._n_host = wp.zeros(1, dtype=int, device="cpu", pinned=self.cuda)
@@ -127,6 +133,7 @@ class WarpPipeline(FramePipeline):
                         self._graphs[b] = graph
                     wp.capture_launch(graph, stream=self.build_stream)
                 wp.synchronize_stream(self.build_stream)
+            slot.vmax = self._motion(slot, frames)
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp frame pipeline failed on {self.backend.device_name}: {e}") from e
         slot.n_points = int(self._n_host.numpy()[0])
@@ -160,6 +167,29 @@ class WarpPipeline(FramePipeline):
                               slot.sorted_pts])
         wp.copy(self._n_host, slot.start, src_offset=C, count=1)
         wp.copy(self._cam_host, self.cam_counts)
+
+    def _motion(self, slot, frames) -> float:
+        """Estimate the slot's velocities (kernels/motion.py) before it is published; return vmax."""
+        if not self.params.motion.enabled:
+            return 0.0
+        dev, C = self.device, self.ncells
+
+        def moments():
+            with self._stream(self.build_stream):
+                wp.launch(k.cell_moments, dim=C, device=dev, inputs=[slot.sorted_pts, slot.start, self.grid_args, self.moments])
+                return self.moments.numpy().astype(np.float64)
+
+        cell_v, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
+        if cell_v is None or vmax <= 0:
+            return 0.0
+        v4 = np.zeros((C, 4), np.float32)
+        v4[:, :3] = cell_v
+        with self._stream(self.build_stream):
+            self.cell_vel.assign(v4)
+            wp.launch(k.expand_velocity, dim=C, device=dev, inputs=[self.cell_vel, slot.start, slot.sorted_vel])
+        if self.cuda:
+            wp.synchronize_stream(self.build_stream)
+        return vmax
 
     def _upload_selection(self, frames):
         rig = self.rig
@@ -218,5 +248,7 @@ class WarpPipeline(FramePipeline):
             pts = slot.pts.numpy()[pix].astype(np.float32)
             sigma = slot.sigma.numpy()[pix].astype(np.float32)
             cam = (np.searchsorted(self.rig.offsets, pix, side="right") - 1).astype(np.uint8)
+            vel = slot.sorted_vel.numpy()[:n, :3].astype(np.float32).copy() if (n and slot.vmax > 0) else None
             return HostSnapshot(pts.reshape(n, 4), sigma, cam, (order < 0).astype(np.uint8), pix.astype(np.int32),
-                                start, self.grid, slot.timestamps, slot.seq, slot.per_camera)
+                                start, self.grid, slot.timestamps, slot.seq, slot.per_camera, vel,
+                                slot.vmax if vel is not None else 0.0)

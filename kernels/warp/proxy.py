@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import KernelError
+from ..motion import extra_span
 from ..neighbors import search_span
 from ..proxy import ProxyBatch
 from .frames import GridArgs
@@ -42,7 +43,25 @@ class ProxyArgs:
     margin: float
     fixture: int
     max_steps: int
-    span: int  # cells searched on each side (reach)
+    span: int  # cells searched on each side (reach, without motion)
+
+
+@wp.struct
+class TickArgs:
+    """Per-tick values, copied to the device with the HIPs (inside the CUDA graph)."""
+
+    dt: float  # prediction time: points are taken at p + v dt (kernels/motion.py)
+    span: int  # cells searched on each side: reach plus the motion's extra reach
+
+
+@wp.func
+def point_at(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), i: int, dt: float) -> wp.vec4:
+    """Sorted point i where the tick predicts it: p + v dt (dt = 0: untouched)."""
+    q = spts[i]
+    if dt > 0.0:
+        v = svel[i]
+        q = wp.vec4(q[0] + v[0] * dt, q[1] + v[1] * dt, q[2] + v[2] * dt, q[3])
+    return q
 
 
 @wp.func
@@ -53,7 +72,7 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
 
 
 @wp.func
-def clip_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+def clip_partial(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                  a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int,
                  z0: int, z1: int, lane: int, bd: int) -> float:
     """This thread's share of the step limit along u (kernels/proxy.py, step 3); off = F + margin:
@@ -67,7 +86,7 @@ def clip_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), star
                 for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
                     if a.fixture != 0 and order[i] >= 0:
                         continue
-                    q = spts[i]
+                    q = point_at(spts, svel, i, dt)
                     dx = X[0] - q[0]
                     dy = X[1] - q[1]
                     dz = X[2] - q[2]
@@ -84,7 +103,7 @@ def clip_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), star
 
 
 @wp.func
-def away_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
+def away_partial(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                  a: ProxyArgs, X: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int, z0: int, z1: int,
                  lane: int, bd: int) -> wp.vec3:
     """This thread's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
@@ -96,7 +115,7 @@ def away_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), star
                 for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
                     if a.fixture != 0 and order[i] >= 0:
                         continue
-                    q = spts[i]
+                    q = point_at(spts, svel, i, dt)
                     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
                     d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
                     d = wp.sqrt(d2)
@@ -109,8 +128,10 @@ def away_partial(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), star
 @wp.kernel
 def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
                a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
-               out: wp.array(dtype=vec8)):
+               out: wp.array(dtype=vec8), svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs)):
     p, lane = wp.tid()
+    dt = tick[0].dt
+    span = tick[0].span
     X = pos[p]
     H = hips[p]
     steps = int(0)
@@ -120,15 +141,15 @@ def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start:
     min_e = float(wp.inf)
     for it in range(a.max_steps + 1):
         # cells within reach of X
-        cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), float(-a.span - 1), float(g.nx + a.span)))
-        cy = int(wp.clamp(wp.floor((X[1] - g.origin[1]) * g.inv_h), float(-a.span - 1), float(g.ny + a.span)))
-        cz = int(wp.clamp(wp.floor((X[2] - g.origin[2]) * g.inv_h), float(-a.span - 1), float(g.nz + a.span)))
-        x0 = wp.max(cx - a.span, 0)
-        x1 = wp.min(cx + a.span, g.nx - 1)
-        y0 = wp.max(cy - a.span, 0)
-        y1 = wp.min(cy + a.span, g.ny - 1)
-        z0 = wp.max(cz - a.span, 0)
-        z1 = wp.min(cz + a.span, g.nz - 1)
+        cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), float(-span - 1), float(g.nx + span)))
+        cy = int(wp.clamp(wp.floor((X[1] - g.origin[1]) * g.inv_h), float(-span - 1), float(g.ny + span)))
+        cz = int(wp.clamp(wp.floor((X[2] - g.origin[2]) * g.inv_h), float(-span - 1), float(g.nz + span)))
+        x0 = wp.max(cx - span, 0)
+        x1 = wp.min(cx + span, g.nx - 1)
+        y0 = wp.max(cy - span, 0)
+        y1 = wp.min(cy + span, g.ny - 1)
+        z0 = wp.max(cz - span, 0)
+        z1 = wp.min(cz + span, g.nz - 1)
 
         # 1. clearances, normal sum, smallest clearance within the normal band
         ns = wp.vec3(0.0)
@@ -140,7 +161,7 @@ def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start:
                     for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
                         if a.fixture != 0 and order[i] >= 0:
                             continue
-                        q = spts[i]
+                        q = point_at(spts, svel, i, dt)
                         dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
                         d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
                         e = d - clearance_radius(q, a)
@@ -199,23 +220,23 @@ def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start:
         if push:
             u = nrm
             L = Lp
-        tm = clip_partial(spts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+        tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
         t = wp.tile_min(wp.tile(tm))[0]
         s = wp.max(wp.min(L, t), 0.0)
         if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
             u = u2
-            tm = clip_partial(spts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+            tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
             t = wp.tile_min(wp.tile(tm))[0]
             s = wp.max(wp.min(L2, t), 0.0)
             if buried and s < a.tol:  # both blocked: away from the deepest points
-                av = away_partial(spts, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
+                av = away_partial(spts, svel, dt, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
                 at = wp.tile_sum(wp.tile(av), axis=1)
                 asum = wp.vec3(at[0], at[1], at[2])
                 al = wp.length(asum)
                 s = 0.0
                 if al > 0.0:
                     u = asum / al
-                    tm = clip_partial(spts, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
+                    tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
                     t = wp.tile_min(wp.tile(tm))[0]
                     s = wp.max(wp.min(Lp, t), 0.0)
         if s < a.tol:
@@ -245,6 +266,10 @@ class WarpProxies(ProxyBatch):
         a.tol, a.slack, a.fixture, a.max_steps = p.tolerance, p.slack, int(p.mode == "fixture"), p.max_steps
         a.margin = p.margin
         a.span = search_span(self.reach, pipeline.grid.h)
+        self._tick = wp.zeros(1, dtype=TickArgs, device=self.dev)
+        self._tick_host = wp.zeros(1, dtype=TickArgs, device="cpu", pinned=self.cuda)
+        self._tick_np = self._tick_host.numpy()
+        self._tick_np[0]["span"] = a.span
 
     def _grow(self, cap: int):
         dev = self.dev
@@ -264,9 +289,10 @@ class WarpProxies(ProxyBatch):
 
     def _record(self, slot, n):
         wp.copy(self._hips, self._hips_host, count=n)
+        wp.copy(self._tick, self._tick_host)
         wp.launch_tiled(proxy_tick, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
-                        self.args, self._pos, self._hips, self.block_dim, self._out], block_dim=self.block_dim,
-                        device=self.dev)
+                        self.args, self._pos, self._hips, self.block_dim, self._out, slot.sorted_vel, self._tick],
+                        block_dim=self.block_dim, device=self.dev)
         wp.copy(self._out_host, self._out, count=n)
 
     def _step(self, hips):
@@ -276,6 +302,10 @@ class WarpProxies(ProxyBatch):
         self._hips_np[:n] = hips
         try:
             with self.pipeline.buffers.read() as slot:
+                dt = self._tick_dt(min(slot.timestamps) if slot.timestamps else 0.0, slot.vmax)
+                tk = self._tick_np[0]
+                tk["dt"] = dt
+                tk["span"] = search_span(self.reach + extra_span(slot.vmax, dt), self.pipeline.grid.h)
                 if not self.cuda:
                     self._record(slot, n)
                 else:

@@ -1,0 +1,272 @@
+"""Motion of the point cloud between snapshots, and fixtures placed where the surface is now
+(dissertation 6.2: a fixture lags a surface moving at v by v * T; 2.4 / fig. 2.15: at 30 Hz the
+proxy pops through a surface that advances more than its radius between two frames).
+
+Every snapshot carries a velocity per point (m/s, world frame, in the snapshot's cell-sorted
+order). It is estimated per grid cell from two consecutive snapshots and shared by the cell's
+points:
+
+* per cell, the number of points and the sums of their positions and of their products (one
+  pass over the sorted points, on the device for device backends);
+* per occupied cell c, those moments summed over the block of (2 r + 1)^3 cells around c,
+  in the new and in the previous snapshot (summed-area tables: 8 look-ups per block); the
+  block's centroid displacement over the time between the snapshots is c's velocity. With a
+  block reaching further than the surface moves in one frame (r * cell size > v / rate), the
+  moved surface stays inside the block, so a surface patch translating along its normal gives
+  its exact normal velocity (the component that matters to a proxy resting on it; sliding
+  along itself shows no motion, which is also what a proxy feels). r = 1, 2, ... up to
+  ``capture`` / cell size: the smallest block whose counts agree is used. Where the block's
+  points are planar only the displacement along its normal is kept: sliding along a surface
+  is not observable from its points, and the centroid's sideways jitter as pixel rays enter
+  and leave a block would tear the predicted surface apart at cell borders;
+* the estimate is dropped (velocity 0, "unknown") where either block holds fewer than
+  ``min_points`` points, where the two counts differ by more than ``count_ratio`` (the block
+  gained or lost surface: an edge, an occlusion, a hole), where it exceeds ``v_max`` (no
+  physical motion the block can capture), and where the snapshots are further apart than
+  ``max_gap``; speeds below ``v_min`` (depth noise) are set to 0.
+
+The proxy kernels evaluate each point at ``p + v dt`` with one ``dt`` per tick:
+``dt = clamp(now - t_snapshot + latency, 0, latency + max_age)``, where ``t_snapshot`` is the
+oldest frame timestamp of the snapshot, ``now`` the tick's time on the frames' clock and
+``latency`` the camera latency T that the timestamps do not include (a camera that stamps
+frames on arrival: T is the capture-to-arrival delay). Within a tick the predicted scene is
+static, so every clipping rule of ``kernels/proxy.py`` holds against the predicted points;
+between ticks the predicted scene moves (the "scene moved into the proxy" case those rules
+already handle). The hash search grows by ``vmax * dt`` cells so that moved points are found;
+with zero velocity (or ``dt = 0``) the kernels do exactly what they did without prediction.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from typing import TYPE_CHECKING
+
+from .errors import InputError
+
+if TYPE_CHECKING:  # grid.py imports params.py, which imports this module
+    from .grid import Grid
+
+
+@dataclass(frozen=True)
+class MotionModel:
+    """Motion estimation and prediction settings (all SI: m, s, m/s).
+
+    enabled: estimate velocities and predict (False: every velocity is 0, dt is 0).
+    latency: camera latency T not included in the frame timestamps, s.
+    max_age: how far past its timestamp a snapshot is extrapolated at most (s); beyond it a
+        stale snapshot stays where it was last predicted (dt <= latency + max_age).
+    capture: the longest displacement between two snapshots that is measured (m): blocks grow
+        up to this half-width.
+    min_points: fewest points per block for an estimate.
+    planarity: a block whose smallest covariance eigenvalue is below this times the middle one
+        is a surface patch: only its normal velocity is kept.
+    count_ratio: largest ratio between the block's point counts in the two snapshots.
+    v_min: speeds below this are depth noise and are set to 0.
+    v_max: estimates above this are discarded (0).
+    max_gap: snapshots further apart than this give no estimate (0).
+    """
+
+    enabled: bool = False
+    latency: float = 0.0
+    max_age: float = 0.1
+    capture: float = 0.05
+    min_points: int = 12
+    planarity: float = 0.1
+    count_ratio: float = 1.5
+    v_min: float = 0.01
+    v_max: float = 2.0
+    max_gap: float = 0.2
+
+    def __post_init__(self):
+        for key in ("latency", "max_age", "capture", "planarity", "count_ratio", "v_min", "v_max", "max_gap"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise InputError(f"motion {key} = {v!r}; expected a finite number >= 0")
+        if self.count_ratio < 1:
+            raise InputError(f"motion count_ratio = {self.count_ratio}; expected >= 1")
+        if self.v_min > self.v_max:
+            raise InputError(f"motion v_min = {self.v_min} > v_max = {self.v_max} m/s")
+        for key, lo in (("min_points", 1),):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < lo:
+                raise InputError(f"motion {key} = {v!r}; expected an integer >= {lo}")
+        if not isinstance(self.enabled, bool):
+            raise InputError(f"motion enabled = {self.enabled!r}; expected true or false")
+
+    @property
+    def horizon(self) -> float:
+        """Largest prediction time dt (s)."""
+        return self.latency + self.max_age
+
+    def tick_dt(self, now, t_snapshot: float, vmax: float, dt=None) -> float:
+        """The prediction time of one tick (s), 0 when nothing moves or prediction is off.
+
+        ``dt`` given: used as is (clamped to [0, horizon]); else from ``now`` (the tick's time
+        on the frames' clock): now - t_snapshot + latency. ``now`` None: 0."""
+        if not self.enabled or vmax <= 0:
+            return 0.0
+        if dt is None:
+            if now is None:
+                return 0.0
+            dt = float(now) - float(t_snapshot) + self.latency
+        if not math.isfinite(dt):
+            raise InputError(f"prediction time dt = {dt!r}; expected a finite number of seconds")
+        return float(min(max(dt, 0.0), self.horizon))
+
+
+def snapshot_time(timestamps) -> float:
+    """The time a snapshot is taken to show: its oldest frame's timestamp (s)."""
+    return float(min(timestamps)) if len(timestamps) else 0.0
+
+
+#: cell moments per cell: count, sums of x, y, z, sums of xx, xy, xz, yy, yz, zz, in coordinates
+#: relative to the cell's lower corner (the device kernels sum small numbers in float32)
+N_MOMENTS = 10
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def cell_corners(grid: "Grid") -> np.ndarray:
+    """Lower corner of every cell (n_cells, 3), float64, in linear cell order."""
+    nx, ny, nz = grid.dims
+    c = np.arange(nx * ny * nz)
+    ijk = np.stack([c % nx, (c // nx) % ny, c // (nx * ny)], axis=1)
+    return np.asarray(grid.origin) + ijk * grid.h
+
+
+def cell_moments(points_sorted: np.ndarray, cell_start: np.ndarray, grid: "Grid") -> np.ndarray:
+    """Per cell moments (n_cells, N_MOMENTS) float64 from cell-sorted points (see N_MOMENTS)."""
+    counts = np.diff(cell_start).astype(np.int64)
+    cell = np.repeat(np.arange(counts.size), counts)
+    q = points_sorted[:, :3].astype(np.float64) - cell_corners(grid)[cell]
+    out = np.zeros((counts.size, N_MOMENTS))
+    out[:, 0] = counts
+    for k in range(3):
+        out[:, 1 + k] = np.bincount(cell, weights=q[:, k], minlength=counts.size)
+    for j, (a, b) in enumerate(_PAIRS):
+        out[:, 4 + j] = np.bincount(cell, weights=q[:, a] * q[:, b], minlength=counts.size)
+    return out
+
+
+def world_moments(local: np.ndarray, grid: "Grid") -> np.ndarray:
+    """Cell moments about the world origin from moments about each cell's corner (float64)."""
+    m = np.asarray(local, np.float64).copy()
+    c = cell_corners(grid)
+    n, s = m[:, 0], m[:, 1:4].copy()
+    m[:, 1:4] = s + n[:, None] * c
+    for j, (a, b) in enumerate(_PAIRS):
+        m[:, 4 + j] += c[:, a] * s[:, b] + c[:, b] * s[:, a] + n * c[:, a] * c[:, b]
+    return m
+
+
+def _sat(moments: np.ndarray, dims: tuple) -> np.ndarray:
+    """Summed-area table (nz + 1, ny + 1, nx + 1, C) of per-cell values (n_cells, C)."""
+    nx, ny, nz = dims
+    v = moments.reshape(nz, ny, nx, -1)
+    t = np.zeros((nz + 1, ny + 1, nx + 1, v.shape[-1]))
+    t[1:, 1:, 1:] = v.cumsum(0).cumsum(1).cumsum(2)
+    return t
+
+
+def _block(sat: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Sums over the cell boxes [lo, hi) (M, 3 as x, y, z) from a summed-area table."""
+    x0, y0, z0 = lo[:, 0], lo[:, 1], lo[:, 2]
+    x1, y1, z1 = hi[:, 0], hi[:, 1], hi[:, 2]
+    return (sat[z1, y1, x1] - sat[z0, y1, x1] - sat[z1, y0, x1] - sat[z1, y1, x0]
+            + sat[z0, y0, x1] + sat[z0, y1, x0] + sat[z1, y0, x0] - sat[z0, y0, x0])
+
+
+class MotionEstimator:
+    """Per-cell velocities from consecutive snapshots' cell moments (``cell_moments``, about
+    each cell's corner) (see the module docstring).
+
+    Blocks of half-width 1, 2, ... up to ``ceil(capture / cell size)`` cells are tried in turn
+    per occupied cell; the smallest one whose two counts agree gives the estimate (a small
+    block mixes in the fewest other surfaces; a larger one captures a longer displacement).
+    """
+
+    def __init__(self, model: MotionModel, grid: "Grid"):
+        self.model = model
+        self.grid = grid
+        self.max_block = max(1, int(math.ceil(model.capture / grid.h - 1e-9)))
+        self._prev = None  # (time, summed-area table)
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def update(self, moments: np.ndarray, t: float):
+        """Velocities (n_cells, 3) float32 for the snapshot with ``moments`` taken at ``t`` and
+        their largest speed (m/s); (None, 0.0) when there is no estimate (first snapshot, gap)."""
+        m = self.model
+        dims = self.grid.dims
+        moments = world_moments(moments, self.grid)
+        sat = _sat(moments, dims)
+        prev, self._prev = self._prev, (float(t), sat)
+        if prev is None:
+            return None, 0.0
+        gap = float(t) - prev[0]
+        if not (0 < gap <= m.max_gap):
+            return None, 0.0
+        occ = np.flatnonzero(moments[:, 0] > 0)
+        v = np.zeros((moments.shape[0], 3))
+        if occ.size:
+            nx, ny, _ = dims
+            c = np.stack([occ % nx, (occ // nx) % ny, occ // (nx * ny)], axis=1)
+            upper = np.asarray(dims)
+            todo = np.ones(occ.size, bool)
+            for r in range(1, self.max_block + 1):
+                sel = np.flatnonzero(todo)
+                if not sel.size:
+                    break
+                lo = np.maximum(c[sel] - r, 0)
+                hi = np.minimum(c[sel] + r + 1, upper)
+                b1, b0 = _block(sat, lo, hi), _block(prev[1], lo, hi)
+                n1, n0 = b1[:, 0], b0[:, 0]
+                ok = (n1 >= m.min_points) & (n0 >= m.min_points)
+                ok &= (n1 <= m.count_ratio * n0) & (n0 <= m.count_ratio * n1)
+                good = sel[ok]
+                v[occ[good]] = _normal_flow(b1[ok], b0[ok], gap, m.planarity)
+                todo[good] = False
+        speed = np.linalg.norm(v, axis=1)
+        v[(speed < m.v_min) | (speed > m.v_max)] = 0.0
+        vmax = float(np.max(np.linalg.norm(v, axis=1), initial=0.0))
+        return v.astype(np.float32), vmax
+
+
+def _normal_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float) -> np.ndarray:
+    """Velocities (M, 3) from block moments (M, N_MOMENTS) of the new and previous snapshot.
+
+    The centroid displacement over ``gap``; where the new block's points are planar (smallest
+    covariance eigenvalue below ``planarity`` times the middle one), only its component along
+    the plane's normal: motion along a surface is not observable from its points (the aperture
+    problem), and the centroid's sideways jitter (pixel rays entering and leaving the block)
+    would tear the predicted surface apart between cells."""
+    n1, n0 = b1[:, 0], b0[:, 0]
+    c1 = b1[:, 1:4] / n1[:, None]
+    v = (c1 - b0[:, 1:4] / n0[:, None]) / gap
+    S = np.empty((len(b1), 3, 3))
+    for j, (a, b) in enumerate(_PAIRS):
+        S[:, a, b] = S[:, b, a] = b1[:, 4 + j] / n1 - c1[:, a] * c1[:, b]
+    w, U = np.linalg.eigh(S)
+    planar = w[:, 0] < planarity * w[:, 1]
+    nrm = U[:, :, 0]
+    vn = np.einsum("ij,ij->i", v, nrm)
+    v[planar] = vn[planar, None] * nrm[planar]
+    return v
+
+
+def expand(cell_velocity: np.ndarray | None, cell_start: np.ndarray) -> np.ndarray | None:
+    """Per-point velocities (N, 3) float32 in cell-sorted order from per-cell ones."""
+    if cell_velocity is None:
+        return None
+    counts = np.diff(cell_start).astype(np.int64)
+    return np.repeat(cell_velocity, counts, axis=0).astype(np.float32)
+
+
+def extra_span(vmax: float, dt: float) -> float:
+    """How much further (m) than the proxy's reach the hash must be searched this tick (with a
+    1 um allowance for the float32 rounding of p + v dt; exactly 0 when nothing moves)."""
+    e = float(vmax) * float(dt)
+    return e + 1e-6 if e > 0 else 0.0
