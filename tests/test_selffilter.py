@@ -1,0 +1,66 @@
+"""Robot self-filter (kernels/selffilter.py): the tool's own points are removed before fixtures,
+the rest of the scene stays."""
+import numpy as np
+import pytest
+
+from pointfence.bench.dynamic_scenes import self_filter_ratio
+from pointfence.kernels import DepthFrame, InputError
+from pointfence.kernels.selffilter import Capsule, SelfFilter, segment_distance
+from pointfence.service.robot import make_robot
+from pointfence.service.robot.raven2 import Raven2
+from pointfence.service.robot.tool import ToolModel, tool_capsules
+from pointfence.service.sources import SyntheticSource, default_camera
+from pointfence.service.sources.scenes import make_scene
+from pointfence.service.sources.toolscene import ToolInScene
+
+
+def test_filter_removes_exactly_the_tool_pixels():
+    """Every pixel that sees the tool (true geometry, with depth noise) is dropped, and only
+    pixels within the margin of the tool are: the table around and under it stays."""
+    cam = default_camera("cam0", eye=(0.2, 0.1, 0.5), width=160, height=120)
+    robot = make_robot("raven2", T_world_base=Raven2.mount_tool_down((0.0, 0.0, 0.12)))
+    caps = tool_capsules(robot)
+    scene = ToolInScene(base=make_scene("plane"), capsules=caps)
+    src = SyntheticSource(scene, cam, quantize=False, dropout=0.0, shadows=False)
+    depth, _, _ = src.render(0.0, np.random.default_rng(0))
+    frame = DepthFrame("cam0", depth, 0.0)
+    f = SelfFilter([cam], margin=0.003)
+    [out] = f.apply([frame], caps)
+    z_true = src.true_depth(0.0).reshape(-1)
+    pts = src._origin + z_true[:, None] * src._dirs
+    on_tool = scene.tool_distance(pts) < 1e-6
+    dropped = (depth.reshape(-1) != 0) & (out.depth.reshape(-1) == 0)
+    assert on_tool.sum() > 100  # the tool is in view
+    assert not np.any((out.depth.reshape(-1) != 0) & on_tool)  # no tool pixel survives
+    assert f.removed == dropped.sum() == np.count_nonzero(dropped & on_tool) + np.count_nonzero(dropped & ~on_tool)
+    near = scene.tool_distance(pts) < 0.003 + 0.004  # margin + a few sigma of depth noise
+    assert np.all(near[dropped])  # nothing far from the tool is dropped
+    assert frame.depth is depth and np.array_equal(frame.depth, depth)  # the input frame is untouched
+
+
+def test_robot_never_fences_itself_and_the_table_stays_protected():
+    """Selection box over the whole work area: without the filter the instrument's own points are
+    protected (false fixtures) and a fixture proxy at the tip is buried in them; with the filter
+    none are left, no table point is lost, and the tip moves freely."""
+    r = self_filter_ratio()
+    print(f"\nself-filter: {r}")
+    assert r["false_fixture_points_without"] > 50 and r["tips_fenced_without"] == 3
+    assert r["false_fixture_points_with"] == 0 and r["self_filter_false_fixture_ratio"] == 0.0
+    assert r["tips_fenced_with"] == 0
+    assert r["table_points_lost_fraction"] < 0.01
+
+
+def test_capsules_of_both_robot_models():
+    robot = make_robot("raven2", T_world_base=Raven2.mount_tool_down((0.0, 0.0, 0.15)))
+    shaft, wrist = tool_capsules(robot)
+    tip = robot.measured_cp()[:3, 3]
+    assert segment_distance(tip[None], wrist.a, wrist.b)[0] < 1e-9
+    assert segment_distance(np.zeros((1, 3)) + [0, 0, 0.15], shaft.a, shaft.b)[0] < 1e-9  # through the RCM
+    pm = make_robot("point-mass")
+    [c] = tool_capsules(pm, model=ToolModel(shaft_length=0.1))
+    assert np.allclose(np.subtract(c.b, c.a), [0, 0, 0.1])
+    with pytest.raises(InputError, match="radius"):
+        Capsule((0, 0, 0), (0, 0, 1), float("nan"))
+    with pytest.raises(InputError, match="unknown camera"):
+        SelfFilter([default_camera("a", width=16, height=12)]).mask(
+            DepthFrame("b", np.zeros((12, 16), np.uint16), 0.0), [c])
