@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from dataclasses import replace
 from typing import Optional, Sequence
 
@@ -119,6 +120,7 @@ class Service:
         self._haptics_running = False
         self._pending_arch: Optional[int] = None
         self._ctl = threading.Lock()
+        self._between: deque = deque()   # callables run by the tick thread before the next tick
         # results and counters
         self.kernel_errors = 0
         self.robot_errors = 0
@@ -211,6 +213,12 @@ class Service:
             self._robot_bad_t[:] = -math.inf
             self.last_error = None
 
+    def call_between_ticks(self, fn) -> None:
+        """Run ``fn(service)`` in the tick thread at the start of the next tick, before anything
+        else (the control API's way to read or change the tick's state; ``fn`` must not raise and
+        must be short: it runs inside the tick's deadline)."""
+        self._between.append(fn)
+
     @property
     def architecture(self) -> str:
         return self.teleop.architecture
@@ -219,6 +227,8 @@ class Service:
     def tick(self, k: int, t: float, dt: float, overrun: bool, now: float) -> None:
         if not self._started:
             self.start()
+        while self._between:
+            self._between.popleft()(self)
         n, tp = self.n, self.teleop
         with self._ctl:
             if self._pending_arch is not None:

@@ -70,6 +70,8 @@ class _FeedBase:
         self.last_error: Optional[str] = None
         self.snapshot_frames: dict = {}    # snapshot seq -> tuple of frame seqs (rig order of names)
         self.snapshot_tick: dict = {}      # snapshot seq -> first tick that used it (filled by the service)
+        #: held while a snapshot is built (and while ``swap_pipeline`` moves ingest to another pipeline)
+        self.ingest_lock = threading.Lock()
 
     def max_age(self, now: float) -> float:
         """Age (s) of the oldest camera's latest frame; inf until every camera delivered one."""
@@ -83,6 +85,24 @@ class _FeedBase:
         return [n for n, a in zip(self.names, self.arrival) if now - a > self.stale_s]
 
     def _ingest(self, frames: list) -> bool:
+        with self.ingest_lock:
+            return self._ingest_locked(frames)
+
+    def swap_pipeline(self, new) -> bool:
+        """Build snapshots in ``new`` from now on (the control API's runtime reconfiguration).
+        ``new`` first gets a snapshot of every camera's latest frame, numbered on from the current
+        pipeline's snapshots, so it is as current as the old one the moment it takes over; the
+        swap happens only if that snapshot was built (returns whether it was)."""
+        with self.ingest_lock:
+            old = self.pipeline
+            new.seq = max(int(new.seq), int(old.seq))
+            self.pipeline = new
+            if self._ingest_locked(list(self.latest)):
+                return True
+            self.pipeline = old
+            return False
+
+    def _ingest_locked(self, frames: list) -> bool:
         if any(f is None for f in frames):
             return False
         try:

@@ -3,6 +3,7 @@
     pointfence serve --new-key pf.key                      # write a fresh 32-byte key and exit
     pointfence serve --key-file pf.key [--config F] [--clients N] [--port 47800] [--bind 127.0.0.1]
                      [--timeout-ms 50] [--duration S] [--itp 127.0.0.1:36000 --itp-slots 0,1]
+                     [--control-port 47801 | --no-control]
 
 Each client (``pointfence.clients.Client``, the C SDK, ``pointfence device-sim``) opens a
 session with a HELLO tagged with the key and then drives one master slot, i.e. one proxy and
@@ -10,6 +11,8 @@ one robot, of the haptic loop; ``--clients`` slots exist (default ``[service] pr
 client silent for longer than its timeout is dropped (its robot holds, its force ramps to zero).
 Status lines go to stderr every ``--status-every`` s; the final status (sessions, per-reason
 rejection counters, loop timing) is printed as JSON on exit and written to ``--stats-file``.
+The local HTTP JSON control API (``control_api.py``; ``pointfence ctl``) listens on
+127.0.0.1:``--control-port`` (status, metrics, architecture, engage/disengage, radius, selection).
 """
 from __future__ import annotations
 
@@ -22,6 +25,8 @@ from pathlib import Path
 
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
+
+from .control_api import DEFAULT_CONTROL_PORT
 
 DEFAULT_PORT = 47800
 
@@ -46,6 +51,11 @@ def add_arguments(p):
     p.add_argument("--itp", default=None, metavar="[HOST:]PORT",
                    help="also accept Raven II ITP master packets here (UNAUTHENTICATED; default off; host defaults to 127.0.0.1)")
     p.add_argument("--itp-slots", default="0", help="master slots the ITP arms 0 and 1 drive, e.g. '0,1' (default '0')")
+    p.add_argument("--control-port", type=int, default=None,
+                   help=f"local HTTP JSON control API port (default {DEFAULT_CONTROL_PORT}, or any free port if that "
+                        "one is taken: see stderr and --ready-file; 0: any free port); `pointfence ctl` uses it")
+    p.add_argument("--control-bind", default="127.0.0.1", help="control API address: loopback only (default 127.0.0.1)")
+    p.add_argument("--no-control", action="store_true", help="no control API")
     p.add_argument("--itp-checksum", choices=("sum", "none"), default="sum", help="ITP checksum rule (see service/itp.py)")
 
 
@@ -108,12 +118,31 @@ def run(args) -> int:
           f"(timeout {args.timeout_ms} ms), backend {run_.service.backend.name} on {run_.service.backend.device_name}"
           + (f"; ITP (unauthenticated) on udp://{itp.address[0]}:{itp.address[1]}" if itp else ""), file=sys.stderr)
     t_start = time.monotonic()
+    control = None
     try:
         run_.start()
         run_.wait_ticks(10)
         run_.mark()
+        if not args.no_control:
+            from .control_api import Controller, ControlServer
+
+            extras = {"clients": hub.status, **({"itp": itp.status} if itp is not None else {})}
+            controller = Controller(run_.service, run_.loop, extras=extras)
+            if args.control_port is not None:
+                control = ControlServer(controller, args.control_bind, args.control_port).start()
+            else:
+                try:
+                    control = ControlServer(controller, args.control_bind, DEFAULT_CONTROL_PORT).start()
+                except InputError as e:
+                    print(f"pointfence serve: {e}; using any free port instead", file=sys.stderr)
+                    control = ControlServer(controller, args.control_bind, 0).start()
+            print(f"pointfence serve: control API on {control.url} (pointfence ctl --port {control.address[1]} status)",
+                  file=sys.stderr)
         if args.ready_file:
-            Path(args.ready_file).write_text(json.dumps({"host": hub.address[0], "port": hub.address[1]}) + "\n")
+            ready = {"host": hub.address[0], "port": hub.address[1]}
+            if control is not None:
+                ready["control_port"] = control.address[1]
+            Path(args.ready_file).write_text(json.dumps(ready) + "\n")
         last = time.monotonic()
         while not stop["now"]:
             if args.duration is not None and time.monotonic() - t_start >= args.duration:
@@ -132,8 +161,12 @@ def run(args) -> int:
         pass
     finally:
         signal.signal(signal.SIGTERM, old)
+        if control is not None:
+            control.close()
         run_.stop()
         status = {"udp": hub.status(), "loop": run_.timing().as_dict(), "service": _jsonable(run_.service.status())}
+        if control is not None:
+            status["control"] = control.controller._counters()
         if itp is not None:
             status["itp"] = itp.status()
             itp.close()

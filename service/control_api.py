@@ -1,0 +1,540 @@
+"""The local HTTP JSON control API of `pointfence serve` (standard library only).
+
+An ``http.server`` in its own thread, bound to loopback (127.0.0.1 by default, port
+``DEFAULT_CONTROL_PORT``). It never touches the haptic tick's data directly: every read and
+every change is a short function handed to ``Service.call_between_ticks``, which the tick thread
+runs at the start of its next tick (so a change is applied whole, between two ticks, never
+half-way through one); the request waits for it (``apply_timeout``). Reads return what that
+tick thread copied out. The one exception is the loop's timing, computed here from the loop's
+measurement rings (read-only arrays the tick appends to; a concurrent write changes one sample).
+
+Routes (JSON in, JSON out; errors are ``{"ok": false, "error": "..."}`` with a 4xx/5xx status,
+and a refused command changes nothing):
+
+    GET  /status                     architecture, engagement, holds, robots, frames, clients,
+                                     the last tick's positions/forces, the fixture parameters
+    GET  /metrics                    loop timing (compute/lateness p50/p99/max, misses, overruns),
+                                     degraded (hold) reasons, camera ages and staleness, clients
+    GET  /config                     the fixture parameters in use (mode, radius, selection, cell)
+    POST /architecture  {"architecture": "I"|"II"|"III"}
+    POST /haptics       {"engaged": true|false}
+    POST /teleop        {"engaged": true|false}
+    POST /radius        {"radius": 0.015[, "radius_max": R]}
+    POST /selection     {"kind": "all"} | {"kind": "box", "min": [x,y,z], "max": [x,y,z]}
+                        | {"kind": "color", "lo": [r,g,b], "hi": [r,g,b]} | {"kind": "mask"}
+    POST /clear-faults  {}           leave the loop's safe mode, re-enable faulted robots
+
+Radius and selection are parameters of the frame pipeline's snapshots. A change builds a new
+pipeline with the new parameters (and, unless the configuration fixes ``[hash] cell_size``, the
+cell size they need) off the tick thread, gives it a snapshot of every camera's latest frame,
+makes the frame feeder build into it, and then, between two ticks, the tick swaps pipeline and
+proxy batch together (the proxies keep their positions). Snapshots before the swap were built
+with the old parameters and are queried with them; every snapshot after it with the new ones.
+If the tick does not take the swap within ``apply_timeout`` the feeder goes back to the old
+pipeline and the request fails (nothing changed). A radius the fixed cell size cannot serve is
+refused with a message saying so. Runtime changes are not part of a recording's inputs:
+``pointfence replay --recording`` replays the configuration's parameters.
+
+POST bodies must be ``Content-Type: application/json`` and the ``Host`` a loopback name (a web
+page cannot post here: cross-origin JSON needs a CORS preflight this server never grants).
+"""
+from __future__ import annotations
+
+import ipaddress
+import json
+import math
+import threading
+from dataclasses import replace
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Callable, Optional
+
+from pointfence.kernels.errors import InputError, PointfenceError
+from pointfence.kernels.params import PipelineParams, RadiusModel, Selection
+
+from .teleop import ARCHITECTURES, arch_code
+
+DEFAULT_CONTROL_PORT = 47801
+#: largest fixture radius (m) the API accepts at runtime (larger: edit the configuration)
+MAX_RUNTIME_RADIUS = 0.1
+MAX_BODY = 64 * 1024
+#: the proxy's outer band used for the hash cell size (as in config.py)
+_DEFAULT_R3 = 0.010
+
+
+class ControlError(Exception):
+    """A refused request: HTTP ``status`` and a message for the caller."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = int(status)
+        self.message = message
+
+
+class _Pending:
+    """One function for the tick thread, with its result; ``cancel()`` and the tick's run are
+    mutually exclusive (exactly one of them happens)."""
+
+    def __init__(self, fn: Callable):
+        self.fn = fn
+        self.done = threading.Event()
+        self.result = None
+        self.error: Optional[BaseException] = None
+        self._lock = threading.Lock()
+        self._state = 0   # 0 queued, 1 ran, 2 cancelled
+
+    def __call__(self, service) -> None:   # in the tick thread: never raises
+        with self._lock:
+            if self._state != 0:
+                return
+            self._state = 1
+        try:
+            self.result = self.fn(service)
+        except BaseException as e:  # noqa: BLE001 - reported to the requester, never to the tick
+            self.error = e
+        self.done.set()
+
+    def cancel(self) -> bool:
+        with self._lock:
+            if self._state == 0:
+                self._state = 2
+                return True
+            return False
+
+
+def _jsonable(o):
+    return json.loads(json.dumps(o, default=lambda v: v.tolist() if hasattr(v, "tolist") else str(v)))
+
+
+def selection_dict(sel: Selection) -> dict:
+    d = {"kind": sel.kind}
+    if sel.kind == "box":
+        d.update(min=list(sel.box_min), max=list(sel.box_max))
+    elif sel.kind == "color":
+        d.update(lo=list(sel.color_lo), hi=list(sel.color_hi))
+    return d
+
+
+class Controller:
+    """The API's logic, without HTTP: ``handle(method, path, body) -> (status, dict)``.
+
+    Args:
+        service: the running ``app.Service``.
+        loop: its ``loop.HapticLoop`` (timing, safe-mode state); None: timing unavailable.
+        clock: the loop's clock (frame ages); default the loop's.
+        extras: name -> callable() returning a JSON-able dict, called in the tick thread for
+            /status and /metrics (e.g. ``{"clients": hub.status}``).
+        apply_timeout: s to wait for the tick thread to take a request.
+    """
+
+    def __init__(self, service, loop=None, clock=None, extras: Optional[dict] = None, apply_timeout: float = 2.0):
+        self.service = service
+        self.loop = loop
+        self.clock = clock if clock is not None else getattr(loop, "clock", None)
+        self.extras = dict(extras or {})
+        self.apply_timeout = float(apply_timeout)
+        self._lock = threading.Lock()      # one change at a time
+        self.reconfigurations = 0
+        self.requests = 0
+        self.refused = 0
+
+    # --- the tick thread ------------------------------------------------------------------------
+    def _in_tick(self, fn: Callable, what: str):
+        """Run ``fn(service)`` in the tick thread between two ticks and return its result."""
+        loop = self.loop
+        if loop is not None and loop.error is not None:
+            raise ControlError(503, f"{what}: not applied: the haptic loop is in its safe mode after an error "
+                                    f"({loop.error}); POST /clear-faults (pointfence ctl clear-faults) first")
+        if loop is not None and not loop.running:
+            raise ControlError(503, f"{what}: not applied: the haptic loop is not running")
+        p = _Pending(fn)
+        self.service.call_between_ticks(p)
+        if not p.done.wait(self.apply_timeout):
+            if p.cancel():
+                raise ControlError(503, f"{what}: not applied: the haptic loop ran no tick within "
+                                        f"{self.apply_timeout:g} s (nothing changed)")
+            p.done.wait()
+        if p.error is not None:
+            if isinstance(p.error, ControlError):
+                raise p.error
+            if isinstance(p.error, PointfenceError):
+                raise ControlError(409, f"{what}: {p.error}")
+            raise ControlError(500, f"{what}: {type(p.error).__name__}: {p.error}")
+        return p.result
+
+    def _now(self) -> Optional[float]:
+        return self.clock.now() if self.clock is not None else None
+
+    def _collect(self, svc) -> dict:
+        """In the tick thread: status, the last tick's published values, extras."""
+        out = {"status": svc.status(self._now()), "snapshot": svc.snapshot(), "tick": svc._pub_k}
+        for name, fn in self.extras.items():
+            try:
+                out[name] = fn()
+            except Exception as e:  # noqa: BLE001
+                out[name] = {"error": f"{type(e).__name__}: {e}"}
+        return out
+
+    # --- requests -------------------------------------------------------------------------------
+    def handle(self, method: str, path: str, body: Optional[dict] = None):
+        self.requests += 1
+        route = path.split("?", 1)[0].rstrip("/") or "/"
+        try:
+            fn = self.ROUTES.get((method, route))
+            if fn is None:
+                if any(r == route for _, r in self.ROUTES):
+                    allowed = sorted(m for m, r in self.ROUTES if r == route)
+                    raise ControlError(405, f"{method} {route}: method not allowed; use {', '.join(allowed)}")
+                raise ControlError(404, f"no route {method} {route}; routes: " +
+                                   ", ".join(f"{m} {r}" for m, r in sorted(self.ROUTES, key=lambda x: x[1])))
+            if method == "POST" and not isinstance(body, dict):
+                raise ControlError(400, f"POST {route}: expected a JSON object body")
+            return 200, {"ok": True, **_jsonable(fn(self, body or {}))}
+        except ControlError as e:
+            self.refused += 1
+            return e.status, {"ok": False, "error": e.message}
+        except InputError as e:
+            self.refused += 1
+            return 400, {"ok": False, "error": str(e)}
+
+    def get_status(self, _body) -> dict:
+        c = self._in_tick(self._collect, "status")
+        snap = c["snapshot"]
+        arms = [{k: snap[k][b] for k in ("xm", "hip", "proxy", "cmd", "xr", "force")} | {"state": int(snap["state"][b])}
+                for b in range(len(snap["state"]))]
+        return {**c["status"], "tick": c["tick"], "t": snap["t"], "arms": arms, "fixture": self.fixture_config(),
+                **{k: c[k] for k in self.extras}, "control": self._counters()}
+
+    def get_metrics(self, _body) -> dict:
+        c = self._in_tick(self._collect, "metrics")
+        st = c["status"]
+        fr = st.get("frames") or {}
+        out = {
+            "loop": self.loop.timing().as_dict() if self.loop is not None else None,
+            "scheduling": getattr(self.loop, "scheduling", None),
+            "loop_error": getattr(self.loop, "error", None), "loop_exceptions": getattr(self.loop, "errors", 0),
+            "degraded": bool(st["hold"]) or any(st["arms_holding"]), "hold": st["hold"],
+            "arms_holding": st["arms_holding"], "kernel_errors": st["kernel_errors"],
+            "robot_errors": st["robot_errors"], "last_error": st["last_error"], "frame_seq": st["frame_seq"],
+            "cameras": {"ages_s": fr.get("ages_s"), "stale": fr.get("stale"), "snapshots": fr.get("snapshots"),
+                        "frames": fr.get("frames"), "ingest_errors": fr.get("ingest_errors")},
+            "control": self._counters(),
+        }
+        for name in self.extras:
+            v = c[name]
+            if isinstance(v, dict) and "sessions" in v:   # a UdpHub's status: counts
+                out[name] = {"slots": v.get("slots"), "connected": len(v["sessions"]),
+                             "accepted": v.get("accepted"), "rejected_total": v.get("rejected_total"),
+                             "timed_out": v.get("sessions_timed_out"), "closed": v.get("sessions_closed")}
+            else:
+                out[name] = v
+        return out
+
+    def get_config(self, _body) -> dict:
+        return {"fixture": self.fixture_config(), "architecture": self.service.architecture,
+                "architectures": list(ARCHITECTURES)}
+
+    def _counters(self) -> dict:
+        return {"requests": self.requests, "refused": self.refused, "reconfigurations": self.reconfigurations}
+
+    def fixture_config(self) -> dict:
+        svc = self.service
+        pp = svc.pipeline.params
+        r = pp.radius
+        return {"mode": svc.cfg.mode, "radius": r.r_base, "radius_max": r.r_max, "adaptive": r.adaptive,
+                "k_sigma": r.k_sigma, "selection": selection_dict(pp.selection), "cell_size": pp.cell_size,
+                "cell_size_fixed": bool(svc.cfg.cell_size_given)}
+
+    # --- commands -------------------------------------------------------------------------------
+    def post_architecture(self, body) -> dict:
+        a = body.get("architecture")
+        if not isinstance(a, str) or a.upper() not in ARCHITECTURES:
+            raise ControlError(400, f"architecture = {a!r}; expected one of {', '.join(ARCHITECTURES)} (eqs. 3.1-3.3)")
+        code = arch_code(a)
+
+        def apply(svc):
+            prev = svc.teleop.architecture
+            svc.teleop.set_architecture(code)   # the HIP and command stay continuous (teleop.py)
+            return {"architecture": svc.teleop.architecture, "previous": prev, "applied_before_tick": svc._pub_k + 1}
+
+        with self._lock:
+            return self._in_tick(apply, "set architecture")
+
+    def _engage(self, body, what: str) -> dict:
+        on = body.get("engaged")
+        if not isinstance(on, bool):
+            raise ControlError(400, f"engaged = {on!r}; expected true or false")
+
+        def apply(svc):
+            prev = svc.haptics_on if what == "haptics" else svc.teleop_on
+            (svc.engage_haptics if what == "haptics" else svc.engage_teleop)(on)
+            return {what: on, "previous": prev, "applied_before_tick": svc._pub_k + 1}
+
+        with self._lock:
+            return self._in_tick(apply, f"{'engage' if on else 'disengage'} {what}")
+
+    def post_haptics(self, body) -> dict:
+        return self._engage(body, "haptics")
+
+    def post_teleop(self, body) -> dict:
+        return self._engage(body, "teleop")
+
+    def post_clear_faults(self, body) -> dict:
+        with self._lock:
+            was = self.loop.error if self.loop is not None else None
+            if self.loop is not None:
+                self.loop.clear_error()   # a flag; the next tick is a normal one again
+            return {**self._in_tick(lambda svc: (svc.clear_faults(), {})[1], "clear faults"), "cleared_loop_error": was}
+
+    def post_radius(self, body) -> dict:
+        r = body.get("radius")
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r):
+            raise ControlError(400, f"radius = {r!r}; expected a number of metres, e.g. 0.015")
+        if r < 0:
+            raise ControlError(400, f"radius = {r!r}; expected a fixture radius >= 0 m")
+        if r > MAX_RUNTIME_RADIUS:
+            raise ControlError(400, f"radius = {r!r} m is above the control API's limit {MAX_RUNTIME_RADIUS} m; "
+                                    "set larger radii in the configuration and restart")
+        cur = self.service.pipeline.params.radius
+        rmax = body.get("radius_max")
+        if rmax is None:
+            rmax = r + (cur.r_max - cur.r_base) if cur.adaptive else r
+        elif isinstance(rmax, bool) or not isinstance(rmax, (int, float)) or not math.isfinite(rmax):
+            raise ControlError(400, f"radius_max = {rmax!r}; expected a number of metres")
+        elif rmax > MAX_RUNTIME_RADIUS + (cur.r_max - cur.r_base):
+            raise ControlError(400, f"radius_max = {rmax!r} m is above the control API's limit")
+        try:
+            model = RadiusModel(r_base=float(r), adaptive=cur.adaptive, k_sigma=cur.k_sigma, r_max=float(rmax))
+        except InputError as e:
+            raise ControlError(400, str(e)) from None
+        return self._reconfigure(radius=model, what="radius")
+
+    def post_selection(self, body) -> dict:
+        kind = body.get("kind")
+        extra = set(body) - {"kind", "min", "max", "lo", "hi"}
+        if extra:
+            raise ControlError(400, f"selection: unknown key(s) {', '.join(sorted(extra))}; expected kind, min, max, lo, hi")
+        try:
+            if kind == "box":
+                for key in ("min", "max"):
+                    v = body.get(key)
+                    if not isinstance(v, list) or len(v) != 3 or not all(
+                            isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+                        raise ControlError(400, f"selection box {key} = {v!r}; expected [x, y, z] in metres (world frame)")
+                sel = Selection("box", box_min=tuple(body["min"]), box_max=tuple(body["max"]))
+            elif kind == "color":
+                for key in ("lo", "hi"):
+                    v = body.get(key)
+                    if not isinstance(v, list) or len(v) != 3 or not all(
+                            isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 255 for x in v):
+                        raise ControlError(400, f"selection color {key} = {v!r}; expected [R, G, B] integers 0..255")
+                sel = Selection("color", color_lo=tuple(body["lo"]), color_hi=tuple(body["hi"]))
+            elif kind in ("all", "mask"):
+                sel = Selection(kind)
+            else:
+                raise ControlError(400, f"selection kind = {kind!r}; expected one of all, box, color, mask")
+        except InputError as e:
+            raise ControlError(400, str(e)) from None
+        return self._reconfigure(selection=sel, what="selection")
+
+    # --- runtime reconfiguration of the snapshots' parameters -----------------------------------
+    def _new_params(self, radius=None, selection=None) -> PipelineParams:
+        svc = self.service
+        cur = svc.pipeline.params
+        pp = replace(cur, radius=radius if radius is not None else cur.radius,
+                     selection=selection if selection is not None else cur.selection)
+        if svc.cfg.cell_size_given:
+            reach = PipelineParams.reach(max(_DEFAULT_R3, svc.params.r3), pp.radius)
+            if reach > cur.cell_size + 1e-12:
+                raise ControlError(409, f"radius_max {pp.radius.r_max} m cannot be applied at runtime: the configuration "
+                                        f"fixes [hash] cell_size = {cur.cell_size} m, below the reach it needs "
+                                        f"({reach:.4f} m = R3 + radius_max); restart with a larger [hash] cell_size "
+                                        "(or none: it then follows the radius)")
+            return pp
+        from pointfence.kernels.haptics import haptic_pipeline_params
+
+        try:
+            return haptic_pipeline_params(svc.params, pp)
+        except InputError as e:
+            raise ControlError(400, f"{e}") from None
+
+    def _reconfigure(self, what: str, radius=None, selection=None) -> dict:
+        svc = self.service
+        if svc.cfg.mode != "fixture":
+            raise ControlError(409, f"{what}: has no effect in rendering mode ([fixture] mode = "
+                                    f"{svc.cfg.mode!r}: every point is rendered, none carries a fixture radius)")
+        feeder = svc.feeder
+        if feeder is None or not hasattr(feeder, "swap_pipeline"):
+            raise ControlError(409, f"{what}: cannot be changed at runtime here: the service has no frame feeder "
+                                    "that can move to a rebuilt pipeline")
+        from .frames import PublishGate
+
+        with self._lock:
+            pp = self._new_params(radius, selection)
+            old = svc.pipeline
+            if pp == old.params:
+                return {"changed": False, "fixture": self.fixture_config()}
+            try:
+                new = svc.backend.pipeline(list(old.rig.cameras), pp)
+            except PointfenceError as e:
+                raise ControlError(400, f"{what}: {e}") from None
+            gate = PublishGate(new)
+            # A first snapshot in the new pipeline (feeder paused for that one build) so the batch
+            # can be compiled and launched once off the tick thread.
+            with feeder.ingest_lock:
+                latest = list(feeder.latest)
+                if any(f is None for f in latest):
+                    raise ControlError(409, f"{what}: not applied: not every camera has delivered a frame yet")
+                try:
+                    new.ingest(latest)
+                except PointfenceError as e:
+                    raise ControlError(409, f"{what}: not applied: the frames do not build with the new "
+                                            f"parameters: {e}") from None
+            hip = svc.teleop.hip.copy()
+            batch = new.proxies(hip, svc.params)
+            with gate.lock:
+                batch.step(hip)           # compiles / warms the kernels now, not in a tick
+            if not feeder.swap_pipeline(new):
+                raise ControlError(409, f"{what}: not applied: the latest frames did not build a snapshot "
+                                        f"with the new parameters ({feeder.last_error})")
+            cfg_new = replace(svc.cfg, pipeline=replace(svc.cfg.pipeline, radius=pp.radius, selection=pp.selection,
+                                                        cell_size=pp.cell_size))
+
+            def commit(s):
+                prev = (s.pipeline, s.gate, s.batch)
+                batch.reset(s.batch.positions)     # the proxies carry on from where they are
+                s.pipeline, s.gate, s.batch = new, gate, batch
+                s.cfg = cfg_new
+                return {"old": prev, "tick": s._pub_k + 1}
+
+            try:
+                res = self._in_tick(commit, what)
+            except ControlError:
+                feeder.swap_pipeline(old)       # back to the pipeline the ticks still query
+                raise
+            del res["old"]                      # the old pipeline is released here, not in a tick
+            self.reconfigurations += 1
+            return {"changed": True, "applied_before_tick": res["tick"], "fixture": self.fixture_config()}
+
+    ROUTES = {
+        ("GET", "/status"): get_status,
+        ("GET", "/metrics"): get_metrics,
+        ("GET", "/config"): get_config,
+        ("POST", "/architecture"): post_architecture,
+        ("POST", "/haptics"): post_haptics,
+        ("POST", "/teleop"): post_teleop,
+        ("POST", "/radius"): post_radius,
+        ("POST", "/selection"): post_selection,
+        ("POST", "/clear-faults"): post_clear_faults,
+    }
+
+
+# --- HTTP ----------------------------------------------------------------------------------------
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server_version = "pointfence-control/1"
+    controller: Controller = None   # set on the subclass made per server
+
+    def log_message(self, fmt, *args):   # no per-request logging to stderr
+        pass
+
+    def _reply(self, status: int, obj: dict) -> None:
+        data = (json.dumps(obj) + "\n").encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(data)
+
+    def _host_ok(self) -> bool:
+        host = (self.headers.get("Host") or "").strip()
+        if host.startswith("["):
+            name = host[: host.find("]") + 1] if "]" in host else host
+        else:
+            name = host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+        return is_loopback(name)
+
+    def do_GET(self):
+        if not self._host_ok():
+            return self._reply(403, {"ok": False, "error": "Host header is not a loopback name"})
+        self._reply(*self.controller.handle("GET", self.path))
+
+    def do_POST(self):
+        if not self._host_ok():
+            return self._reply(403, {"ok": False, "error": "Host header is not a loopback name"})
+        ctype = (self.headers.get("Content-Type") or "").split(";", 1)[0].strip().lower()
+        if ctype != "application/json":
+            return self._reply(415, {"ok": False, "error": f"Content-Type {ctype or 'missing'}; expected application/json"})
+        try:
+            n = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            n = -1
+        if not 0 <= n <= MAX_BODY:
+            return self._reply(413 if n > MAX_BODY else 400, {"ok": False, "error": f"body of {n} bytes; expected 0..{MAX_BODY}"})
+        raw = self.rfile.read(n) if n else b"{}"
+        try:
+            body = json.loads(raw.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as e:
+            return self._reply(400, {"ok": False, "error": f"body is not valid JSON: {e}"})
+        self._reply(*self.controller.handle("POST", self.path, body))
+
+    def do_PUT(self):
+        self._reply(405, {"ok": False, "error": "use GET or POST"})
+
+    do_DELETE = do_PATCH = do_PUT
+
+
+class ControlServer:
+    """``Controller`` behind an HTTP server in its own daemon thread on ``host:port``
+    (loopback only; port 0: any free port, see ``address``)."""
+
+    def __init__(self, controller: Controller, host: str = "127.0.0.1", port: int = DEFAULT_CONTROL_PORT):
+        if not is_loopback(host):
+            raise InputError(f"control API address {host!r}: the control API has no authentication and binds to "
+                             "loopback only (127.0.0.1, ::1, localhost)")
+        self.controller = controller
+        handler = type("Handler", (_Handler,), {"controller": controller})
+        cls = ThreadingHTTPServer
+        if ":" in host:
+            import socket
+
+            cls = type("Server6", (ThreadingHTTPServer,), {"address_family": socket.AF_INET6})
+        try:
+            self.httpd = cls((host, int(port)), handler)
+        except OSError as e:
+            raise InputError(f"control API: cannot listen on {host}:{port}: {e} (choose another --control-port, "
+                             "or 0 for any free port)") from None
+        self.httpd.daemon_threads = True
+        self._thread: Optional[threading.Thread] = None
+
+    @property
+    def address(self) -> tuple:
+        return self.httpd.server_address[:2]
+
+    @property
+    def url(self) -> str:
+        host, port = self.address
+        return f"http://{'[' + host + ']' if ':' in host else host}:{port}"
+
+    def start(self) -> "ControlServer":
+        if self._thread is None:
+            self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},
+                                            name="pointfence-control-api", daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        if self._thread is not None:
+            self.httpd.shutdown()
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self.httpd.server_close()
+
