@@ -60,6 +60,7 @@ class MotionModel:
         stale snapshot stays where it was last predicted (dt <= latency + max_age).
     capture: the longest displacement between two snapshots that is measured (m): blocks grow
         up to this half-width.
+    cell: edge of the motion grid's cells (m), rounded to a multiple of the hash cell size.
     min_points: fewest points per block for an estimate.
     planarity: a block whose smallest covariance eigenvalue is below this times the middle one
         is a surface patch: only its normal velocity is kept.
@@ -73,6 +74,7 @@ class MotionModel:
     latency: float = 0.0
     max_age: float = 0.1
     capture: float = 0.05
+    cell: float = 0.025
     min_points: int = 12
     planarity: float = 0.1
     count_ratio: float = 1.5
@@ -81,7 +83,7 @@ class MotionModel:
     max_gap: float = 0.2
 
     def __post_init__(self):
-        for key in ("latency", "max_age", "capture", "planarity", "count_ratio", "v_min", "v_max", "max_gap"):
+        for key in ("latency", "max_age", "capture", "cell", "planarity", "count_ratio", "v_min", "v_max", "max_gap"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise InputError(f"motion {key} = {v!r}; expected a finite number >= 0")
@@ -152,13 +154,7 @@ def cell_moments(points_sorted: np.ndarray, cell_start: np.ndarray, grid: "Grid"
 
 def world_moments(local: np.ndarray, grid: "Grid") -> np.ndarray:
     """Cell moments about the world origin from moments about each cell's corner (float64)."""
-    m = np.asarray(local, np.float64).copy()
-    c = cell_corners(grid)
-    n, s = m[:, 0], m[:, 1:4].copy()
-    m[:, 1:4] = s + n[:, None] * c
-    for j, (a, b) in enumerate(_PAIRS):
-        m[:, 4 + j] += c[:, a] * s[:, b] + c[:, b] * s[:, a] + n * c[:, a] * c[:, b]
-    return m
+    return _to_world(np.asarray(local, np.float64), cell_corners(grid))
 
 
 def _sat(moments: np.ndarray, dims: tuple) -> np.ndarray:
@@ -180,41 +176,57 @@ def _block(sat: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 class MotionEstimator:
     """Per-cell velocities from consecutive snapshots' cell moments (``cell_moments``, about
-    each cell's corner) (see the module docstring).
+    each cell's corner); see the module docstring.
 
-    Blocks of half-width 1, 2, ... up to ``ceil(capture / cell size)`` cells are tried in turn
-    per occupied cell; the smallest one whose two counts agree gives the estimate (a small
-    block mixes in the fewest other surfaces; a larger one captures a longer displacement).
+    The estimate runs on a motion grid of about ``cell`` m: k x k x k hash cells per motion cell
+    (k = round(cell / hash cell size), at least 1), so a fine rendering hash does not multiply
+    the work. Blocks of half-width 1, 2, ... up to ``ceil(capture / motion cell)`` motion cells
+    are tried in turn per occupied motion cell; the smallest one whose two counts agree gives
+    the estimate (a small block mixes in the fewest other surfaces; a larger one captures a
+    longer displacement). Every hash cell takes its motion cell's velocity.
     """
 
     def __init__(self, model: MotionModel, grid: "Grid"):
         self.model = model
         self.grid = grid
-        self.max_block = max(1, int(math.ceil(model.capture / grid.h - 1e-9)))
+        self.k = max(1, int(round(model.cell / grid.h)))
+        nx, ny, nz = grid.dims
+        k = self.k
+        self.dims = (-(-nx // k), -(-ny // k), -(-nz // k))
+        c = np.arange(nx * ny * nz)
+        ijk = np.stack([c % nx, (c // nx) % ny, c // (nx * ny)], axis=1)
+        cc = ijk // k
+        self._coarse = (cc[:, 2] * self.dims[1] + cc[:, 1]) * self.dims[0] + cc[:, 0]
+        self._corners = np.asarray(grid.origin) + ijk * grid.h
+        self.max_block = max(1, int(math.ceil(model.capture / (k * grid.h) - 1e-9)))
         self._prev = None  # (time, summed-area table)
 
     def reset(self) -> None:
         self._prev = None
 
     def update(self, moments: np.ndarray, t: float):
-        """Velocities (n_cells, 3) float32 for the snapshot with ``moments`` taken at ``t`` and
-        their largest speed (m/s); (None, 0.0) when there is no estimate (first snapshot, gap)."""
+        """Velocities (n_cells, 3) float32 for the snapshot with ``moments`` (per hash cell,
+        about the cell corners) taken at ``t`` and their largest speed (m/s); (None, 0.0) when
+        there is no estimate (first snapshot, gap)."""
         m = self.model
-        dims = self.grid.dims
-        moments = world_moments(moments, self.grid)
-        sat = _sat(moments, dims)
+        fine = np.flatnonzero(moments[:, 0] > 0)
+        wm = _to_world(np.asarray(moments[fine], np.float64), self._corners[fine])
+        nc = self.dims[0] * self.dims[1] * self.dims[2]
+        coarse = np.zeros((nc, N_MOMENTS))
+        np.add.at(coarse, self._coarse[fine], wm)
+        sat = _sat(coarse, self.dims)
         prev, self._prev = self._prev, (float(t), sat)
         if prev is None:
             return None, 0.0
         gap = float(t) - prev[0]
         if not (0 < gap <= m.max_gap):
             return None, 0.0
-        occ = np.flatnonzero(moments[:, 0] > 0)
-        v = np.zeros((moments.shape[0], 3))
+        occ = np.unique(self._coarse[fine])
+        vc = np.zeros((occ.size, 3))
         if occ.size:
-            nx, ny, _ = dims
+            nx, ny, _ = self.dims
             c = np.stack([occ % nx, (occ // nx) % ny, occ // (nx * ny)], axis=1)
-            upper = np.asarray(dims)
+            upper = np.asarray(self.dims)
             todo = np.ones(occ.size, bool)
             for r in range(1, self.max_block + 1):
                 sel = np.flatnonzero(todo)
@@ -227,12 +239,24 @@ class MotionEstimator:
                 ok = (n1 >= m.min_points) & (n0 >= m.min_points)
                 ok &= (n1 <= m.count_ratio * n0) & (n0 <= m.count_ratio * n1)
                 good = sel[ok]
-                v[occ[good]] = _normal_flow(b1[ok], b0[ok], gap, m.planarity)
+                vc[good] = _normal_flow(b1[ok], b0[ok], gap, m.planarity)
                 todo[good] = False
-        speed = np.linalg.norm(v, axis=1)
-        v[(speed < m.v_min) | (speed > m.v_max)] = 0.0
-        vmax = float(np.max(np.linalg.norm(v, axis=1), initial=0.0))
-        return v.astype(np.float32), vmax
+        speed = np.linalg.norm(vc, axis=1)
+        vc[(speed < m.v_min) | (speed > m.v_max)] = 0.0
+        v = np.zeros((moments.shape[0], 3), np.float32)
+        v[fine] = vc[np.searchsorted(occ, self._coarse[fine])]
+        vmax = float(np.max(np.linalg.norm(vc, axis=1), initial=0.0))
+        return v, vmax
+
+
+def _to_world(local: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Moments about the world origin from moments (M, N_MOMENTS) about the corners (M, 3)."""
+    m = local.copy()
+    n, s = m[:, 0], m[:, 1:4].copy()
+    m[:, 1:4] = s + n[:, None] * corners
+    for j, (a, b) in enumerate(_PAIRS):
+        m[:, 4 + j] += corners[:, a] * s[:, b] + corners[:, b] * s[:, a] + n * corners[:, a] * corners[:, b]
+    return m
 
 
 def _normal_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float) -> np.ndarray:
