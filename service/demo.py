@@ -12,6 +12,11 @@ tracking: r.m.s. |X_r - X_r*| with the master outside the region) and the loop's
 default here, holds the robot as in the service). ``--offline`` runs the same on the simulated
 clock (deterministic; no loop timing). ``--out DIR`` keeps each run's ticks.csv, summary.json
 and inputs.npz (replayable with ``pointfence replay --recording``).
+
+It then runs the chapter-2 surface probes in haptic rendering mode (``probes``: push into a
+plane, concave/convex/corner, the 5 mm ledge, and the rising plane's pop-through speed, figs.
+2.12-2.15) and writes the report folder (``--report DIR``, default ``out/demo``; ``report``):
+PNG plots of every figure and the table (with the pop-through column) as table.md and table.json.
 """
 from __future__ import annotations
 
@@ -23,7 +28,7 @@ from pathlib import Path
 from pointfence.kernels import get_backend
 from pointfence.service import config as config_mod
 
-from . import replay, scenarios
+from . import replay, report, scenarios
 from .canned import canned_sources
 from .runner import LiveRun
 
@@ -46,6 +51,9 @@ def add_arguments(p):
                    help="s; a tick later than this holds the robot (default 0.02 for the demo on a shared or "
                         "loaded machine; the configuration's [service] max_lateness_s otherwise applies)")
     p.add_argument("--out", default=None, help="folder to keep every run's ticks.csv, summary.json, inputs.npz")
+    p.add_argument("--report", default="out/demo", help="report folder: PNG plots and table.md/table.json "
+                                                        "(default out/demo; '' for none)")
+    p.add_argument("--no-probes", action="store_true", help="skip the chapter-2 surface probes (figs. 2.12-2.15)")
 
 
 def _mm(v):
@@ -80,6 +88,7 @@ def _one(cfg, scene, arch, args):
     if loop.error:
         summary["loop_error"] = loop.error
     summary["hold"] = svc.status()["hold"]
+    summary["_trace"] = report.trace_of(svc, sources, cfg) if args.report else None
     return summary, timing
 
 
@@ -93,13 +102,13 @@ def run(args) -> int:
           f"{cfg.haptics.k_s:.0f} N/m, scale {cfg.teleop.scale}, max robot speed {cfg.teleop.max_robot_speed} m/s, "
           f"{'simulated clock' if args.offline else 'live 1 kHz loop'}")
     only = set(args.only.split(",")) if args.only else None
-    head = (f"{'scenario':17s} {'arch':4s} {'safety':>6s} {'submit':>6s} {'track':>6s}   "
+    head = (f"{'scenario':17s} {'arch':4s} {'safety':>6s} {'submit':>6s} {'track':>6s} {'popthr':>6s}   "
             f"{'tick p50':>8s} {'p99':>6s} {'late p50':>8s} {'p99':>6s} {'misses':>7s}  frames")
     print("\nmeasures in mm (safety: max penetration; submit: closest approach held off; track: rms |X_r - X_r*|);"
           " times in us")
     print(head)
     print("-" * len(head))
-    results = []
+    results, rows, experiments = [], [], {}
     t_start = time.monotonic()
     for scene, arch in RUNS:
         if only is not None and scene not in only:
@@ -114,11 +123,45 @@ def run(args) -> int:
             tm = f"{s['tick_us_p50']:8.0f} {s['tick_us_p99']:6.0f} {'-':>8s} {'-':>6s} {'-':>7s}"
         flag = f"  HOLD: {', '.join(s['hold'])}" if s["hold"] else ""
         print(f"{scene:17s} {arch:4s} {_mm(s['safety_max_penetration_m'])} {_mm(s['submittance_min_distance_m'])} "
-              f"{_mm(s['tracking_rms_m'])}   {tm}  {s['frames']}{flag}")
+              f"{_mm(s['tracking_rms_m'])} {'-':>6s}   {tm}  {s['frames']}{flag}")
+        experiments.setdefault(scene, []).append((arch, s.pop("_trace")))
+        rows.append(report.row_for_run(scene, s, timing))
         results.append({"scenario": scene, **s})
+    probe_results = [] if args.no_probes else _probes(args, backend, args.device or cfg.device)
+    rows += [report.row_for_probe(p) for p in probe_results]
     print(f"\n{len(results)} runs in {time.monotonic() - t_start:.0f} s. Architecture III is the hard fixture: "
           "its safety column stays near zero while I and II, soft fixtures, let the pushed robot in.")
     if args.out:
         (Path(args.out) / "demo.json").write_text(json.dumps(results, indent=2) + "\n")
         print(f"recordings and summaries in {args.out}")
+    if args.report:
+        meta = {"configuration": cfg.path, "backend": f"{backend.name} on {backend.device_name}",
+                "robot": cfg.robot.get("model"), "fixture radius (mm)": cfg.pipeline.radius.r_base * 1000,
+                "clock": "simulated" if args.offline else "live 1 kHz loop"}
+        files = report.write(args.report, rows, probe_results, experiments, meta)
+        print(f"report: {len([f for f in files if f.suffix == '.png'])} plots, table.md and table.json in {args.report}")
+    print(f"demo done in {time.monotonic() - t_start:.0f} s")
     return 0
+
+
+def _probes(args, backend, device) -> list:
+    """The chapter-2 surface probes (rendering mode, simulated clock), printed as table rows."""
+    from . import probes
+
+    print("\nchapter-2 surface probes, haptic rendering (proxy r1 5 mm, simulated 1 kHz ticks, 30 Hz frames); "
+          "safety: proxy sphere's max penetration of the true surface")
+    out = probes.run_all(backend=backend.name, device=device)
+    for p in out:
+        row = report.row_for_probe(p)
+        pop = f"{p['popthrough_speed']:6.2f}" if p.get("popthrough_speed") is not None else f"{'-':>6s}"
+        extra = ""
+        if p["figure"] == "2.12":
+            extra = f"  force at 2 cm: {p['force_at_2cm_N']:.2f} N"
+        elif p["figure"] == "2.14":
+            extra = f"  proxy levels {p['upper_z'] * 1000:.1f} / {p['lower_z'] * 1000:.1f} mm"
+        elif p["figure"] == "2.15":
+            extra = f"  held up to {p['max_speed_held']} m/s (dissertation: pop-through at 0.08 m/s)"
+        safety = _mm(p["penetration_m"]) if p.get("penetration_m") is not None else f"{'-':>5s}"
+        print(f"{p['name'][:17]:17s} {'-':4s} {safety} {'-':>6s} {'-':>6s} {pop}   {'':8s} {row['tick_us_p99']:6.0f}"
+              f"{'':24s}fig. {p['figure']}{extra}")
+    return out
