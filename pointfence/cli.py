@@ -16,6 +16,7 @@ COMMANDS = {
     "demo": ("pointfence.service.demo", "run the main job on the embedded defaults (PoCL CPU, synthetic scene)"),
     "bench": ("pointfence.bench.cli", "benchmarks (frames, query, stress, ...) printing JSON"),
     "serve": ("pointfence.service.serve", "the live service with authenticated UDP haptic clients (clients/PROTOCOL.md); --new-key FILE makes a key"),
+    "ctl": ("pointfence.service.ctl", "control a running `pointfence serve` through its local HTTP JSON API (status, metrics, architecture, engage/disengage, radius, selection)"),
     "device-sim": ("pointfence.clients.device_sim", "a simulated haptic device (trajectory CSV or scripted motion) against a live service"),
     "replay": ("pointfence.service.replay", "deterministic offline run of the whole service (scripted master or a recording): ticks.csv, summary.json"),
     "backends": ("pointfence.kernels.cli", "list compute backends and devices available here"),
