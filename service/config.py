@@ -25,7 +25,8 @@ from pointfence.kernels.camera import Camera, NoiseModel
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.params import PipelineParams, RadiusModel, Selection, Workspace
 
-TOP_KEYS = {"backend", "device", "workspace", "fixture", "hash", "camera", "haptics", "teleop", "robot", "service"}
+TOP_KEYS = {"backend", "device", "workspace", "fixture", "hash", "camera", "haptics", "teleop", "robot", "service",
+            "motion"}
 WORKSPACE_KEYS = {"min", "max"}
 FIXTURE_KEYS = {"mode", "radius", "adaptive", "k_sigma", "radius_max", "select"}
 SELECT_KEYS = {"kind", "min", "max", "lo", "hi"}
@@ -37,7 +38,11 @@ HAPTICS_KEYS = {"r1", "r2", "r3", "step", "k_spring", "damping", "fir_taps", "ma
 TELEOP_KEYS = {"architecture", "scale", "max_robot_speed", "T_world_master", "haptics", "teleop"}
 ARCHITECTURES = ("I", "II", "III")
 ROBOT_MODELS = ("raven2", "point-mass", "none")
-SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s"}
+SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s",
+                "self_filter", "self_filter_margin"}
+#: ``[motion]``: kernels.motion.MotionModel's fields (motion estimation and fixture prediction)
+MOTION_KEYS = {"enabled", "latency", "max_age", "capture", "cell", "min_points", "planarity", "count_ratio", "v_min",
+               "v_max", "max_gap"}
 INTRINSIC_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 #: default radius_max - radius with adaptive radii: room for k_sigma * sigma, m
 ADAPTIVE_MARGIN = 0.02
@@ -79,6 +84,10 @@ class ServiceConfig:
     force_ramp_s: float = 0.05
     max_lateness_s: float = 0.003
     recover_s: float = 0.1
+    #: drop the robot's own tool from every frame (at the frame's capture time) before ingest;
+    #: None: on when a robot model is configured ([robot] model other than "none")
+    self_filter: Optional[bool] = None
+    self_filter_margin: float = 0.003
 
 
 @dataclass
@@ -96,6 +105,18 @@ class SceneConfig:
     robot: dict = field(default_factory=lambda: {"model": "raven2"})
     service: ServiceConfig = field(default_factory=ServiceConfig)
     cell_size_given: bool = False
+
+    @property
+    def motion(self):
+        """``[motion]`` as a ``kernels.motion.MotionModel`` (the pipeline's motion settings)."""
+        return self.pipeline.motion
+
+    @property
+    def self_filter(self) -> bool:
+        """Whether the frame feeder drops the robot's tool from the frames (``[service] self_filter``,
+        default: on when a robot model is configured)."""
+        on = self.service.self_filter
+        return self.robot.get("model", "raven2") != "none" if on is None else bool(on)
 
     def open_sources(self, **options) -> list:
         """One open depth source per camera, in configuration order."""
@@ -272,7 +293,15 @@ def _robot(tbl: Any) -> dict:
 def _service(tbl: Any) -> ServiceConfig:
     _check_keys(tbl, SERVICE_KEYS, "[service]")
     d = ServiceConfig()
-    kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True) for k in SERVICE_KEYS - {"proxies"}}
+    kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True)
+          for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin"}}
+    sf = tbl.get("self_filter")
+    if sf is not None and not isinstance(sf, bool):
+        raise InputError(f"[service] self_filter = {sf!r}; expected true or false (default: true when a robot model "
+                         "is configured)")
+    kw["self_filter"] = sf
+    kw["self_filter_margin"] = _num(tbl.get("self_filter_margin", d.self_filter_margin), "[service] self_filter_margin",
+                                    minimum=0)
     proxies = tbl.get("proxies", 1)
     if isinstance(proxies, bool) or not isinstance(proxies, int) or proxies < 1:
         raise InputError(f"[service] proxies = {proxies!r}; expected an integer >= 1")
@@ -280,6 +309,28 @@ def _service(tbl: Any) -> ServiceConfig:
         raise InputError(f"[service] max_frame_age_s = {kw['max_frame_age_s']} s is below stale_s = {kw['stale_s']} s; "
                          "a camera is reported stale first, then the robot holds")
     return ServiceConfig(proxies=proxies, **kw)
+
+
+def _motion(tbl: Any):
+    from pointfence.kernels.motion import MotionModel
+
+    _check_keys(tbl, MOTION_KEYS, "[motion]")
+    kw: dict = {}
+    for key, v in tbl.items():
+        if key == "enabled":
+            if not isinstance(v, bool):
+                raise InputError(f"[motion] enabled = {v!r}; expected true or false")
+            kw[key] = v
+        elif key == "min_points":
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise InputError(f"[motion] min_points = {v!r}; expected an integer >= 1")
+            kw[key] = v
+        else:
+            kw[key] = _num(v, f"[motion] {key}", minimum=0)
+    try:
+        return MotionModel(**kw)
+    except InputError as e:
+        raise InputError(f"[motion]: {e}") from None
 
 
 def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
@@ -319,7 +370,8 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
     if cell < reach:
         raise InputError(f"[hash] cell_size = {cell} m is below the largest query reach {reach} m "
                          f"(R3 {'+ radius_max ' if mode == 'fixture' else ''}); use >= {reach}")
-    pipeline = PipelineParams(workspace=workspace, selection=selection, radius=radius, cell_size=cell)
+    pipeline = PipelineParams(workspace=workspace, selection=selection, radius=radius, cell_size=cell,
+                              motion=_motion(doc.get("motion", {})))
 
     entries = doc.get("camera", [])
     if not isinstance(entries, list) or not entries:
@@ -328,9 +380,14 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
     names = [c.camera.name for c in cameras]
     if len(set(names)) != len(names):
         raise InputError(f"{where}: camera names must be unique, got {names}")
+    robot = _robot(doc.get("robot", {}))
+    service = _service(doc.get("service", {}))
+    if service.self_filter and robot["model"] == "none":
+        raise InputError('[service] self_filter = true needs a robot model with kinematics ([robot] model "raven2" or '
+                         '"point-mass"); the ideal robot ("none") has no tool to filter')
     return SceneConfig(backend=backend, device=device, mode=mode, pipeline=pipeline, cameras=cameras, path=path,
-                       haptics=haptics, teleop=_teleop(doc.get("teleop", {})), robot=_robot(doc.get("robot", {})),
-                       service=_service(doc.get("service", {})), cell_size_given="cell_size" in hs)
+                       haptics=haptics, teleop=_teleop(doc.get("teleop", {})), robot=robot,
+                       service=service, cell_size_given="cell_size" in hs)
 
 
 def load(path=None) -> SceneConfig:
