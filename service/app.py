@@ -4,15 +4,19 @@ the per-tick work the haptic loop runs (``Service.tick``).
 One tick, for B master-robot pairs (one proxy each):
 
 1. poll every master (position, pedal, validity); a non-finite sample is a device fault;
-2. health: loop overrun, oldest camera frame older than ``max_frame_age_s``, kernel failure,
-   robot fault, master fault. Any of them puts the affected arms on hold: the force gain ramps
+2. the tick's time on the frames' clock (``frame_time``: the feeder relates loop time and frame
+   timestamps), the robots' joints into the tool pose ring at that time (the self-filter's
+   look-up, ``toolpose``); health: loop overrun, oldest camera frame older than
+   ``max_frame_age_s``, kernel failure, robot fault, master fault. Any of them puts the affected arms on hold: the force gain ramps
    to zero within ``force_ramp_s`` and the robot holds its setpoint. A condition must be clear
    for ``recover_s`` before the arm comes back (re-anchored: the robot does not move);
 3. teleoperation (``teleop.Teleop``): master motion -> X_m, re-anchoring of arms that (re)couple,
    the HIP by architecture (continuous across switches);
 4. ONE proxy launch for all B proxies against the current snapshot (through the publish gate, so
-   the snapshot number is exact), then forces (``kernels.forces.ForceRenderer``: dead band,
-   contact damping, FIR, saturation) times the per-arm gain, sent to the masters;
+   the snapshot number is exact; with ``[motion] enabled`` the points are predicted to the
+   tick's frame time plus the camera latency, ``kernels/motion.py``), then forces
+   (``kernels.forces.ForceRenderer``: dead band, contact damping, FIR, saturation) times the
+   per-arm gain, sent to the masters;
 5. robot commands by architecture, rate-limited, ``servo_cp`` for coupled arms; robots step;
 6. publish (a small lock-protected copy for ``status()``) and record.
 
@@ -82,6 +86,20 @@ class Service:
         if len(robots) != n:
             raise InputError(f"{len(robots)} robots for {n} masters; expected one per master (None: ideal robot)")
         self.robots = list(robots)
+        # the robot self-filter: the tool at each frame's capture time, from a ring of joint poses
+        self.tool_poses = self.frame_filter = None
+        if cfg.self_filter and any(r is not None for r in self.robots):
+            from .toolpose import ToolFilter, ToolPoseRing
+
+            horizon = sc.max_frame_age_s + pp.motion.latency + 0.25
+            self.tool_poses = ToolPoseRing(self.robots, int(math.ceil(horizon * sc.rate_hz)))
+            self.frame_filter = ToolFilter([c.camera for c in cfg.cameras], self.robots, self.tool_poses,
+                                           latency=pp.motion.latency, margin=sc.self_filter_margin,
+                                           workspace=(pp.workspace.min, pp.workspace.max))
+        #: this tick's time on the frames' clock (nan while unknown); the proxies' prediction time
+        self.frame_time = math.nan
+        self._predict = bool(pp.motion.enabled)
+        self._frame_time = None
         tc = cfg.teleop
         self.teleop = Teleop(n, tc.T_world_master, tc.scale, tc.max_robot_speed, self.dt,
                              architecture or tc.architecture)
@@ -154,6 +172,9 @@ class Service:
         """The frame feeder (``frames.LiveFrames``/``SimFrames``/``ScheduledFrames``) whose
         ``max_age(now)`` the ticks check (offline feeders are polled inside the tick)."""
         self.feeder = feeder
+        if self.frame_filter is not None:
+            feeder.frame_filter = self.frame_filter
+        self._frame_time = getattr(feeder, "frame_time", None)
         self._poll_tick = hasattr(feeder, "poll_tick")
         self._poll = hasattr(feeder, "poll")
 
@@ -245,8 +266,12 @@ class Service:
         np.isfinite(self.dev, out=self._fin)
         np.all(self._fin, axis=1, out=self._rowok)
         np.logical_and(self.m_ok, self._rowok, out=self.m_ok)
-        # 2. health
+        # 2. frame time, tool poses, health
         feeder = self.feeder
+        tf = self._frame_time(t, now) if feeder is not None and self._frame_time is not None else None
+        self.frame_time = math.nan if tf is None else tf
+        if tf is not None and self.tool_poses is not None:
+            self.tool_poses.record(tf)
         if feeder is not None:
             if self._poll_tick:
                 feeder.poll_tick(k, t)
@@ -305,7 +330,10 @@ class Service:
             try:
                 with self.gate.lock:
                     seq = self.gate.front_seq()
-                    self.batch.step(hip)
+                    if self._predict and tf is not None:
+                        self.batch.step(hip, now=tf)
+                    else:
+                        self.batch.step(hip)
                 if seq != self.frame_seq:
                     self.frame_seq = seq
                     self.snapshot_first_tick.setdefault(seq, k)
@@ -409,6 +437,8 @@ class Service:
         }
         if self.feeder is not None and now is not None:
             st["frames"] = self.feeder.status(now)
+        if self.frame_filter is not None:
+            st["self_filter"] = self.frame_filter.status()
         return st
 
     def _record(self, k, t, dt, overrun, age, proxies, haptics_on, teleop_on) -> None:
@@ -430,7 +460,7 @@ class Service:
         row[20] = self.frame_seq
         inp = rec.inputs[i]
         inp[0], inp[1], inp[2], inp[3] = k, dt, overrun, min(age, 1e9)
-        inp[4], inp[5], inp[6] = tp.arch, haptics_on, teleop_on
+        inp[4], inp[5], inp[6], inp[7] = tp.arch, haptics_on, teleop_on, self.frame_time
         m = rec.masters[i]
         m[:, :3] = self.dev
         m[:, 3] = self.pedal

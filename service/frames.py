@@ -14,6 +14,16 @@ arrived) is watched: beyond ``stale_s`` (default 100 ms) the camera is reported 
   tick, before the proxy launch.
 * ``ScheduledFrames``: re-creates a recorded run's snapshots exactly (which frames of which
   camera formed the snapshot that became visible at which tick).
+
+Two things tie the loop to the frames' own clock (the clock of the frame timestamps):
+
+* ``frame_time(t, now)``: the tick's time on the frames' clock (None while unknown). SimFrames:
+  loop time t plus the first frame's timestamp (a frame arrives at its timestamp); LiveFrames:
+  the loop clock's ``now`` minus ``clock_minus_stamp`` (loop clock minus timestamp of the first
+  frame of the first camera). Motion prediction (``batch.step(hips, now=frame_time)``) and the
+  tool pose ring (``toolpose``) use it.
+* ``frame_filter``: an optional callable (``toolpose.ToolFilter``, the robot self-filter) that
+  every snapshot's frames go through before ``pipeline.ingest``.
 """
 from __future__ import annotations
 
@@ -72,6 +82,13 @@ class _FeedBase:
         self.snapshot_tick: dict = {}      # snapshot seq -> first tick that used it (filled by the service)
         #: held while a snapshot is built (and while ``swap_pipeline`` moves ingest to another pipeline)
         self.ingest_lock = threading.Lock()
+        #: frames -> frames, applied before every ingest (the robot self-filter; None: none)
+        self.frame_filter = None
+
+    def frame_time(self, t: float, now: float) -> Optional[float]:
+        """The tick's time on the frames' clock (loop time ``t``, clock reading ``now``); None
+        while the relation between the two is unknown."""
+        return None
 
     def max_age(self, now: float) -> float:
         """Age (s) of the oldest camera's latest frame; inf until every camera delivered one."""
@@ -106,7 +123,8 @@ class _FeedBase:
         if any(f is None for f in frames):
             return False
         try:
-            info = self.pipeline.ingest(list(frames))
+            flt = self.frame_filter
+            info = self.pipeline.ingest(list(frames) if flt is None else flt(frames))
         except PointfenceError as e:   # bad frame: the previous snapshot stays current
             self.ingest_errors += 1
             self.last_error = f"ingest: {e}"
@@ -134,6 +152,9 @@ class SimFrames(_FeedBase):
         self._pending = [s.read() for s in self.sources]
         self._t0 = [f.timestamp if f is not None else 0.0 for f in self._pending]
 
+    def frame_time(self, t: float, now: float) -> float:
+        return t + self._t0[0]
+
     def poll(self, t: float) -> bool:
         changed = False
         for i, src in enumerate(self.sources):
@@ -152,9 +173,14 @@ class ScheduledFrames(_FeedBase):
     """Re-create recorded snapshots: ``schedule`` maps a tick index to the frame seqs (one per
     camera, configuration order) of the snapshot that became visible at that tick."""
 
-    def __init__(self, pipeline, sources, schedule: dict, stale_s: float = 0.1, max_age_s: float = 0.5):
+    def __init__(self, pipeline, sources, schedule: dict, stale_s: float = 0.1, max_age_s: float = 0.5,
+                 t0: float = 0.0):
         super().__init__(pipeline, sources, stale_s, max_age_s)
         self.schedule = {int(k): tuple(v) for k, v in schedule.items()}
+        self.t0 = float(t0)   # frames' clock at loop time 0
+
+    def frame_time(self, t: float, now: float) -> float:
+        return t + self.t0
 
     def poll_tick(self, k: int, t: float) -> bool:
         seqs = self.schedule.get(k)
@@ -186,6 +212,12 @@ class LiveFrames(_FeedBase):
                         for i, s in enumerate(self.sources)]
         self._thread: Optional[threading.Thread] = None
         self.ingest_ms: list = []
+        #: clock time minus frame timestamp of the first frame of camera 0 (maps loop to frames' clock)
+        self.clock_minus_stamp: Optional[float] = None
+
+    def frame_time(self, t: float, now: float) -> Optional[float]:
+        cms = self.clock_minus_stamp
+        return None if cms is None else now - cms
 
     def _callback(self, i: int):
         def on_frame(frame, _i=i):
@@ -193,7 +225,6 @@ class LiveFrames(_FeedBase):
                 self.latest[_i] = frame
                 self.arrival[_i] = self.clock.now()
                 if self.frames_in[_i] == 0 and _i == 0:
-                    #: clock time minus frame timestamp of the first frame (maps loop to scene time)
                     self.clock_minus_stamp = self.arrival[_i] - float(frame.timestamp)
                 self.frames_in[_i] += 1
             self._new.set()

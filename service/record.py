@@ -18,8 +18,9 @@ TICK_COLUMNS = ("t", "xm_x", "xm_y", "xm_z", "hip_x", "hip_y", "hip_z", "proxy_x
                 "xr_cmd_x", "xr_cmd_y", "xr_cmd_z", "xr_x", "xr_y", "xr_z", "f_x", "f_y", "f_z",
                 "state", "frame_seq", "tick_us")
 C = {name: i for i, name in enumerate(TICK_COLUMNS)}
-#: per-tick inputs: k, dt, overrun, frame_age, architecture, haptics_on, teleop_on
-INPUT_COLUMNS = ("k", "dt", "overrun", "frame_age", "arch", "haptics_on", "teleop_on")
+#: per-tick inputs: k, dt, overrun, frame_age, architecture, haptics_on, teleop_on, and the tick's
+#: time on the frames' clock (nan: unknown; motion prediction and the tool pose ring use it)
+INPUT_COLUMNS = ("k", "dt", "overrun", "frame_age", "arch", "haptics_on", "teleop_on", "frame_time")
 
 
 class Recorder:

@@ -65,13 +65,20 @@ class PlaybackMaster(Master):
 class _RecordedAges(ScheduledFrames):
     """Recorded snapshots whose ages are the recorded ones (the service's staleness decisions)."""
 
-    def __init__(self, *a, ages, **kw):
+    def __init__(self, *a, ages, frame_times=None, **kw):
         super().__init__(*a, **kw)
         self.ages_by_tick = ages
+        self.frame_times = frame_times   # the recorded tick times on the frames' clock (older recordings: none)
         self.row = 0
 
     def max_age(self, now: float) -> float:
         return float(self.ages_by_tick[min(self.row, len(self.ages_by_tick) - 1)])
+
+    def frame_time(self, t: float, now: float):
+        if self.frame_times is None:
+            return super().frame_time(t, now)
+        v = float(self.frame_times[min(self.row, len(self.frame_times) - 1)])
+        return v if np.isfinite(v) else None
 
 
 def simulate(cfg, masters, duration: float, *, architecture: Optional[str] = None, backend: Optional[str] = None,
@@ -114,14 +121,14 @@ def replay_recording(cfg, rec_dir, *, backend=None, device=None):
         if frames is not None:
             schedule[int(tick)] = frames
     feeder = _RecordedAges(svc.pipeline, sources, schedule, cfg.service.stale_s, cfg.service.max_frame_age_s,
-                           ages=inputs[:, 3])
+                           ages=inputs[:, 3], frame_times=inputs[:, 7] if inputs.shape[1] > 7 else None)
     svc.attach_frames(feeder)
     names = {1: "I", 2: "II", 3: "III"}
     P = 1.0 / cfg.service.rate_hz
     import time
 
     for i in range(n_ticks):
-        k, dt, overrun, _, arch, hap, tel = inputs[i]
+        k, dt, overrun, _, arch, hap, tel = inputs[i][:7]
         for m in masters:
             m.row = i
         feeder.row = i

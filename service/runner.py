@@ -46,7 +46,8 @@ class LiveRun:
         while self.loop.t0 is None and self.loop.running:
             time.sleep(0.001)
         # scene time of loop time 0 (for ground-truth measures on moving synthetic scenes)
-        self.service.scene_time_offset = self.loop.t0 - getattr(self.frames, "clock_minus_stamp", self.loop.t0)
+        self.service.scene_time_offset = self.loop.t0 - (self.frames.clock_minus_stamp if self.frames.clock_minus_stamp is not None
+                                                       else self.loop.t0)
 
     def wait_ticks(self, n: int, timeout: float = 30.0) -> None:
         """Wait until the loop has run ``n`` ticks in all (or ``timeout`` s)."""

@@ -1,0 +1,252 @@
+"""Issue 9 in the service: motion prediction in the tick (``[motion]``, batch.step(now=frame
+time)) and the robot self-filter in the frame feeder (tool capsules at each frame's capture time
+from the tool pose ring), on the simulated clock; the ``[motion]`` and ``self_filter`` keys."""
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from pointfence.kernels.errors import InputError
+from pointfence.service import config, replay
+from pointfence.service.masters import ScriptedMaster
+from pointfence.service.robot.tool import tool_capsules
+from pointfence.service.sources import SyntheticSource
+from pointfence.service.sources.scenes import make_scene
+from pointfence.service.sources.toolscene import ToolInScene
+from pointfence.service.toolpose import ToolPoseRing
+
+from service_cases import needs_opencl
+
+#: a plane rising at 0.5 m/s (through z = -0.1 at t = 0) under a camera 0.5 m above the table,
+#: all of it protected by a 2 cm fixture; architecture III with an ideal robot fast enough to
+#: follow the proxy (2 m/s), so the robot's penetration is the fixture's
+PLANE = """
+backend = "opencl"
+[workspace]
+min = [-0.2, -0.2, -0.15]
+max = [0.2, 0.2, 0.35]
+[fixture]
+radius = 0.02
+[[camera]]
+name = "top"
+source = "synthetic:translating_plane"
+fx = 143.95
+fy = 143.95
+cx = 79.5
+cy = 59.5
+width = 160
+height = 120
+T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,  0, 0, -1, 0.5,  0, 0, 0, 1]
+options = {{ speed = {speed}, travel = 0.0, position = [0.0, 0.0, -0.1], quantize = false }}
+[teleop]
+architecture = "III"
+scale = 1.0
+max_robot_speed = 2.0
+T_world_master = [1, 0, 0, 0,  0, 1, 0, 0,  0, 0, 1, 0.05,  0, 0, 0, 1]
+[robot]
+model = "none"
+[service]
+max_frame_age_s = 0.3
+{motion}
+"""
+
+
+def plane_config(tmp_path, motion: str, speed: float = 0.5):
+    p = tmp_path / "plane.toml"
+    p.write_text(textwrap.dedent(PLANE.format(speed=speed, motion=motion)))
+    return config.load(p)
+
+
+def plunge():
+    """The master (scale 1) from 5 cm above the table down to -14 cm in 0.1 s, then held there:
+    the HIP stays 4 cm below the plane's start, pushing into the rising plane throughout."""
+    return ScriptedMaster(np.array([0.0, 0.1, 1.0]), np.array([[0, 0, 0], [0, 0, -0.19], [0, 0, -0.19]], float))
+
+
+def plane_run(cfg, duration=0.4, backend=None):
+    svc, loop, sources = replay.simulate(cfg, [plunge()], duration, backend=backend)
+    scene = sources[0].scene
+    rec = svc.recorder
+    rows = rec.ticks()
+    t = rows[:, 0] + svc.scene_time_offset
+    r_f = cfg.pipeline.radius.r_base
+    d_proxy = np.array([scene.distance(p[None], ti)[0] for p, ti in zip(rows[:, 7:10], t)])
+    d_robot = np.array([scene.distance(p[None], ti)[0] for p, ti in zip(rec.robots[: rec.count, 0, :3], t)])
+    contact = t > 0.1            # the HIP is below the fixture from here on
+    for s in sources:
+        s.close()
+    return svc, {"proxy_mm": 1000 * max(0.0, float((r_f - d_proxy[contact]).max())),
+                 "robot_mm": 1000 * max(0.0, float((r_f - d_robot[contact]).max())),
+                 "popped": bool((d_proxy[contact] < 0).any()), "rows": rows}
+
+
+# --- configuration ---------------------------------------------------------------------------------
+
+def test_motion_table_and_self_filter_keys(tmp_path):
+    cfg = plane_config(tmp_path, "[motion]\nenabled = true\nlatency = 0.05\nv_max = 1.5\nmin_points = 8\n")
+    m = cfg.pipeline.motion
+    assert (m.enabled, m.latency, m.v_max, m.min_points) == (True, 0.05, 1.5, 8) and cfg.motion is m
+    assert m.max_age == 0.1          # the MotionModel default
+    assert not plane_config(tmp_path, "").motion.enabled
+    assert not plane_config(tmp_path, "").self_filter            # ideal robot: nothing to filter
+    for bad, msg in (("[motion]\nenabeld = true\n", "did you mean 'enabled'"),
+                     ("[motion]\nenabled = 1\n", "expected true or false"),
+                     ("[motion]\nlatency = -0.1\n", "[motion] latency"),
+                     ("[motion]\nv_min = 3.0\n", "[motion]: motion v_min = 3.0 > v_max"),
+                     ("[motion]\nmin_points = 2.5\n", "integer >= 1"),
+                     ("self_filter = true\n", "needs a robot model"),
+                     ("self_filter = 1\n", "expected true or false"),
+                     ("self_filter_margin = -1\n", "self_filter_margin")):
+        with pytest.raises(InputError, match=None) as e:
+            plane_config(tmp_path, bad)
+        assert msg in str(e.value), (bad, str(e.value))
+    defaults = config.load()
+    assert defaults.self_filter and defaults.robot["model"] == "raven2"     # on with a robot model
+    assert not defaults.motion.enabled
+
+
+# --- motion prediction in the tick -------------------------------------------------------------------
+
+@needs_opencl
+def test_prediction_holds_the_fixture_on_a_plane_rising_at_half_a_metre_per_second(tmp_path):
+    on_cfg = plane_config(tmp_path, "[motion]\nenabled = true\n")
+    svc, on = plane_run(on_cfg)
+    _, off = plane_run(plane_config(tmp_path, ""))
+    print(f"penetration mm, with prediction: proxy {on['proxy_mm']:.2f} robot {on['robot_mm']:.2f}; "
+          f"without: proxy {off['proxy_mm']:.2f} robot {off['robot_mm']:.2f}")
+    # the ticks predicted: the frame time is the loop time (frames arrive at their timestamps) and
+    # the proxy's prediction time stayed within one frame period
+    rows = on["rows"]
+    assert np.isfinite(svc.recorder.inputs[: svc.recorder.count, 7]).all()
+    np.testing.assert_allclose(svc.recorder.inputs[: svc.recorder.count, 7], rows[:, 0])
+    assert 0.0 < svc.batch.last_dt <= 1 / 30 + 1e-6
+    # with prediction the 2 cm fixture holds within about a millimetre for 20 cm of travel ...
+    assert not on["popped"] and on["proxy_mm"] < 2.0 and on["robot_mm"] < 3.0
+    # ... without it the fixture lags the plane by up to v / 30 Hz = 16.7 mm
+    assert off["proxy_mm"] > 10.0 and off["robot_mm"] > 10.0
+    # and the robot rode up with the plane (it was in contact all along)
+    assert rows[-1, 9] > 0.1 + 0.02 - 0.005
+
+
+@needs_opencl
+def test_prediction_replays_exactly(tmp_path):
+    cfg = plane_config(tmp_path, "[motion]\nenabled = true\n")
+    svc, loop, sources = replay.simulate(cfg, [plunge()], 0.25, backend="numpy")
+    replay.write_outputs(svc, sources, cfg, tmp_path / "rec", svc.feeder.snapshots)
+    for s in sources:
+        s.close()
+    svc2, sources2 = replay.replay_recording(cfg, tmp_path / "rec")
+    for s in sources2:
+        s.close()
+    np.testing.assert_array_equal(svc.recorder.ticks()[:, :-1], svc2.recorder.ticks()[:, :-1])
+    assert svc2.batch.last_dt > 0
+
+
+# --- the tool pose ring ------------------------------------------------------------------------------
+
+class _Joints:
+    dof = 2
+
+    def __init__(self):
+        self._q = [0.0, 0.0]
+
+
+def test_tool_pose_ring_interpolates_and_wraps():
+    r = _Joints()
+    ring = ToolPoseRing([r, None], capacity=8)
+    np.testing.assert_array_equal(ring.at(5.0), 0.0)          # nothing recorded: the pose at construction
+    for k in range(20):
+        r._q[:] = [k, -k]
+        ring.record(k * 0.001)
+    np.testing.assert_allclose(ring.at(0.0155)[0], [15.5, -15.5])
+    np.testing.assert_allclose(ring.at(0.0125)[0], [12.5, -12.5])   # oldest kept: tick 12
+    np.testing.assert_allclose(ring.at(1.0)[0], [19, -19])           # later than the newest tick
+    assert ring.misses == 0
+    np.testing.assert_allclose(ring.at(0.0)[0], [12, -12])           # older than the ring holds
+    assert ring.misses == 1
+    np.testing.assert_array_equal(ring.at(0.0155)[1], 0.0)           # no robot on arm 1
+
+
+# --- the robot self-filter in the feeder ---------------------------------------------------------------
+
+TABLE = """
+backend = "opencl"
+[workspace]
+min = [-0.15, -0.15, -0.05]
+max = [0.15, 0.15, 0.25]
+[fixture]
+radius = 0.02
+[[camera]]
+name = "oblique"
+source = "synthetic:plane"
+[teleop]
+architecture = "III"
+scale = 0.5
+max_robot_speed = 0.05
+[robot]
+model = "raven2"
+mount_tool_down = [0.0, 0.0, 0.18]
+[service]
+max_frame_age_s = 0.3
+{service}
+"""
+
+
+class RobotToolSource(SyntheticSource):
+    """A table with the robot's instrument in view, rendered where the robot is when the frame is
+    rendered (SimFrames renders a frame one period ahead: up to 1.7 mm early at 5 cm/s)."""
+
+    robot = None
+
+    def _frame(self, seq):
+        if self.robot is not None:
+            self.scene.capsules = tool_capsules(self.robot)
+        return super()._frame(seq)
+
+
+def tool_run(tmp_path, service_keys: str):
+    from pointfence.service.sources import default_camera
+
+    p = tmp_path / "table.toml"
+    p.write_text(textwrap.dedent(TABLE.format(service=service_keys)))
+    cfg = config.load(p)
+    cam = default_camera("oblique", eye=(0.25, 0.0, 0.55), width=160, height=120)
+    cfg = config.SceneConfig(**{**cfg.__dict__, "cameras": [config.CameraConfig(cam, "synthetic:plane")]})
+    src = RobotToolSource(ToolInScene(base=make_scene("plane", disc_radius=0.1)), cam, quantize=False)
+    from pointfence.service.app import Service
+
+    robot = Service._make_robot(cfg.robot)
+    src.robot = robot
+    src.scene.capsules = tool_capsules(robot)
+    # the master takes the tip 3 cm down (scale 0.5) in 1 s, well clear of the table's fixture
+    master = ScriptedMaster(np.array([0.0, 0.1, 1.1, 1.5]),
+                            np.array([[0, 0, 0], [0, 0, 0], [0, 0, -0.06], [0, 0, -0.06]], float))
+    svc, loop, sources = replay.simulate(cfg, [master], 1.5, robots=[robot], sources=[src])
+    snap = svc.pipeline.host_snapshot()
+    pts = snap.points[:, :3].astype(np.float64)
+    on_tool = src.scene.tool_distance(pts) < 0.002
+    rec = svc.recorder
+    out = {"tip_z": rec.robots[: rec.count, 0, 2].copy(), "xm_z": rec.masters_world[: rec.count, 0, 2].copy(),
+           "tool_points": int(np.count_nonzero(on_tool & (snap.protected != 0))),
+           "filter": svc.frame_filter.status() if svc.frame_filter is not None else None, "hold": svc.status()["hold"]}
+    src.close()
+    return out
+
+
+@needs_opencl
+def test_the_tool_does_not_fence_itself_in_the_service(tmp_path):
+    on = tool_run(tmp_path, "")                       # default: on (a robot model is configured)
+    off = tool_run(tmp_path, "self_filter = false")
+    assert on["filter"] is not None and off["filter"] is None
+    # the instrument is in view: the filter dropped its pixels, none of it became a fixture
+    assert on["filter"]["removed_pixels"] > 500 and on["filter"]["frames"] >= 40
+    assert on["tool_points"] == 0 and off["tool_points"] > 30
+    assert on["hold"] == [] and off["hold"] == []
+    # with the filter the tip follows the master 3 cm down (architecture III: command = proxy);
+    # without it the proxy starts buried in the tool's own fixtures, which push it (and the robot
+    # chasing it, and its tool with it) away from where the master is
+    dev_on, dev_off = (np.abs(r["tip_z"] - r["xm_z"]).max() for r in (on, off))
+    assert dev_on < 0.002 and on["tip_z"][0] - on["tip_z"][-1] > 0.028
+    assert dev_off > 0.005
