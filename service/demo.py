@@ -17,6 +17,12 @@ It then runs the chapter-2 surface probes in haptic rendering mode (``probes``: 
 plane, concave/convex/corner, the 5 mm ledge, and the rising plane's pop-through speed, figs.
 2.12-2.15) and writes the report folder (``--report DIR``, default ``out/demo``; ``report``):
 PNG plots of every figure and the table (with the pop-through column) as table.md and table.json.
+
+Then the chapter-6 section (``dynamic_demo``; ``--no-dynamic`` skips it): the whole service on a
+plane rising at 0.5 m/s without and with motion prediction (live, or on the simulated clock with
+``--offline``), the translating plane's pop-through speed without and with prediction (also with
+100 ms camera latency), the tool's shadow with one and two cameras, and the robot self-filter;
+its figures are a second table in table.md and ``dynamic`` in table.json.
 """
 from __future__ import annotations
 
@@ -54,6 +60,9 @@ def add_arguments(p):
     p.add_argument("--report", default="out/demo", help="report folder: PNG plots and table.md/table.json "
                                                         "(default out/demo; '' for none)")
     p.add_argument("--no-probes", action="store_true", help="skip the chapter-2 surface probes (figs. 2.12-2.15)")
+    p.add_argument("--no-dynamic", action="store_true",
+                   help="skip the chapter-6 dynamic scenes (moving plane with and without motion prediction, the "
+                        "tool's shadow with one and two cameras, the robot self-filter)")
 
 
 def _mm(v):
@@ -129,6 +138,11 @@ def run(args) -> int:
         results.append({"scenario": scene, **s})
     probe_results = [] if args.no_probes else _probes(args, backend, args.device or cfg.device)
     rows += [report.row_for_probe(p) for p in probe_results]
+    dynamic = None
+    if not args.no_dynamic:
+        from . import dynamic_demo
+
+        dynamic = dynamic_demo.run(backend.name, args.device or cfg.device, live=not args.offline)
     print(f"\n{len(results)} runs in {time.monotonic() - t_start:.0f} s. Architecture III is the hard fixture: "
           "its safety column stays near zero while I and II, soft fixtures, let the pushed robot in.")
     if args.out:
@@ -138,7 +152,7 @@ def run(args) -> int:
         meta = {"configuration": cfg.path, "backend": f"{backend.name} on {backend.device_name}",
                 "robot": cfg.robot.get("model"), "fixture radius (mm)": cfg.pipeline.radius.r_base * 1000,
                 "clock": "simulated" if args.offline else "live 1 kHz loop"}
-        files = report.write(args.report, rows, probe_results, experiments, meta)
+        files = report.write(args.report, rows, probe_results, experiments, meta, dynamic=dynamic)
         print(f"report: {len([f for f in files if f.suffix == '.png'])} plots, table.md and table.json in {args.report}")
     print(f"demo done in {time.monotonic() - t_start:.0f} s")
     return 0

@@ -1,25 +1,103 @@
 """The chapter-6 part of ``pointfence demo``: moving surfaces, the tool's shadow, the self-filter
 (simulated clock: 30 Hz synthetic frames, 1 kHz ticks; the scenarios of bench/dynamic_scenes.py).
 
-Hook (service/demo.py, after the chapter-2 probes)::
-
-    if not args.no_dynamic:
-        from . import dynamic_demo
-        dynamic_results = dynamic_demo.run(backend.name, args.device or cfg.device)
+``pointfence demo`` runs it after the chapter-2 probes (``--no-dynamic`` skips it); its figures
+go into the report's table.md / table.json (``report.dynamic_rows``). Besides the kernel-level
+scenarios it runs the whole service (``service_plane``: ``[motion]``, the tick's frame time) on the
+rising plane, live with the demo's live loop, on the simulated clock with ``--offline``.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from pointfence.bench import dynamic_scenes as ds
+
+#: the service-level run: a plane rising at ``speed`` through z = -0.1 m at t = 0 under a 160x120
+#: camera 0.5 m above it, all protected by a 2 cm fixture; architecture III with an ideal robot
+#: fast enough (2 m/s) to follow the proxy; the master plunges the HIP 4 cm below the plane's
+#: start and holds it there
+PLANE_DOC = {
+    "workspace": {"min": [-0.2, -0.2, -0.15], "max": [0.2, 0.2, 0.35]},
+    "fixture": {"radius": 0.02},
+    "camera": [{"name": "top", "source": "synthetic:translating_plane", "fx": 143.95, "fy": 143.95, "cx": 79.5,
+                "cy": 59.5, "width": 160, "height": 120,
+                "T_world_cam": [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0.5, 0, 0, 0, 1],
+                "options": {"travel": 0.0, "position": [0.0, 0.0, -0.1], "quantize": False}}],
+    "teleop": {"architecture": "III", "scale": 1.0, "max_robot_speed": 2.0,
+               "T_world_master": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0.05, 0, 0, 0, 1]},
+    "robot": {"model": "none"},
+    "service": {"max_frame_age_s": 0.3},
+}
+
+
+def service_plane(predict: bool, *, speed: float = 0.5, backend: str = "opencl", device: str | None = None,
+                  live: bool = False, duration: float = 0.4, latency: float = 0.0) -> dict:
+    """The whole service (``[motion] enabled = predict``) on the rising plane: the fixture's
+    penetration (mm) by the proxy and by the robot once the HIP is below the fixture (t > 0.1 s),
+    measured against the exact plane at each tick's scene time. ``live``: the 1 kHz loop thread
+    on the real clock with a real-time synthetic camera (else the simulated clock)."""
+    import copy
+
+    from . import config, replay
+    from .masters import ScriptedMaster
+    from .runner import LiveRun
+
+    doc = copy.deepcopy(PLANE_DOC)
+    doc["backend"] = backend
+    if device:
+        doc["device"] = device
+    doc["camera"][0]["options"]["speed"] = float(speed)
+    doc["motion"] = {"enabled": bool(predict), "latency": float(latency)}
+    if live:
+        doc["service"]["max_lateness_s"] = 0.02
+    cfg = config.parse(doc, "chapter-6 service run")
+    master = ScriptedMaster(np.array([0.0, 0.1, 10.0]), np.array([[0, 0, 0], [0, 0, -0.19], [0, 0, -0.19]], float))
+    if live:
+        run = LiveRun(cfg, [master], record_s=duration + 1.0)
+        run.start()
+        try:
+            run.wait(duration)
+        finally:
+            run.stop()
+        svc, sources = run.service, run.sources
+    else:
+        svc, _, sources = replay.simulate(cfg, [master], duration)
+    rec = svc.recorder
+    rows = rec.ticks()
+    t = rows[:, 0] + svc.scene_time_offset
+    scene = sources[0].scene
+    keep = t - t[0] > 0.1
+    r_f = cfg.pipeline.radius.r_base
+    pen = {}
+    for name, pts in (("proxy", rows[:, 7:10]), ("robot", rec.robots[: rec.count, 0, :3])):
+        d = np.array([scene.distance(p[None], ti)[0] for p, ti in zip(pts[keep], t[keep])])
+        pen[name] = round(1000 * max(0.0, float((r_f - d).max())), 2) if len(d) else None
+    for s in sources:
+        s.close()
+    return {"penetration_mm_proxy": pen["proxy"], "penetration_mm_robot": pen["robot"], "ticks": int(rec.count),
+            "hold": svc.status()["hold"], "last_dt_ms": round(svc.batch.last_dt * 1000, 2)}
 
 
 def _speed(v):
     return f">{ds.SPEEDS[-1]:g}" if v is None else f"{v:g}"
 
 
-def run(backend: str = "opencl", device: str | None = None, latency: float = 0.1, out=print) -> dict:
-    """Print the chapter-6 table and return its figures."""
+def run(backend: str = "opencl", device: str | None = None, latency: float = 0.1, out=print,
+        live: bool = False) -> dict:
+    """Print the chapter-6 table and return its figures. The service-level rising-plane run uses
+    the live loop with ``live`` (else the simulated clock, like the rest of the section)."""
     out("\nchapter 6: dynamic scene (simulated 1 kHz ticks, 30 Hz frames, 2 cm fixture)")
     res = {}
+    svc = {}
+    for predict in (False, True):
+        svc["with_prediction" if predict else "without_prediction"] = service_plane(
+            predict, backend=backend, device=device, live=live)
+    res["service_plane_0.5mps"] = svc
+    clock = "live 1 kHz loop" if live else "simulated clock"
+    out(f"  service ({clock}), plane rising at 0.5 m/s, architecture III: fixture penetration "
+        f"{svc['without_prediction']['penetration_mm_robot']:.2f} mm without motion prediction, "
+        f"{svc['with_prediction']['penetration_mm_robot']:.2f} mm with it (robot; proxy "
+        f"{svc['without_prediction']['penetration_mm_proxy']:.2f} / {svc['with_prediction']['penetration_mm_proxy']:.2f} mm)")
     for label, kw in (("no latency", {}), (f"camera latency {latency * 1000:.0f} ms", {"latency": latency})):
         off = ds.popthrough_speed(False, backend=backend, device=device, **kw)
         on = ds.popthrough_speed(True, backend=backend, device=device, **kw)

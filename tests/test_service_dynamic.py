@@ -250,3 +250,36 @@ def test_the_tool_does_not_fence_itself_in_the_service(tmp_path):
     dev_on, dev_off = (np.abs(r["tip_z"] - r["xm_z"]).max() for r in (on, off))
     assert dev_on < 0.002 and on["tip_z"][0] - on["tip_z"][-1] > 0.028
     assert dev_off > 0.005
+
+
+# --- the chapter-6 section in the demo report -------------------------------------------------------------
+
+def test_report_writes_the_chapter_6_table(tmp_path):
+    from pointfence.service import report
+
+    res = {"service_plane_0.5mps": {"without_prediction": {"penetration_mm_robot": 16.5},
+                                    "with_prediction": {"penetration_mm_robot": 0.48}},
+           "no latency": {"without_prediction": 0.6, "with_prediction": None},
+           "occlusion_penetration_mm_1cam": 40.0, "occlusion_penetration_mm_2cam": 0.76,
+           "self_filter": {"false_fixture_points_without": 217, "false_fixture_points_with": 0,
+                           "tips_fenced_without": 3, "tips_fenced_with": 0}}
+    report.write(tmp_path, [], [], {}, {"clock": "simulated"}, dynamic=res)
+    import json
+
+    doc = json.loads((tmp_path / "table.json").read_text())
+    rows = doc["dynamic"]["rows"]
+    assert [(r["without"], r["with"]) for r in rows] == [(16.5, 0.48), ("0.6", "none up to 1.5"), (40.0, 0.76),
+                                                         (217, 0), (3, 0)]
+    assert doc["dynamic"]["results"]["occlusion_penetration_mm_2cam"] == 0.76
+    md = (tmp_path / "table.md").read_text()
+    assert "| chapter 6 | measure | without | with |" in md and "| tool's shadow over a protected disc (arch III)" in md
+
+
+def test_demo_has_a_no_dynamic_switch():
+    import argparse
+
+    from pointfence.service import demo
+
+    p = argparse.ArgumentParser()
+    demo.add_arguments(p)
+    assert p.parse_args(["--no-dynamic"]).no_dynamic and not p.parse_args([]).no_dynamic
