@@ -1,7 +1,6 @@
 """What every compute backend provides: a frame pipeline owning double-buffered snapshots."""
 from __future__ import annotations
 
-import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -14,12 +13,6 @@ from .neighbors import Neighbors, check_queries
 from .params import PipelineParams
 from .rig import Rig
 from .snapshot import HostSnapshot
-
-
-#: queries seen within this long count as running (a sliced build then yields to them), s
-QUERY_ACTIVE_S = 0.005
-#: longest a sliced build waits for a query to finish, s
-SLICE_WAIT_S = 0.002
 
 
 @dataclass(frozen=True)
@@ -49,13 +42,7 @@ class FramePipeline(ABC):
         self.grid = Grid.from_params(params)
         self.motion = MotionEstimator(params.motion, self.grid)
         self.seq = 0
-        #: Time-slice builds (device backends whose builds and queries share one processor, as
-        #: PoCL does): the build runs in short chunks and, while proxy queries are running,
-        #: waits after each chunk for the next query to finish, so a 30 Hz build never queues
-        #: milliseconds of work-groups ahead of a 1 kHz proxy launch.
-        self.slice_builds = False
-        self._query_done = threading.Event()
-        self._last_query = -1.0
+
     def _estimate_motion(self, moments_fn, timestamps):
         """Per-cell velocities of the snapshot being built: (cell velocities (n_cells, 3) float32
         or None, largest speed m/s). ``moments_fn()`` returns its cell moments (count, sum x, y,
@@ -73,18 +60,6 @@ class FramePipeline(ABC):
         n, per_cam = self._build(ordered, packed)
         self.seq += 1
         return IngestInfo(self.seq, n, per_cam, (time.perf_counter() - t0) * 1e3)
-
-    def query_done(self) -> None:
-        """Called by the proxy batches after every query: a sliced build may run its next chunk."""
-        self._last_query = time.perf_counter()
-        self._query_done.set()
-
-    def between_chunks(self) -> None:
-        """Where a sliced build yields: wait for the end of the next query while queries run
-        (they ran within the last 5 ms), at most 2 ms; else go on at once."""
-        if time.perf_counter() - self._last_query < QUERY_ACTIVE_S:
-            self._query_done.clear()
-            self._query_done.wait(SLICE_WAIT_S)
 
     def neighbors(self, queries, radius: float, max_neighbors: int = 64, protected_only: bool = False) -> Neighbors:
         """Points within ``radius`` (m) of each query (B, 3) in the current snapshot."""

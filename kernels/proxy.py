@@ -191,10 +191,7 @@ class ProxyBatch(ABC):
         if now is not None and not np.isfinite(now):
             raise InputError(f"now = {now!r}; expected a finite time in seconds (the frames' clock)")
         self._now, self._dt_request = now, dt
-        try:
-            self._step(h)
-        finally:
-            self.pipeline.query_done()
+        self._step(h)
 
     def _tick_dt(self, t_snapshot: float, vmax: float) -> float:
         """dt of this tick for a snapshot taken at ``t_snapshot`` whose fastest point moves at ``vmax``."""

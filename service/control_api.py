@@ -377,9 +377,6 @@ class Controller:
                 new = svc.backend.pipeline(list(old.rig.cameras), pp)
             except PointfenceError as e:
                 raise ControlError(400, f"{what}: {e}") from None
-            for attr in ("slice_builds",):   # the live service's run-time settings of its pipeline (runner.py)
-                if hasattr(old, attr):
-                    setattr(new, attr, getattr(old, attr))
             gate = PublishGate(new)
             # A first snapshot in the new pipeline (feeder paused for that one build) so the batch
             # can be compiled and launched once off the tick thread.

@@ -28,9 +28,6 @@ class LiveRun:
         self.frames = LiveFrames(self.service.pipeline, self.sources, self.clock, cfg.service.stale_s,
                                  cfg.service.max_frame_age_s)
         self.service.attach_frames(self.frames)
-        # builds share the processor with the 1 kHz proxy launches: cut them into chunks that
-        # run between ticks (kernels/backend.py, slice_builds)
-        self.service.pipeline.slice_builds = True
         self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
                                rt_priority=rt_priority)
         self._mark = (0, 0, 0, 0)

@@ -155,35 +155,3 @@ def test_empty_and_all_invalid_frames_give_empty_valid_snapshots(backend):
     assert s.n_points == 0 and s.cell_start.max() == 0
     nb = pipe.neighbors([[0.0, 0.0, 0.8]], radius=0.01)
     assert nb.count[0] == 0 and nb.nearest[0] == -1 and np.isinf(nb.nearest_dist[0])
-
-
-def test_time_sliced_build_equals_the_reference():
-    """A build cut into short chunks that yield to running proxy queries gives the same snapshot."""
-    import threading
-
-    rng = np.random.default_rng(12)
-    cams, frames = random_rig(rng, n_cams=2, w=320, h=240)
-    params = params_for("mask")
-    ref = get_backend("numpy").pipeline(cams, params)
-    dev = get_backend("opencl").pipeline(cams, params)
-    dev.slice_builds = True
-    ref.ingest(frames)
-    dev.ingest(frames)  # no queries running: the chunks do not wait
-    prox = dev.proxies(np.zeros((1, 3)) + [0.0, 0.0, 0.5])
-    stop = threading.Event()
-
-    def haptic_loop():  # queries running: the build yields after every chunk
-        while not stop.is_set():
-            prox.step(prox.positions)
-
-    t = threading.Thread(target=haptic_loop)
-    t.start()
-    try:
-        for f in frames:
-            f.depth = np.roll(f.depth, 3, axis=1)
-        ref.ingest(frames)
-        dev.ingest(frames)
-    finally:
-        stop.set()
-        t.join()
-    assert_same_snapshot(ref.host_snapshot(), dev.host_snapshot())

@@ -166,14 +166,12 @@ def test_radius_change_rebuilds_the_snapshots_between_ticks(rig):
     rig.wait_ticks(1500)                        # the master has pushed the robot onto the fixture
     assert rig.svc.batch.states[0] != 0
     old = rig.svc.pipeline
-    old.slice_builds = True                     # as a live run sets it (runner.py): carried over
     seq0 = rig.svc.frame_seq
     r = rig.client.radius(0.012)
     assert r["changed"] and r["fixture"]["radius"] == pytest.approx(0.012) and r["fixture"]["radius_max"] == pytest.approx(0.012)
     k = r["applied_before_tick"]
     assert rig.svc.pipeline is not old and rig.svc.pipeline.params.radius.r_base == pytest.approx(0.012)
     assert rig.svc.batch.pipeline is rig.svc.pipeline and rig.svc.feeder.pipeline is rig.svc.pipeline
-    assert rig.svc.pipeline.slice_builds is True
     assert rig.svc.cfg.pipeline.radius.r_base == pytest.approx(0.012)
     assert rig.svc.pipeline.params.cell_size < old.params.cell_size      # follows the radius
     rig.wait_ticks(200)

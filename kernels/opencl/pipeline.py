@@ -17,9 +17,6 @@ from ..snapshot import HostSnapshot
 from .context import _cl, build
 
 LOCAL = 64
-#: pixels per launch when a build is time-sliced (``FramePipeline.slice_builds``): about
-#: 0.4 ms of a 2-core PoCL device, so a waiting proxy launch never queues behind more than that
-SLICE_PIXELS = 65536
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
 
 
@@ -139,42 +136,19 @@ class OpenCLPipeline(FramePipeline):
                     m = (np.asarray(f.mask) != 0).astype(np.uint8)
                     cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False)
             npix, C = np.int32(self.npix), np.int32(self.ncells)
-            sliced = self.slice_builds
-            chunk_px = SLICE_PIXELS if sliced else max(self.npix, 1)
-
-            def pause():
-                if sliced:
-                    q.finish()
-                    self.between_chunks()
-
             self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
             for i in range(len(rig)):
                 pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
-                off, n = int(cami[0]), int(cami[1])
-                for a in range(0, n, chunk_px):  # classify is per pixel: a chunk is a pixel range
-                    part = np.array([off + a, min(chunk_px, n - a), cami[2], cami[3]], np.int32)
-                    self.k_classify(q, (_round_up(int(part[1])),), None, self.depth, self.rays, pose, cam, part,
-                                    self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
-                                    self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
-                    pause()
-            # chunks are multiples of LOCAL work-items, so only the last launch is rounded up, and its
-            # extra work-items fall beyond npix (every kernel checks that bound)
-            runs_per_chunk = SLICE_PIXELS // self.per if sliced else self.n_runs
-            for r in range(0, self.n_runs, runs_per_chunk):
-                m = min(runs_per_chunk, self.n_runs - r)
-                self.k_count(q, (_round_up(m),), None, self.pix_cell, npix, np.int32(self.per), self.counts,
-                             self.pix_rank, global_offset=(r,))
-                pause()
+                self.k_classify(q, (_round_up(int(cami[1])),), None, self.depth, self.rays, pose, cam, cami,
+                                self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
+                                self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
+            self.k_count(q, (_round_up(self.n_runs),), None, self.pix_cell, npix, np.int32(self.per), self.counts, self.pix_rank)
             chunk = np.int32(self.chunk)
             self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, slot.start, self.partial)
             self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), slot.start, C)
             self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
-            pause()
-            for a in range(0, self.npix, chunk_px):
-                m = min(chunk_px, self.npix - a)
-                self.k_scatter(q, (_round_up(m),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
-                               slot.start, slot.order, global_offset=(a,))
-                pause()
+            self.k_scatter(q, (_round_up(self.npix),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
+                           slot.start, slot.order)
             self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
             for i in range(len(rig)):
                 cami = rig.ints[i].copy()
