@@ -16,7 +16,7 @@ from abc import ABC, abstractmethod
 from typing import Iterator, Optional
 
 from pointfence.kernels.camera import Camera
-from pointfence.kernels.errors import InputError
+from pointfence.kernels.errors import InputError, PointfenceError
 from pointfence.kernels.frame import DepthFrame
 
 
@@ -131,3 +131,30 @@ class DepthSource(ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(camera={self._camera.name!r}, rate_hz={self._rate:g}, realtime={self._realtime})"
+
+
+class LiveSource(DepthSource):
+    """A live camera that delivers frames on its own clock (OpenNI2, depthai): ``read()``
+    returns the next frame or None when none arrived within its timeout; iterating waits up
+    to ``max(5 s, timeout)`` for a frame, then raises an error naming the camera."""
+
+    timeout: float = 1.0
+
+    def _frame(self, seq: int) -> Optional[DepthFrame]:  # not used: read() is overridden
+        return self.read()
+
+    def describe(self) -> str:
+        """How errors name this camera, e.g. "openni2 camera 'cam0' (test.oni)"."""
+        return f"camera {self.camera.name!r}"
+
+    def __next__(self) -> DepthFrame:
+        wait = max(5.0, self.timeout)
+        deadline = time.monotonic() + wait
+        while True:
+            frame = self.read()
+            if frame is not None:
+                return frame
+            if self._ended:
+                raise StopIteration
+            if time.monotonic() > deadline:
+                raise PointfenceError(f"{self.describe()} delivered no frame for {wait:.0f} s; check the cable and power")

@@ -39,7 +39,7 @@ from pointfence.kernels.camera import Camera, NoiseModel
 from pointfence.kernels.errors import InputError, PointfenceError
 from pointfence.kernels.frame import DepthFrame
 
-from .base import DepthSource
+from .base import LiveSource
 
 INSTALL_HINT = ("install the Luxonis depthai library (`pip install 'depthai>=3'`) and, on Linux, the udev rule from "
                 "Luxonis' installation guide so the OAK is accessible without root")
@@ -188,7 +188,7 @@ def list_devices() -> list:
     return describe_devices(dai.Device.getAllAvailableDevices())
 
 
-class DepthAISource(DepthSource):
+class DepthAISource(LiveSource):
     """Depth frames from an OAK camera (see the module docstring)."""
 
     def __init__(self, target: str = "", camera: Optional[Camera] = None, *, name: Optional[str] = None,
@@ -249,20 +249,8 @@ class DepthAISource(DepthSource):
         self._seq += 1
         return frame
 
-    def _frame(self, seq: int) -> Optional[DepthFrame]:  # not used: read() is overridden
-        return self.read()
-
-    def __next__(self) -> DepthFrame:
-        deadline = time.monotonic() + max(5.0, self.timeout)
-        while True:
-            frame = self.read()
-            if frame is not None:
-                return frame
-            if self._ended:
-                raise StopIteration
-            if time.monotonic() > deadline:
-                raise PointfenceError(f"depthai camera {self._camera.name!r} ({self.device_id}) delivered no frame for "
-                                      f"{max(5.0, self.timeout):.0f} s; check the cable and power")
+    def describe(self) -> str:
+        return f"depthai camera {self._camera.name!r} ({self.device_id})"
 
     def _release(self) -> None:
         if self._pipeline is not None:

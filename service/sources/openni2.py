@@ -45,7 +45,7 @@ from pointfence.kernels.camera import Camera, NoiseModel
 from pointfence.kernels.errors import InputError, PointfenceError
 from pointfence.kernels.frame import DepthFrame
 
-from .base import DepthSource
+from .base import LiveSource
 
 INSTALL_HINT = (
     "install the OpenNI2 runtime (Debian/Ubuntu: `sudo apt-get install libopenni2-0`; elsewhere the "
@@ -166,7 +166,7 @@ def depth_scale_of(pixel_format) -> float:
                      "(shift formats are raw disparity: pick a depth video mode with width/height/fps)")
 
 
-class OpenNI2Source(DepthSource):
+class OpenNI2Source(LiveSource):
     """Depth frames from an OpenNI2 device or ``.oni`` recording (see the module docstring)."""
 
     def __init__(self, target: str = "any", camera: Optional[Camera] = None, *, name: Optional[str] = None,
@@ -397,20 +397,8 @@ class OpenNI2Source(DepthSource):
         finally:
             cf.close()
 
-    def _frame(self, seq: int) -> Optional[DepthFrame]:  # not used: read() is overridden
-        return self.read()
-
-    def __next__(self) -> DepthFrame:
-        deadline = time.monotonic() + max(5.0, self.timeout)
-        while True:
-            frame = self.read()
-            if frame is not None:
-                return frame
-            if self._ended:
-                raise StopIteration
-            if time.monotonic() > deadline:
-                raise PointfenceError(f"openni2 camera {self._camera.name!r} ({self.target}) delivered no frame for "
-                                      f"{max(5.0, self.timeout):.0f} s; check the cable and power")
+    def describe(self) -> str:
+        return f"openni2 camera {self._camera.name!r} ({self.target})"
 
     # -- closing -------------------------------------------------------------------------
     def _release(self) -> None:
