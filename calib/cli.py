@@ -58,24 +58,11 @@ def run(args) -> int:
 
 def main(argv=None) -> int:
     """``python -m pointfence.calib.cli STEP ...`` (the same as ``pointfence calib STEP ...``)."""
-    import argparse
+    import sys
 
-    from pointfence.kernels.errors import PointfenceError
+    from pointfence.cli import main as pointfence_main
 
-    argv = sys.argv[1:] if argv is None else list(argv)
-    saved = sys.argv
-    sys.argv = [saved[0], "calib"] + argv
-    try:
-        parser = argparse.ArgumentParser(prog="pointfence calib", description=__doc__.splitlines()[0])
-        add_arguments(parser)
-    finally:
-        sys.argv = saved
-    args = parser.parse_args(argv)
-    try:
-        return run(args)
-    except PointfenceError as e:
-        print(f"pointfence calib: error: {e}", file=sys.stderr)
-        return 1
+    return pointfence_main(["calib", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ the marker towards the viewer.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
@@ -42,7 +41,7 @@ from scipy.spatial.transform import Rotation
 from pointfence.kernels.camera import Camera, check_rigid
 from pointfence.kernels.errors import InputError
 
-from .common import inv_T, make_T, mean_pose, pose_error, progress
+from .common import inv_T, make_T, pose_error, progress
 
 
 # -- the low-pass filter on the transform ---------------------------------------------------

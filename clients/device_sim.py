@@ -121,18 +121,11 @@ def run(args) -> int:
 
 def main(argv=None) -> int:
     """``python -m pointfence.clients.device_sim`` (the same as ``pointfence device-sim``)."""
-    import argparse
     import sys
 
-    from pointfence.kernels.errors import PointfenceError
+    from pointfence.cli import main as pointfence_main
 
-    p = argparse.ArgumentParser(prog="pointfence device-sim", description=__doc__.splitlines()[0])
-    add_arguments(p)
-    try:
-        return run(p.parse_args(argv))
-    except PointfenceError as e:
-        print(f"pointfence device-sim: error: {e}", file=sys.stderr)
-        return 1
+    return pointfence_main(["device-sim", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

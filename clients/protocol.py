@@ -13,7 +13,6 @@ and validate the values. Every failure raises :class:`ProtocolError` with an err
 """
 from __future__ import annotations
 
-import hashlib
 import hmac
 import math
 import struct

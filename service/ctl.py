@@ -170,16 +170,11 @@ def run(args) -> int:
 
 def main(argv=None) -> int:
     """``python -m pointfence.service.ctl`` (the same as ``pointfence ctl``)."""
-    import argparse
+    import sys
 
-    p = argparse.ArgumentParser(prog="pointfence ctl", description=__doc__.splitlines()[0])
-    add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return run(args)
-    except PointfenceError as e:
-        print(f"pointfence ctl: error: {e}", file=sys.stderr)
-        return 1
+    from pointfence.cli import main as pointfence_main
+
+    return pointfence_main(["ctl", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

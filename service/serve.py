@@ -85,7 +85,6 @@ def run(args) -> int:
         raise InputError("no key: pass --key-file FILE (or set POINTFENCE_KEY_FILE); make one with --new-key FILE")
     psk = P.load_key(args.key_file)
     from . import config as config_mod
-    from .masters import Master
     from .runner import LiveRun
     from .udp_server import UdpHub
 
@@ -192,18 +191,11 @@ def _jsonable(d):
 
 def main(argv=None) -> int:
     """``python -m pointfence.service.serve`` (the same as ``pointfence serve``)."""
-    import argparse
+    import sys
 
-    from pointfence.kernels.errors import PointfenceError
+    from pointfence.cli import main as pointfence_main
 
-    p = argparse.ArgumentParser(prog="pointfence serve", description=__doc__.splitlines()[0])
-    add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return run(args)
-    except PointfenceError as e:
-        print(f"pointfence serve: error: {e}", file=sys.stderr)
-        return 1
+    return pointfence_main(["serve", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

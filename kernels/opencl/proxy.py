@@ -49,7 +49,6 @@ class OpenCLProxies(ProxyBatch):
         super().__init__(pipeline, positions, params)
         p = self.params
         gather_r = self.reach + p.skin
-        h = pipeline.grid.h
         self.prm_host = np.array([p.r1, p.band, p.r3 - p.r1, p.step, p.tolerance, p.slack, p.skin, gather_r,
                                   self.reach, p.margin, 0, 0, 0, 0, 0, 0], np.float32)
         mf = self.cl.mem_flags

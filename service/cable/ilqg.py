@@ -28,7 +28,7 @@ from pointfence.kernels.errors import InputError
 
 from .codegen import BufferedCall, compile_functions
 from .model import PREDICTOR_SUBSTEPS, dynamics_expr, implicit_step_expr
-from .params import DT, IDX, NP, NX
+from .params import DT, NP, NX
 
 ALPHAS = (1.0, 0.5, 0.2, 0.05)
 

@@ -29,7 +29,6 @@ tested without a camera.
 from __future__ import annotations
 
 import math
-import time
 from datetime import timedelta
 from typing import Optional
 

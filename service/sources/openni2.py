@@ -35,7 +35,6 @@ import ctypes.util
 import math
 import os
 import threading
-import time
 from pathlib import Path
 from typing import Optional
 
@@ -130,7 +129,8 @@ def load_openni2(redist: Optional[str] = None):
 
 def list_devices(redist: Optional[str] = None) -> list:
     """URIs (str) of the OpenNI2 devices attached now."""
-    openni2, c_api = load_openni2(redist), _bindings()[1]
+    load_openni2(redist)  # initialises the library
+    c_api = _bindings()[1]
     pdevs = ctypes.POINTER(c_api.OniDeviceInfo)()
     count = ctypes.c_int()
     c_api.oniGetDeviceList(ctypes.byref(pdevs), ctypes.byref(count))
@@ -194,7 +194,6 @@ class OpenNI2Source(LiveSource):
             raise InputError(f"openni2 source: recording {target!r} not found; pass an existing .oni file or a device URI "
                              "(openni2:any for the first attached camera)")
         self._openni2 = load_openni2(redist)
-        o = self._openni2
         self._device = self._depth = self._color = None
         try:
             self._open(target, registration, color, width, height, fps, realtime, loop)
@@ -304,7 +303,6 @@ class OpenNI2Source(LiveSource):
         self._depth.start()
 
     def _set_mode(self, width, height, fps):
-        o = self._openni2
         modes = self._depth.get_sensor_info().videoModes
         fmt_ok = [m for m in modes if str(m.pixelFormat).upper().endswith(("DEPTH_1_MM", "DEPTH_100_UM"))]
         pick = [m for m in fmt_ok if (width is None or m.resolutionX == int(width)) and (height is None or m.resolutionY == int(height))
