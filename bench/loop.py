@@ -65,6 +65,7 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         "proxies_in_contact_at_end": in_contact, "camera_frames": frames,
         "ingest_ms_p50": round(float(np.median(ingest)), 2) if ingest else None,
         "hold_at_end": st["hold"], "kernel_errors": st["kernel_errors"],
+        "scheduling": run.loop.scheduling, "proxy_device": getattr(run.service.batch, "device_kind", None),
     }
 
 

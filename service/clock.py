@@ -2,7 +2,11 @@
 
 The loop asks a clock for ``now()`` (seconds, monotonic) and ``sleep_until(t)``. ``RealClock``
 sleeps with ``time.sleep`` until ``spin_s`` before the deadline and spins on
-``time.perf_counter`` for the rest (sub-10 us wake-up precision on an idle core). ``FakeClock``
+``time.perf_counter`` for the rest. The default is no spin: a spinning Python thread holds the
+interpreter lock, every other thread of the service (frame ingest, camera readers, UDP) forces
+it to hand the lock over, and the loop then waits to get it back at its deadline (measured:
+lateness p99 4.7 ms spinning 0.4 ms, 0.4 ms not spinning, with a frame build running; a
+SCHED_FIFO loop thread wakes within tens of microseconds from ``time.sleep``). ``FakeClock``
 never sleeps: ``sleep_until`` jumps to the deadline and ``advance(dt)`` lets a test (or a
 simulated slow component) make time pass inside a tick, so deadline accounting can be checked
 exactly.
@@ -17,7 +21,7 @@ class RealClock:
 
     simulated = False
 
-    def __init__(self, spin_s: float = 0.0004):
+    def __init__(self, spin_s: float = 0.0):
         self.spin_s = float(spin_s)
 
     @staticmethod

@@ -19,7 +19,7 @@ class LiveRun:
 
     def __init__(self, cfg, masters, *, architecture: Optional[str] = None, backend: Optional[str] = None,
                  device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None,
-                 rt_priority: int = 0):
+                 rt_priority: Optional[int] = None):
         self.cfg = cfg
         self.clock = RealClock()
         self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
@@ -29,7 +29,7 @@ class LiveRun:
                                  cfg.service.max_frame_age_s)
         self.service.attach_frames(self.frames)
         self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
-                               rt_priority=rt_priority)
+                               rt_priority=cfg.service.rt_priority if rt_priority is None else rt_priority)
         self._mark = (0, 0, 0, 0)
 
     def start(self, first_frame_timeout: float = 20.0) -> None:

@@ -3,6 +3,11 @@
 Host class in the style of Warp's examples: it owns every buffer, allocates them at
 construction and launches kernels with explicit global sizes. Building runs on its own
 command queue so queries on the front snapshot (another queue) never wait for a build.
+
+Every non-blocking copy's event is kept until a later blocking call has waited for it:
+pyopencl's event for a copy from or to a host array waits for the copy when it is destroyed,
+*holding the interpreter lock*, so a dropped event would stall every Python thread (the
+haptic loop's included) until the build queue reaches that copy.
 """
 from __future__ import annotations
 
@@ -24,7 +29,14 @@ def _round_up(n: int, m: int = LOCAL) -> int:
     return max(m, (n + m - 1) // m * m)
 
 
-class _Slot:
+class _Views:
+    """One context's buffers of a snapshot slot (see ``_Slot``)."""
+
+    def __init__(self, pts, sigma, order, start, vel):
+        self.pts, self.sigma, self.order, self.start, self.vel = pts, sigma, order, start, vel
+
+
+class _Slot(_Views):
     """Device arrays of one snapshot (see frames.cl for the layout).
 
     pts: float4 per rig pixel, (x, y, z, r_f) in pixel order; only pixels listed in ``order``
@@ -32,16 +44,25 @@ class _Slot:
     entry = pixel | protected << 31. start: int32 (n_cells + 1), cell c's entries are
     order[start[c]:start[c+1]]. vel: float4 per point in ``order``'s order, the estimated
     velocity (kernels/motion.py; meaningful only while ``vmax`` > 0).
+
+    With ``inline_ctx`` the arrays live in page-aligned host memory (``host``) that both the
+    build context and the in-thread context address (``inline``: that context's buffers).
     """
 
-    def __init__(self, cl, ctx, npix: int, ncells: int):
+    def __init__(self, cl, ctx, npix: int, ncells: int, inline_ctx=None):
         mf = cl.mem_flags
         n = max(npix, 1)
-        self.pts = cl.Buffer(ctx, mf.READ_WRITE, 16 * n)
-        self.sigma = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
-        self.order = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
-        self.start = cl.Buffer(ctx, mf.READ_WRITE, 4 * (ncells + 1))
-        self.vel = cl.Buffer(ctx, mf.READ_WRITE, 16 * n)  # per point, cell-sorted order (motion)
+        sizes = {"pts": 16 * n, "sigma": 4 * n, "order": 4 * n, "start": 4 * (ncells + 1), "vel": 16 * n}
+        if inline_ctx is None:
+            super().__init__(**{k: cl.Buffer(ctx, mf.READ_WRITE, b) for k, b in sizes.items()})
+            self.host = self.inline = None
+        else:
+            from .shared_host import aligned_zeros, host_buffer
+
+            dt = {"pts": np.float32, "sigma": np.float32, "order": np.int32, "start": np.int32, "vel": np.float32}
+            self.host = {k: aligned_zeros(b, dt[k]) for k, b in sizes.items()}
+            super().__init__(**{k: host_buffer(cl, ctx, a) for k, a in self.host.items()})
+            self.inline = _Views(**{k: host_buffer(cl, inline_ctx, a, read_only=True) for k, a in self.host.items()})
         self.vmax = 0.0
         self.n_points = 0
         self.seq = 0
@@ -56,8 +77,11 @@ class OpenCLPipeline(FramePipeline):
         self.backend = backend
         self.cl = cl
         ctx = self.ctx = backend.context
+        #: PoCL's in-thread device context (None: queries run on ``ctx`` like the builds)
+        self.inline_ctx = getattr(backend, "inline_context", None)
         self.build_queue = cl.CommandQueue(ctx)
         self.query_queue = cl.CommandQueue(ctx)
+        self.inline_queue = None if self.inline_ctx is None else cl.CommandQueue(self.inline_ctx)
         self.prg = build(ctx, "frames.cl", "neighbors.cl")
         self.k_zero = self.prg.zero_ints
         self.k_classify = self.prg.classify
@@ -97,7 +121,7 @@ class OpenCLPipeline(FramePipeline):
             self.cell_vel = cl.Buffer(ctx, mf.READ_ONLY, 16 * C)
             self._moments_host = np.zeros((C, N_MOMENTS), np.float32)
             self._cell_vel_host = np.zeros((C, 4), np.float32)
-        self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C), _Slot(cl, ctx, npix, C)])
+        self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C, self.inline_ctx) for _ in range(2)])
         self._n_host = np.zeros(1, np.int32)
         self._zero_cell_starts()
 
@@ -126,15 +150,18 @@ class OpenCLPipeline(FramePipeline):
         cl, q, rig = self.cl, self.build_queue, self.rig
         b = self.buffers.back()
         slot = self.buffers.slots[b]
+        events = []   # see the module docstring: dropped only after the blocking read below
         try:
             for i, f in enumerate(frames):
                 off = int(rig.offsets[i])
-                cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off, is_blocking=False)
+                events.append(cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off,
+                                              is_blocking=False))
                 if self.params.selection.kind == "color" and f.color is not None:
-                    cl.enqueue_copy(q, self.color, np.ascontiguousarray(f.color), dst_offset=3 * off, is_blocking=False)
+                    events.append(cl.enqueue_copy(q, self.color, np.ascontiguousarray(f.color), dst_offset=3 * off,
+                                                  is_blocking=False))
                 if self.params.selection.kind == "mask" and f.mask is not None:
                     m = (np.asarray(f.mask) != 0).astype(np.uint8)
-                    cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False)
+                    events.append(cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False))
             npix, C = np.int32(self.npix), np.int32(self.ncells)
             self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
             for i in range(len(rig)):
@@ -154,8 +181,9 @@ class OpenCLPipeline(FramePipeline):
                 cami = rig.ints[i].copy()
                 self.k_count_camera(q, (_round_up((int(cami[1]) + 4095) // 4096),), None, self.pix_cell, cami,
                                     np.int32(4096), self.cam_counts)
-            cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False)
+            events.append(cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False))
             cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
+            events.clear()
             slot.vmax = self._motion(slot, frames)
         except cl.Error as e:
             raise KernelError(f"OpenCL frame pipeline failed on {self.backend.device_name}: {e}") from e
@@ -181,9 +209,10 @@ class OpenCLPipeline(FramePipeline):
         cell_v, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
         if cell_v is not None and vmax > 0:
             self._cell_vel_host[:, :3] = cell_v
-            cl.enqueue_copy(q, self.cell_vel, self._cell_vel_host, is_blocking=False)
+            ev = cl.enqueue_copy(q, self.cell_vel, self._cell_vel_host, is_blocking=False)
             self.k_expand(q, (_round_up(self.ncells),), None, self.cell_vel, slot.start, C, slot.vel)
             q.finish()
+            del ev
             return vmax
         return 0.0
 
@@ -210,14 +239,15 @@ class OpenCLPipeline(FramePipeline):
         qq = self.query_queue
         with self.buffers.read() as slot:
             try:
-                cl.enqueue_copy(qq, self._q_buf, self._q_host[:B], is_blocking=False)
+                events = [cl.enqueue_copy(qq, self._q_buf, self._q_host[:B], is_blocking=False)]
                 self.k_neighbors(qq, (_round_up(B),), None, slot.pts, slot.order, slot.start, self.gridf, self.dims,
                                  self._q_buf, np.int32(B), np.float32(radius), np.int32(search_span(radius, self.grid.h)),
                                  np.int32(K), np.int32(protected_only), self._count, self._index, self._near, self._near_d)
-                cl.enqueue_copy(qq, out.count, self._count, is_blocking=False)
-                cl.enqueue_copy(qq, out.index, self._index, is_blocking=False)
-                cl.enqueue_copy(qq, out.nearest, self._near, is_blocking=False)
+                events += [cl.enqueue_copy(qq, out.count, self._count, is_blocking=False),
+                           cl.enqueue_copy(qq, out.index, self._index, is_blocking=False),
+                           cl.enqueue_copy(qq, out.nearest, self._near, is_blocking=False)]
                 cl.enqueue_copy(qq, out.nearest_dist, self._near_d, is_blocking=True)
+                events.clear()
             except cl.Error as e:
                 raise KernelError(f"OpenCL neighbour query failed on {self.backend.device_name}: {e}") from e
         return out
@@ -236,16 +266,18 @@ class OpenCLPipeline(FramePipeline):
             start = np.empty(self.ncells + 1, np.int32)
             pts = np.empty((max(self.npix, 1), 4), np.float32)
             sigma = np.empty(max(self.npix, 1), np.float32)
+            events = []
             if n:
-                cl.enqueue_copy(q, order, slot.order, is_blocking=False)
-                cl.enqueue_copy(q, pts, slot.pts, is_blocking=False)
-                cl.enqueue_copy(q, sigma, slot.sigma, is_blocking=False)
+                events += [cl.enqueue_copy(q, order, slot.order, is_blocking=False),
+                           cl.enqueue_copy(q, pts, slot.pts, is_blocking=False),
+                           cl.enqueue_copy(q, sigma, slot.sigma, is_blocking=False)]
             vel = None
             if n and slot.vmax > 0:
                 vel4 = np.empty((n, 4), np.float32)
-                cl.enqueue_copy(q, vel4, slot.vel, is_blocking=False)
+                events.append(cl.enqueue_copy(q, vel4, slot.vel, is_blocking=False))
                 vel = vel4[:, :3]
             cl.enqueue_copy(q, start, slot.start, is_blocking=True)
+            events.clear()
             pix = order & 0x7FFFFFFF
             cam = (np.searchsorted(self.rig.offsets, pix, side="right") - 1).astype(np.uint8)
             return HostSnapshot(pts[pix], sigma[pix], cam, (order < 0).astype(np.uint8), pix.astype(np.int32), start,

@@ -5,6 +5,10 @@ when the batch is created and grow only when the number of proxies grows. The pr
 positions stay on the device between ticks. A tick is: one non-blocking HIP upload, the kernel
 (every step inside it) against the front snapshot, one blocking read of the packed outputs into
 a preallocated host array, and a few in-place unpacking copies.
+
+On PoCL a batch of up to ``INLINE_MAX`` proxies runs on the in-thread device (the kernel
+executes in the thread that calls ``step``, reading the snapshot's shared host memory: no
+worker hand-off, no wait behind a frame build); larger batches run on the worker pool.
 """
 from __future__ import annotations
 
@@ -19,14 +23,15 @@ from .context import build
 #: device memory the working sets of a batch may take together (bytes)
 WS_BUDGET = 512 << 20
 VW = LANES
+#: largest batch run on PoCL's in-thread device (one core); larger ones use the worker pool
+INLINE_MAX = 16
 
 
-def _program(pipeline):
-    prg = getattr(pipeline, "_proxy_program", None)
-    if prg is None:
-        prg = build(pipeline.ctx, "proxy.cl")
-        pipeline._proxy_program = prg
-    return prg
+def _program(pipeline, inline: bool):
+    progs = pipeline.__dict__.setdefault("_proxy_programs", {})
+    if inline not in progs:
+        progs[inline] = build(pipeline.inline_ctx if inline else pipeline.ctx, "proxy.cl")
+    return progs[inline]
 
 
 class OpenCLProxies(ProxyBatch):
@@ -35,25 +40,39 @@ class OpenCLProxies(ProxyBatch):
     ``ws_capacity``: points per proxy working set (a multiple of 16; shrunk automatically so
     that a large batch's working sets fit ``WS_BUDGET``). Results never depend on it.
     ``local_size``: work-group size of the launch (None lets the OpenCL runtime choose).
+    ``inline``: run on PoCL's in-thread device while the batch has at most ``INLINE_MAX``
+    proxies (None: whenever the pipeline has one; False: never). ``device_kind`` says where the
+    batch runs now ("in-thread" or "pool").
     """
 
-    def __init__(self, pipeline, positions, params=None, ws_capacity: int = WS_CAPACITY, local_size=None):
+    def __init__(self, pipeline, positions, params=None, ws_capacity: int = WS_CAPACITY, local_size=None,
+                 inline=None):
         self.cl = pipeline.cl
-        self.queue = pipeline.query_queue
-        self.prg = _program(pipeline)
-        self.kernel = self.cl.Kernel(self.prg, "proxy_tick")  # own instance: arguments are per batch
         self._ws_request = max(VW, int(ws_capacity) // VW * VW)
         self.local_size = local_size
-        self._arg_slot = None
-        self._dt_arg = 0.0
+        self._inline_allowed = pipeline.inline_ctx is not None and inline is not False
+        self._inline = None
+        self.kernel = None
+        self._spans = None
         super().__init__(pipeline, positions, params)
+
+    @property
+    def device_kind(self) -> str:
+        return "in-thread" if self._inline else "pool"
+
+    def _bind(self, inline: bool):
+        """Kernel instance, queue and parameter buffer on the in-thread or the pool context."""
+        pipeline, cl = self.pipeline, self.cl
+        self._inline = inline
+        self.ctx = pipeline.inline_ctx if inline else pipeline.ctx
+        self.queue = pipeline.inline_queue if inline else pipeline.query_queue
+        self.kernel = k = cl.Kernel(_program(pipeline, inline), "proxy_tick")  # own instance: per-batch arguments
         p = self.params
         gather_r = self.reach + p.skin
         self.prm_host = np.array([p.r1, p.band, p.r3 - p.r1, p.step, p.tolerance, p.slack, p.skin, gather_r,
                                   self.reach, p.margin, 0, 0, 0, 0, 0, 0], np.float32)
-        mf = self.cl.mem_flags
-        self.prm = self.cl.Buffer(pipeline.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.prm_host)
-        k = self.kernel
+        mf = cl.mem_flags
+        self.prm = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.prm_host)
         k.set_arg(3, pipeline.gridf)
         k.set_arg(4, pipeline.dims)
         k.set_arg(11, self.prm)
@@ -62,8 +81,9 @@ class OpenCLProxies(ProxyBatch):
         self._gather_r = gather_r
         self._spans = None
         self._set_spans(0.0)
+        self._dt_arg = 0.0
         k.set_arg(17, np.float32(0.0))
-        self._set_batch_args()
+        self._arg_slot = None
 
     def _set_spans(self, extra: float):
         """Hash spans of the gather and of the direct path, grown by ``extra`` m (motion)."""
@@ -76,7 +96,10 @@ class OpenCLProxies(ProxyBatch):
 
     # --- storage -------------------------------------------------------------------------------
     def _grow(self, cap: int):
-        cl, ctx, mf = self.cl, self.pipeline.ctx, self.cl.mem_flags
+        inline = self._inline_allowed and cap <= INLINE_MAX
+        if inline != self._inline:
+            self._bind(inline)
+        cl, ctx, mf = self.cl, self.ctx, self.cl.mem_flags
         self.ws_cap = int(max(256, min(self._ws_request, WS_BUDGET // (16 * cap) // VW * VW)))
         self._pos = cl.Buffer(ctx, mf.READ_WRITE, 16 * cap)
         self._hips = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
@@ -87,8 +110,7 @@ class OpenCLProxies(ProxyBatch):
         self._out_host = np.zeros((cap, 8), np.float32)
         self._info = self._out_host[:, 7].view(np.int32)
         self._arg_slot = None
-        if hasattr(self, "prm"):
-            self._set_batch_args()
+        self._set_batch_args()
 
     def _set_batch_args(self):
         k = self.kernel
@@ -120,10 +142,11 @@ class OpenCLProxies(ProxyBatch):
         out = self._out_host
         with self.pipeline.buffers.read() as slot:
             if slot is not self._arg_slot:
-                k.set_arg(0, slot.pts)
-                k.set_arg(1, slot.order)
-                k.set_arg(2, slot.start)
-                k.set_arg(16, slot.vel)
+                v = slot.inline if self._inline else slot
+                k.set_arg(0, v.pts)
+                k.set_arg(1, v.order)
+                k.set_arg(2, v.start)
+                k.set_arg(16, v.vel)
                 self._arg_slot = slot
             dt = self._tick_dt(min(slot.timestamps) if slot.timestamps else 0.0, slot.vmax)
             if dt != self._dt_arg:
@@ -131,11 +154,13 @@ class OpenCLProxies(ProxyBatch):
                 self._dt_arg = dt
             self._set_spans(extra_span(slot.vmax, dt))
             try:
-                cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
+                ev = cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
                 cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)
                 cl.enqueue_copy(q, out[:n], self._out, is_blocking=True)
+                del ev   # complete by now: its destructor does not wait (see opencl/pipeline.py)
             except cl.Error as e:
-                raise KernelError(f"OpenCL proxy kernel failed on {self.pipeline.backend.device_name}: {e}") from e
+                raise KernelError(f"OpenCL proxy kernel failed on {self.pipeline.backend.device_name} "
+                                  f"({self.device_kind}): {e}") from e
         np.copyto(self._positions[:n], out[:n, :3])
         np.copyto(self._nearest[:n], out[:n, 3])
         np.copyto(self._normals[:n], out[:n, 4:7])

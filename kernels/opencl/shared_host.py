@@ -1,0 +1,58 @@
+"""Host arrays that two OpenCL contexts on the same CPU share without copies.
+
+PoCL's CPU devices compute directly in the host memory of a buffer created with
+``CL_MEM_USE_HOST_PTR``. The frame pipeline builds a snapshot on PoCL's worker pool (``pthread``
+device) into such arrays, and the haptic tick reads the same arrays through buffers of a second
+context on PoCL's in-thread ``basic`` device. OpenCL does not promise this across contexts, so
+``zero_copy_ok`` checks it on the devices at hand before the pipeline relies on it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+PAGE = 4096
+
+_CHECK_SRC = """
+__kernel void copy_add(__global const int *a, __global int *b, int k) { int i = get_global_id(0); b[i] = a[i] + k; }
+"""
+
+
+def aligned_zeros(nbytes: int, dtype=np.float32, shape=None) -> np.ndarray:
+    """Zeroed array of at least ``nbytes`` (>= 1 element) starting on a page boundary."""
+    item = np.dtype(dtype).itemsize
+    n = max(1, -(-int(nbytes) // item))
+    raw = np.zeros(n * item + PAGE, np.uint8)
+    off = (-raw.ctypes.data) % PAGE
+    a = raw[off:off + n * item].view(dtype)
+    return a if shape is None else a.reshape(shape)
+
+
+def host_buffer(cl, ctx, array: np.ndarray, read_only: bool = False):
+    mf = cl.mem_flags
+    return cl.Buffer(ctx, (mf.READ_ONLY if read_only else mf.READ_WRITE) | mf.USE_HOST_PTR, hostbuf=array)
+
+
+def zero_copy_ok(cl, writer_ctx, reader_ctx) -> bool:
+    """Whether a kernel of ``reader_ctx`` sees what a kernel of ``writer_ctx`` wrote into a shared
+    host array, and the host sees what both wrote, with no transfer enqueued."""
+    n = 4096
+    a = aligned_zeros(4 * n, np.int32)
+    b = aligned_zeros(4 * n, np.int32)
+    c = aligned_zeros(4 * n, np.int32)
+    a[:] = np.arange(n, dtype=np.int32)
+    try:
+        kw = cl.Kernel(cl.Program(writer_ctx, _CHECK_SRC).build(), "copy_add")
+        kr = cl.Kernel(cl.Program(reader_ctx, _CHECK_SRC).build(), "copy_add")
+        qw, qr = cl.CommandQueue(writer_ctx), cl.CommandQueue(reader_ctx)
+        aw, bw = host_buffer(cl, writer_ctx, a), host_buffer(cl, writer_ctx, b)
+        br, cr = host_buffer(cl, reader_ctx, b), host_buffer(cl, reader_ctx, c)
+        for k in (1, 7):
+            kw(qw, (n,), None, aw, bw, np.int32(k))
+            qw.finish()
+            kr(qr, (n,), None, br, cr, np.int32(k))
+            qr.finish()
+            if not (np.array_equal(b, a + k) and np.array_equal(c, a + 2 * k)):
+                return False
+    except cl.Error:
+        return False
+    return True
