@@ -39,7 +39,7 @@ TELEOP_KEYS = {"architecture", "scale", "max_robot_speed", "T_world_master", "ha
 ARCHITECTURES = ("I", "II", "III")
 ROBOT_MODELS = ("raven2", "point-mass", "none")
 SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s",
-                "self_filter", "self_filter_margin", "rt_priority"}
+                "self_filter", "self_filter_margin", "rt_priority", "build_nice"}
 #: ``[motion]``: kernels.motion.MotionModel's fields (motion estimation and fixture prediction)
 MOTION_KEYS = {"enabled", "latency", "max_age", "capture", "cell", "min_points", "planarity", "count_ratio", "v_min",
                "v_max", "max_gap"}
@@ -90,6 +90,8 @@ class ServiceConfig:
     self_filter_margin: float = 0.003
     #: SCHED_FIFO priority (1-99) of the haptic loop thread where the OS allows it; 0: normal
     rt_priority: int = 80
+    #: nice value (0-19) of PoCL's worker pool, which builds the snapshots (opencl backend)
+    build_nice: int = 10
 
 
 @dataclass
@@ -296,7 +298,7 @@ def _service(tbl: Any) -> ServiceConfig:
     _check_keys(tbl, SERVICE_KEYS, "[service]")
     d = ServiceConfig()
     kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True)
-          for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin", "rt_priority"}}
+          for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin", "rt_priority", "build_nice"}}
     sf = tbl.get("self_filter")
     if sf is not None and not isinstance(sf, bool):
         raise InputError(f"[service] self_filter = {sf!r}; expected true or false (default: true when a robot model "
@@ -309,6 +311,11 @@ def _service(tbl: Any) -> ServiceConfig:
         raise InputError(f"[service] rt_priority = {rt!r}; expected an integer 0-99 (SCHED_FIFO priority of the "
                          "haptic loop thread; 0 runs it at normal priority)")
     kw["rt_priority"] = rt
+    bn = tbl.get("build_nice", d.build_nice)
+    if isinstance(bn, bool) or not isinstance(bn, int) or not 0 <= bn <= 19:
+        raise InputError(f"[service] build_nice = {bn!r}; expected an integer 0-19 (nice value of PoCL's worker "
+                         "threads that build the snapshots; 0 leaves them at normal priority)")
+    kw["build_nice"] = bn
     proxies = tbl.get("proxies", 1)
     if isinstance(proxies, bool) or not isinstance(proxies, int) or proxies < 1:
         raise InputError(f"[service] proxies = {proxies!r}; expected an integer >= 1")

