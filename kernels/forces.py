@@ -58,6 +58,7 @@ class ForceRenderer:
         self.params = params if params is not None else HapticParams()
         p = self.params
         self.taps = fir_lowpass(p.fir_taps, p.fir_cutoff_hz, p.rate_hz)
+        self._taps_oldest_first = np.ascontiguousarray(self.taps[::-1])
         self.n = 0
         self._cap = 0
         self.resize(n)
@@ -70,7 +71,9 @@ class ForceRenderer:
         if n > self._cap:
             cap = max(n, 2 * self._cap, 1)
             T = self.taps.size
-            self._hist = np.zeros((T, cap, 3))
+            # each raw force is written twice (rows i and i + T) so that the last T forces are
+            # always one contiguous window of rows: the FIR is one matrix-vector product
+            self._hist = np.zeros((2 * T, cap * 3))
             self._prev = np.zeros((cap, 3))
             self._v = np.zeros((cap, 3))
             self._vl = np.zeros(cap)
@@ -153,14 +156,13 @@ class ForceRenderer:
         self._prev[:n] = xh
         self._have_prev = True
         # FIR over the last T raw forces (ring buffer; taps[0] weighs the newest)
-        T = self.taps.size
-        self._hist[self._head, :n] = raw
+        T, h = self.taps.size, self._head
+        flat = raw.reshape(-1)
+        self._hist[h, : 3 * n] = flat
+        self._hist[h + T, : 3 * n] = flat
         out = self._forces[:n]
-        out[:] = 0
-        for k in range(T):
-            np.multiply(self._hist[(self._head - k) % T, :n], self.taps[k], out=tmp)
-            np.add(out, tmp, out=out)
-        self._head = (self._head + 1) % T
+        np.matmul(self._taps_oldest_first, self._hist[h + 1: h + T + 1, : 3 * n], out=out.reshape(-1))
+        self._head = (h + 1) % T
         # saturation, keeping the direction
         np.einsum("ij,ij->i", out, out, out=vl)
         np.sqrt(vl, out=vl)

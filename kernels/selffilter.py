@@ -12,9 +12,14 @@ the same (a dropped pixel is a hole, exactly like an invalid reading, in every b
 the motion estimate), it needs no change to three kernel sets, and it is cheap: per capsule
 every pixel's ray is first tested against the capsule's bounding sphere (one dot product per
 pixel, rays precomputed per camera, so lens distortion is exact), and only the pixels whose ray
-passes through that sphere are deprojected and tested against the capsule. A tool covers a
-small part of the image, so the exact test runs on a few thousand pixels. The frames are copied
-only when a pixel is dropped.
+passes through that sphere are deprojected and tested against the capsule. The ray test itself
+only looks at the image window that can see the sphere: the bounding box of the projected
+corners of the sphere's bounding cube (a projection keeps convex hulls), widened to whole
+pixel rows and columns through each row's and column's ray extent, so distortion cannot hide a
+pixel from it. A tool covers a small part of the image, so both tests run on a few thousand
+pixels (about 0.2 ms per 640x480 frame instead of 5 ms of NumPy over every pixel, time that
+the ingest thread would spend holding Python's interpreter lock). The frames are copied only
+when a pixel is dropped.
 """
 from __future__ import annotations
 
@@ -60,6 +65,9 @@ def segment_distance(points, a, b) -> np.ndarray:
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
 
 
+_CUBE = np.array([(x, y, z) for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+
+
 class SelfFilter:
     """Drops the pixels that see the tool, per camera of a rig.
 
@@ -77,41 +85,64 @@ class SelfFilter:
         self.removed = 0  # pixels dropped by the last apply()
 
     def _unit_rays(self, cam: Camera):
+        """(rays (H, W, 3) with z = 1, unit rays (H, W, 3), extents) of ``cam``; extents: each
+        column's x range and each row's y range of the normalised rays."""
         r = self._rays.get(cam.name)
         if r is None:
-            xy = cam.ray_table().reshape(-1, 2).astype(np.float64)
-            rays = np.column_stack([xy, np.ones(len(xy))])  # z = 1: the ray parameter is the depth
-            unit = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-            r = self._rays[cam.name] = (rays, unit)
+            xy = cam.ray_table().astype(np.float64)
+            rays = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)  # z = 1: the ray parameter is the depth
+            unit = rays / np.linalg.norm(rays, axis=2, keepdims=True)
+            ext = (xy[:, :, 0].min(axis=0), xy[:, :, 0].max(axis=0), xy[:, :, 1].min(axis=1), xy[:, :, 1].max(axis=1))
+            r = self._rays[cam.name] = (rays, unit, ext)
         return r
+
+    @staticmethod
+    def _window(ext, center, bound):
+        """(row slice, column slice) of the pixels whose rays can pass within ``bound`` of
+        ``center`` (camera frame); the whole image when the sphere reaches behind the camera."""
+        corners = center + bound * _CUBE
+        if np.any(corners[:, 2] <= 1e-6):
+            return slice(None), slice(None)
+        x, y = corners[:, 0] / corners[:, 2], corners[:, 1] / corners[:, 2]
+        cmin, cmax, rmin, rmax = ext
+        cols = np.flatnonzero((cmax >= x.min()) & (cmin <= x.max()))
+        rows = np.flatnonzero((rmax >= y.min()) & (rmin <= y.max()))
+        if not cols.size or not rows.size:
+            return slice(0, 0), slice(0, 0)
+        return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
 
     def mask(self, frame: DepthFrame, capsules: Sequence[Capsule]) -> np.ndarray:
         """Boolean (H, W): pixels of ``frame`` whose measured point lies on the tool."""
         cam = self.cameras.get(frame.camera)
         if cam is None:
             raise InputError(f"self-filter: frame from unknown camera {frame.camera!r}; cameras: {sorted(self.cameras)}")
-        rays, unit = self._unit_rays(cam)
+        rays, unit, ext = self._unit_rays(cam)
         T = np.asarray(frame.T_world_cam if frame.T_world_cam is not None else cam.T_world_cam, np.float64)
         R, t = T[:3, :3], T[:3, 3]
-        depth = frame.depth.reshape(-1)
-        out = np.zeros(depth.size, bool)
-        valid = depth != 0
+        depth = frame.depth
+        out = np.zeros(depth.shape, bool)
         for c in capsules:
             a_c = R.T @ (np.asarray(c.a) - t)
             b_c = R.T @ (np.asarray(c.b) - t)
             reach = c.radius + self.margin
             center = (a_c + b_c) / 2
             bound = np.linalg.norm(b_c - a_c) / 2 + reach
-            along = unit @ center
-            near = valid & (along > -bound) & (center @ center - along * along <= bound * bound)
-            idx = np.flatnonzero(near)
-            if not idx.size:
+            rs, cs = self._window(ext, center, bound)
+            d = depth[rs, cs]
+            if not d.size:
                 continue
-            z = depth[idx].astype(np.float64) * cam.depth_scale
-            p_cam = rays[idx] * z[:, None]
+            along = unit[rs, cs] @ center
+            near = (d != 0) & (along > -bound) & (center @ center - along * along <= bound * bound)
+            if not near.any():
+                continue
+            z = d[near].astype(np.float64) * cam.depth_scale
+            p_cam = rays[rs, cs][near] * z[:, None]
             on = segment_distance(p_cam, a_c, b_c) <= reach
-            out[idx[on]] = True
-        return out.reshape(frame.depth.shape)
+            win = out[rs, cs]          # a view: writes land in out
+            hit = np.zeros(near.sum(), bool)
+            hit[on] = True
+            win[near] |= hit
+        return out
 
     def apply(self, frames: Sequence[DepthFrame], capsules: Sequence[Capsule]) -> list:
         """The frames with every tool pixel's depth set to 0 (frames without any are passed on

@@ -100,3 +100,22 @@ def test_no_allocation_per_tick():
     a = r.update(x, h, np.full(4, CONTACT))
     b = r.update(x, h, np.full(4, CONTACT))
     assert np.shares_memory(a, b) and np.shares_memory(a, r.forces)
+
+
+def test_fir_is_the_convolution_of_the_raw_forces_over_the_last_taps():
+    """A varying input: every tick's force is sum_k taps[k] * raw[t - k] (zero before the first)."""
+    rng = np.random.default_rng(3)
+    p = P.replace(b=0.0, max_force=1e6)
+    r = ForceRenderer(3, p)
+    T = r.taps.size
+    proxies = np.zeros((3, 3), np.float32)
+    raws, outs = [], []
+    for _ in range(3 * T):
+        hips = rng.normal(0.0, 0.01, (3, 3)).astype(np.float32)
+        out = r.update(proxies, hips, np.ones(3, np.int32)).copy()
+        raws.append(r.raw.copy())
+        outs.append(out)
+    raws = np.array(raws)
+    for t in (0, 1, T - 1, T, 2 * T + 5, 3 * T - 1):
+        want = sum(r.taps[k] * raws[t - k] for k in range(min(T, t + 1)))
+        np.testing.assert_allclose(outs[t], want, rtol=1e-12, atol=1e-15)

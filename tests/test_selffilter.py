@@ -64,3 +64,40 @@ def test_capsules_of_both_robot_models():
     with pytest.raises(InputError, match="unknown camera"):
         SelfFilter([default_camera("a", width=16, height=12)]).mask(
             DepthFrame("b", np.zeros((12, 16), np.uint16), 0.0), [c])
+
+
+def _mask_every_pixel(cam, frame, capsules, margin):
+    """The self-filter's test applied to every pixel (no image window): the reference."""
+    xy = cam.ray_table().reshape(-1, 2).astype(np.float64)
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    T = cam.T_world_cam
+    R, t = T[:3, :3], T[:3, 3]
+    z = frame.depth.reshape(-1).astype(np.float64) * cam.depth_scale
+    p = rays * z[:, None]
+    out = np.zeros(len(z), bool)
+    for c in capsules:
+        a, b = R.T @ (np.asarray(c.a) - t), R.T @ (np.asarray(c.b) - t)
+        out |= (z > 0) & (segment_distance(p, a, b) <= c.radius + margin)
+    return out.reshape(frame.depth.shape)
+
+
+@pytest.mark.parametrize("dist", [(0.0,) * 5, (-0.28, 0.09, 0.001, -0.002, 0.0)])
+def test_image_window_drops_exactly_what_a_test_of_every_pixel_drops(dist):
+    """Random capsules (in view, at the image border, partly behind the camera, out of view) on a
+    random depth image: the windowed filter's mask equals the every-pixel test's."""
+    cam = default_camera("cam0", eye=(0.0, 0.0, 0.6), width=160, height=120, dist=dist)
+    rng = np.random.default_rng(11)
+    depth = rng.integers(300, 900, (120, 160)).astype(np.uint16)
+    depth[rng.random((120, 160)) < 0.1] = 0
+    frame = DepthFrame("cam0", depth, 0.0)
+    f = SelfFilter([cam], margin=0.003)
+    hits = 0
+    for _ in range(60):
+        a = rng.uniform([-0.4, -0.3, -0.2], [0.4, 0.3, 0.7])
+        b = a + rng.normal(0.0, 0.08, 3)
+        caps = [Capsule(tuple(a), tuple(b), float(rng.uniform(0.002, 0.05)))]
+        got = f.mask(frame, caps)
+        want = _mask_every_pixel(cam, frame, caps, 0.003)
+        assert np.array_equal(got, want)
+        hits += int(want.any())
+    assert hits > 10   # the capsules did cut into the depth image
