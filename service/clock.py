@@ -21,7 +21,7 @@ class RealClock:
 
     simulated = False
 
-    def __init__(self, spin_s: float = 0.0):
+    def __init__(self, spin_s: float = 0.00006):
         self.spin_s = float(spin_s)
 
     @staticmethod

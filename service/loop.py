@@ -16,6 +16,15 @@ until ``clear_error()``, so a broken tick cannot leave forces applied or a robot
 
 ``target`` provides ``tick(k, t, dt, overrun, now)`` and ``safe_tick(k, t, dt, now)``; ``t`` is
 loop time (``k * period``, exact) and ``now`` the clock reading at the tick's start.
+
+The interpreter lock. The service's other threads (frame ingest, camera readers, UDP, control
+API) run Python too. Running in its own thread, the loop keeps the lock for a whole tick: the
+switch interval is ``tick_switch_s`` (5 ms) while a tick runs, so no other thread can force it
+out mid-tick (with 0.1 ms, a 0.6 ms tick was cut into slices and took up to 1.4 ms), and
+``switch_interval_s`` (0.1 ms) while it sleeps, so that at its deadline the thread holding the
+lock hands it back within 0.1 ms. ``SCHED_FIFO`` (``rt_priority``) makes the thread wake on time;
+the loop cannot make a thread that holds the lock run, which is why the service lowers the
+priority of the OpenCL worker threads instead (``kernels/opencl/context.lower_pool_priority``).
 """
 from __future__ import annotations
 
@@ -63,12 +72,15 @@ class HapticLoop:
     """Runs ``target``'s ticks at ``rate_hz`` on ``clock`` (see the module docstring)."""
 
     def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
-                 switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0):
+                 switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0,
+                 tick_switch_s: float = 0.0001):
         self.target = target
         self.clock = clock if clock is not None else RealClock()
         self.period = 1.0 / float(rate_hz)
         self.max_lateness = float(max_lateness_s)
         self.switch_interval_s = switch_interval_s
+        self.tick_switch_s = float(tick_switch_s)
+        self._threaded = False
         self.compute = np.zeros(RING)
         self.late = np.zeros(RING)
         self.tick_us = np.zeros(RING)   # wall-clock compute (perf_counter), whatever the clock
@@ -99,6 +111,8 @@ class HapticLoop:
             self.t0 = clock.now()
         due = self.t0 + self.k * P
         clock.sleep_until(due)
+        if self._threaded:
+            sys.setswitchinterval(self.tick_switch_s)
         start = clock.now()
         w0 = time.perf_counter()
         late = start - due
@@ -125,6 +139,8 @@ class HapticLoop:
             except Exception as e2:
                 self.error += f"; safe_tick failed too: {type(e2).__name__}: {e2}"
         end = clock.now()
+        if self._threaded:
+            sys.setswitchinterval(self.switch_interval_s)
         i = self.ticks & (RING - 1)
         self.compute[i] = end - start
         self.late[i] = late
@@ -150,6 +166,7 @@ class HapticLoop:
         if self.switch_interval_s:
             self._saved_switch = sys.getswitchinterval()
             sys.setswitchinterval(self.switch_interval_s)  # the loop waits less for the GIL
+            self._threaded = True
         self._thread = threading.Thread(target=self._run, name="pointfence-haptic-loop", daemon=True)
         self._thread.start()
 
@@ -168,6 +185,7 @@ class HapticLoop:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        self._threaded = False
         if self._saved_switch is not None:
             sys.setswitchinterval(self._saved_switch)
             self._saved_switch = None

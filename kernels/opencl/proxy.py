@@ -8,7 +8,10 @@ a preallocated host array, and a few in-place unpacking copies.
 
 On PoCL a batch of up to ``INLINE_MAX`` proxies runs on the in-thread device (the kernel
 executes in the thread that calls ``step``, reading the snapshot's shared host memory: no
-worker hand-off, no wait behind a frame build); larger batches run on the worker pool.
+worker hand-off, no wait behind a frame build); larger batches run on the worker pool. In-thread,
+the HIPs and the outputs are host arrays the kernel addresses directly, and a tick makes no
+blocking call: the calling thread keeps Python's interpreter lock from the HIP write to the
+unpacking (the haptic loop relies on this, ``service/loop.py``).
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ WS_BUDGET = 512 << 20
 VW = LANES
 #: largest batch run on PoCL's in-thread device (one core); larger ones use the worker pool
 INLINE_MAX = 16
+_COMPLETE = 0   # CL_COMPLETE
 
 
 def _program(pipeline, inline: bool):
@@ -102,12 +106,20 @@ class OpenCLProxies(ProxyBatch):
         cl, ctx, mf = self.cl, self.ctx, self.cl.mem_flags
         self.ws_cap = int(max(256, min(self._ws_request, WS_BUDGET // (16 * cap) // VW * VW)))
         self._pos = cl.Buffer(ctx, mf.READ_WRITE, 16 * cap)
-        self._hips = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
-        self._out = cl.Buffer(ctx, mf.WRITE_ONLY, 32 * cap)
         self._ws = cl.Buffer(ctx, mf.READ_WRITE, 16 * self.ws_cap * cap)
-        self._hips_host = np.zeros((cap, 4), np.float32)
         self._pos_host = np.zeros((cap, 4), np.float32)
-        self._out_host = np.zeros((cap, 8), np.float32)
+        if self._inline:   # shared with the in-thread kernel: no copies in a tick
+            from .shared_host import aligned_zeros, host_buffer
+
+            self._hips_host = aligned_zeros(16 * cap, np.float32, (cap, 4))
+            self._out_host = aligned_zeros(32 * cap, np.float32, (cap, 8))
+            self._hips = host_buffer(cl, ctx, self._hips_host, read_only=True)
+            self._out = host_buffer(cl, ctx, self._out_host)
+        else:
+            self._hips_host = np.zeros((cap, 4), np.float32)
+            self._out_host = np.zeros((cap, 8), np.float32)
+            self._hips = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
+            self._out = cl.Buffer(ctx, mf.WRITE_ONLY, 32 * cap)
         self._info = self._out_host[:, 7].view(np.int32)
         self._arg_slot = None
         self._set_batch_args()
@@ -154,10 +166,15 @@ class OpenCLProxies(ProxyBatch):
                 self._dt_arg = dt
             self._set_spans(extra_span(slot.vmax, dt))
             try:
-                ev = cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
-                cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)
-                cl.enqueue_copy(q, out[:n], self._out, is_blocking=True)
-                del ev   # complete by now: its destructor does not wait (see opencl/pipeline.py)
+                if self._inline:
+                    ev = cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)  # runs here, now
+                    if ev.command_execution_status != _COMPLETE:
+                        ev.wait()
+                else:
+                    ev = cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
+                    cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)
+                    cl.enqueue_copy(q, out[:n], self._out, is_blocking=True)
+                    del ev   # complete by now: its destructor does not wait (see opencl/pipeline.py)
             except cl.Error as e:
                 raise KernelError(f"OpenCL proxy kernel failed on {self.pipeline.backend.device_name} "
                                   f"({self.device_kind}): {e}") from e
