@@ -73,7 +73,7 @@ class HapticLoop:
 
     def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
                  switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0,
-                 tick_switch_s: float = 0.0001):
+                 tick_switch_s: float = 0.005):
         self.target = target
         self.clock = clock if clock is not None else RealClock()
         self.period = 1.0 / float(rate_hz)

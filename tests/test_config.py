@@ -132,3 +132,17 @@ def test_openni2_camera_takes_intrinsics_from_the_recording(tmp_path):
     cam = c.cameras[0].camera
     assert cam.name == "primesense" and (cam.width, cam.height) == (640, 480)
     assert abs(cam.fx - 575.8157) < 0.01 and (cam.cx, cam.cy) == (320.0, 240.0)
+
+
+@pytest.mark.parametrize("line, message", [
+    ("rt_priority = 120", "[service] rt_priority = 120; expected an integer 0-99"),
+    ("rt_priority = 1.5", "[service] rt_priority = 1.5; expected an integer 0-99"),
+    ("build_nice = -5", "[service] build_nice = -5; expected an integer 0-19"),
+])
+def test_service_priorities(tmp_path, line, message):
+    assert config.load(None).service.rt_priority == 80 and config.load(None).service.build_nice == 10
+    text = GOOD + "\n[service]\n" + line + "\n" if "[service]" not in GOOD else GOOD.replace("[service]", "[service]\n" + line, 1)
+    with pytest.raises(InputError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        config.load(write(tmp_path, text))
+    ok = config.load(write(tmp_path, text.replace(line, "rt_priority = 0\nbuild_nice = 19")))
+    assert (ok.service.rt_priority, ok.service.build_nice) == (0, 19)

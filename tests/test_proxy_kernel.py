@@ -18,16 +18,18 @@ def random_walk(rng, start, n_ticks, scale=0.0015, drift=(0.0, 0.0, 0.0)):
         yield h
 
 
-@pytest.mark.parametrize("mode,ws_capacity,skin", [
-    ("rendering", 4096, 0.002),
-    ("rendering", 48, 0.002),  # working sets overflow: the kernel scans the hash directly
-    ("rendering", 4096, 0.0),  # regather on every move
-    ("fixture", 4096, 0.002),
-    ("fixture", 64, 0.001),
+@pytest.mark.parametrize("mode,ws_capacity,skin,B", [
+    ("rendering", 4096, 0.002, 24),
+    ("rendering", 4096, 0.002, 8),   # a small batch: PoCL's in-thread device
+    ("rendering", 48, 0.002, 24),  # working sets overflow: the kernel scans the hash directly
+    ("rendering", 4096, 0.0, 24),  # regather on every move
+    ("fixture", 4096, 0.002, 24),
+    ("fixture", 64, 0.001, 8),
 ])
-def test_backends_agree_on_random_scenes_and_trajectories(mode, ws_capacity, skin):
+def test_backends_agree_on_random_scenes_and_trajectories(mode, ws_capacity, skin, B):
     """OpenCL and the NumPy reference on the same snapshot: equal within 1e-5 m (in fact to the
-    bit: same float32 operations, same summation order)."""
+    bit: same float32 operations, same summation order), on the worker pool (24 proxies) and on
+    the in-thread device (8)."""
     rng = np.random.default_rng(hash((mode, ws_capacity, skin)) % 2**32)
     cams, frames = random_rig(rng, n_cams=2)
     pp = params_for("mask", adaptive=True, cell=0.02)
@@ -35,10 +37,10 @@ def test_backends_agree_on_random_scenes_and_trajectories(mode, ws_capacity, ski
     pipe.ingest(frames)
     snap = pipe.host_snapshot()
     p = HapticParams(mode=mode, skin=skin, max_steps=40)
-    B = 24
     surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
     start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]  # cameras look along +z
     dev = pipe.proxies(start, p, ws_capacity=ws_capacity)
+    assert dev.device_kind == ("in-thread" if B <= 16 and pipe.inline_ctx is not None else "pool")
     ref = NumpyProxies(pipe, start, p, snapshot=snap, ws_capacity=dev.ws_cap, lanes=LANES)
     states = np.zeros(3, int)
     for hips in random_walk(rng, start, 50, drift=(0, 0, 0.0008)):

@@ -85,3 +85,36 @@ def test_timing_since_mark():
     loop.run_ticks(10)
     tm = loop.timing(m)
     assert tm.ticks == 10 and tm.compute_us_p99 == pytest.approx(100, abs=1e-6)
+
+
+def test_thread_keeps_the_interpreter_lock_for_a_whole_tick():
+    """In its own thread the loop runs each tick with a 5 ms switch interval (no other Python
+    thread can force it out mid-tick) and sleeps with 0.1 ms (the lock comes back fast at the
+    deadline); stop() restores the process's interval."""
+    import sys
+    import time
+
+    from pointfence.service.clock import RealClock
+
+    seen = []
+
+    class Probe:
+        def tick(self, k, t, dt, overrun, now):
+            seen.append(sys.getswitchinterval())
+
+        def safe_tick(self, k, t, dt, now):
+            pass
+
+    before = sys.getswitchinterval()
+    loop = HapticLoop(Probe(), RealClock(), rate_hz=1000.0)
+    loop.start()
+    try:
+        end = time.monotonic() + 10.0
+        while len(seen) < 20 and time.monotonic() < end:
+            time.sleep(0.01)
+        between = sys.getswitchinterval()   # read while the loop thread mostly sleeps
+    finally:
+        loop.stop()
+    assert len(seen) >= 20 and all(s == pytest.approx(0.005) for s in seen)
+    assert between in (pytest.approx(0.0001), pytest.approx(0.005))
+    assert sys.getswitchinterval() == pytest.approx(before)
