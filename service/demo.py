@@ -23,6 +23,10 @@ plane rising at 0.5 m/s without and with motion prediction (live, or on the simu
 ``--offline``), the translating plane's pop-through speed without and with prediction (also with
 100 ms camera latency), the tool's shadow with one and two cameras, and the robot self-filter;
 its figures are a second table in table.md and ``dynamic`` in table.json.
+
+``--viewer`` (spawn a rerun viewer, or connect to a URL) and ``--viewer-save FILE.rrd`` log every
+chapter-3 experiment after it ends, from its recording and its last snapshot: point cloud,
+proxy, HIP, force arrows, robot path (``viewer``; needs ``pip install 'pointfence[viewer]'``).
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ from pathlib import Path
 from pointfence.kernels import get_backend
 from pointfence.service import config as config_mod
 
-from . import replay, report, scenarios
+from . import replay, report, scenarios, viewer as viewer_mod
 from .canned import canned_sources
 from .runner import LiveRun
 
@@ -63,13 +67,14 @@ def add_arguments(p):
     p.add_argument("--no-dynamic", action="store_true",
                    help="skip the chapter-6 dynamic scenes (moving plane with and without motion prediction, the "
                         "tool's shadow with one and two cameras, the robot self-filter)")
+    viewer_mod.add_arguments(p)
 
 
 def _mm(v):
     return "    -" if v is None else f"{v * 1000:5.2f}"
 
 
-def _one(cfg, scene, arch, args):
+def _one(cfg, scene, arch, args, viewer=None):
     master = scenarios.scenario_master(scene)
     duration = float(master.times[-1])
     if args.offline:
@@ -98,6 +103,8 @@ def _one(cfg, scene, arch, args):
         summary["loop_error"] = loop.error
     summary["hold"] = svc.status()["hold"]
     summary["_trace"] = report.trace_of(svc, sources, cfg) if args.report else None
+    if viewer is not None:
+        viewer.log_run(f"{scene}_{arch}", svc, summary)
     return summary, timing
 
 
@@ -106,6 +113,20 @@ def run(args) -> int:
     if args.max_lateness is not None:
         cfg = replace(cfg, service=replace(cfg.service, max_lateness_s=float(args.max_lateness)))
     backend = get_backend(args.backend or cfg.backend, args.device or cfg.device)
+    viewer = viewer_mod.from_args(args)   # before the runs: a missing rerun-sdk fails at once
+    done = False
+    try:
+        rc = _run(args, cfg, backend, viewer)
+        done = True
+    finally:
+        if viewer is not None:
+            viewer.close(check=done)   # a run's own error is not masked by the viewer's
+    if viewer is not None and viewer.save is not None:
+        print(f"viewer recording: {viewer.save} (open it with `rerun {viewer.save}`)")
+    return rc
+
+
+def _run(args, cfg, backend, viewer) -> int:
     print(f"pointfence demo: {cfg.path}, backend {backend.name} on {backend.device_name}, robot "
           f"{cfg.robot.get('model')}, fixture {cfg.pipeline.radius.r_base * 1000:.0f} mm, k_s "
           f"{cfg.haptics.k_s:.0f} N/m, scale {cfg.teleop.scale}, max robot speed {cfg.teleop.max_robot_speed} m/s, "
@@ -123,7 +144,7 @@ def run(args) -> int:
         if only is not None and scene not in only:
             continue
         scfg = scenarios.scenario_config(cfg, scene)
-        s, timing = _one(scfg, scene, arch, args)
+        s, timing = _one(scfg, scene, arch, args, viewer)
         if timing is not None:
             tm = (f"{timing.compute_us_p50:8.0f} {timing.compute_us_p99:6.0f} {timing.late_us_p50:8.0f} "
                   f"{timing.late_us_p99:6.0f} {timing.misses:4d}/{timing.periods}")
