@@ -28,10 +28,16 @@ class HapticParams:
         step: proxy step length delta (1 mm); at most ``r3 - r1`` so that the normal
             neighbourhood always holds every point a step can reach.
         max_steps: step budget of one haptic tick (all steps run inside one kernel launch).
-            20 steps of 1 mm let a free proxy follow a HIP at 20 m/s, far beyond hand speeds;
-            in sliding contact against a deep HIP the normal estimate (eq. 2.1) keeps changing
-            and the proxy wanders within a fraction of a millimetre, which spends the budget.
+            20 steps of 1 mm let a free proxy follow a HIP at 20 m/s, far beyond hand speeds.
         tolerance: a tick has converged when the step it would take is shorter than this (m).
+        turn_back_cos: a tick has also converged when its next step would turn back against the
+            previous sliding or free step, i.e. the cosine between the two directions is below
+            this (-0.5: by more than 120 degrees). In a crease of the point cloud (between two
+            fixture spheres, or where the normal estimate flips) the proxy would otherwise rock
+            back and forth by tens of micrometres until the budget ran out: on the service's
+            benchmark scene this ends ticks after 2.6 steps instead of 15.7 (of 20), with the
+            proxy within 0.1 mm (p99) of where 80 steps of rocking leave it. Push-outs along the
+            normal do not count as the previous step. -1 turns the rule off.
         slack: how deep (m) a sliding step may dig into the point cloud before the next
             step pushes the proxy back out along the normal. Steps are clipped (swept sphere)
             so that in a static scene no point ever comes closer than ``r1 - slack``
@@ -59,6 +65,7 @@ class HapticParams:
     step: float = 0.001
     max_steps: int = 20
     tolerance: float = 1e-6
+    turn_back_cos: float = -0.5
     slack: float = 0.0002
     margin: float = 1e-6
     skin: float = 0.002
@@ -72,8 +79,8 @@ class HapticParams:
     max_force: float = 3.3
 
     def __post_init__(self):
-        for key in ("r1", "r2", "r3", "step", "tolerance", "slack", "margin", "skin", "k", "k_s", "b",
-                    "fir_cutoff_hz", "rate_hz", "max_force"):
+        for key in ("r1", "r2", "r3", "step", "tolerance", "turn_back_cos", "slack", "margin", "skin", "k", "k_s",
+                    "b", "fir_cutoff_hz", "rate_hz", "max_force"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise InputError(f"haptic parameter {key} = {v!r}; expected a finite number")
@@ -95,6 +102,9 @@ class HapticParams:
         if self.margin > (self.r2 - self.r1) / 4:
             raise InputError(f"margin = {self.margin} m; expected at most (r2 - r1)/4 = {(self.r2 - self.r1) / 4:.6g} m "
                              "(a rounding margin, 1e-6 m by default)")
+        if not -1.0 <= self.turn_back_cos <= 0.0:
+            raise InputError(f"turn_back_cos = {self.turn_back_cos}; expected between -1 (rule off) and 0 (stop on "
+                             "any turn by more than 90 degrees); -0.5 by default")
         if self.slack >= self.r1:
             raise InputError(f"slack = {self.slack} m; expected below r1 = {self.r1} m (0.2 mm by default)")
         if self.mode not in MODES:

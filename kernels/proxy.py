@@ -9,7 +9,8 @@ device backends) against the pipeline's current snapshot and fills preallocated 
 * ``states`` int32 (B,): ``FREE`` (0), ``CONTACT`` (1) or ``ENTRENCHED`` (2);
 * ``steps`` int32 (B,): proxy steps taken this tick;
 * ``converged`` bool (B,): the tick ended because the next step was shorter than the
-  tolerance (False: the step budget ran out first);
+  tolerance or would turn back against the previous slide (False: the step budget ran out
+  first);
 * ``nearest`` float32 (B,): the smallest clearance e_i = |X_p - P_i| - rho_i among the points
   within the normal band (rho_i = r1 in rendering mode, r_f(i) in fixture mode); +inf if none.
   In rendering mode the distance from the centre to the nearest point is ``nearest + r1``.
@@ -48,7 +49,12 @@ Algorithm (identical in the NumPy reference and the device kernels), per step:
    out along n, by the contact rule, or away from its deepest points; it can only be held
    where those points surround its centre (the scene closed a pocket narrower than the proxy
    around it), and then rests at the pocket's widest place until the scene or the HIP frees it.
-4. If the clipped step is shorter than ``tolerance``, the tick has converged; else move.
+4. If the clipped step is shorter than ``tolerance``, the tick has converged. It has also
+   converged if the step is a slide or free step (not a push-out along n, nor away from the
+   deepest points) whose direction turns back against the previous such step of the tick:
+   cosine below ``turn_back_cos`` (-0.5). The proxy is then rocking across a crease of the
+   cloud or under a noisy normal, and further steps would only rock it (``HapticParams``).
+   Else move.
 
 Decisions that remain thresholds on computed values (the states at e = 0 and e = r2 - r1, the
 normal band e < r3 - r1, ``tolerance``) can still part two backends when a step happens to end

@@ -20,7 +20,7 @@ typedef int16 vi;
 
 // Scalar parameters, packed by kernels/opencl/proxy.py (keep in sync):
 // 0 r1, 1 band = r2 - r1, 2 nreach = r3 - r1, 3 step, 4 tol, 5 slack, 6 skin, 7 gather radius,
-// 8 reach (hash scan radius of the direct path), 9 margin
+// 8 reach (hash scan radius of the direct path), 9 margin, 10 turn_back_cos
 #define P_R1 prm[0]
 #define P_BAND prm[1]
 #define P_NREACH prm[2]
@@ -30,6 +30,7 @@ typedef int16 vi;
 #define P_SKIN prm[6]
 #define P_GATHER prm[7]
 #define P_MARGIN prm[9]
+#define P_TURN_BACK prm[10]
 
 #define FREE 0
 #define CONTACT 1
@@ -291,6 +292,7 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
     int steps = 0, conv = 0, st = FREE;
     float3 nrm = (float3)(0.0f);
     float min_e = INFINITY;
+    float3 uprev = (float3)(0.0f);  // direction of the last sliding or free step
     for (int it = 0; it <= max_steps; ++it) {
         float3 dx0 = X - X0;
         if (dx0.x * dx0.x + dx0.y * dx0.y + dx0.z * dx0.z > skin2) {
@@ -331,12 +333,15 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         float t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
                          : clip_ws(ws, cap, n, X, u, off);
         float s = fmax(fmin(L, t), 0.0f);
+        int along_n = push;
         if (push && s < P_TOL) {  // push-out blocked: the contact rule's direction instead
+            along_n = 0;
             u = u2;
             t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
                        : clip_ws(ws, cap, n, X, u, off);
             s = fmax(fmin(L2, t), 0.0f);
             if (buried && s < P_TOL) {  // both blocked: away from the deepest points
+                along_n = 1;
                 u = normal_of(direct ? away_hash(pts, vel, dt, order, start, grid, dims, rspan, X, off, fixture, r1)
                                      : away_ws(ws, cap, n, X, off));
                 t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
@@ -345,6 +350,10 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
             }
         }
         if (s < P_TOL) { conv = 1; break; }
+        if (!along_n) {  // a slide turning back against the previous one: rocking in a crease
+            if (u.x * uprev.x + u.y * uprev.y + u.z * uprev.z < P_TURN_BACK) { conv = 1; break; }
+            uprev = u;
+        }
         X = X + s * u;
         ++steps;
     }

@@ -74,7 +74,7 @@ class OpenCLProxies(ProxyBatch):
         p = self.params
         gather_r = self.reach + p.skin
         self.prm_host = np.array([p.r1, p.band, p.r3 - p.r1, p.step, p.tolerance, p.slack, p.skin, gather_r,
-                                  self.reach, p.margin, 0, 0, 0, 0, 0, 0], np.float32)
+                                  self.reach, p.margin, p.turn_back_cos, 0, 0, 0, 0, 0], np.float32)
         mf = cl.mem_flags
         self.prm = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=self.prm_host)
         k.set_arg(3, pipeline.gridf)

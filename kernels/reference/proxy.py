@@ -282,6 +282,7 @@ def run_tick(X: np.ndarray, H: np.ndarray, gather, p: HapticParams, cap: int = W
     near = np.full(B, INF, F)
     active = np.arange(B)
     skin2 = F(p.skin) * F(p.skin)
+    uprev = np.zeros((B, 3), F)   # direction of each proxy's last sliding or free step
 
     def regather():
         nonlocal ws
@@ -304,20 +305,30 @@ def run_tick(X: np.ndarray, H: np.ndarray, gather, p: HapticParams, cap: int = W
         lim, buried = floor_of(st, me, p)
         c = limit_c(w, d2, lim, wa, p)
         s = clip_step(u, L, c, w, wa)
+        along_n = push.copy()
         retry = push & (s < F(p.tolerance))
         if retry.any():  # push-out blocked: the contact rule's direction instead
             r = np.flatnonzero(retry)
             wr = wa.take(r)
             s2 = clip_step(u2[r], L2[r], c[r], w[r], wr)
             u[r], s[r] = u2[r], s2
+            along_n[r] = False
             away = buried[r] & (s2 < F(p.tolerance))
             if away.any():  # buried and both blocked: away from the deepest points
                 a = r[away]
+                along_n[a] = True
                 ua = away_direction(c[a], w[a], d2[a], wa.take(a), direct[a], lanes)
                 u[a] = ua
                 sa = clip_step(ua, L[a], c[a], w[a], wa.take(a))
                 s[a] = np.where(np.any(ua != 0, axis=1), sa, F(0))
         done = s < F(p.tolerance)
+        # a slide turning back against the previous one (rocking in a crease) ends the tick too
+        up = uprev[active]
+        cos = (u[:, 0] * up[:, 0] + u[:, 1] * up[:, 1]) + u[:, 2] * up[:, 2]
+        slide = ~along_n & ~done
+        done |= slide & (cos < F(p.turn_back_cos))
+        keep = slide & ~done
+        uprev[active[keep]] = u[keep]
         normal[active], state[active], near[active] = nrm, st, me
         conv[active[done]] = True
         mv = ~done

@@ -41,6 +41,7 @@ class ProxyArgs:
     tol: float
     slack: float
     margin: float
+    turn_back: float  # turn_back_cos
     fixture: int
     max_steps: int
     span: int  # cells searched on each side (reach, without motion)
@@ -139,6 +140,7 @@ def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start:
     st = int(0)
     nrm = wp.vec3(0.0)
     min_e = float(wp.inf)
+    uprev = wp.vec3(0.0)  # direction of the last sliding or free step
     for it in range(a.max_steps + 1):
         # cells within reach of X
         cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), float(-span - 1), float(g.nx + span)))
@@ -223,12 +225,15 @@ def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start:
         tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
         t = wp.tile_min(wp.tile(tm))[0]
         s = wp.max(wp.min(L, t), 0.0)
+        along_n = push
         if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
+            along_n = False
             u = u2
             tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
             t = wp.tile_min(wp.tile(tm))[0]
             s = wp.max(wp.min(L2, t), 0.0)
             if buried and s < a.tol:  # both blocked: away from the deepest points
+                along_n = True
                 av = away_partial(spts, svel, dt, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
                 at = wp.tile_sum(wp.tile(av), axis=1)
                 asum = wp.vec3(at[0], at[1], at[2])
@@ -242,6 +247,11 @@ def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start:
         if s < a.tol:
             conv = 1
             break
+        if not along_n:  # a slide turning back against the previous one: rocking in a crease
+            if u[0] * uprev[0] + u[1] * uprev[1] + u[2] * uprev[2] < a.turn_back:
+                conv = 1
+                break
+            uprev = u
         X = X + s * u
         steps += 1
 
@@ -265,6 +275,7 @@ class WarpProxies(ProxyBatch):
         a.r1, a.band, a.nreach, a.step = p.r1, p.band, p.r3 - p.r1, p.step
         a.tol, a.slack, a.fixture, a.max_steps = p.tolerance, p.slack, int(p.mode == "fixture"), p.max_steps
         a.margin = p.margin
+        a.turn_back = p.turn_back_cos
         a.span = search_span(self.reach, pipeline.grid.h)
         self._tick = wp.zeros(1, dtype=TickArgs, device=self.dev)
         self._tick_host = wp.zeros(1, dtype=TickArgs, device="cpu", pinned=self.cuda)
