@@ -306,6 +306,17 @@ class WarpProxies(ProxyBatch):
                         block_dim=self.block_dim, device=self.dev)
         wp.copy(self._out_host, self._out, count=n)
 
+    def _capture(self, slot, n):
+        """The tick's CUDA graph for snapshot slot ``slot`` and ``n`` proxies (captured once)."""
+        with wp.ScopedStream(self.stream):
+            wp.capture_begin(device=self.dev, stream=self.stream)
+            try:
+                self._record(slot, n)
+            finally:
+                graph = wp.capture_end(device=self.dev, stream=self.stream)
+        self._graphs[(id(slot), n)] = graph
+        return graph
+
     def _step(self, hips):
         n = self.n
         if n == 0:
@@ -320,17 +331,10 @@ class WarpProxies(ProxyBatch):
                 if not self.cuda:
                     self._record(slot, n)
                 else:
-                    key = (id(slot), n)
-                    graph = self._graphs.get(key)
-                    with wp.ScopedStream(self.stream):
-                        if graph is None:
-                            wp.capture_begin(device=self.dev, stream=self.stream)
-                            try:
-                                self._record(slot, n)
-                            finally:
-                                graph = wp.capture_end(device=self.dev, stream=self.stream)
-                            self._graphs[key] = graph
-                        wp.capture_launch(graph, stream=self.stream)
+                    graph = self._graphs.get((id(slot), n))
+                    if graph is None:
+                        graph = self._capture(slot, n)
+                    wp.capture_launch(graph, stream=self.stream)
                     wp.synchronize_stream(self.stream)
         except Exception as e:  # Warp reports CUDA failures as RuntimeError
             raise KernelError(f"Warp proxy kernel failed on {self.pipeline.backend.device_name}: {e}") from e
@@ -338,14 +342,15 @@ class WarpProxies(ProxyBatch):
         np.copyto(self._positions[:n], out[:n, :3])
         np.copyto(self._nearest[:n], out[:n, 3])
         np.copyto(self._normals[:n], out[:n, 4:7])
-        info = out[:n, 7]
-        np.copyto(self._states[:n], np.fmod(info, 4), casting="unsafe")
-        np.copyto(self._converged[:n], np.fmod(info, 8) >= 4)
-        np.floor_divide(info, 8, out=self._stepsf[:n])
-        np.copyto(self._steps[:n], self._stepsf[:n], casting="unsafe")
+        info = self._info[:n]
+        np.copyto(info, out[:n, 7], casting="unsafe")   # st + 4 conv + 8 steps, exact in float32
+        np.bitwise_and(info, 3, out=self._states[:n])
+        np.right_shift(info, 3, out=self._steps[:n])
+        np.bitwise_and(info, 4, out=info)
+        np.not_equal(info, 0, out=self._converged[:n])
 
     def _alloc(self, n: int):
         grew = n > self._cap
         super()._alloc(n)
         if grew:
-            self._stepsf = np.zeros(self._cap, np.float32)
+            self._info = np.zeros(self._cap, np.int32)
