@@ -72,6 +72,9 @@ def add_arguments(p):
                    help="service configuration (default: the embedded defaults' scene with a 160x120 camera; "
                         "'defaults' for the embedded defaults as they are)")
     p.add_argument("--lead-us", type=float, default=250.0, help="client sends this long before the service tick (default 250)")
+    p.add_argument("--client-rt-priority", type=int, default=70,
+                   help="SCHED_FIFO priority of the client's control thread where allowed, as a haptic device "
+                        "driver runs (default 70, below the service loop's 80; 0: normal)")
     p.add_argument("--spin-us", type=float, default=300.0, help="client busy-waits this long before each tick (default 300)")
     p.add_argument("--attack-hz", type=float, default=10.0, help="hostile datagrams per second (default 10; 0: none)")
     p.add_argument("--startup-timeout", type=float, default=180.0, help="seconds to wait for the service to run")
@@ -154,7 +157,8 @@ def run(args) -> dict:
         t_start = time.perf_counter()
         client = new_client()
         # warm-up second (phase lock, first kernel launches), then the measured run
-        client.control(tick, duration=1.0, lead_us=args.lead_us, spin_us=args.spin_us)
+        client.control(tick, duration=1.0, lead_us=args.lead_us, spin_us=args.spin_us,
+                       rt_priority=args.client_rt_priority)
         client.stats = type(client.stats)()
         ticks_seen.clear()
         totals = {"sent": 0, "echoed": 0, "feedback": 0, "rejected_in": 0, "rtt": [], "ticks": 0}
@@ -165,7 +169,8 @@ def run(args) -> dict:
             if left <= 0.01:
                 break
             try:
-                client.control(tick, duration=left, lead_us=args.lead_us, spin_us=args.spin_us)
+                client.control(tick, duration=left, lead_us=args.lead_us, spin_us=args.spin_us,
+                                   rt_priority=args.client_rt_priority)
             except LinkLost as e:            # the service (or this process) stalled beyond the timeout
                 link_lost += 1
                 lost_msgs.append(str(e))
@@ -208,6 +213,7 @@ def run(args) -> dict:
         "loss_ratio": round(1.0 - totals["echoed"] / totals["sent"], 6) if totals["sent"] else None,
         "link_lost": link_lost, "timing_errors": timing_errors, "link_events": lost_msgs[:5],
         "feedback_received": totals["feedback"], "feedback_gaps": gaps, "lead_us": args.lead_us, "spin_us": args.spin_us,
+        "client_scheduling": client.scheduling,
         "config": args.config or "light (160x120 camera)", "attacks_sent": sent_attacks[0], "rejected": {k: v for k, v in udp.get("rejected", {}).items() if v},
         "rejected_total": udp.get("rejected_total"), "client_rejected": totals["rejected_in"],
         "sessions_timed_out": udp.get("sessions_timed_out"),

@@ -138,6 +138,7 @@ class Client:
         self._sent_seq = np.zeros(RING, np.int64)
         self._echo = 0
         self._off_ns = None                 # min(recv - sent): clock offset + shortest transit
+        self.scheduling = "normal"          # of the thread in control() (see its rt_priority)
         self.last_datagram = b""
         self.stats = LinkStats()
 
@@ -350,11 +351,41 @@ class Client:
     # --- libfranka-style control loop ----------------------------------------------------------------
     def control(self, callback: Callable[[Tick], Command], *, rate_hz: Optional[float] = None,
                 duration: Optional[float] = None, lead_us: float = 250.0, late_limit: int = 20,
-                spin_us: float = 300.0) -> int:
+                spin_us: float = 300.0, rt_priority: int = 0) -> int:
         """Run ``callback`` once per tick until it returns ``Command(..., finished=True)`` or
-        ``duration`` s pass; returns the number of ticks. See the module docstring for the errors."""
+        ``duration`` s pass; returns the number of ticks. See the module docstring for the errors.
+
+        ``rt_priority`` (1-99): run the calling thread SCHED_FIFO at that priority for the loop's
+        duration, where the OS allows it (as libfranka's ``RealtimeConfig``; refused: normal
+        priority, noted in ``scheduling``); a device thread that an ordinary process can preempt
+        sends late and its samples miss the service's tick."""
         if not self.session:
             raise ClientError("not connected: call connect() first")
+        saved = self._enter_realtime(int(rt_priority))
+        try:
+            return self._control(callback, rate_hz, duration, lead_us, late_limit, spin_us)
+        finally:
+            if saved is not None:
+                try:
+                    os.sched_setscheduler(0, *saved)
+                except OSError:
+                    pass
+
+    def _enter_realtime(self, priority: int):
+        """SCHED_FIFO ``priority`` for the calling thread; returns what to restore (None: unchanged)."""
+        self.scheduling = "normal"
+        if priority <= 0:
+            return None
+        try:
+            saved = (os.sched_getscheduler(0), os.sched_getparam(0))
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        except (AttributeError, OSError) as e:
+            self.scheduling = f"normal (SCHED_FIFO refused: {e})"
+            return None
+        self.scheduling = f"SCHED_FIFO {priority}"
+        return saved
+
+    def _control(self, callback, rate_hz, duration, lead_us, late_limit, spin_us) -> int:
         rate = float(rate_hz or self.hello.rate_hz)
         period = int(1e9 / rate)
         lead = int(lead_us * 1000)

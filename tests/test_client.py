@@ -2,6 +2,7 @@
 loop's part: drain, then a force per slot), and `device-sim`. No wall-clock assertions: waits are
 bounded, outcomes are checked."""
 import json
+import os
 import threading
 import time
 
@@ -140,6 +141,24 @@ def test_callback_api_and_timing_contract(hub):
 
         with pytest.raises(KeyError):
             c.control(boom)
+
+        # real-time priority for the loop's duration only (or a clear note where refused)
+        policy = os.sched_getscheduler(0)
+        policies = []
+
+        def rt(t):
+            policies.append(os.sched_getscheduler(0))
+            return Command((0.0, 0.0, 0.0), finished=t.index >= 9)
+
+        assert c.control(rt, rt_priority=20) == 10
+        if c.scheduling == "SCHED_FIFO 20":
+            assert set(policies) == {os.SCHED_FIFO}
+        else:
+            assert c.scheduling.startswith("normal (SCHED_FIFO refused") and set(policies) == {policy}
+        assert os.sched_getscheduler(0) == policy
+        with pytest.raises(KeyError):
+            c.control(boom, rt_priority=20)
+        assert os.sched_getscheduler(0) == policy     # restored after an exception too
         c.close()
     finally:
         pump.close()
