@@ -37,6 +37,8 @@ def add_arguments(p):
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the trajectory's length, or 5)")
     p.add_argument("--rate", type=float, default=1000.0, help="ticks per second (default 1000)")
     p.add_argument("--lead-us", type=float, default=250.0, help="send this long before the service tick (default 250)")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="SCHED_FIFO priority of the device loop where allowed (a real device driver's; default 0: normal)")
     p.add_argument("--max-force", type=float, default=3.3, help="device force limit, N (default 3.3)")
     p.add_argument("--workspace", type=float, default=0.1, help="device workspace half-size, m (default 0.1)")
     p.add_argument("--timeout-ms", type=int, default=P.DEFAULT_TIMEOUT_MS, help="session timeout asked for")
@@ -94,7 +96,8 @@ def run(args) -> int:
 
     with client:
         w = client.connect(timeout=args.connect_timeout)
-        ticks = client.control(tick, rate_hz=args.rate, duration=duration, lead_us=args.lead_us)
+        ticks = client.control(tick, rate_hz=args.rate, duration=duration, lead_us=args.lead_us,
+                               rt_priority=args.rt_priority)
         # let the last answers arrive
         import time
 
