@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import os
 import socket
+import struct
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Sequence
@@ -37,6 +39,10 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.errors import PointfenceError
+
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)   # Linux; == SCM_TIMESTAMPNS
+_TIMESPEC = struct.Struct("@qq")
+_ANC_SIZE = socket.CMSG_SPACE(16) if hasattr(socket, "CMSG_SPACE") else 64
 
 from . import protocol as P
 
@@ -124,6 +130,13 @@ class Client:
         self.sock.setblocking(False)
         self._buf = bytearray(P.MAX_DATAGRAM)
         self._view = memoryview(self._buf)
+        # kernel receive timestamps (Linux SO_TIMESTAMPNS): a FEEDBACK's arrival time is when it
+        # reached this host, not when the device loop got round to reading it (once per tick)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            self._kernel_stamps = sys.platform.startswith("linux")
+        except OSError:
+            self._kernel_stamps = False
         self.session = 0
         self.key = b""
         self.welcome: Optional[P.Welcome] = None
@@ -281,14 +294,24 @@ class Client:
         """Read every waiting FEEDBACK (never blocks); returns the newest new one, or None.
         Keeps ``force`` (zeroed once feedback is older than the timeout)."""
         newest = None
+        stamps = self._kernel_stamps
         while True:
             try:
-                n = self.sock.recv_into(self._buf)
+                if stamps:
+                    n, anc, _, _ = self.sock.recvmsg_into([self._buf], _ANC_SIZE)
+                else:
+                    n = self.sock.recv_into(self._buf)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
                 continue
             now = time.perf_counter_ns()
+            if stamps:
+                for level, kind, raw in anc:
+                    if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(raw) >= 16:
+                        sec, nsec = _TIMESPEC.unpack_from(raw)
+                        # the stamp is CLOCK_REALTIME: move it to this process's monotonic clock
+                        now = min(now, sec * 1_000_000_000 + nsec - (time.time_ns() - time.perf_counter_ns()))
             fb = self._accept(self._view[:n], now)
             if fb is not None:
                 newest = fb
