@@ -99,6 +99,12 @@ def check_points3(a, what: str, n: int | None = None) -> np.ndarray:
     return x
 
 
+def _finite_rows(a, n: int) -> bool:
+    """Whether ``a`` is already a finite float (n, 3) array (checked without a temporary array)."""
+    return (isinstance(a, np.ndarray) and a.shape == (n, 3) and a.dtype.kind == "f"
+            and bool(np.isfinite(a.sum())))
+
+
 def fixture_r_max(pipeline_params) -> float:
     """The largest fixture radius any point of the pipeline's snapshots can carry (m)."""
     r = pipeline_params.radius
@@ -193,7 +199,9 @@ class ProxyBatch(ABC):
         time on the frames' clock (dt = now - snapshot time + latency), or ``dt`` is given
         directly; both are clamped to the model's horizon. Without either, dt = 0. The dt used
         is left in ``last_dt``."""
-        h = check_points3(hips, "hips", self.n)
+        # the tick's fast path takes a finite float (B, 3) array as it is (the backend converts it
+        # while copying it into its own HIP buffer): no array is allocated per tick
+        h = hips if _finite_rows(hips, self.n) else check_points3(hips, "hips", self.n)
         if now is not None and not np.isfinite(now):
             raise InputError(f"now = {now!r}; expected a finite time in seconds (the frames' clock)")
         self._now, self._dt_request = now, dt
