@@ -141,7 +141,10 @@ def run(args) -> int:
             ready = {"host": hub.address[0], "port": hub.address[1]}
             if control is not None:
                 ready["control_port"] = control.address[1]
-            Path(args.ready_file).write_text(json.dumps(ready) + "\n")
+            dest = Path(args.ready_file)   # written whole, then renamed: a reader never sees it half-written
+            part = dest.with_name(dest.name + ".part")
+            part.write_text(json.dumps(ready) + "\n")
+            os.replace(part, dest)
         last = time.monotonic()
         while not stop["now"]:
             if args.duration is not None and time.monotonic() - t_start >= args.duration:
