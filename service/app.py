@@ -432,6 +432,7 @@ class Service:
             "coupled": self.coupled.tolist(), "force_gain": self.gain.round(3).tolist(),
             "kernel_errors": self.kernel_errors, "robot_errors": self.robot_errors, "last_error": self.last_error,
             "frame_seq": self.frame_seq, "backend": self.backend.name, "device": self.backend.device_name,
+            "proxy_device": getattr(self.batch, "device_kind", None) if self.batch is not None else None,
             "robots": [None if r is None else {"model": r.model, "mode": r.state.name, "fault": r.fault_reason}
                        for r in self.robots],
         }
