@@ -6,6 +6,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Sequence
 
+import numpy as np
+
 from .camera import Camera
 from .grid import Grid
 from .motion import MotionEstimator
@@ -60,6 +62,16 @@ class FramePipeline(ABC):
         n, per_cam = self._build(ordered, packed)
         self.seq += 1
         return IngestInfo(self.seq, n, per_cam, (time.perf_counter() - t0) * 1e3)
+
+    def depth_staging(self, camera) -> "np.ndarray | None":
+        """A host array (H, W) uint16 that camera ``camera`` (name or index)'s next depth image
+        can be written into, or None where the backend has none.
+
+        A frame whose ``depth`` is this array is ingested without the host copy into the
+        backend's upload buffer (on CUDA: pinned memory the build's graph uploads from), so a
+        camera driver that writes its image here saves a copy of every frame. Write it only
+        between ingests (``ingest`` has finished with it when it returns)."""
+        return None
 
     def neighbors(self, queries, radius: float, max_neighbors: int = 64, protected_only: bool = False) -> Neighbors:
         """Points within ``radius`` (m) of each query (B, 3) in the current snapshot."""

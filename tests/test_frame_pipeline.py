@@ -78,6 +78,41 @@ def test_fixed_radius_and_repeated_ingest(backend):
         assert_same_snapshot(a, b, contracts_fma(backend))
 
 
+@pytest.mark.parametrize("backend", ["numpy"] + BACKENDS)
+def test_depth_staging_ingests_frames_written_in_place(backend):
+    """Frames whose depth a camera wrote into ``depth_staging`` give the same snapshot as frames
+    with their own arrays (Warp); backends without a staging buffer say so with None."""
+    from dataclasses import replace
+
+    from pointfence.kernels import InputError
+
+    rng = np.random.default_rng(8)
+    cams, frames = random_rig(rng, n_cams=2, distort=False)
+    params = params_for("all", adaptive=False)
+    ref = get_backend("numpy").pipeline(cams, params)
+    dev = get_backend(backend).pipeline(cams, params)
+    if dev.depth_staging(0) is None:
+        assert backend != "warp"
+        return
+    for k in range(2):
+        for f in frames:
+            f.depth = np.roll(f.depth, 5 * k, axis=0)
+        views = [dev.depth_staging(c.name) for c in cams]
+        for v, f in zip(views, frames):
+            assert v.shape == f.depth.shape and v.dtype == np.uint16
+            np.copyto(v, f.depth)
+        ref.ingest(frames)
+        dev.ingest([replace(f, depth=v) for f, v in zip(frames, views)])
+        assert_same_snapshot(ref.host_snapshot(), dev.host_snapshot(), contracts_fma(backend))
+    for f in frames:
+        f.depth = np.roll(f.depth, 11, axis=1)
+    ref.ingest(frames)
+    dev.ingest(frames)     # ordinary frames are copied into the staging buffer as before
+    assert_same_snapshot(ref.host_snapshot(), dev.host_snapshot(), contracts_fma(backend))
+    with pytest.raises(InputError, match="no camera 'nope'"):
+        dev.depth_staging("nope")
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_real_two_camera_rig_matches_reference(backend):
     if not SHARED.is_dir():

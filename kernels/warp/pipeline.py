@@ -5,6 +5,8 @@ On CUDA the whole build of a slot (depth and camera uploads from pinned memory, 
 the scan, the point-count downloads) is one CUDA graph, captured on the first build into that
 slot and replayed afterwards: an ingest is a host-side copy into pinned memory plus one graph
 launch. Per-frame values (depth, poses) live in device arrays, so the graph never goes stale.
+A camera that writes its depth image into ``depth_staging(camera)`` (a view of that pinned
+memory) spares the ingest its one host copy.
 """
 from __future__ import annotations
 
@@ -82,6 +84,13 @@ class WarpPipeline(FramePipeline):
         self.buffers = DoubleBuffer([_Slot(dev, npix, C), _Slot(dev, npix, C)])
         self._n_host = wp.zeros(1, dtype=int, device="cpu", pinned=self.cuda)
         self._cam_host = wp.zeros(len(rig), dtype=int, device="cpu", pinned=self.cuda)
+        # NumPy views of the host arrays, made once (a .numpy() call per ingest costs microseconds)
+        self._depth_np = self._depth_host.numpy()
+        self._cams_np = self._cams_host.numpy()
+        self._n_np = self._n_host.numpy()
+        self._cam_np = self._cam_host.numpy()
+        self._staging = [self._depth_np[rig.offsets[i]:rig.offsets[i + 1]].reshape(c.height, c.width)
+                         for i, c in enumerate(rig.cameras)]
 
         ga = self.grid_args = k.GridArgs()
         ws = params.workspace
@@ -99,6 +108,14 @@ class WarpPipeline(FramePipeline):
         ch["offset"], ch["n"], ch["max_code"], ch["index"] = (rig.ints[:, j] for j in range(4))
         self._nq_cap = self._nq_K = 0
 
+    def depth_staging(self, camera):
+        i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
+        if i is None or not 0 <= int(i) < len(self._staging):
+            from ..errors import InputError
+
+            raise InputError(f"depth_staging: no camera {camera!r} in the rig ({', '.join(self.rig.index)})")
+        return self._staging[int(i)]
+
     def _stream(self, s):
         return wp.ScopedStream(s) if s is not None else wp.ScopedDevice(self.device)
 
@@ -107,10 +124,11 @@ class WarpPipeline(FramePipeline):
         rig = self.rig
         b = self.buffers.back()
         slot = self.buffers.slots[b]
-        host = self._depth_host.numpy()
         for i, f in enumerate(frames):
-            host[rig.offsets[i]:rig.offsets[i + 1]] = f.depth.reshape(-1)
-        ch = self._cams_host.numpy()
+            dst = self._staging[i]
+            if f.depth.ctypes.data != dst.ctypes.data:   # not written in place by the camera
+                np.copyto(dst, f.depth)
+        ch = self._cams_np
         ch["R"] = packed[:, 0:9].reshape(-1, 3, 3)
         ch["t"] = packed[:, 9:12]
         for j, name in enumerate(("depth_scale", "z_min", "z_max", "noise_a", "noise_b", "lateral")):
@@ -122,24 +140,24 @@ class WarpPipeline(FramePipeline):
             if not self.cuda:
                 self._record(slot)
             else:
-                with wp.ScopedStream(self.build_stream):
-                    graph = self._graphs.get(b)
-                    if graph is None:
+                graph = self._graphs.get(b)
+                if graph is None:
+                    with wp.ScopedStream(self.build_stream):
                         wp.capture_begin(device=self.device, stream=self.build_stream)
                         try:
                             self._record(slot)
                         finally:
                             graph = wp.capture_end(device=self.device, stream=self.build_stream)
-                        self._graphs[b] = graph
-                    wp.capture_launch(graph, stream=self.build_stream)
+                    self._graphs[b] = graph
+                wp.capture_launch(graph, stream=self.build_stream)
                 wp.synchronize_stream(self.build_stream)
             slot.vmax = self._motion(slot, frames)
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp frame pipeline failed on {self.backend.device_name}: {e}") from e
-        slot.n_points = int(self._n_host.numpy()[0])
+        slot.n_points = int(self._n_np[0])
         slot.seq = self.seq + 1
         slot.timestamps = tuple(float(f.timestamp) for f in frames)
-        slot.per_camera = tuple(int(n) for n in self._cam_host.numpy())
+        slot.per_camera = tuple(self._cam_np.tolist())
         self.buffers.publish(b)
         return slot.n_points, slot.per_camera
 
