@@ -90,7 +90,10 @@ def run(args) -> dict:
         return tree.query_ball_point(q, R3)
 
     tk = _time(kdtree, max(3, reps // 10))
-    counts = np.array([len(x) for x in kdtree()])
+    # the hash compares float32 distances: points within float32 rounding of R3 may go either way
+    tree = cKDTree(pts)
+    lo = tree.query_ball_point(q, R3 * (1 - 1e-6), return_length=True)
+    hi = tree.query_ball_point(q, R3 * (1 + 1e-6), return_length=True)
     proj = ProjectiveSearch(cams, frames)
     tp = _time(lambda: [proj.query(x, R3) for x in q], max(3, reps // 10))
 
@@ -100,7 +103,7 @@ def run(args) -> dict:
     out.update({
         "ckdtree_ms_4cam_p50": round(pct(tk, 50), 3),
         "projective_ms_4cam_p50": round(pct(tp, 50), 3),
-        "ckdtree_neighbors_match": bool(np.array_equal(counts, nb.count)),
+        "ckdtree_neighbors_match": bool(np.all((lo <= nb.count) & (nb.count <= hi))),
         "speedup_vs_ckdtree": round(pct(tk, 50) / hash_total, 2),
         "speedup_vs_projective": round(pct(tp, 50) / hash_total, 2),
     })
