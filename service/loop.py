@@ -22,7 +22,9 @@ API) run Python too. Running in its own thread, the loop keeps the lock for a wh
 switch interval is ``tick_switch_s`` (5 ms) while a tick runs, so no other thread can force it
 out mid-tick (with 0.1 ms, a 0.6 ms tick was cut into slices and took up to 1.4 ms), and
 ``switch_interval_s`` (0.1 ms) while it sleeps, so that at its deadline the thread holding the
-lock hands it back within 0.1 ms. ``SCHED_FIFO`` (``rt_priority``) makes the thread wake on time;
+lock hands it back within 0.1 ms. A tick that blocks (a socket call, a GPU wait) hands the lock
+over and may wait up to ``tick_switch_s`` to get it back; PoCL's in-thread proxy launch makes no
+blocking call. ``SCHED_FIFO`` (``rt_priority``) makes the thread wake on time;
 the loop cannot make a thread that holds the lock run, which is why the service lowers the
 priority of the OpenCL worker threads instead (``kernels/opencl/context.lower_pool_priority``).
 """
