@@ -29,6 +29,7 @@ import numpy as np
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
+from .loop import io_window
 from .masters import Master
 
 
@@ -166,7 +167,8 @@ class UdpHub:
         sock, buf = self.sock, self._buf
         for _ in range(self.budget):
             try:
-                n, addr = sock.recvfrom_into(buf)
+                with io_window:
+                    n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:      # e.g. ICMP port unreachable reported on a UDP socket
@@ -294,7 +296,8 @@ class UdpHub:
 
     def _send(self, addr, data: bytes) -> None:
         try:
-            self.sock.sendto(data, addr)
+            with io_window:
+                self.sock.sendto(data, addr)
         except OSError:
             self.send_errors += 1
 
