@@ -48,7 +48,9 @@ class HapticParams:
             within ``margin`` of the limit counts as at the limit, so that no decision turns
             on the last bit of a clearance. At most (r2 - r1)/4.
         skin: margin (m) of the per-tick working set gathered around the proxy (performance
-            only: results do not depend on it).
+            only: results do not depend on it). 0.5 mm: every step scans fewer points, and a
+            regather is cheap (dev VM, apc frame 49: 1-proxy tick p50 37 us against 41 us with
+            2 mm, 64 proxies 590 against 670-720 us).
         mode: ``"rendering"`` (all points, chapter 2) or ``"fixture"`` (protected points with
             their own radius r_f, chapter 3).
         k: spring constant of eq. 2.2 (350 N/m). k_s: fixture spring constant (800 N/m).
@@ -68,7 +70,7 @@ class HapticParams:
     turn_back_cos: float = -0.5
     slack: float = 0.0002
     margin: float = 1e-6
-    skin: float = 0.002
+    skin: float = 0.0005
     mode: str = "rendering"
     k: float = 350.0
     k_s: float = 800.0

@@ -245,8 +245,16 @@ def test_real_data_never_dragged_through(shared_data):
     pts = hs.pipeline.host_snapshot().points[:, :3].astype(np.float64)
     rng = np.random.default_rng(3)
     B = 12
-    surf = pts[rng.integers(0, len(pts), B)]
-    ray = surf / np.linalg.norm(surf, axis=1, keepdims=True)  # camera at the origin looking along +z
+    # surface points whose start, 2 cm towards the camera, is free space (>= r3 from every point)
+    cand = pts[rng.choice(len(pts), 400, replace=False)]
+    cray = cand / np.linalg.norm(cand, axis=1, keepdims=True)  # camera at the origin looking along +z
+    start = cand - 0.02 * cray
+    from scipy.spatial import cKDTree
+
+    free = cKDTree(pts).query(start)[0] >= p.r3
+    assert free.sum() >= B
+    surf = cand[np.flatnonzero(free)[:B]]
+    ray = surf / np.linalg.norm(surf, axis=1, keepdims=True)
     lateral = rng.normal(0, 1, (B, 3))
     lateral -= np.sum(lateral * ray, axis=1, keepdims=True) * ray
     lateral /= np.linalg.norm(lateral, axis=1, keepdims=True)
