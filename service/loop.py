@@ -44,31 +44,6 @@ from .clock import RealClock
 
 RING = 1 << 16
 
-#: (between-ticks interval, tick interval) while a threaded loop runs a tick; else None
-_TICK_SWITCH: Optional[tuple] = None
-
-
-class _IOWindow:
-    """``with io_window:`` around a blocking call made inside a tick: while the call has released
-    the interpreter lock, another thread may take it; with the tick's long switch interval the
-    loop could then wait that long to get it back, with the short one it waits at most that."""
-
-    __slots__ = ()
-
-    def __enter__(self):
-        t = _TICK_SWITCH
-        if t is not None:
-            sys.setswitchinterval(t[0])
-
-    def __exit__(self, *exc):
-        t = _TICK_SWITCH
-        if t is not None:
-            sys.setswitchinterval(t[1])
-        return False
-
-
-io_window = _IOWindow()
-
 
 @dataclass(frozen=True)
 class LoopTiming:
@@ -138,10 +113,8 @@ class HapticLoop:
             self.t0 = clock.now()
         due = self.t0 + self.k * P
         clock.sleep_until(due)
-        global _TICK_SWITCH
         if self._threaded:
             sys.setswitchinterval(self.tick_switch_s)
-            _TICK_SWITCH = (self.switch_interval_s, self.tick_switch_s)
         start = clock.now()
         w0 = time.perf_counter()
         late = start - due
@@ -169,7 +142,6 @@ class HapticLoop:
                 self.error += f"; safe_tick failed too: {type(e2).__name__}: {e2}"
         end = clock.now()
         if self._threaded:
-            _TICK_SWITCH = None
             sys.setswitchinterval(self.switch_interval_s)
         i = self.ticks & (RING - 1)
         self.compute[i] = end - start

@@ -29,7 +29,6 @@ import numpy as np
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
-from .loop import io_window
 from .masters import Master
 
 
@@ -167,8 +166,7 @@ class UdpHub:
         sock, buf = self.sock, self._buf
         for _ in range(self.budget):
             try:
-                with io_window:
-                    n, addr = sock.recvfrom_into(buf)
+                n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:      # e.g. ICMP port unreachable reported on a UDP socket
@@ -296,8 +294,7 @@ class UdpHub:
 
     def _send(self, addr, data: bytes) -> None:
         try:
-            with io_window:
-                self.sock.sendto(data, addr)
+            self.sock.sendto(data, addr)
         except OSError:
             self.send_errors += 1
 
