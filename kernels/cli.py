@@ -23,7 +23,10 @@ def run(args) -> int:
         if devs:
             print("OpenCL devices (select with --device '<part of the name>'):")
             for p, d, t in devs:
-                print(f"  {p}: {d} [{t}]")
+                note = ""
+                if d.lower().startswith("basic") and ("pocl" in p.lower() or "portable computing" in p.lower()):
+                    note = "  (runs kernels in the calling thread: pointfence's haptic ticks of up to 16 proxies)"
+                print(f"  {p}: {d} [{t}]{note}")
     except PointfenceError:
         pass
     return 0
