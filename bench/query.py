@@ -199,6 +199,8 @@ def run(args) -> dict:
         out[f"tick_us_{B}proxy_p99"] = round(pct(tb, 99), 2)
         if B == args.big:
             out["proxies_per_s"] = int(B / (pct(tb, 50) * 1e-6))
+        if hasattr(pb, "block_dim"):   # Warp: threads per proxy chosen for this batch size
+            out.setdefault("threads_per_proxy", {})[str(B)] = pb.block_dim()
 
     # peer: cKDTree neighbourhoods + the same algorithm in NumPy
     state, peer_step = ckdtree_peer(pts, tree, p)

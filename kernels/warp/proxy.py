@@ -27,9 +27,21 @@ from .frames import GridArgs
 
 vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
-#: threads per proxy on CUDA (one block each; POINTFENCE_WARP_BLOCK_DIM overrides); Warp's CPU
-#: device runs one thread per block
-BLOCK_DIM = int(os.environ.get("POINTFENCE_WARP_BLOCK_DIM", "256"))
+#: threads per proxy on CUDA (one block each) by batch size: (largest batch, threads). A small
+#: batch spreads each proxy over many threads (latency); a large one over fewer, so that more
+#: blocks run at once (throughput). H100 sweep, apc frame 49 (bench/RESULTS.md): 1 proxy fastest
+#: with 256, 1,024 with 128, 65,536 with 32 (12 M proxies/s against 6.4 M with 256).
+BLOCK_DIMS = ((64, 256), (4096, 128), (1 << 62, 32))
+#: one size for every batch instead (POINTFENCE_WARP_BLOCK_DIM); Warp's CPU device runs one
+#: thread per block
+BLOCK_DIM = int(os.environ["POINTFENCE_WARP_BLOCK_DIM"]) if os.environ.get("POINTFENCE_WARP_BLOCK_DIM") else None
+
+
+def block_dim_for(n: int) -> int:
+    """Threads per proxy for a batch of ``n`` proxies on CUDA."""
+    if BLOCK_DIM:
+        return BLOCK_DIM
+    return next(bd for most, bd in BLOCK_DIMS if n <= most)
 
 
 @wp.struct
@@ -264,9 +276,10 @@ class WarpProxies(ProxyBatch):
     """Proxies on a ``WarpPipeline``; create with ``pipeline.proxies(positions, params)``."""
 
     def __init__(self, pipeline, positions, params=None, block_dim: int | None = None):
+        """``block_dim``: threads per proxy on CUDA (None: by batch size, ``block_dim_for``)."""
         self.dev = pipeline.device
         self.cuda = self.dev.is_cuda
-        self.block_dim = (block_dim or BLOCK_DIM) if self.cuda else 1
+        self._block_dim_request = block_dim
         self.stream = pipeline.query_stream
         self._graphs = {}
         super().__init__(pipeline, positions, params)
@@ -298,12 +311,19 @@ class WarpProxies(ProxyBatch):
         wp.copy(self._pos, wp.array(self._positions[:n], dtype=wp.vec3, device="cpu"), count=n)
         self._graphs.clear()
 
+    def block_dim(self, n: int | None = None) -> int:
+        """Threads per proxy of a launch for ``n`` proxies (default: the batch's size)."""
+        if not self.cuda:
+            return 1
+        return self._block_dim_request or block_dim_for(self.n if n is None else n)
+
     def _record(self, slot, n):
+        bd = self.block_dim(n)
         wp.copy(self._hips, self._hips_host, count=n)
         wp.copy(self._tick, self._tick_host)
         wp.launch_tiled(proxy_tick, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
-                        self.args, self._pos, self._hips, self.block_dim, self._out, slot.sorted_vel, self._tick],
-                        block_dim=self.block_dim, device=self.dev)
+                        self.args, self._pos, self._hips, bd, self._out, slot.sorted_vel, self._tick],
+                        block_dim=bd, device=self.dev)
         wp.copy(self._out_host, self._out, count=n)
 
     def _capture(self, slot, n):
