@@ -18,9 +18,14 @@ Per haptic tick, for each of B proxies (v = X_hip - X_proxy):
 
 Non-finite inputs raise ``InputError`` and change nothing; a zero-length v gives zero spring
 force (no division). The result is therefore always finite. All arrays are allocated when the
-renderer is made (and when B grows), none per tick.
+renderer is made (and when B grows), none per tick. Up to ``SCALAR_MAX`` proxies, steps 1-2
+run as plain float arithmetic per proxy (a NumPy call costs about a microsecond whatever the
+size, and these steps take some twenty of them); larger batches run them as array operations.
+Both compute the same float64 expressions.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -45,6 +50,10 @@ def fir_lowpass(taps: int, cutoff_hz: float, rate_hz: float) -> np.ndarray:
     k = np.arange(taps) - (taps - 1) / 2
     h = 2 * fc * np.sinc(2 * fc * k) * np.hamming(taps)
     return h / h.sum()
+
+
+#: batches up to this size compute spring and damping per proxy in plain floats
+SCALAR_MAX = 8
 
 
 class ForceRenderer:
@@ -118,43 +127,48 @@ class ForceRenderer:
         st = np.asarray(states)
         if st.shape != (n,):
             raise InputError(f"states shape {st.shape}; expected ({n},)")
-        v, vl, mag, tmp = self._v[:n], self._vl[:n], self._mag[:n], self._tmp[:n]
-        raw = self._raw[:n]
-        np.subtract(xh, xp, out=v)
-        np.einsum("ij,ij->i", v, v, out=vl)
-        np.sqrt(vl, out=vl)
-        # spring: -(v/|v|) k (|v| - db) beyond the dead band; mag = k (|v| - db) / |v| or 0
-        db = p.dead_band
-        np.subtract(vl, db, out=mag)
-        np.maximum(mag, 0.0, out=mag)
-        np.multiply(mag, p.stiffness, out=mag)
-        engaged = self._engaged[:n]
-        np.greater(vl, db, out=engaged)
-        np.maximum(vl, db, out=vl)  # db > 0: no division by zero; mag is 0 inside the band
-        np.divide(mag, vl, out=mag)
-        np.multiply(v, mag[:, None], out=raw)
-        np.negative(raw, out=raw)
-        # damping during contact: -b * xdot_hip
-        if self._have_prev and p.b > 0:
-            contact = self._contact[:n]
-            np.not_equal(st, FREE, out=contact)
-            np.logical_and(contact, engaged, out=contact)
-            np.subtract(xh, self._prev[:n], out=tmp)
-            np.multiply(tmp, contact[:, None], out=tmp)
-            np.multiply(tmp, p.b * p.rate_hz, out=tmp)
-            np.subtract(raw, tmp, out=raw)
-            # unilateral contact: damping may cancel the spring but never pull the HIP inwards,
-            # i.e. the component along the spring direction -v/|v| stays >= 0
-            dot = self._dot[:n]
-            np.einsum("ij,ij->i", raw, v, out=dot)  # raw . v  (> 0: pulling inwards)
-            np.maximum(dot, 0.0, out=dot)
-            np.multiply(dot, engaged, out=dot)
-            np.divide(dot, vl, out=dot)
-            np.divide(dot, vl, out=dot)
-            np.multiply(v, dot[:, None], out=tmp)
-            np.subtract(raw, tmp, out=raw)
+        if n <= SCALAR_MAX:
+            self._spring_damping_scalar(xp, xh, st, n)
+        else:
+            v, vl, mag, tmp = self._v[:n], self._vl[:n], self._mag[:n], self._tmp[:n]
+            raw = self._raw[:n]
+            np.subtract(xh, xp, out=v)
+            np.einsum("ij,ij->i", v, v, out=vl)
+            np.sqrt(vl, out=vl)
+            # spring: -(v/|v|) k (|v| - db) beyond the dead band; mag = k (|v| - db) / |v| or 0
+            db = p.dead_band
+            np.subtract(vl, db, out=mag)
+            np.maximum(mag, 0.0, out=mag)
+            np.multiply(mag, p.stiffness, out=mag)
+            engaged = self._engaged[:n]
+            np.greater(vl, db, out=engaged)
+            np.maximum(vl, db, out=vl)  # db > 0: no division by zero; mag is 0 inside the band
+            np.divide(mag, vl, out=mag)
+            np.multiply(v, mag[:, None], out=raw)
+            np.negative(raw, out=raw)
+            # damping during contact: -b * xdot_hip
+            if self._have_prev and p.b > 0:
+                contact = self._contact[:n]
+                np.not_equal(st, FREE, out=contact)
+                np.logical_and(contact, engaged, out=contact)
+                np.subtract(xh, self._prev[:n], out=tmp)
+                np.multiply(tmp, contact[:, None], out=tmp)
+                np.multiply(tmp, p.b * p.rate_hz, out=tmp)
+                np.subtract(raw, tmp, out=raw)
+                # unilateral contact: damping may cancel the spring but never pull the HIP inwards,
+                # i.e. the component along the spring direction -v/|v| stays >= 0
+                dot = self._dot[:n]
+                np.einsum("ij,ij->i", raw, v, out=dot)  # raw . v  (> 0: pulling inwards)
+                np.maximum(dot, 0.0, out=dot)
+                np.multiply(dot, engaged, out=dot)
+                np.divide(dot, vl, out=dot)
+                np.divide(dot, vl, out=dot)
+                np.multiply(v, dot[:, None], out=tmp)
+                np.subtract(raw, tmp, out=raw)
         self._prev[:n] = xh
         self._have_prev = True
+        raw = self._raw[:n]
+        tmp, vl = self._tmp[:n], self._vl[:n]
         # FIR over the last T raw forces (ring buffer; taps[0] weighs the newest)
         T, h = self.taps.size, self._head
         flat = raw.reshape(-1)
@@ -173,6 +187,36 @@ class ForceRenderer:
             np.divide(p.max_force, vl, out=vl)
             np.multiply(out, vl[:, None], out=out)
         return out
+
+    def _spring_damping_scalar(self, xp, xh, st, n: int) -> None:
+        """Steps 1-2 for a small batch, proxy by proxy in floats, into ``self._raw``."""
+        p = self.params
+        db, k = p.dead_band, p.stiffness
+        damp = self._have_prev and p.b > 0
+        bk = p.b * p.rate_hz
+        hl, pl, sl = xh.tolist(), xp.tolist(), st.tolist()
+        prev = self._prev[:n].tolist() if damp else None
+        rows = []
+        for i in range(n):
+            hx, hy, hz = hl[i]
+            qx, qy, qz = pl[i]
+            vx, vy, vz = hx - qx, hy - qy, hz - qz
+            d = math.sqrt(vx * vx + vy * vy + vz * vz)
+            engaged = d > db
+            dd = d if engaged else db
+            m = (d - db) * k / dd if engaged else 0.0
+            fx, fy, fz = -(vx * m), -(vy * m), -(vz * m)
+            if damp and engaged and sl[i] != FREE:
+                px, py, pz = prev[i]
+                fx -= (hx - px) * bk
+                fy -= (hy - py) * bk
+                fz -= (hz - pz) * bk
+                dot = fx * vx + fy * vy + fz * vz          # > 0: the damped force pulls the HIP in
+                if dot > 0.0:
+                    c = dot / dd / dd
+                    fx, fy, fz = fx - vx * c, fy - vy * c, fz - vz * c
+            rows.append((fx, fy, fz))
+        self._raw[:n] = rows
 
 
 def _ok(a, n: int) -> bool:
