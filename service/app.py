@@ -264,7 +264,7 @@ class Service:
             self.pedal[b] = m.clutch
             self.m_ok[b] = m.ok
         np.isfinite(self.dev, out=self._fin)
-        np.all(self._fin, axis=1, out=self._rowok)
+        np.logical_and.reduce(self._fin, axis=1, out=self._rowok)
         np.logical_and(self.m_ok, self._rowok, out=self.m_ok)
         # 2. frame time, tool poses, health
         feeder = self.feeder
@@ -351,7 +351,9 @@ class Service:
         if not haptics_on:
             self._want[:] = False
         np.subtract(self._want, self.gain, out=self._gstep)
-        np.clip(self._gstep, -dt / self.cfg.service.force_ramp_s, dt / self.cfg.service.force_ramp_s, out=self._gstep)
+        ramp = dt / self.cfg.service.force_ramp_s
+        np.minimum(self._gstep, ramp, out=self._gstep)
+        np.maximum(self._gstep, -ramp, out=self._gstep)
         self.gain += self._gstep
         np.multiply(F, self.gain[:, None], out=self.f_out)
         np.matmul(self.f_out, self.R, out=self.f_master)          # world -> master frame: R^T f

@@ -70,6 +70,7 @@ class Teleop:
         self.X_m = z()           # mapped master point (world)
         self.hip = z()           # HIP used this tick
         self.e_hip = z()         # HIP blend offset
+        self._blending = False   # e_hip may be non-zero
         self.cmd = z()           # robot command X_r* (world)
         self.goal = z()          # command goal before the rate limit
         self._t3 = z()
@@ -102,6 +103,7 @@ class Teleop:
         self.goal[:] = self.X_m
         self.hip[:] = self.X_m
         self.e_hip[:] = 0.0
+        self._blending = False
         self.live[:] = False
         self.rebase = False
 
@@ -143,8 +145,13 @@ class Teleop:
         if self.rebase:
             np.subtract(self.hip, target, out=self.e_hip)
             self.rebase = False
-        self._shrink(self.e_hip, self.vmax * self.dt)
-        np.add(target, self.e_hip, out=self.hip)
+            self._blending = True
+        if self._blending:       # an offset left by a switch or a re-anchoring decays to zero
+            self._shrink(self.e_hip, self.vmax * self.dt)
+            self._blending = bool(self.e_hip.any())
+            np.add(target, self.e_hip, out=self.hip)
+        else:
+            self.hip[:] = target
         return self.hip
 
     def command_goal(self, proxies, haptics_running: bool) -> np.ndarray:
