@@ -187,6 +187,7 @@ def run(args) -> dict:
             totals["feedback"] += st.feedback
             totals["rejected_in"] += st.rejected_in
             totals["rtt"] += st.rtt_us
+            totals.setdefault("lead", []).extend(st.answer_lead_us)
             client.close()
             if time.perf_counter() - t0 < args.duration - 0.01:
                 client = new_client()
@@ -210,6 +211,10 @@ def run(args) -> dict:
         "states_answered": totals["echoed"],
         "rtt_us_p50": round(float(np.percentile(rtt, 50)), 1), "rtt_us_p99": round(float(np.percentile(rtt, 99)), 1),
         "rtt_us_max": round(float(np.max(rtt)), 1),
+        # send -> deadline of the answering tick: about lead_us when a state makes its tick,
+        # a period more when it arrived after the tick had read the socket
+        "answered_tick_after_send_us_p10_p50_p90": [round(float(np.percentile(totals.get("lead") or [math.nan], q)), 1)
+                                                    for q in (10, 50, 90)],
         "loss_ratio": round(1.0 - totals["echoed"] / totals["sent"], 6) if totals["sent"] else None,
         "link_lost": link_lost, "timing_errors": timing_errors, "link_events": lost_msgs[:5],
         "feedback_received": totals["feedback"], "feedback_gaps": gaps, "lead_us": args.lead_us, "spin_us": args.spin_us,

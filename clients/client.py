@@ -117,6 +117,9 @@ class LinkStats:
     feedback: int = 0
     rejected_in: int = 0             # datagrams this client dropped (bad tag, replay, ...)
     rtt_us: list = field(default_factory=list)
+    #: per answered state: its send -> the deadline of the service tick that answered it (us, on
+    #: this client's clock); about ``lead_us`` when the state made the tick it was sent for
+    answer_lead_us: list = field(default_factory=list)
 
 
 class Client:
@@ -373,7 +376,9 @@ class Client:
             i = fb.echo_seq & (RING - 1)
             if self._sent_seq[i] == fb.echo_seq:
                 self.stats.echoed += 1
-                self.stats.rtt_us.append((now - int(self._sent_ns[i])) / 1000.0)
+                sent = int(self._sent_ns[i])
+                self.stats.rtt_us.append((now - sent) / 1000.0)
+                self.stats.answer_lead_us.append((fb.t_tick_ns + self._off_ns - sent) / 1000.0)
         return fb
 
     @property

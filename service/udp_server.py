@@ -60,6 +60,10 @@ class Session:
         self.accepted = 0
 
 
+#: drains per window of the deadline-grid estimate (UdpHub.drain)
+BASE_WINDOW = 1000
+
+
 class UdpMaster(Master):
     """Slot ``slot`` of a :class:`UdpHub`: the master of one proxy, driven by whichever client
     holds the slot (``ok`` is False while no fresh authenticated sample exists)."""
@@ -130,7 +134,9 @@ class UdpHub:
         self._buf = bytearray(P.MAX_DATAGRAM)
         self._view = memoryview(self._buf)
         self.t = None                     # loop time of the last drain
-        self._base_ns = None              # perf_counter_ns at loop time 0 (min filter: tick deadlines)
+        self._base_ns = None              # perf_counter_ns at loop time 0 (tick deadlines): see drain
+        self._base_win = [None, None]     # minima of the current and the previous window of drains
+        self._base_n = 0
         self.service = None
         self.counters = {name: 0 for name in P.ERROR_NAMES.values() if name != "ok"}
         self.accepted = 0                 # STATE messages applied
@@ -160,9 +166,18 @@ class UdpHub:
         """Handle waiting datagrams (at most ``budget``), then drop silent sessions."""
         self.t = t
         now_ns = time.perf_counter_ns()
+        # the deadline grid's origin: drain time minus loop time, at its minimum (the least late
+        # tick). A windowed minimum (the last 1,000 to 2,000 drains), so that a drain outside the
+        # loop's timeline (the service's start-up poll at loop time 0, before the first tick;
+        # measured 32 ms early) cannot shift the clients' phase lock for good.
         base = now_ns - int(round(t * 1e9))
-        if self._base_ns is None or base < self._base_ns:
-            self._base_ns = base
+        w = self._base_win
+        if w[0] is None or base < w[0]:
+            w[0] = base
+        self._base_n += 1
+        if self._base_n >= BASE_WINDOW:
+            w[1], w[0], self._base_n = w[0], None, 0
+        self._base_ns = w[0] if w[1] is None else (w[1] if w[0] is None else min(w[0], w[1]))
         sock, buf = self.sock, self._buf
         for _ in range(self.budget):
             try:

@@ -221,3 +221,24 @@ def test_device_sim_runs_a_scripted_motion_and_a_trajectory(hub, tmp_path, capsy
         assert out["last_robot"] is not None
     finally:
         pump.close()
+
+
+def test_deadline_grid_estimate_recovers_from_a_drain_off_the_timeline(monkeypatch):
+    """The hub stamps feedback with its tick's deadline (origin of the grid + loop time). A
+    drain outside the loop's timeline (the service's start-up poll at loop time 0, tens of ms
+    before the first tick) must not shift that origin for good: it is a windowed minimum."""
+    from pointfence.service import udp_server as U
+
+    clock = {"ns": 1_000_000_000}
+    monkeypatch.setattr(U.time, "perf_counter_ns", lambda: clock["ns"])
+    h = UdpHub(KEY, 1)
+    try:
+        h.drain(0.0)                       # start-up poll, 32 ms before the loop's t0
+        t0 = clock["ns"] + 32_000_000
+        assert h._base_ns == clock["ns"]
+        for k in range(1, 2 * U.BASE_WINDOW + 2):
+            clock["ns"] = t0 + k * 1_000_000 + 3_000 + (k % 7) * 1_000   # ticks 3-9 us late
+            h.drain(k * 0.001)
+        assert h._base_ns == t0 + 3_000
+    finally:
+        h.close()
