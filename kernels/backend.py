@@ -63,7 +63,7 @@ class FramePipeline(ABC):
         self.seq += 1
         return IngestInfo(self.seq, n, per_cam, (time.perf_counter() - t0) * 1e3)
 
-    def depth_staging(self, camera) -> "np.ndarray | None":
+    def depth_staging(self, camera) -> np.ndarray | None:
         """A host array (H, W) uint16 that camera ``camera`` (name or index)'s next depth image
         can be written into, or None where the backend has none.
 

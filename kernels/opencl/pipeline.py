@@ -45,7 +45,8 @@ class _Slot(_Views):
     order[start[c]:start[c+1]]. vel: float4 per point in ``order``'s order, the estimated
     velocity (kernels/motion.py; meaningful only while ``vmax`` > 0).
 
-    With ``inline_ctx`` the arrays live in page-aligned host memory (``host``) that both the
+    With ``inline_ctx`` the arrays live in page-aligned host memory (``host``, which also keeps
+    that memory alive: the ``USE_HOST_PTR`` buffers of both contexts point into it) that both the
     build context and the in-thread context address (``inline``: that context's buffers).
     """
 
