@@ -15,8 +15,34 @@
 #define VW 16
 typedef float16 vf;
 typedef int16 vi;
-#define VLOAD vload16
 #define FAR 1.0e18f
+
+// The working-set loops use no OpenCL builtin: PoCL 3.0 (the pip wheel's, LLVM 14) calls its
+// vector builtins out of line, and each call spills every live vector register to the stack
+// (a step cost 2-3x more). Loads are vector dereferences (working sets are 64-byte aligned),
+// selects and minima are vector conditionals, and on x86 the square root is the compiler's
+// packed sqrt intrinsic: IEEE correctly rounded, as sqrt() is under
+// -cl-fp32-correctly-rounded-divide-sqrt, so every result is unchanged.
+#define VLD(p) (*(__global const vf *)(p))
+#define VSEL(m, a, b) ((m) ? (a) : (b))
+#define VMIN(a, b) ((a) < (b) ? (a) : (b))
+#define VMAX0(a) ((a) > (vf)(0.0f) ? (a) : (vf)(0.0f))
+#if defined(__AVX__)
+#define VSQRT(x) ((vf)(__builtin_ia32_sqrtps256((x).lo), __builtin_ia32_sqrtps256((x).hi)))
+#elif defined(__SSE__)
+#define VSQRT(x) ((vf)(__builtin_ia32_sqrtps((x).lo.lo), __builtin_ia32_sqrtps((x).lo.hi), \
+                       __builtin_ia32_sqrtps((x).hi.lo), __builtin_ia32_sqrtps((x).hi.hi)))
+#else
+#define VSQRT(x) sqrt(x)
+#endif
+// any lane of a comparison mask set
+#define VANY(m) vany(m)
+inline int vany(vi m) {
+    int8 a = m.lo | m.hi;
+    int4 b = a.lo | a.hi;
+    int2 c = b.lo | b.hi;
+    return (c.x | c.y) != 0;
+}
 
 // Scalar parameters, packed by kernels/opencl/proxy.py (keep in sync):
 // 0 r1, 1 band = r2 - r1, 2 nreach = r3 - r1, 3 step, 4 tol, 5 slack, 6 skin, 7 gather radius,
@@ -39,6 +65,7 @@ typedef int16 vi;
 typedef struct {
     float3 nsum;
     float min_e;
+    int nnear;   // chunks of the working set listed as within the clip's reach
 } Eval;
 
 // Point `entry` (at position i of the cell-sorted order) where the tick predicts it: p + v dt
@@ -99,19 +126,25 @@ inline int gather(__global const float4 *pts, __global const float4 *vel, float 
 }
 
 // ---- evaluation: clearances, normal sum, smallest clearance within the normal band ---------
-inline Eval eval_ws(__global const float *ws, int cap, int n, float3 X, float nreach) {
+// It also lists in nl the chunks (their first index) holding a point with clearance below
+// rclip: no step from X can reach the others (see proxy_tick), so the clip scans only these.
+inline Eval eval_ws(__global const float *ws, int cap, int n, float3 X, float nreach, float rclip,
+                    __global int *nl) {
     __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
     vf ax = 0.0f, ay = 0.0f, az = 0.0f, me = INFINITY;
+    int nn = 0;
     for (int i = 0; i < n; i += VW) {
-        vf dx = (vf)(X.x) - VLOAD(0, wx + i);
-        vf dy = (vf)(X.y) - VLOAD(0, wy + i);
-        vf dz = (vf)(X.z) - VLOAD(0, wz + i);
+        vf dx = (vf)(X.x) - VLD(wx + i);
+        vf dy = (vf)(X.y) - VLD(wy + i);
+        vf dz = (vf)(X.z) - VLD(wz + i);
         vf d2 = dx * dx + dy * dy + dz * dz;
-        vf d = sqrt(d2);
-        vf e = d - VLOAD(0, wr + i);
+        vf d = VSQRT(d2);
+        vf e = d - VLD(wr + i);
+        nl[nn] = i;
+        nn += VANY(e < (vf)(rclip));
         vi inb = e < (vf)(nreach);
-        me = fmin(me, select((vf)(INFINITY), e, inb));
-        vf inv = select((vf)(0.0f), (vf)(1.0f) / d, inb & (d > (vf)(0.0f)));
+        me = VMIN(VSEL(inb, e, (vf)(INFINITY)), me);
+        vf inv = VSEL(inb & (d > (vf)(0.0f)), (vf)(1.0f) / d, (vf)(0.0f));
         ax += dx * inv; ay += dy * inv; az += dz * inv;
     }
     Eval r;
@@ -122,6 +155,7 @@ inline Eval eval_ws(__global const float *ws, int cap, int n, float3 X, float nr
     }
     r.nsum = (float3)(sx, sy, sz);
     r.min_e = m;
+    r.nnear = nn;
     return r;
 }
 
@@ -156,34 +190,37 @@ inline Eval eval_hash(__global const float4 *pts, __global const float4 *vel, fl
     Eval r;
     r.nsum = (float3)(sx, sy, sz);
     r.min_e = m;
+    r.nnear = 0;
     return r;
 }
 
 // ---- clipping of a step along u (kernels/proxy.py, step 3) ---------------------------------
 // off = limit F + margin. A clear point (c = d2 - (rho + off)^2 >= 0) stops the step where its
 // clearance reaches F + margin (swept sphere); a point at the limit (c < 0) may not be
-// approached at all (b < 0 gives 0).
-inline float clip_ws(__global const float *ws, int cap, int n, float3 X, float3 u, float off) {
+// approached at all (b < 0 gives 0). Scans the nn chunks listed in nl by eval_ws.
+inline float clip_ws(__global const float *ws, int cap, __global const int *nl, int nn, float3 X, float3 u, float off) {
     __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
     vf tmin = INFINITY;
-    for (int i = 0; i < n; i += VW) {
-        vf dx = (vf)(X.x) - VLOAD(0, wx + i);
-        vf dy = (vf)(X.y) - VLOAD(0, wy + i);
-        vf dz = (vf)(X.z) - VLOAD(0, wz + i);
+    for (int k = 0; k < nn; ++k) {
+        int i = nl[k];
+        vf dx = (vf)(X.x) - VLD(wx + i);
+        vf dy = (vf)(X.y) - VLD(wy + i);
+        vf dz = (vf)(X.z) - VLD(wz + i);
         vf d2 = dx * dx + dy * dy + dz * dz;
         vf b = (vf)(u.x) * dx + (vf)(u.y) * dy + (vf)(u.z) * dz;
-        vf rc = VLOAD(0, wr + i) + (vf)(off);
+        vf rc = VLD(wr + i) + (vf)(off);
         vf c = d2 - rc * rc;
         vf disc = b * b - c;
         vi neg = b < (vf)(0.0f);
         vi outside = (c >= (vf)(0.0f)) & neg & (disc > (vf)(0.0f));
         vi atlim = (c < (vf)(0.0f)) & neg;
-        vf t = select((vf)(INFINITY), (vf)(0.0f), atlim);
-        if (any(outside)) {  // most chunks hold no point the step could reach: skip sqrt and divide
-            vf t_out = c / (-b + sqrt(fmax(disc, (vf)(0.0f))));
-            t = select(t, t_out, outside);
+        vf t = VSEL(atlim, (vf)(0.0f), (vf)(INFINITY));
+        if (VANY(outside)) {  // most chunks hold no point the step could reach: skip sqrt and divide
+            vf dm = VMAX0(disc);
+            vf t_out = c / (-b + VSQRT(dm));
+            t = VSEL(outside, t_out, t);
         }
-        tmin = fmin(tmin, t);
+        tmin = VMIN(t, tmin);
     }
     float m = INFINITY;
     for (int k = 0; k < VW; ++k) m = fmin(m, tmin[k]);
@@ -225,14 +262,14 @@ inline float3 away_ws(__global const float *ws, int cap, int n, float3 X, float 
     __global const float *wx = ws, *wy = ws + cap, *wz = ws + 2 * cap, *wr = ws + 3 * cap;
     vf ax = 0.0f, ay = 0.0f, az = 0.0f;
     for (int i = 0; i < n; i += VW) {
-        vf dx = (vf)(X.x) - VLOAD(0, wx + i);
-        vf dy = (vf)(X.y) - VLOAD(0, wy + i);
-        vf dz = (vf)(X.z) - VLOAD(0, wz + i);
+        vf dx = (vf)(X.x) - VLD(wx + i);
+        vf dy = (vf)(X.y) - VLD(wy + i);
+        vf dz = (vf)(X.z) - VLD(wz + i);
         vf d2 = dx * dx + dy * dy + dz * dz;
-        vf d = sqrt(d2);
-        vf rc = VLOAD(0, wr + i) + (vf)(off);
+        vf d = VSQRT(d2);
+        vf rc = VLD(wr + i) + (vf)(off);
         vf c = d2 - rc * rc;
-        vf inv = select((vf)(0.0f), (vf)(1.0f) / d, (c < (vf)(0.0f)) & (d > (vf)(0.0f)));
+        vf inv = VSEL((c < (vf)(0.0f)) & (d > (vf)(0.0f)), (vf)(1.0f) / d, (vf)(0.0f));
         ax += dx * inv; ay += dy * inv; az += dz * inv;
     }
     float sx = 0.0f, sy = 0.0f, sz = 0.0f;
@@ -282,12 +319,19 @@ inline float3 normal_of(float3 ns) {
 __kernel void proxy_tick(__global const float4 *pts, __global const int *order, __global const int *start,
                          float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float4 *hips,
                          __global float8 *out, __global float *wsbuf, int cap, __constant float *prm,
-                         int fixture, int max_steps, int gspan, int rspan, __global const float4 *vel, float dt) {
+                         int fixture, int max_steps, int gspan, int rspan, __global const float4 *vel, float dt,
+                         __global int *nearbuf) {
     int p = get_global_id(0);
     if (p >= n_proxies) return;
     __global float *ws = wsbuf + (size_t)p * 4 * cap;
+    __global int *nl = nearbuf + (size_t)p * (cap / VW);
     float3 X = pos[p].xyz, H = hips[p].xyz, X0 = X;
     const float r1 = P_R1, band = P_BAND, nreach = P_NREACH, skin2 = P_SKIN * P_SKIN;
+    // A step's limit F is at most band / 2 (slack >= 0) and its length at most step, so a point
+    // with clearance e >= band / 2 + margin + step cannot stop it: its hit time t >= e - F -
+    // margin >= step >= L. The 1 um (and 1e-4 step) over that keeps float32 rounding of e and t
+    // out of the decision: the clipped length is exactly the one a scan of every point gives.
+    const float rclip = 0.5f * band + P_MARGIN + P_STEP * 1.0001f + 1.0e-6f;
     int n = gather(pts, vel, dt, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap);
     int steps = 0, conv = 0, st = FREE;
     float3 nrm = (float3)(0.0f);
@@ -301,7 +345,7 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         }
         int direct = n > cap;
         Eval ev = direct ? eval_hash(pts, vel, dt, order, start, grid, dims, rspan, X, fixture, r1, nreach)
-                         : eval_ws(ws, cap, n, X, nreach);
+                         : eval_ws(ws, cap, n, X, nreach, rclip, nl);
         min_e = ev.min_e;
         st = state_of(min_e, band);
         nrm = normal_of(ev.nsum);
@@ -331,21 +375,21 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         float lim = st == FREE ? 0.5f * band : (buried ? min_e : -P_SLACK);
         float off = lim + P_MARGIN;
         float t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
-                         : clip_ws(ws, cap, n, X, u, off);
+                         : clip_ws(ws, cap, nl, ev.nnear, X, u, off);
         float s = fmax(fmin(L, t), 0.0f);
         int along_n = push;
         if (push && s < P_TOL) {  // push-out blocked: the contact rule's direction instead
             along_n = 0;
             u = u2;
             t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
-                       : clip_ws(ws, cap, n, X, u, off);
+                       : clip_ws(ws, cap, nl, ev.nnear, X, u, off);
             s = fmax(fmin(L2, t), 0.0f);
             if (buried && s < P_TOL) {  // both blocked: away from the deepest points
                 along_n = 1;
                 u = normal_of(direct ? away_hash(pts, vel, dt, order, start, grid, dims, rspan, X, off, fixture, r1)
                                      : away_ws(ws, cap, n, X, off));
                 t = direct ? clip_hash(pts, vel, dt, order, start, grid, dims, rspan, X, u, off, fixture, r1)
-                           : clip_ws(ws, cap, n, X, u, off);
+                           : clip_ws(ws, cap, nl, ev.nnear, X, u, off);
                 s = u.x != 0.0f || u.y != 0.0f || u.z != 0.0f ? fmax(fmin(Lp, t), 0.0f) : 0.0f;
             }
         }

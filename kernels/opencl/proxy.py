@@ -107,6 +107,7 @@ class OpenCLProxies(ProxyBatch):
         self.ws_cap = int(max(256, min(self._ws_request, WS_BUDGET // (16 * cap) // VW * VW)))
         self._pos = cl.Buffer(ctx, mf.READ_WRITE, 16 * cap)
         self._ws = cl.Buffer(ctx, mf.READ_WRITE, 16 * self.ws_cap * cap)
+        self._near = cl.Buffer(ctx, mf.READ_WRITE, 4 * (self.ws_cap // VW) * cap)   # clip's chunk lists
         self._pos_host = np.zeros((cap, 4), np.float32)
         if self._inline:   # shared with the in-thread kernel: no copies in a tick
             from .shared_host import aligned_zeros, host_buffer
@@ -131,6 +132,7 @@ class OpenCLProxies(ProxyBatch):
         k.set_arg(8, self._out)
         k.set_arg(9, self._ws)
         k.set_arg(10, np.int32(self.ws_cap))
+        k.set_arg(18, self._near)
         self._n_arg = None
 
     def _upload_positions(self):
