@@ -74,8 +74,9 @@ from .params_haptics import HapticParams
 FREE, CONTACT, ENTRENCHED = 0, 1, 2
 #: points per proxy working set on device backends (more in reach: the kernel scans the hash)
 WS_CAPACITY = 4096
-#: vector width of the device kernels' point loops (the reference sums in the same order)
-LANES = 16
+#: vector width of the device kernels' point loops (the reference sums in the same order); 8
+#: floats fill an AVX register, and 16 left the OpenCL loops short of registers (10 % slower)
+LANES = 8
 STATE_NAMES = ("free", "contact", "entrenched")
 
 

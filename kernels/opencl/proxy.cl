@@ -12,14 +12,14 @@
 // point is taken at p + v dt and the spans gspan / rspan include the motion's extra reach.
 #pragma OPENCL FP_CONTRACT OFF
 
-#define VW 16
-typedef float16 vf;
-typedef int16 vi;
+#define VW 8   // LANES in kernels/proxy.py: the reference sums the normal in the same 8 lanes
+typedef float8 vf;
+typedef int8 vi;
 #define FAR 1.0e18f
 
 // The working-set loops use no OpenCL builtin: PoCL 3.0 (the pip wheel's, LLVM 14) calls its
 // vector builtins out of line, and each call spills every live vector register to the stack
-// (a step cost 2-3x more). Loads are vector dereferences (working sets are 64-byte aligned),
+// (a step cost 2-3x more). Loads are vector dereferences (working sets are 32-byte aligned),
 // selects and minima are vector conditionals, and on x86 the square root is the compiler's
 // packed sqrt intrinsic: IEEE correctly rounded, as sqrt() is under
 // -cl-fp32-correctly-rounded-divide-sqrt, so every result is unchanged.
@@ -28,18 +28,16 @@ typedef int16 vi;
 #define VMIN(a, b) ((a) < (b) ? (a) : (b))
 #define VMAX0(a) ((a) > (vf)(0.0f) ? (a) : (vf)(0.0f))
 #if defined(__AVX__)
-#define VSQRT(x) ((vf)(__builtin_ia32_sqrtps256((x).lo), __builtin_ia32_sqrtps256((x).hi)))
+#define VSQRT(x) __builtin_ia32_sqrtps256(x)
 #elif defined(__SSE__)
-#define VSQRT(x) ((vf)(__builtin_ia32_sqrtps((x).lo.lo), __builtin_ia32_sqrtps((x).lo.hi), \
-                       __builtin_ia32_sqrtps((x).hi.lo), __builtin_ia32_sqrtps((x).hi.hi)))
+#define VSQRT(x) ((vf)(__builtin_ia32_sqrtps((x).lo), __builtin_ia32_sqrtps((x).hi)))
 #else
 #define VSQRT(x) sqrt(x)
 #endif
 // any lane of a comparison mask set
 #define VANY(m) vany(m)
 inline int vany(vi m) {
-    int8 a = m.lo | m.hi;
-    int4 b = a.lo | a.hi;
+    int4 b = m.lo | m.hi;
     int2 c = b.lo | b.hi;
     return (c.x | c.y) != 0;
 }

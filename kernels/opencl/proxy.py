@@ -41,7 +41,7 @@ def _program(pipeline, inline: bool):
 class OpenCLProxies(ProxyBatch):
     """Proxies on an ``OpenCLPipeline``; create with ``pipeline.proxies(positions, params)``.
 
-    ``ws_capacity``: points per proxy working set (a multiple of 16; shrunk automatically so
+    ``ws_capacity``: points per proxy working set (a multiple of ``LANES``; shrunk automatically so
     that a large batch's working sets fit ``WS_BUDGET``). Results never depend on it.
     ``local_size``: work-group size of the launch (None lets the OpenCL runtime choose).
     ``inline``: run on PoCL's in-thread device while the batch has at most ``INLINE_MAX``
