@@ -29,8 +29,27 @@ def brute_normals(snap, X, p):
     return out
 
 
+PATHS = ["working-set", "hash", "copies"]
+
+
+@pytest.fixture(params=PATHS)
+def kernel_path(request, monkeypatch):
+    """Which way the kernel runs: working sets in shared memory (the default), the hash scanned
+    from global memory (working sets that do not fit: capacity 16 points), and on CUDA the
+    graph with copies instead of zero-copy host memory (large batches)."""
+    from pointfence.kernels.warp import proxy as wproxy
+
+    if request.param == "hash":
+        monkeypatch.setattr(wproxy, "WS_CAPS", ((1 << 62, 16),))
+    elif request.param == "copies":
+        if not get_backend("warp").device.is_cuda:
+            pytest.skip("the copying path exists on CUDA only")
+        monkeypatch.setattr(wproxy, "ZERO_COPY_MAX", 0)
+    return request.param
+
+
 @pytest.mark.parametrize("mode", ["rendering", "fixture"])
-def test_warp_proxies_agree_with_reference(mode):
+def test_warp_proxies_agree_with_reference(mode, kernel_path):
     """Same snapshot, same HIPs, one tick at a time from the same positions: positions within
     1e-5 m. The block reduction sums in another order than the reference, and the algorithm is
     discontinuous (a point entering the normal band turns the normal), so two long trajectories
@@ -45,6 +64,8 @@ def test_warp_proxies_agree_with_reference(mode):
     surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
     start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
     dev = pipe.proxies(start, p)
+    if kernel_path == "copies":
+        assert not dev.zero_copy()
     ref = NumpyProxies(pipe, start, p, snapshot=snap)
     h = start.copy()
     states = np.zeros(3, int)

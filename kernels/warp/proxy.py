@@ -1,16 +1,25 @@
 """Warp proxy batch: one launch per haptic tick for all proxies, one thread block per proxy.
 
 Same algorithm as kernels/proxy.py (the NumPy reference and kernels/opencl/proxy.cl). On a
-GPU a proxy's neighbourhood (about 1500 points within R3 on a close-range frame) is spread over
-the ``block_dim`` threads of its block: each thread takes every block_dim-th candidate of the
-cells within reach, and the normal sum, the smallest clearance and the swept-sphere step limit
-are block-wide reductions (``wp.tile_sum`` / ``wp.tile_min``). Every thread then takes the same
-decision from the reduced values, so the step loop stays uniform across the block.
+GPU a proxy is spread over the ``block_dim`` threads of its block. At the start of a tick the
+block gathers its working set, the points within ``reach + skin`` of the proxy (as the
+reference does), into shared memory: the cells within reach are listed once, the block scans
+their points with every thread taking every block_dim-th candidate, counts the ones within
+range, and an exclusive scan of the counts gives each thread where to write its points, so the
+working set's order does not depend on timing. The steps then read on-chip memory only; a proxy
+that wanders further than ``skin`` from where its set was gathered gathers again, and a
+neighbourhood larger than the shared buffer (``ws_capacity_for``) is scanned from the hash in
+global memory instead, as before. The normal sum, the smallest clearance and the swept-sphere
+step limit are block-wide reductions (warp shuffles, then one barrier over the warps' partial
+results; every thread reads the same partials in the same order). Every thread then takes the
+same decision from the reduced values, so the step loop stays uniform across the block.
 
-On CUDA the tick (HIP upload from pinned memory, the launch, the result download) is captured
-once per snapshot slot into a CUDA graph and replayed each tick; nothing is allocated per tick.
-Candidates are read from the snapshot's cell-sorted copy of the points: the lanes of a block
-read consecutive points (one coalesced load each) instead of an index and then a point.
+On CUDA the tick is captured once per snapshot slot into a CUDA graph and replayed each tick.
+For batches up to ``ZERO_COPY_MAX`` the graph is the kernel alone: it reads the HIPs, the
+positions and the tick's arguments from pinned host memory and writes the results straight
+into the batch's (pinned) host arrays, so a tick has no copy nodes and nothing to unpack. Larger
+batches upload the HIPs and download the results with copies inside the graph. Nothing is
+allocated per tick.
 """
 from __future__ import annotations
 
@@ -25,16 +34,27 @@ from ..neighbors import search_span
 from ..proxy import ProxyBatch
 from .frames import GridArgs
 
-vec8 = wp.types.vector(length=8, dtype=wp.float32)
-
 #: threads per proxy on CUDA (one block each) by batch size: (largest batch, threads). A small
 #: batch spreads each proxy over many threads (latency); a large one over fewer, so that more
-#: blocks run at once (throughput). H100 sweep, apc frame 49 (bench/RESULTS.md): 1 proxy fastest
-#: with 256, 1,024 with 128, 65,536 with 32 (12 M proxies/s against 6.4 M with 256).
+#: blocks run at once (throughput). H100 sweep, apc frame 49 (bench/RESULTS.md).
 BLOCK_DIMS = ((64, 256), (4096, 128), (1 << 62, 32))
 #: one size for every batch instead (POINTFENCE_WARP_BLOCK_DIM); Warp's CPU device runs one
 #: thread per block
 BLOCK_DIM = int(os.environ["POINTFENCE_WARP_BLOCK_DIM"]) if os.environ.get("POINTFENCE_WARP_BLOCK_DIM") else None
+#: points of a proxy's working set held in shared memory, by batch size: (largest batch,
+#: points). 16 bytes a point; a small batch has an SM per proxy and takes what static shared
+#: memory allows (48 KB a block), a large one leaves room for more blocks per SM. A proxy with
+#: more points within reach + skin scans the hash from global memory instead.
+WS_CAPS = ((64, 2816), (4096, 1536), (1 << 62, 768))
+#: largest batch whose tick reads and writes pinned host memory directly (no copies in the graph;
+#: POINTFENCE_WARP_ZERO_COPY_MAX)
+ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
+#: hash rows (z, y) one gather may list: a gather reaching further scans the hash directly
+ROWS_CAP = wp.constant(128)
+#: candidates a thread tests per iteration of a gather (1 or 2; POINTFENCE_WARP_UNROLL)
+UNROLL = wp.constant(int(os.environ.get("POINTFENCE_WARP_UNROLL", "2")))
+#: register cap of the tick kernel (0: the compiler's choice; POINTFENCE_WARP_MAXREG)
+MAXREG = int(os.environ.get("POINTFENCE_WARP_MAXREG", "0"))
 
 
 def block_dim_for(n: int) -> int:
@@ -42,6 +62,11 @@ def block_dim_for(n: int) -> int:
     if BLOCK_DIM:
         return BLOCK_DIM
     return next(bd for most, bd in BLOCK_DIMS if n <= most)
+
+
+def ws_capacity_for(n: int) -> int:
+    """Working-set points in shared memory per proxy for a batch of ``n`` proxies."""
+    return next(c for most, c in WS_CAPS if n <= most)
 
 
 @wp.struct
@@ -54,6 +79,8 @@ class ProxyArgs:
     slack: float
     margin: float
     turn_back: float  # turn_back_cos
+    skin: float  # regather when the proxy is further than this from where its set was gathered
+    gather_r: float  # reach + skin: the working set's radius
     fixture: int
     max_steps: int
     span: int  # cells searched on each side (reach, without motion)
@@ -61,11 +88,147 @@ class ProxyArgs:
 
 @wp.struct
 class TickArgs:
-    """Per-tick values, copied to the device with the HIPs (inside the CUDA graph)."""
+    """Per-tick values, read by the kernel from pinned host memory (or copied in the graph)."""
 
     dt: float  # prediction time: points are taken at p + v dt (kernels/motion.py)
     span: int  # cells searched on each side: reach plus the motion's extra reach
+    gspan: int  # the same for a gather: reach + skin plus the motion's extra reach
 
+
+# --- block-wide primitives (native; Warp's CPU device runs one thread per block) -------------
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __syncthreads();
+#endif
+""")
+def block_sync(): ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __shared__ float red[2][32][4];
+    float x0 = v[0], x1 = v[1], x2 = v[2], x3 = v[3];
+    for (int m = 16; m >= 1; m >>= 1) {
+        const float y0 = __shfl_xor_sync(0xffffffffu, x0, m);
+        const float y1 = __shfl_xor_sync(0xffffffffu, x1, m);
+        const float y2 = __shfl_xor_sync(0xffffffffu, x2, m);
+        const float y3 = __shfl_xor_sync(0xffffffffu, x3, m);
+        x0 = (mins & 1) ? (y0 < x0 ? y0 : x0) : x0 + y0;
+        x1 = (mins & 2) ? (y1 < x1 ? y1 : x1) : x1 + y1;
+        x2 = (mins & 4) ? (y2 < x2 ? y2 : x2) : x2 + y2;
+        x3 = (mins & 8) ? (y3 < x3 ? y3 : x3) : x3 + y3;
+    }
+    const int t = threadIdx.x;
+    if ((t & 31) == 0) {
+        red[par][t >> 5][0] = x0; red[par][t >> 5][1] = x1; red[par][t >> 5][2] = x2; red[par][t >> 5][3] = x3;
+    }
+    __syncthreads();
+    float r0 = red[par][0][0], r1 = red[par][0][1], r2 = red[par][0][2], r3 = red[par][0][3];
+    for (int w = 1; w < (bd >> 5); ++w) {
+        const float y0 = red[par][w][0], y1 = red[par][w][1], y2 = red[par][w][2], y3 = red[par][w][3];
+        r0 = (mins & 1) ? (y0 < r0 ? y0 : r0) : r0 + y0;
+        r1 = (mins & 2) ? (y1 < r1 ? y1 : r1) : r1 + y1;
+        r2 = (mins & 4) ? (y2 < r2 ? y2 : r2) : r2 + y2;
+        r3 = (mins & 8) ? (y3 < r3 ? y3 : r3) : r3 + y3;
+    }
+    return wp::vec4(r0, r1, r2, r3);
+#else
+    return v;
+#endif
+""")
+def block_reduce4(v: wp.vec4, mins: int, par: int, bd: int) -> wp.vec4:
+    """Block-wide reduction of v, per component a sum or (bit c of ``mins``) a minimum; every
+    thread gets the same bits. ``par`` alternates between calls (double-buffered partials, so
+    one barrier a call suffices)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __shared__ float redm[2][32];
+    float x = v;
+    for (int m = 16; m >= 1; m >>= 1) {
+        const float y = __shfl_xor_sync(0xffffffffu, x, m);
+        x = y < x ? y : x;
+    }
+    const int t = threadIdx.x;
+    if ((t & 31) == 0) redm[par][t >> 5] = x;
+    __syncthreads();
+    float r = redm[par][0];
+    for (int w = 1; w < (bd >> 5); ++w) {
+        const float y = redm[par][w];
+        r = y < r ? y : r;
+    }
+    return r;
+#else
+    return v;
+#endif
+""")
+def block_min(v: float, par: int, bd: int) -> float:
+    """Block-wide minimum (same for every thread); ``par`` as for ``block_reduce4``."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __shared__ int scn[2][32];
+    const int t = threadIdx.x, l = t & 31, w = t >> 5;
+    int x = v;
+    for (int d = 1; d < 32; d <<= 1) {
+        const int y = __shfl_up_sync(0xffffffffu, x, d);
+        if (l >= d) x += y;
+    }
+    if (l == 31) scn[par][w] = x;
+    __syncthreads();
+    int before = 0, total = 0;
+    for (int k = 0; k < (bd >> 5); ++k) {
+        const int s = scn[par][k];
+        if (k < w) before += s;
+        total += s;
+    }
+    return wp::vec2i(before + x - v, total);
+#else
+    return wp::vec2i(0, v);
+#endif
+""")
+def block_scan(v: int, par: int, bd: int) -> wp.vec2i:
+    """(exclusive prefix of v over the block's threads in thread order, block total)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __shared__ float4 bc[4];
+    if (op == 1) bc[k] = make_float4(v[0], v[1], v[2], v[3]);
+    else { const float4 b = bc[k]; return wp::vec4(b.x, b.y, b.z, b.w); }
+    return v;
+#else
+    static float bc[16];   // (a plain array: no static initialiser to run)
+    if (op == 1) { bc[4 * k] = v[0]; bc[4 * k + 1] = v[1]; bc[4 * k + 2] = v[2]; bc[4 * k + 3] = v[3]; }
+    return wp::vec4(bc[4 * k], bc[4 * k + 1], bc[4 * k + 2], bc[4 * k + 3]);
+#endif
+""")
+def shared4(op: int, k: int, v: wp.vec4) -> wp.vec4:
+    """Slot k of a small shared array: op 1 writes v, op 0 reads."""
+    ...
+
+
+@wp.func_native(f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ int rt[2 * {ROWS_CAP}];
+#else
+    static int rt[2 * {ROWS_CAP}];
+#endif
+    if (op == 1) {{ rt[2 * r] = a; rt[2 * r + 1] = b; }}
+    return wp::vec2i(rt[2 * r], rt[2 * r + 1]);
+""")
+def rows(op: int, r: int, a: int, b: int) -> wp.vec2i:
+    """Row r of a gather's row table (first and end index into the sorted points): op 1 writes."""
+    ...
+
+
+# --- per-point work, shared by the working-set and the hash paths ---------------------------
 
 @wp.func
 def point_at(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), i: int, dt: float) -> wp.vec4:
@@ -85,203 +248,439 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
 
 
 @wp.func
-def clip_partial(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
-                 a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int,
-                 z0: int, z1: int, lane: int, bd: int) -> float:
-    """This thread's share of the step limit along u (kernels/proxy.py, step 3); off = F + margin:
-    a clear point stops the step where its clearance reaches off (swept sphere), a point at the
-    limit (clearance below off) may not be approached at all."""
-    tm = float(wp.inf)
-    if x0 <= x1:
-        for iz in range(z0, z1 + 1):
-            for iy in range(y0, y1 + 1):
-                base = (iz * g.ny + iy) * g.nx
-                for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
-                    if a.fixture != 0 and order[i] >= 0:
-                        continue
-                    q = point_at(spts, svel, i, dt)
-                    dx = X[0] - q[0]
-                    dy = X[1] - q[1]
-                    dz = X[2] - q[2]
-                    d2 = dx * dx + dy * dy + dz * dz
-                    b = u[0] * dx + u[1] * dy + u[2] * dz
-                    rc = clearance_radius(q, a) + off
-                    c = d2 - rc * rc
-                    disc = b * b - c
-                    if c >= 0.0 and b < 0.0 and disc > 0.0:
-                        tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
-                    elif c < 0.0 and b < 0.0:
-                        tm = 0.0
+def eval_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
+    """Step 1 for one point: its share of the normal sum and of the smallest clearance."""
+    dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
+    d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
+    e = d - clearance_radius(q, a)
+    if e < a.nreach:
+        me = wp.min(me, e)
+        if d > 0.0:
+            ns = ns + dv / d
+    return ns, me
+
+
+@wp.func
+def clip_point(X: wp.vec3, u: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, tm: float) -> float:
+    """Step 3 for one point (kernels/proxy.py); off = F + margin: a clear point stops the step
+    where its clearance reaches off (swept sphere), a point at the limit (clearance below off)
+    may not be approached at all."""
+    dx = X[0] - q[0]
+    dy = X[1] - q[1]
+    dz = X[2] - q[2]
+    d2 = dx * dx + dy * dy + dz * dz
+    b = u[0] * dx + u[1] * dy + u[2] * dz
+    rc = clearance_radius(q, a) + off
+    c = d2 - rc * rc
+    disc = b * b - c
+    if c >= 0.0 and b < 0.0 and disc > 0.0:
+        tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
+    elif c < 0.0 and b < 0.0:
+        tm = 0.0
     return tm
 
 
 @wp.func
-def away_partial(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
-                 a: ProxyArgs, X: wp.vec3, off: float, x0: int, x1: int, y0: int, y1: int, z0: int, z1: int,
-                 lane: int, bd: int) -> wp.vec3:
-    """This thread's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
+def away_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, ns: wp.vec3) -> wp.vec3:
+    """This point's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
+    dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
+    d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
+    d = wp.sqrt(d2)
+    rc = clearance_radius(q, a) + off
+    if d2 - rc * rc < 0.0 and d > 0.0:
+        ns = ns + dv / d
+    return ns
+
+
+@wp.func
+def cell_box(X: wp.vec3, g: GridArgs, span: int) -> wp.vec3i:
+    """Cell of X, clamped to span + 1 cells outside the grid (the reference's clamp)."""
+    cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), float(-span - 1), float(g.nx + span)))
+    cy = int(wp.clamp(wp.floor((X[1] - g.origin[1]) * g.inv_h), float(-span - 1), float(g.ny + span)))
+    cz = int(wp.clamp(wp.floor((X[2] - g.origin[2]) * g.inv_h), float(-span - 1), float(g.nz + span)))
+    return wp.vec3i(cx, cy, cz)
+
+
+# --- the hash path: a thread's share of each pass over the cells within reach ---------------
+
+@wp.func
+def hash_eval(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+              start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, c: wp.vec3i, span: int,
+              lane: int, bd: int):
     ns = wp.vec3(0.0)
+    me = float(wp.inf)
+    x0 = wp.max(c[0] - span, 0)
+    x1 = wp.min(c[0] + span, g.nx - 1)
     if x0 <= x1:
-        for iz in range(z0, z1 + 1):
-            for iy in range(y0, y1 + 1):
+        for iz in range(wp.max(c[2] - span, 0), wp.min(c[2] + span, g.nz - 1) + 1):
+            for iy in range(wp.max(c[1] - span, 0), wp.min(c[1] + span, g.ny - 1) + 1):
                 base = (iz * g.ny + iy) * g.nx
                 for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
                     if a.fixture != 0 and order[i] >= 0:
                         continue
-                    q = point_at(spts, svel, i, dt)
-                    dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
-                    d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
-                    d = wp.sqrt(d2)
-                    rc = clearance_radius(q, a) + off
-                    if d2 - rc * rc < 0.0 and d > 0.0:
-                        ns = ns + dv / d
+                    ns, me = eval_point(X, point_at(spts, svel, i, dt), a, ns, me)
+    return ns, me
+
+
+@wp.func
+def hash_clip(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+              start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float,
+              c: wp.vec3i, span: int, lane: int, bd: int) -> float:
+    tm = float(wp.inf)
+    x0 = wp.max(c[0] - span, 0)
+    x1 = wp.min(c[0] + span, g.nx - 1)
+    if x0 <= x1:
+        for iz in range(wp.max(c[2] - span, 0), wp.min(c[2] + span, g.nz - 1) + 1):
+            for iy in range(wp.max(c[1] - span, 0), wp.min(c[1] + span, g.ny - 1) + 1):
+                base = (iz * g.ny + iy) * g.nx
+                for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
+                    if a.fixture != 0 and order[i] >= 0:
+                        continue
+                    tm = clip_point(X, u, point_at(spts, svel, i, dt), a, off, tm)
+    return tm
+
+
+@wp.func
+def hash_away(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+              start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, off: float, c: wp.vec3i,
+              span: int, lane: int, bd: int) -> wp.vec3:
+    ns = wp.vec3(0.0)
+    x0 = wp.max(c[0] - span, 0)
+    x1 = wp.min(c[0] + span, g.nx - 1)
+    if x0 <= x1:
+        for iz in range(wp.max(c[2] - span, 0), wp.min(c[2] + span, g.nz - 1) + 1):
+            for iy in range(wp.max(c[1] - span, 0), wp.min(c[1] + span, g.ny - 1) + 1):
+                base = (iz * g.ny + iy) * g.nx
+                for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
+                    if a.fixture != 0 and order[i] >= 0:
+                        continue
+                    ns = away_point(X, point_at(spts, svel, i, dt), a, off, ns)
     return ns
 
 
-@wp.kernel
-def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
-               a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
-               out: wp.array(dtype=vec8), svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs)):
-    p, lane = wp.tid()
-    dt = tick[0].dt
-    span = tick[0].span
-    X = pos[p]
-    H = hips[p]
-    steps = int(0)
-    conv = int(0)
-    st = int(0)
-    nrm = wp.vec3(0.0)
-    min_e = float(wp.inf)
-    uprev = wp.vec3(0.0)  # direction of the last sliding or free step
-    for it in range(a.max_steps + 1):
-        # cells within reach of X
-        cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), float(-span - 1), float(g.nx + span)))
-        cy = int(wp.clamp(wp.floor((X[1] - g.origin[1]) * g.inv_h), float(-span - 1), float(g.ny + span)))
-        cz = int(wp.clamp(wp.floor((X[2] - g.origin[2]) * g.inv_h), float(-span - 1), float(g.nz + span)))
-        x0 = wp.max(cx - span, 0)
-        x1 = wp.min(cx + span, g.nx - 1)
-        y0 = wp.max(cy - span, 0)
-        y1 = wp.min(cy + span, g.ny - 1)
-        z0 = wp.max(cz - span, 0)
-        z1 = wp.min(cz + span, g.nz - 1)
+@wp.func
+def next_row(k: int, r: int, rs: int, ab: wp.vec2i):
+    """Advance a thread's cursor over the row table to the row holding candidate k (rs: the
+    first candidate of row r, ab: row r's index range); return (r, rs, ab)."""
+    while k >= rs + ab[1] - ab[0]:
+        rs = rs + ab[1] - ab[0]
+        r = r + 1
+        ab = rows(0, r, 0, 0)
+    return r, rs, ab
 
-        # 1. clearances, normal sum, smallest clearance within the normal band
-        ns = wp.vec3(0.0)
-        me = float(wp.inf)
+
+@wp.func
+def in_set(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+           a: ProxyArgs, i: int, X0: wp.vec3, r2: float):
+    """(whether sorted point i belongs to the working set around X0, the point at p + v dt):
+    within reach + skin, and protected in fixture mode (the reference's gather)."""
+    keep = int(0)
+    q = wp.vec4(0.0)
+    if i >= 0:
+        if a.fixture == 0 or order[i] < 0:
+            q = point_at(spts, svel, i, dt)
+            dx = q[0] - X0[0]
+            dy = q[1] - X0[1]
+            dz = q[2] - X0[2]
+            if dx * dx + dy * dy + dz * dz <= r2:
+                keep = 1
+    return keep, q
+
+
+def _tick_kernel(cap: int):
+    """The tick kernel with a shared working set of ``cap`` points (one kernel per capacity)."""
+    return _KERNELS.get(cap) or _KERNELS.setdefault(cap, _make_tick_kernel(cap))
+
+
+_KERNELS: dict = {}
+
+
+def _make_tick_kernel(cap: int):
+    ws_src = f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ float4 ws[{cap}];
+    if (op == 1) ws[i] = make_float4(q[0], q[1], q[2], q[3]);
+    else {{ const float4 b = ws[i]; return wp::vec4(b.x, b.y, b.z, b.w); }}
+    return q;
+#else
+    static float ws[4 * {cap}];
+    if (op == 1) {{ ws[4 * i] = q[0]; ws[4 * i + 1] = q[1]; ws[4 * i + 2] = q[2]; ws[4 * i + 3] = q[3]; }}
+    return wp::vec4(ws[4 * i], ws[4 * i + 1], ws[4 * i + 2], ws[4 * i + 3]);
+#endif
+"""
+
+    @wp.func_native(ws_src)
+    def ws(op: int, i: int, q: wp.vec4) -> wp.vec4:
+        """Working-set point i in shared memory: op 1 writes q, op 0 reads."""
+        ...
+
+    @wp.func
+    def gather_pass(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
+                    order: wp.array(dtype=int), a: ProxyArgs, X0: wp.vec3, r2: float, total: int, lane: int,
+                    bd: int, at: int) -> int:
+        """This thread's candidates (every bd-th of the row table's): count those in the working
+        set (at < 0), or write them to it from index ``at`` on. UNROLL candidates an iteration,
+        so that as many loads are in flight."""
+        cnt = int(0)
+        r = int(0)
+        rs = int(0)
+        ab = rows(0, 0, 0, 0)
+        k = lane
+        while k < total:
+            r, rs, ab = next_row(k, r, rs, ab)
+            k0, q0 = in_set(spts, svel, dt, order, a, ab[0] + k - rs, X0, r2)
+            if wp.static(UNROLL == 1):
+                if k0 != 0 and at >= 0:
+                    ws(1, at + cnt, q0)
+                cnt += k0
+            else:
+                i1 = int(-1)
+                if k + bd < total:
+                    r, rs, ab = next_row(k + bd, r, rs, ab)
+                    i1 = ab[0] + k + bd - rs
+                k1, q1 = in_set(spts, svel, dt, order, a, i1, X0, r2)
+                if at >= 0:
+                    if k0 != 0:
+                        ws(1, at + cnt, q0)
+                    if k1 != 0:
+                        ws(1, at + cnt + k0, q1)
+                cnt += k0 + k1
+            k += UNROLL * bd
+        return cnt
+
+    @wp.func
+    def gather(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X0: wp.vec3, span: int, lane: int, bd: int,
+               par: int):
+        """Gather the working set around X0 into shared memory; return (its size, or -1 where it
+        does not fit and the steps scan the hash instead; the next reduction's ``par``)."""
+        c = cell_box(X0, g, span)
+        x0 = wp.max(c[0] - span, 0)
+        x1 = wp.min(c[0] + span, g.nx - 1)
+        y0 = wp.max(c[1] - span, 0)
+        z0 = wp.max(c[2] - span, 0)
+        nyr = wp.max(wp.min(c[1] + span, g.ny - 1) - y0 + 1, 0)
+        nzr = wp.max(wp.min(c[2] + span, g.nz - 1) - z0 + 1, 0)
+        nrows = int(0)
         if x0 <= x1:
-            for iz in range(z0, z1 + 1):
-                for iy in range(y0, y1 + 1):
-                    base = (iz * g.ny + iy) * g.nx
-                    for i in range(start[base + x0] + lane, start[base + x1 + 1], bd):
-                        if a.fixture != 0 and order[i] >= 0:
-                            continue
-                        q = point_at(spts, svel, i, dt)
-                        dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
-                        d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
-                        e = d - clearance_radius(q, a)
-                        if e < a.nreach:
-                            me = wp.min(me, e)
-                            if d > 0.0:
-                                ns = ns + dv / d
-        nt = wp.tile_sum(wp.tile(ns), axis=1)  # wp.tile of a vec3 is a (3, block_dim) tile
-        nsum = wp.vec3(nt[0], nt[1], nt[2])
-        min_e = wp.tile_min(wp.tile(me))[0]
-        st = 0
-        if min_e < 0.0:
-            st = 2
-        elif min_e < a.band:
-            st = 1
-        nn = wp.length(nsum)
+            nrows = nyr * nzr
+        if nrows > ROWS_CAP:
+            return -1, par
+        for r in range(lane, nrows, bd):
+            base = ((z0 + r // nyr) * g.ny + y0 + r % nyr) * g.nx
+            rows(1, r, start[base + x0], start[base + x1 + 1])
+        block_sync()
+        total = int(0)
+        for r in range(nrows):
+            ab = rows(0, r, 0, 0)
+            total += ab[1] - ab[0]
+        r2 = a.gather_r * a.gather_r
+        # pass 1: how many of this thread's candidates (every bd-th) belong to the set
+        cnt = gather_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, -1)
+        sc = block_scan(cnt, par, bd)
+        par = 1 - par
+        if sc[1] > cap:
+            return -1, par
+        # pass 2: the same candidates again, each thread writing its points from its offset on
+        gather_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, sc[0])
+        block_sync()
+        return sc[1], par
+
+    opts = {"cuda_max_registers": MAXREG} if MAXREG else {}
+
+    @wp.kernel(enable_backward=False, module="unique", **opts)
+    def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
+                   g: GridArgs, a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
+                   svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs), nrm_out: wp.array(dtype=wp.vec3),
+                   near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
+                   steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool)):
+        p, lane = wp.tid()
+        # one thread reads the proxy's inputs (pinned host memory on the zero-copy path) and
+        # shares them with the block
+        if lane == 0:
+            tk = tick[0]
+            x = pos[p]
+            hh = hips[p]
+            shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
+            shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
+            shared4(1, 2, wp.vec4(tk.dt, float(tk.span), float(tk.gspan), 0.0))
+        block_sync()
+        xv = shared4(0, 0, wp.vec4(0.0))
+        hv = shared4(0, 1, wp.vec4(0.0))
+        tv = shared4(0, 2, wp.vec4(0.0))
+        X = wp.vec3(xv[0], xv[1], xv[2])
+        H = wp.vec3(hv[0], hv[1], hv[2])
+        dt = tv[0]
+        span = int(tv[1])
+        gspan = int(tv[2])
+        skin2 = a.skin * a.skin
+        par = int(0)
+        X0 = X
+        n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, bd, par)
+        steps = int(0)
+        conv = int(0)
+        st = int(0)
         nrm = wp.vec3(0.0)
-        if nn > 0.0:
-            nrm = nsum / nn
-        if it == a.max_steps:
-            break
+        min_e = float(wp.inf)
+        uprev = wp.vec3(0.0)  # direction of the last sliding or free step
+        for it in range(a.max_steps + 1):
+            if it > 0:
+                dx = X[0] - X0[0]
+                dy = X[1] - X0[1]
+                dz = X[2] - X0[2]
+                if dx * dx + dy * dy + dz * dz > skin2:  # wandered off its working set
+                    X0 = X
+                    n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, bd, par)
+            c = wp.vec3i(0)
+            if n_ws < 0:
+                c = cell_box(X, g, span)
 
-        # 2. direction and length (dissertation 2.2.4)
-        v = H - X
-        vl = wp.length(v)
-        vn = wp.dot(v, nrm)
-        vp = v - vn * nrm
-        vpl = wp.length(vp)
-        has_n = nn > 0.0
-        # contact rules (3/4): along v with the HIP outside or no normal, else along vp
-        u2 = wp.vec3(0.0)
-        L2 = float(0.0)
-        if st == 0 or vn > 0.0 or not has_n:
-            if vl > 0.0:
-                u2 = v / vl
-                L2 = vl
-        elif vpl > 0.0:
-            u2 = vp / vpl
-            L2 = vpl
-        L2 = wp.min(L2, a.step)
-        u = u2
-        L = L2
-        Lp = wp.min(0.5 * a.band - min_e, a.step)
-        # limit F: mid-band for a free step, -slack otherwise, min e where buried (the deepest
-        # penetration never grows); off = F + margin
-        buried = st == 2 and min_e < -a.slack - a.margin
-        lim = -a.slack
-        if st == 0:
-            lim = 0.5 * a.band
-        elif buried:
-            lim = min_e
-        off = lim + a.margin
+            # 1. clearances, normal sum, smallest clearance within the normal band
+            ns = wp.vec3(0.0)
+            me = float(wp.inf)
+            if n_ws >= 0:
+                for k in range(lane, n_ws, bd):
+                    ns, me = eval_point(X, ws(0, k, wp.vec4(0.0)), a, ns, me)
+            else:
+                ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, bd)
+            rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, bd)
+            par = 1 - par
+            nsum = wp.vec3(rd[0], rd[1], rd[2])
+            min_e = rd[3]
+            st = 0
+            if min_e < 0.0:
+                st = 2
+            elif min_e < a.band:
+                st = 1
+            nn = wp.length(nsum)
+            nrm = wp.vec3(0.0)
+            if nn > 0.0:
+                nrm = nsum / nn
+            if it == a.max_steps:
+                break
 
-        # 3. clipping (block-wide minimum)
-        push = st == 2 and has_n
-        if push:
-            u = nrm
-            L = Lp
-        tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
-        t = wp.tile_min(wp.tile(tm))[0]
-        s = wp.max(wp.min(L, t), 0.0)
-        along_n = push
-        if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
-            along_n = False
+            # 2. direction and length (dissertation 2.2.4)
+            v = H - X
+            vl = wp.length(v)
+            vn = wp.dot(v, nrm)
+            vp = v - vn * nrm
+            vpl = wp.length(vp)
+            has_n = nn > 0.0
+            # contact rules (3/4): along v with the HIP outside or no normal, else along vp
+            u2 = wp.vec3(0.0)
+            L2 = float(0.0)
+            if st == 0 or vn > 0.0 or not has_n:
+                if vl > 0.0:
+                    u2 = v / vl
+                    L2 = vl
+            elif vpl > 0.0:
+                u2 = vp / vpl
+                L2 = vpl
+            L2 = wp.min(L2, a.step)
             u = u2
-            tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
-            t = wp.tile_min(wp.tile(tm))[0]
-            s = wp.max(wp.min(L2, t), 0.0)
-            if buried and s < a.tol:  # both blocked: away from the deepest points
-                along_n = True
-                av = away_partial(spts, svel, dt, order, start, g, a, X, off, x0, x1, y0, y1, z0, z1, lane, bd)
-                at = wp.tile_sum(wp.tile(av), axis=1)
-                asum = wp.vec3(at[0], at[1], at[2])
-                al = wp.length(asum)
-                s = 0.0
-                if al > 0.0:
-                    u = asum / al
-                    tm = clip_partial(spts, svel, dt, order, start, g, a, X, u, off, x0, x1, y0, y1, z0, z1, lane, bd)
-                    t = wp.tile_min(wp.tile(tm))[0]
-                    s = wp.max(wp.min(Lp, t), 0.0)
-        if s < a.tol:
-            conv = 1
-            break
-        if not along_n:  # a slide turning back against the previous one: rocking in a crease
-            if u[0] * uprev[0] + u[1] * uprev[1] + u[2] * uprev[2] < a.turn_back:
+            L = L2
+            Lp = wp.min(0.5 * a.band - min_e, a.step)
+            # limit F: mid-band for a free step, -slack otherwise, min e where buried (the deepest
+            # penetration never grows); off = F + margin
+            buried = st == 2 and min_e < -a.slack - a.margin
+            lim = -a.slack
+            if st == 0:
+                lim = 0.5 * a.band
+            elif buried:
+                lim = min_e
+            off = lim + a.margin
+
+            # 3. clipping (block-wide minimum)
+            push = st == 2 and has_n
+            if push:
+                u = nrm
+                L = Lp
+            tm = float(wp.inf)
+            if n_ws >= 0:
+                for k in range(lane, n_ws, bd):
+                    tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+            else:
+                tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
+            t = block_min(tm, par, bd)
+            par = 1 - par
+            s = wp.max(wp.min(L, t), 0.0)
+            along_n = push
+            if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
+                along_n = False
+                u = u2
+                tm = float(wp.inf)
+                if n_ws >= 0:
+                    for k in range(lane, n_ws, bd):
+                        tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+                else:
+                    tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
+                t = block_min(tm, par, bd)
+                par = 1 - par
+                s = wp.max(wp.min(L2, t), 0.0)
+                if buried and s < a.tol:  # both blocked: away from the deepest points
+                    along_n = True
+                    av = wp.vec3(0.0)
+                    if n_ws >= 0:
+                        for k in range(lane, n_ws, bd):
+                            av = away_point(X, ws(0, k, wp.vec4(0.0)), a, off, av)
+                    else:
+                        av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, bd)
+                    ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, bd)
+                    par = 1 - par
+                    asum = wp.vec3(ra[0], ra[1], ra[2])
+                    al = wp.length(asum)
+                    s = 0.0
+                    if al > 0.0:
+                        u = asum / al
+                        tm = float(wp.inf)
+                        if n_ws >= 0:
+                            for k in range(lane, n_ws, bd):
+                                tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+                        else:
+                            tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
+                        t = block_min(tm, par, bd)
+                        par = 1 - par
+                        s = wp.max(wp.min(Lp, t), 0.0)
+            if s < a.tol:
                 conv = 1
                 break
-            uprev = u
-        X = X + s * u
-        steps += 1
+            if not along_n:  # a slide turning back against the previous one: rocking in a crease
+                if u[0] * uprev[0] + u[1] * uprev[1] + u[2] * uprev[2] < a.turn_back:
+                    conv = 1
+                    break
+                uprev = u
+            X = X + s * u
+            steps += 1
 
-    if lane == 0:
-        pos[p] = X
-        out[p] = vec8(X[0], X[1], X[2], min_e, nrm[0], nrm[1], nrm[2], float(st + 4 * conv + 8 * steps))
+        if lane == 0:
+            pos[p] = X
+            nrm_out[p] = nrm
+            near_out[p] = min_e
+            state_out[p] = st
+            steps_out[p] = steps
+            conv_out[p] = conv != 0
+
+    return proxy_tick
 
 
 class WarpProxies(ProxyBatch):
-    """Proxies on a ``WarpPipeline``; create with ``pipeline.proxies(positions, params)``."""
+    """Proxies on a ``WarpPipeline``; create with ``pipeline.proxies(positions, params)``.
+
+    The batch's host arrays (``positions``, ``normals``, ...) are pinned memory on CUDA that the
+    tick's graph writes into (directly, or by copies for batches over ``ZERO_COPY_MAX``)."""
 
     def __init__(self, pipeline, positions, params=None, block_dim: int | None = None):
         """``block_dim``: threads per proxy on CUDA (None: by batch size, ``block_dim_for``)."""
         self.dev = pipeline.device
         self.cuda = self.dev.is_cuda
+        if self.cuda and block_dim is not None and (block_dim % 32 or not 32 <= block_dim <= 1024):
+            raise ValueError(f"block_dim = {block_dim}; expected a multiple of 32 from 32 to 1024")
+        if self.cuda and BLOCK_DIM and (BLOCK_DIM % 32 or not 32 <= BLOCK_DIM <= 1024):
+            raise ValueError(f"POINTFENCE_WARP_BLOCK_DIM = {BLOCK_DIM}; expected a multiple of 32 from 32 to 1024")
         self._block_dim_request = block_dim
         self.stream = pipeline.query_stream
         self._graphs = {}
+        self._last = (None, 0, None)   # (slot, n, graph) of the last tick
         super().__init__(pipeline, positions, params)
         p = self.params
         a = self.args = ProxyArgs()
@@ -289,27 +688,58 @@ class WarpProxies(ProxyBatch):
         a.tol, a.slack, a.fixture, a.max_steps = p.tolerance, p.slack, int(p.mode == "fixture"), p.max_steps
         a.margin = p.margin
         a.turn_back = p.turn_back_cos
-        a.span = search_span(self.reach, pipeline.grid.h)
+        a.skin = p.skin
+        a.gather_r = self.reach + p.skin
+        h = pipeline.grid.h
+        a.span = search_span(self.reach, h)
+        self._h = h
         self._tick = wp.zeros(1, dtype=TickArgs, device=self.dev)
         self._tick_host = wp.zeros(1, dtype=TickArgs, device="cpu", pinned=self.cuda)
+        self._tick_view = self._device_view(self._tick_host, TickArgs, 1)
         self._tick_np = self._tick_host.numpy()
-        self._tick_np[0]["span"] = a.span
+        self._tick_dt_set = None
+        self._set_tick(0.0, 0.0)
+
+    # --- storage ---------------------------------------------------------------------------
+    def _device_view(self, host, dtype, length):
+        """The pinned host array ``host`` as an array of the CUDA device (the same memory, read
+        and written by kernels over the bus); the array itself on the CPU device."""
+        if not self.cuda:
+            return host
+        return wp.array(ptr=host.ptr, dtype=dtype, shape=length, device=self.dev)
+
+    def _alloc(self, n: int):
+        if n <= self._cap:
+            return
+        cap = max(n, 2 * self._cap, 1)
+        pinned = self.cuda
+        host = {}
+        for name, dtype in (("positions", wp.vec3), ("normals", wp.vec3), ("nearest", wp.float32),
+                            ("states", wp.int32), ("steps", wp.int32), ("converged", wp.bool), ("hips", wp.vec3)):
+            host[name] = (wp.zeros(cap, dtype=dtype, device="cpu", pinned=pinned), dtype)
+        self._host = host
+        self._positions = host["positions"][0].numpy()
+        self._normals = host["normals"][0].numpy()
+        self._nearest = host["nearest"][0].numpy()
+        self._nearest.fill(np.inf)
+        self._states = host["states"][0].numpy()
+        self._steps = host["steps"][0].numpy()
+        self._converged = host["converged"][0].numpy()
+        self._hips_np = host["hips"][0].numpy()
+        self._cap = cap
+        self._grow(cap)
 
     def _grow(self, cap: int):
-        dev = self.dev
-        self._pos = wp.zeros(cap, dtype=wp.vec3, device=dev)
-        self._hips = wp.zeros(cap, dtype=wp.vec3, device=dev)
-        self._out = wp.zeros(cap, dtype=vec8, device=dev)
-        self._hips_host = wp.zeros(cap, dtype=wp.vec3, device="cpu", pinned=self.cuda)
-        self._out_host = wp.zeros(cap, dtype=vec8, device="cpu", pinned=self.cuda)
-        self._hips_np = self._hips_host.numpy()
-        self._out_np = self._out_host.numpy()
+        # zero-copy views of the host arrays, and device arrays for batches that copy
+        self._views = {k: self._device_view(a, dt, cap) for k, (a, dt) in self._host.items()}
+        if self.cuda:
+            self._dev = {k: wp.zeros(cap, dtype=dt, device=self.dev) for k, (a, dt) in self._host.items()}
         self._graphs.clear()
+        self._last = (None, 0, None)
 
     def _upload_positions(self):
-        n = self.n
-        wp.copy(self._pos, wp.array(self._positions[:n], dtype=wp.vec3, device="cpu"), count=n)
-        self._graphs.clear()
+        if self.cuda:   # the copying path keeps its positions on the device
+            wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
 
     def block_dim(self, n: int | None = None) -> int:
         """Threads per proxy of a launch for ``n`` proxies (default: the batch's size)."""
@@ -317,14 +747,34 @@ class WarpProxies(ProxyBatch):
             return 1
         return self._block_dim_request or block_dim_for(self.n if n is None else n)
 
+    def zero_copy(self, n: int | None = None) -> bool:
+        """Whether a tick of ``n`` proxies reads and writes host memory directly (no copies)."""
+        return self.cuda and (self.n if n is None else n) <= ZERO_COPY_MAX
+
+    def _set_tick(self, dt: float, extra: float):
+        tk = self._tick_np[0]
+        tk["dt"] = dt
+        tk["span"] = search_span(self.reach + extra, self._h)
+        tk["gspan"] = search_span(self.reach + self.params.skin + extra, self._h)
+        self._tick_dt_set = dt
+
+    # --- the tick --------------------------------------------------------------------------
     def _record(self, slot, n):
         bd = self.block_dim(n)
-        wp.copy(self._hips, self._hips_host, count=n)
-        wp.copy(self._tick, self._tick_host)
-        wp.launch_tiled(proxy_tick, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
-                        self.args, self._pos, self._hips, bd, self._out, slot.sorted_vel, self._tick],
+        kernel = _tick_kernel(ws_capacity_for(n))
+        if not self.cuda or self.zero_copy(n):
+            arr, tick = self._views, self._tick_view
+        else:
+            arr, tick = self._dev, self._tick
+            wp.copy(arr["hips"], self._host["hips"][0], count=n)
+            wp.copy(tick, self._tick_host)
+        wp.launch_tiled(kernel, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
+                        self.args, arr["positions"], arr["hips"], bd, slot.sorted_vel, tick, arr["normals"],
+                        arr["nearest"], arr["states"], arr["steps"], arr["converged"]],
                         block_dim=bd, device=self.dev)
-        wp.copy(self._out_host, self._out, count=n)
+        if self.cuda and not self.zero_copy(n):
+            for k in ("positions", "normals", "nearest", "states", "steps", "converged"):
+                wp.copy(self._host[k][0], arr[k], count=n)
 
     def _capture(self, slot, n):
         """The tick's CUDA graph for snapshot slot ``slot`` and ``n`` proxies (captured once)."""
@@ -341,36 +791,35 @@ class WarpProxies(ProxyBatch):
         n = self.n
         if n == 0:
             return
-        self._hips_np[:n] = hips
+        np.copyto(self._hips_np[:n], hips)
+        buf = self.pipeline.buffers
+        # DoubleBuffer.read() inlined (a generator-based context manager costs microseconds):
+        # hold the front slot so that no build overwrites it during the tick
+        cv = buf._cv
+        with cv:
+            i = buf._front
+            buf._readers[i] += 1
         try:
-            with self.pipeline.buffers.read() as slot:
+            slot = buf.slots[i]
+            if slot.vmax > 0.0:
                 dt = self._tick_dt(min(slot.timestamps) if slot.timestamps else 0.0, slot.vmax)
-                tk = self._tick_np[0]
-                tk["dt"] = dt
-                tk["span"] = search_span(self.reach + extra_span(slot.vmax, dt), self.pipeline.grid.h)
-                if not self.cuda:
-                    self._record(slot, n)
-                else:
-                    graph = self._graphs.get((id(slot), n))
-                    if graph is None:
-                        graph = self._capture(slot, n)
-                    wp.capture_launch(graph, stream=self.stream)
-                    wp.synchronize_stream(self.stream)
+                self._set_tick(dt, extra_span(slot.vmax, dt))
+            else:   # nothing moves: dt = 0 (tick_dt), the plain spans
+                self.last_dt = 0.0
+                if self._tick_dt_set != 0.0:
+                    self._set_tick(0.0, 0.0)
+            if not self.cuda:
+                self._record(slot, n)
+            else:
+                last_slot, last_n, graph = self._last
+                if last_slot is not slot or last_n != n:
+                    graph = self._graphs.get((id(slot), n)) or self._capture(slot, n)
+                    self._last = (slot, n, graph)
+                wp.capture_launch(graph, stream=self.stream)
+                wp.synchronize_stream(self.stream)
         except Exception as e:  # Warp reports CUDA failures as RuntimeError
             raise KernelError(f"Warp proxy kernel failed on {self.pipeline.backend.device_name}: {e}") from e
-        out = self._out_np
-        np.copyto(self._positions[:n], out[:n, :3])
-        np.copyto(self._nearest[:n], out[:n, 3])
-        np.copyto(self._normals[:n], out[:n, 4:7])
-        info = self._info[:n]
-        np.copyto(info, out[:n, 7], casting="unsafe")   # st + 4 conv + 8 steps, exact in float32
-        np.bitwise_and(info, 3, out=self._states[:n])
-        np.right_shift(info, 3, out=self._steps[:n])
-        np.bitwise_and(info, 4, out=info)
-        np.not_equal(info, 0, out=self._converged[:n])
-
-    def _alloc(self, n: int):
-        grew = n > self._cap
-        super()._alloc(n)
-        if grew:
-            self._info = np.zeros(self._cap, np.int32)
+        finally:
+            with cv:
+                buf._readers[i] -= 1
+                cv.notify_all()
