@@ -2,7 +2,9 @@
 
 Measured the way a proxy tick runs: a small upload (one HIP), one kernel launch, a small
 download (one result) and the wait for it, as plain calls and (Warp on CUDA) as one replayed
-CUDA graph. Other figures are reported as distance from this floor.
+CUDA graph; and (Warp on CUDA) a graph holding the kernel alone, which reads its input from and
+writes its result to pinned host memory (``graph_zero_copy``: how a Warp proxy tick of up to
+``ZERO_COPY_MAX`` proxies runs). Other figures are reported as distance from this floor.
 """
 from __future__ import annotations
 
@@ -70,6 +72,21 @@ def _warp(backend, n):
 
         t = _time_us(replay, n)
         out.update(graph_us_p50=round(pct(t, 50), 2), graph_us_p99=round(pct(t, 99), 2))
+
+        # zero-copy: device views of the pinned host arrays, the graph is the kernel alone
+        v_in = wp.array(ptr=h_in.ptr, dtype=wp.vec3, shape=1, device=dev)
+        v_out = wp.array(ptr=h_out.ptr, dtype=wp.vec3, shape=1, device=dev)
+        with wp.ScopedStream(stream):
+            wp.capture_begin(device=dev, stream=stream)
+            wp.launch(touch, dim=1, inputs=[v_in, v_out], device=dev)
+            zc = wp.capture_end(device=dev, stream=stream)
+
+        def replay_zc():
+            wp.capture_launch(zc, stream=stream)
+            wp.synchronize_stream(stream)
+
+        t = _time_us(replay_zc, n)
+        out.update(graph_zero_copy_us_p50=round(pct(t, 50), 2), graph_zero_copy_us_p99=round(pct(t, 99), 2))
     return out
 
 
