@@ -39,7 +39,7 @@ TELEOP_KEYS = {"architecture", "scale", "max_robot_speed", "T_world_master", "ha
 ARCHITECTURES = ("I", "II", "III")
 ROBOT_MODELS = ("raven2", "point-mass", "none")
 SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s",
-                "self_filter", "self_filter_margin", "rt_priority", "build_nice"}
+                "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority", "build_nice", "build_idle"}
 #: ``[motion]``: kernels.motion.MotionModel's fields (motion estimation and fixture prediction)
 MOTION_KEYS = {"enabled", "latency", "max_age", "capture", "cell", "min_points", "planarity", "count_ratio", "v_min",
                "v_max", "max_gap"}
@@ -90,8 +90,14 @@ class ServiceConfig:
     self_filter_margin: float = 0.003
     #: SCHED_FIFO priority (1-99) of the haptic loop thread where the OS allows it; 0: normal
     rt_priority: int = 80
+    #: SCHED_FIFO priority (1-99, below rt_priority) of the frame threads (camera readers, ingest)
+    #: where the OS allows it; 0: normal. They take Python's interpreter lock: a holder preempted
+    #: by a build would keep the loop waiting for a core's time slice (milliseconds)
+    frames_rt_priority: int = 50
     #: nice value (0-19) of PoCL's worker pool, which builds the snapshots (opencl backend)
     build_nice: int = 10
+    #: PoCL's worker pool runs SCHED_IDLE: builds use only the CPU time no service thread wants
+    build_idle: bool = True
 
 
 @dataclass
@@ -298,7 +304,8 @@ def _service(tbl: Any) -> ServiceConfig:
     _check_keys(tbl, SERVICE_KEYS, "[service]")
     d = ServiceConfig()
     kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True)
-          for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin", "rt_priority", "build_nice"}}
+          for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority",
+                                   "build_nice", "build_idle"}}
     sf = tbl.get("self_filter")
     if sf is not None and not isinstance(sf, bool):
         raise InputError(f"[service] self_filter = {sf!r}; expected true or false (default: true when a robot model "
@@ -311,11 +318,24 @@ def _service(tbl: Any) -> ServiceConfig:
         raise InputError(f"[service] rt_priority = {rt!r}; expected an integer 0-99 (SCHED_FIFO priority of the "
                          "haptic loop thread; 0 runs it at normal priority)")
     kw["rt_priority"] = rt
+    frt = tbl.get("frames_rt_priority", d.frames_rt_priority)
+    if isinstance(frt, bool) or not isinstance(frt, int) or not 0 <= frt <= 99:
+        raise InputError(f"[service] frames_rt_priority = {frt!r}; expected an integer 0-99 (SCHED_FIFO priority of the "
+                         "camera reader and ingest threads; 0 runs them at normal priority)")
+    if frt and rt and frt >= rt:
+        raise InputError(f"[service] frames_rt_priority = {frt} is not below rt_priority = {rt}; the frame threads "
+                         "must never preempt the haptic loop (e.g. frames_rt_priority = 50, rt_priority = 80)")
+    kw["frames_rt_priority"] = frt
     bn = tbl.get("build_nice", d.build_nice)
     if isinstance(bn, bool) or not isinstance(bn, int) or not 0 <= bn <= 19:
         raise InputError(f"[service] build_nice = {bn!r}; expected an integer 0-19 (nice value of PoCL's worker "
                          "threads that build the snapshots; 0 leaves them at normal priority)")
     kw["build_nice"] = bn
+    bi = tbl.get("build_idle", d.build_idle)
+    if not isinstance(bi, bool):
+        raise InputError(f"[service] build_idle = {bi!r}; expected true or false (PoCL's worker threads at SCHED_IDLE; "
+                         "false: at nice build_nice)")
+    kw["build_idle"] = bi
     proxies = tbl.get("proxies", 1)
     if isinstance(proxies, bool) or not isinstance(proxies, int) or proxies < 1:
         raise InputError(f"[service] proxies = {proxies!r}; expected an integer >= 1")

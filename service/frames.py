@@ -28,6 +28,7 @@ Two things tie the loop to the frames' own clock (the clock of the frame timesta
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from typing import Optional, Sequence
@@ -214,6 +215,7 @@ class LiveFrames(_FeedBase):
         self.ingest_ms: list = []
         #: clock time minus frame timestamp of the first frame of camera 0 (maps loop to frames' clock)
         self.clock_minus_stamp: Optional[float] = None
+        self.scheduling = "normal"
 
     def frame_time(self, t: float, now: float) -> Optional[float]:
         cms = self.clock_minus_stamp
@@ -239,6 +241,24 @@ class LiveFrames(_FeedBase):
         self._thread = threading.Thread(target=self._ingest_loop, name="pointfence-ingest", daemon=True)
         self._thread.start()
 
+    def set_rt_priority(self, priority: int) -> str:
+        """SCHED_FIFO ``priority`` for the running reader and ingest threads where the OS allows
+        it (0: leave them normal). They hold Python's interpreter lock between blocking calls, and
+        one preempted by lower-priority work would keep the haptic loop waiting for the lock as
+        long as it waits for a core. Returns what was applied (for the status)."""
+        if priority <= 0:
+            self.scheduling = "normal"
+            return self.scheduling
+        threads = [r._thread for r in self.readers] + [self._thread]
+        try:
+            for th in threads:
+                if th is not None and th.is_alive():
+                    os.sched_setscheduler(th.native_id, os.SCHED_FIFO, os.sched_param(int(priority)))
+            self.scheduling = f"SCHED_FIFO {int(priority)}"
+        except (AttributeError, OSError) as e:
+            self.scheduling = f"normal (SCHED_FIFO refused: {e})"
+        return self.scheduling
+
     def stop(self) -> None:
         self._stop.set()
         self._new.set()
@@ -257,6 +277,7 @@ class LiveFrames(_FeedBase):
     def status(self, now: float) -> dict:
         st = super().status(now)
         st["readers"] = {r.name: r.status().reason for r in self.readers}
+        st["scheduling"] = self.scheduling
         return st
 
     def _ingest_loop(self) -> None:

@@ -33,11 +33,13 @@ class LiveRun:
         self._mark = (0, 0, 0, 0)
 
     def start(self, first_frame_timeout: float = 20.0) -> None:
-        if self.service.backend.name == "opencl" and self.cfg.service.build_nice:
+        sc = self.cfg.service
+        if self.service.backend.name == "opencl" and (sc.build_idle or sc.build_nice):
             from pointfence.kernels.opencl.context import lower_pool_priority
 
-            lower_pool_priority(self.cfg.service.build_nice)
+            lower_pool_priority(sc.build_nice, idle=sc.build_idle)
         self.frames.start()
+        self.frames.set_rt_priority(sc.frames_rt_priority if sc.rt_priority else 0)
         if not self.frames.wait_first_snapshot(first_frame_timeout):
             self.stop()
             raise RuntimeError(f"no snapshot within {first_frame_timeout} s: {self.frames.status(self.clock.now())}")

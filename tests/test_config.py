@@ -138,9 +138,13 @@ def test_openni2_camera_takes_intrinsics_from_the_recording(tmp_path):
     ("rt_priority = 120", "[service] rt_priority = 120; expected an integer 0-99"),
     ("rt_priority = 1.5", "[service] rt_priority = 1.5; expected an integer 0-99"),
     ("build_nice = -5", "[service] build_nice = -5; expected an integer 0-19"),
+    ("frames_rt_priority = 100", "[service] frames_rt_priority = 100; expected an integer 0-99"),
+    ("frames_rt_priority = 80", "[service] frames_rt_priority = 80 is not below rt_priority = 80"),
+    ("build_idle = 1", "[service] build_idle = 1; expected true or false"),
 ])
 def test_service_priorities(tmp_path, line, message):
-    assert config.load(None).service.rt_priority == 80 and config.load(None).service.build_nice == 10
+    d = config.load(None).service
+    assert (d.rt_priority, d.frames_rt_priority, d.build_nice, d.build_idle) == (80, 50, 10, True)
     text = GOOD + "\n[service]\n" + line + "\n" if "[service]" not in GOOD else GOOD.replace("[service]", "[service]\n" + line, 1)
     with pytest.raises(InputError, match=message.replace("[", r"\[").replace("]", r"\]")):
         config.load(write(tmp_path, text))

@@ -83,3 +83,20 @@ def test_pool_priority_is_lowered_for_the_workers_only():
                 os.setpriority(os.PRIO_PROCESS, t, main)
             except OSError:
                 pass
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE is a Linux feature")
+def test_pool_can_run_sched_idle_and_the_caller_keeps_its_policy():
+    get_backend("opencl")
+    tids = pool_threads()
+    policy = os.sched_getscheduler(0)
+    try:
+        changed = lower_pool_priority(10, idle=True)
+        assert changed and all(os.sched_getscheduler(t) == os.SCHED_IDLE for t in changed)
+        assert os.sched_getscheduler(0) == policy
+    finally:
+        for t in tids:
+            try:
+                os.sched_setscheduler(t, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:
+                pass

@@ -86,6 +86,12 @@ def test_live_run_recording_replays_to_the_same_forces(tmp_path):
         run.stop()
     svc = run.service
     assert svc.recorder.count > 500 and run.loop.error is None   # (periods skipped on a loaded machine are not ticks)
+    # frame threads: SCHED_FIFO below the loop where the loop got it, else left normal
+    fr = run.frames.status(run.clock.now())["scheduling"]
+    if run.loop.scheduling.startswith("SCHED_FIFO"):
+        assert fr == f"SCHED_FIFO {cfg.service.frames_rt_priority}"
+    else:
+        assert fr == "normal" or fr.startswith("normal (SCHED_FIFO refused")
     replay.write_outputs(svc, run.sources, cfg, tmp_path / "live", svc.feeder.snapshots)
     svc2, sources2 = replay.replay_recording(cfg, tmp_path / "live")
     for s in sources2:
