@@ -39,7 +39,8 @@ TELEOP_KEYS = {"architecture", "scale", "max_robot_speed", "T_world_master", "ha
 ARCHITECTURES = ("I", "II", "III")
 ROBOT_MODELS = ("raven2", "point-mass", "none")
 SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s",
-                "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority", "build_nice", "build_idle"}
+                "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority", "build_nice", "build_idle",
+                "robot_process"}
 #: ``[motion]``: kernels.motion.MotionModel's fields (motion estimation and fixture prediction)
 MOTION_KEYS = {"enabled", "latency", "max_age", "capture", "cell", "min_points", "planarity", "count_ratio", "v_min",
                "v_max", "max_gap"}
@@ -98,6 +99,9 @@ class ServiceConfig:
     build_nice: int = 10
     #: PoCL's worker pool runs SCHED_IDLE: builds use only the CPU time no service thread wants
     build_idle: bool = True
+    #: live runs step simulated robots in their own process on their own 1 kHz clock, as a real
+    #: arm's controller runs (robot/hosted.py); false: in the haptic tick (offline runs always do)
+    robot_process: bool = True
 
 
 @dataclass
@@ -305,7 +309,7 @@ def _service(tbl: Any) -> ServiceConfig:
     d = ServiceConfig()
     kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True)
           for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority",
-                                   "build_nice", "build_idle"}}
+                                   "build_nice", "build_idle", "robot_process"}}
     sf = tbl.get("self_filter")
     if sf is not None and not isinstance(sf, bool):
         raise InputError(f"[service] self_filter = {sf!r}; expected true or false (default: true when a robot model "
@@ -336,6 +340,11 @@ def _service(tbl: Any) -> ServiceConfig:
         raise InputError(f"[service] build_idle = {bi!r}; expected true or false (PoCL's worker threads at SCHED_IDLE; "
                          "false: at nice build_nice)")
     kw["build_idle"] = bi
+    rp = tbl.get("robot_process", d.robot_process)
+    if not isinstance(rp, bool):
+        raise InputError(f"[service] robot_process = {rp!r}; expected true or false (live runs step simulated robots "
+                         "in their own process; false: in the haptic tick)")
+    kw["robot_process"] = rp
     proxies = tbl.get("proxies", 1)
     if isinstance(proxies, bool) or not isinstance(proxies, int) or proxies < 1:
         raise InputError(f"[service] proxies = {proxies!r}; expected an integer >= 1")

@@ -22,8 +22,20 @@ class LiveRun:
                  rt_priority: Optional[int] = None):
         self.cfg = cfg
         self.clock = RealClock()
-        self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
-                               record=int(record_s * cfg.service.rate_hz), architecture=architecture)
+        sc = cfg.service
+        self.robot_host = None
+        if robots is None and sc.robot_process and cfg.robot.get("model", "raven2") != "none":
+            from .robot.hosted import RobotHost
+
+            prio = max(sc.frames_rt_priority + 1, sc.rt_priority - 10) if sc.rt_priority else 0
+            self.robot_host = RobotHost([cfg.robot] * len(masters), rt_priority=prio)
+            robots = self.robot_host.robots
+        try:
+            self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
+                                   record=int(record_s * sc.rate_hz), architecture=architecture)
+        except BaseException:
+            self.close_robots()
+            raise
         self.sources = sources if sources is not None else cfg.open_sources(realtime=True)
         self.frames = LiveFrames(self.service.pipeline, self.sources, self.clock, cfg.service.stale_s,
                                  cfg.service.max_frame_age_s)
@@ -79,8 +91,14 @@ class LiveRun:
         st["loop_error"] = self.loop.error
         return st
 
+    def close_robots(self) -> None:
+        """End the robot process of a live run with hosted robots (idempotent)."""
+        if self.robot_host is not None:
+            self.robot_host.close()
+
     def stop(self) -> None:
         self.loop.stop()
         self.frames.stop()
         for s in self.sources:
             s.close()
+        self.close_robots()

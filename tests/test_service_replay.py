@@ -74,8 +74,9 @@ def test_recorded_offline_run_replays_exactly(tmp_path):
 
 
 def test_live_run_recording_replays_to_the_same_forces(tmp_path):
-    # a shared test machine may be late by milliseconds: no overrun holds here, this is about replay
-    cfg = balloon_config(tmp_path, arch="III", extra="max_lateness_s = 1.0\n")
+    # a shared test machine may be late by milliseconds: no overrun holds here, this is about replay;
+    # the robot steps in the tick (a hosted robot runs on its own clock, which no replay repeats)
+    cfg = balloon_config(tmp_path, arch="III", extra="max_lateness_s = 1.0\nrobot_process = false\n")
     run = LiveRun(cfg, [push(0.10, t_end=0.6, hold=1.0)], record_s=2.0)
     run.start()
     try:

@@ -1,0 +1,157 @@
+"""Simulated robots in their own process (service/robot/hosted.py): the same arm as in the tick,
+commands and state through shared memory, bad data refused before it leaves the service, a dead
+robot process read as FAULT, and a live run of the service on hosted arms."""
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import pytest
+
+from pointfence.kernels.errors import InputError
+from pointfence.service.robot import RobotMode, robot_from_config
+from pointfence.service.robot.hosted import HostedRobot, RobotHost
+from pointfence.service.runner import LiveRun
+
+from service_cases import RAVEN, REGION_TOP, balloon_config, needs_opencl, push
+
+TABLE = {"model": "raven2", "mount_tool_down": [0.0, 0.0, 0.25],
+         "workspace_min": [-0.1, -0.1, 0.0], "workspace_max": [0.1, 0.1, 0.3]}
+
+
+@pytest.fixture
+def host():
+    h = RobotHost([TABLE, TABLE])
+    yield h
+    h.close()
+
+
+def tick(host, n=1, period=1e-3):
+    for _ in range(n):
+        for r in host.robots:
+            r.step(period)
+        time.sleep(period)
+
+
+def test_hosted_arm_follows_a_setpoint_stream_like_the_arm_in_the_tick(host):
+    local = robot_from_config(TABLE)            # the same model stepped in this process
+    a, b = host.robots
+    x0 = a.measured_cp()[:3, 3].copy()
+    np.testing.assert_allclose(x0, local.measured_cp()[:3, 3], atol=1e-5)   # (the child has stepped: gravity sag)
+    for r in host.robots:
+        r.resume()
+    target = x0 + [0.01, -0.005, -0.01]
+    for k in range(400):                          # 2.5 cm/s for 0.4 s, then settle
+        x = x0 + (target - x0) * min(1.0, k / 300)
+        a.servo_cp(x)
+        local.servo_cp(x)
+        local.step(1e-3)
+        tick(host)
+    tick(host, 300)
+    local.step(0.3)
+    got = a.measured_cp()[:3, 3]
+    assert np.linalg.norm(got - target) < 2e-4 and np.linalg.norm(local.measured_cp()[:3, 3] - target) < 2e-4
+    np.testing.assert_allclose(a.setpoint_cp()[:3, 3], target, atol=1e-12)
+    assert np.linalg.norm(b.measured_cp()[:3, 3] - x0) < 1e-4      # the other arm was never commanded
+    assert a.state is RobotMode.ENABLED and a.rejected_commands == 0
+    q = np.array(a._q)                            # the joints the self-filter reads: the child's
+    np.testing.assert_allclose(a.forward_kinematics(q)[:3, 3], got, atol=1e-9)
+    assert a.measured_js().position.shape == (6,)
+
+
+def test_hold_freezes_the_hosted_arm_and_resume_never_moves_it(host):
+    a = host.robots[0]
+    x0 = a.measured_cp()[:3, 3].copy()
+    a.hold()
+    assert a.state is RobotMode.HOLDING
+    assert a.servo_cp(x0 + [0.01, 0, 0]) is False          # ignored while holding
+    tick(host, 100)
+    assert a.state is RobotMode.HOLDING
+    assert np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4
+    a.resume()
+    tick(host, 100)
+    assert a.state is RobotMode.ENABLED and np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4
+
+
+@pytest.mark.parametrize("bad, message", [
+    ([np.nan, 0.0, 0.1], "not finite"),
+    ([0.0, 0.0, 0.5], "outside the workspace"),
+    ([[1.0, 2.0], [3.0, 4.0]], r"shape \(2, 2\)"),
+])
+def test_bad_setpoints_are_refused_here_and_never_reach_the_robot(host, bad, message):
+    a = host.robots[0]
+    a.resume()
+    x0, s0 = a.measured_cp()[:3, 3].copy(), a.setpoint_cp()[:3, 3].copy()
+    sent = a._host._cmd[0, 0]
+    with pytest.raises(InputError, match=message):
+        a.servo_cp(bad)
+    assert a._host._cmd[0, 0] == sent and a.rejected_commands == 1
+    tick(host, 50)
+    np.testing.assert_allclose(a.setpoint_cp()[:3, 3], s0, atol=1e-12)
+    assert np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4 and a.rejected_commands == 1
+
+
+def test_an_unreachable_setpoint_is_rejected_by_the_robot_and_reported_by_a_later_servo_cp():
+    table = dict(TABLE)
+    del table["workspace_min"], table["workspace_max"]
+    h = RobotHost([table])
+    try:
+        a = h.robots[0]
+        a.resume()
+        x0, s0 = a.measured_cp()[:3, 3].copy(), a.setpoint_cp()[:3, 3].copy()
+        a.servo_cp(x0 + [0.0, 0.0, 0.5])          # the insertion joint cannot reach it
+        tick(h, 30)
+        with pytest.raises(InputError, match="out of reach"):
+            a.servo_cp(x0)
+        np.testing.assert_allclose(a.setpoint_cp()[:3, 3], s0, atol=1e-12)   # the robot kept its setpoint
+        assert np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4 and a.rejected_commands == 1
+        assert a.servo_cp(x0) is True             # reported once; the next setpoint goes through
+    finally:
+        h.close()
+
+
+def test_a_dead_robot_process_reads_as_fault_and_cannot_be_enabled(host):
+    a, b = host.robots
+    host._proc.kill()
+    host._proc.wait(timeout=5)
+    time.sleep(host.timeout_s + 0.05)
+    tick(host)
+    for r in (a, b):
+        assert r.state is RobotMode.FAULT and r.fault_reason.startswith("robot process not answering")
+    a.enable()
+    assert a.state is RobotMode.FAULT and not host.alive
+
+
+def test_close_ends_the_process_and_frees_the_shared_memory():
+    h = RobotHost([TABLE])
+    pid, name = h._proc.pid, h._shm.name
+    h.close()
+    h.close()
+    assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
+    assert not os.path.exists(f"/dev/shm/{name.lstrip('/')}")
+    h.robots[0].step(1e-3)                       # a closed host's arms keep their last state
+    assert h.robots[0].state is RobotMode.ENABLED
+
+
+def test_a_bad_table_fails_in_the_service_process_with_the_configs_message():
+    with pytest.raises(InputError, match="did you mean"):
+        RobotHost([{"model": "raven2", "mount_tool_dwn": [0, 0, 0.25]}])
+
+
+@needs_opencl
+def test_live_run_hosts_the_arms_and_architecture_iii_keeps_them_out(tmp_path):
+    cfg = balloon_config(tmp_path, arch="III", robot=RAVEN, extra="max_lateness_s = 1.0\n")
+    run = LiveRun(cfg, [push(0.12, t_end=0.8, hold=0.6)], record_s=2.0)
+    try:
+        assert isinstance(run.service.robots[0], HostedRobot) and run.robot_host.alive
+        run.start()
+        run.wait_ticks(1300)
+    finally:
+        run.stop()
+    assert run.loop.error is None
+    rec = run.service.recorder
+    xr = rec.robots[: rec.count, 0, :3]
+    assert xr[:, 2].min() > REGION_TOP - 0.001       # held out of the fixture (1 mm)
+    assert xr[0, 2] - xr[:, 2].min() > 0.005           # and it did move down towards it
+    assert run.robot_host._proc is None               # stop() ended the robot process
