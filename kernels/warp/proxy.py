@@ -41,11 +41,14 @@ BLOCK_DIMS = ((64, 256), (4096, 128), (1 << 62, 32))
 #: one size for every batch instead (POINTFENCE_WARP_BLOCK_DIM); Warp's CPU device runs one
 #: thread per block
 BLOCK_DIM = int(os.environ["POINTFENCE_WARP_BLOCK_DIM"]) if os.environ.get("POINTFENCE_WARP_BLOCK_DIM") else None
+#: register cap of the tick kernel (POINTFENCE_WARP_MAXREG; 0: the largest that lets a block of
+#: the launch's size run, 65,536 registers an SM, the compiler's choice up to 255)
+MAXREG = int(os.environ.get("POINTFENCE_WARP_MAXREG", "0"))
 #: points of a proxy's working set held in shared memory, by batch size: (largest batch,
 #: points). 16 bytes a point; a small batch has an SM per proxy and takes what static shared
 #: memory allows (48 KB a block), a large one leaves room for more blocks per SM. A proxy with
 #: more points within reach + skin scans the hash from global memory instead.
-WS_CAPS = ((64, 2816), (4096, 1536), (1 << 62, 768))
+WS_CAPS = ((64, 2560), (4096, 1536), (1 << 62, 768))
 #: largest batch whose tick reads and writes pinned host memory directly (no copies in the graph;
 #: POINTFENCE_WARP_ZERO_COPY_MAX)
 ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
@@ -53,8 +56,6 @@ ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
 ROWS_CAP = wp.constant(128)
 #: candidates a thread tests per iteration of a gather (1 or 2; POINTFENCE_WARP_UNROLL)
 UNROLL = wp.constant(int(os.environ.get("POINTFENCE_WARP_UNROLL", "2")))
-#: register cap of the tick kernel (0: the compiler's choice; POINTFENCE_WARP_MAXREG)
-MAXREG = int(os.environ.get("POINTFENCE_WARP_MAXREG", "0"))
 
 
 def block_dim_for(n: int) -> int:
@@ -62,6 +63,14 @@ def block_dim_for(n: int) -> int:
     if BLOCK_DIM:
         return BLOCK_DIM
     return next(bd for most, bd in BLOCK_DIMS if n <= most)
+
+
+def maxreg_for(bd: int) -> int:
+    """Register cap for blocks of ``bd`` threads (0: none): the kernel needs about 220 registers
+    a thread, more than a block of 512 or 1,024 threads can have."""
+    if MAXREG:
+        return MAXREG
+    return 0 if bd <= 256 else (65536 // bd) & ~7
 
 
 def ws_capacity_for(n: int) -> int:
@@ -256,7 +265,7 @@ def eval_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
     if e < a.nreach:
         me = wp.min(me, e)
         if d > 0.0:
-            ns = ns + dv / d
+            ns = ns + dv * (1.0 / d)  # one reciprocal, as the reference
     return ns, me
 
 
@@ -288,7 +297,7 @@ def away_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, ns: wp.vec3) ->
     d = wp.sqrt(d2)
     rc = clearance_radius(q, a) + off
     if d2 - rc * rc < 0.0 and d > 0.0:
-        ns = ns + dv / d
+        ns = ns + dv * (1.0 / d)  # one reciprocal, as the reference
     return ns
 
 
@@ -303,7 +312,7 @@ def cell_box(X: wp.vec3, g: GridArgs, span: int) -> wp.vec3i:
 
 # --- the hash path: a thread's share of each pass over the cells within reach ---------------
 
-@wp.func
+@wp.func(inline=False)  # cold path: kept out of the step loop's code
 def hash_eval(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, c: wp.vec3i, span: int,
               lane: int, bd: int):
@@ -322,7 +331,7 @@ def hash_eval(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: 
     return ns, me
 
 
-@wp.func
+@wp.func(inline=False)  # cold path: kept out of the step loop's code
 def hash_clip(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float,
               c: wp.vec3i, span: int, lane: int, bd: int) -> float:
@@ -340,7 +349,7 @@ def hash_clip(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: 
     return tm
 
 
-@wp.func
+@wp.func(inline=False)  # cold path: kept out of the step loop's code
 def hash_away(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, off: float, c: wp.vec3i,
               span: int, lane: int, bd: int) -> wp.vec3:
@@ -387,15 +396,17 @@ def in_set(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: flo
     return keep, q
 
 
-def _tick_kernel(cap: int):
-    """The tick kernel with a shared working set of ``cap`` points (one kernel per capacity)."""
-    return _KERNELS.get(cap) or _KERNELS.setdefault(cap, _make_tick_kernel(cap))
+def _tick_kernel(cap: int, maxreg: int = 0):
+    """The tick kernel with a shared working set of ``cap`` points and a register cap (one
+    kernel per pair)."""
+    key = (cap, maxreg)
+    return _KERNELS.get(key) or _KERNELS.setdefault(key, _make_tick_kernel(cap, maxreg))
 
 
 _KERNELS: dict = {}
 
 
-def _make_tick_kernel(cap: int):
+def _make_tick_kernel(cap: int, maxreg: int = 0):
     ws_src = f"""
 #if defined(__CUDA_ARCH__)
     __shared__ float4 ws[{cap}];
@@ -414,14 +425,39 @@ def _make_tick_kernel(cap: int):
         """Working-set point i in shared memory: op 1 writes q, op 0 reads."""
         ...
 
+    # passes over the working set in shared memory
     @wp.func
-    def gather_pass(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
-                    order: wp.array(dtype=int), a: ProxyArgs, X0: wp.vec3, r2: float, total: int, lane: int,
-                    bd: int, at: int) -> int:
-        """This thread's candidates (every bd-th of the row table's): count those in the working
-        set (at < 0), or write them to it from index ``at`` on. UNROLL candidates an iteration,
-        so that as many loads are in flight."""
+    def ws_eval(X: wp.vec3, a: ProxyArgs, n: int, lane: int, bd: int):
+        ns = wp.vec3(0.0)
+        me = float(wp.inf)
+        for k in range(lane, n, bd):
+            ns, me = eval_point(X, ws(0, k, wp.vec4(0.0)), a, ns, me)
+        return ns, me
+
+    @wp.func
+    def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, n: int, lane: int, bd: int) -> float:
+        tm = float(wp.inf)
+        for k in range(lane, n, bd):
+            tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+        return tm
+
+    @wp.func
+    def ws_away(X: wp.vec3, a: ProxyArgs, off: float, n: int, lane: int, bd: int) -> wp.vec3:
+        av = wp.vec3(0.0)
+        for k in range(lane, n, bd):
+            av = away_point(X, ws(0, k, wp.vec4(0.0)), a, off, av)
+        return av
+
+    @wp.func
+    def count_pass(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
+                   order: wp.array(dtype=int), a: ProxyArgs, X0: wp.vec3, r2: float, total: int, lane: int,
+                   bd: int):
+        """Count this thread's candidates (every bd-th of the row table's) that belong to the
+        working set; (count, bit j set where the thread's j-th candidate does, j < 64). UNROLL
+        candidates an iteration, so that as many loads are in flight."""
         cnt = int(0)
+        mask = wp.uint64(0)
+        j = int(0)
         r = int(0)
         rs = int(0)
         ab = rows(0, 0, 0, 0)
@@ -430,8 +466,8 @@ def _make_tick_kernel(cap: int):
             r, rs, ab = next_row(k, r, rs, ab)
             k0, q0 = in_set(spts, svel, dt, order, a, ab[0] + k - rs, X0, r2)
             if wp.static(UNROLL == 1):
-                if k0 != 0 and at >= 0:
-                    ws(1, at + cnt, q0)
+                if k0 != 0 and j < 64:
+                    mask = mask | (wp.uint64(1) << wp.uint64(j))
                 cnt += k0
             else:
                 i1 = int(-1)
@@ -439,16 +475,43 @@ def _make_tick_kernel(cap: int):
                     r, rs, ab = next_row(k + bd, r, rs, ab)
                     i1 = ab[0] + k + bd - rs
                 k1, q1 = in_set(spts, svel, dt, order, a, i1, X0, r2)
-                if at >= 0:
-                    if k0 != 0:
-                        ws(1, at + cnt, q0)
-                    if k1 != 0:
-                        ws(1, at + cnt + k0, q1)
+                if k0 != 0 and j < 64:
+                    mask = mask | (wp.uint64(1) << wp.uint64(j))
+                if k1 != 0 and j + 1 < 64:
+                    mask = mask | (wp.uint64(1) << wp.uint64(j + 1))
                 cnt += k0 + k1
             k += UNROLL * bd
-        return cnt
+            j += UNROLL
+        return cnt, mask
 
     @wp.func
+    def write_pass(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
+                   order: wp.array(dtype=int), a: ProxyArgs, X0: wp.vec3, r2: float, total: int, lane: int,
+                   bd: int, mask: wp.uint64, at: int):
+        """Write this thread's working-set points from index ``at`` on, in candidate order: the
+        first 64 candidates by ``count_pass``'s mask (only those in the set are loaded again),
+        any further ones tested again."""
+        j = int(0)
+        r = int(0)
+        rs = int(0)
+        ab = rows(0, 0, 0, 0)
+        k = lane
+        while k < total:
+            if j < 64:
+                if ((mask >> wp.uint64(j)) & wp.uint64(1)) != wp.uint64(0):
+                    r, rs, ab = next_row(k, r, rs, ab)
+                    ws(1, at, point_at(spts, svel, ab[0] + k - rs, dt))
+                    at += 1
+            else:
+                r, rs, ab = next_row(k, r, rs, ab)
+                k0, q0 = in_set(spts, svel, dt, order, a, ab[0] + k - rs, X0, r2)
+                if k0 != 0:
+                    ws(1, at, q0)
+                    at += 1
+            k += bd
+            j += 1
+
+    @wp.func(inline=False)  # one copy for the first gather and the regathers
     def gather(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
                start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X0: wp.vec3, span: int, lane: int, bd: int,
                par: int):
@@ -476,17 +539,17 @@ def _make_tick_kernel(cap: int):
             total += ab[1] - ab[0]
         r2 = a.gather_r * a.gather_r
         # pass 1: how many of this thread's candidates (every bd-th) belong to the set
-        cnt = gather_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, -1)
+        cnt, mask = count_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd)
         sc = block_scan(cnt, par, bd)
         par = 1 - par
         if sc[1] > cap:
             return -1, par
         # pass 2: the same candidates again, each thread writing its points from its offset on
-        gather_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, sc[0])
+        write_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, mask, sc[0])
         block_sync()
         return sc[1], par
 
-    opts = {"cuda_max_registers": MAXREG} if MAXREG else {}
+    opts = {"cuda_max_registers": maxreg} if maxreg else {}
 
     @wp.kernel(enable_backward=False, module="unique", **opts)
     def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
@@ -539,8 +602,7 @@ def _make_tick_kernel(cap: int):
             ns = wp.vec3(0.0)
             me = float(wp.inf)
             if n_ws >= 0:
-                for k in range(lane, n_ws, bd):
-                    ns, me = eval_point(X, ws(0, k, wp.vec4(0.0)), a, ns, me)
+                ns, me = ws_eval(X, a, n_ws, lane, bd)
             else:
                 ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, bd)
             rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, bd)
@@ -597,8 +659,7 @@ def _make_tick_kernel(cap: int):
                 L = Lp
             tm = float(wp.inf)
             if n_ws >= 0:
-                for k in range(lane, n_ws, bd):
-                    tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+                tm = ws_clip(X, u, a, off, n_ws, lane, bd)
             else:
                 tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
             t = block_min(tm, par, bd)
@@ -610,8 +671,7 @@ def _make_tick_kernel(cap: int):
                 u = u2
                 tm = float(wp.inf)
                 if n_ws >= 0:
-                    for k in range(lane, n_ws, bd):
-                        tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+                    tm = ws_clip(X, u, a, off, n_ws, lane, bd)
                 else:
                     tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
                 t = block_min(tm, par, bd)
@@ -621,8 +681,7 @@ def _make_tick_kernel(cap: int):
                     along_n = True
                     av = wp.vec3(0.0)
                     if n_ws >= 0:
-                        for k in range(lane, n_ws, bd):
-                            av = away_point(X, ws(0, k, wp.vec4(0.0)), a, off, av)
+                        av = ws_away(X, a, off, n_ws, lane, bd)
                     else:
                         av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, bd)
                     ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, bd)
@@ -634,8 +693,7 @@ def _make_tick_kernel(cap: int):
                         u = asum / al
                         tm = float(wp.inf)
                         if n_ws >= 0:
-                            for k in range(lane, n_ws, bd):
-                                tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+                            tm = ws_clip(X, u, a, off, n_ws, lane, bd)
                         else:
                             tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
                         t = block_min(tm, par, bd)
@@ -761,7 +819,7 @@ class WarpProxies(ProxyBatch):
     # --- the tick --------------------------------------------------------------------------
     def _record(self, slot, n):
         bd = self.block_dim(n)
-        kernel = _tick_kernel(ws_capacity_for(n))
+        kernel = _tick_kernel(ws_capacity_for(n), maxreg_for(bd) if self.cuda else 0)
         if not self.cuda or self.zero_copy(n):
             arr, tick = self._views, self._tick_view
         else:
