@@ -27,8 +27,9 @@ class LiveRun:
         if robots is None and sc.robot_process and cfg.robot.get("model", "raven2") != "none":
             from .robot.hosted import RobotHost
 
-            prio = max(sc.frames_rt_priority + 1, sc.rt_priority - 10) if sc.rt_priority else 0
-            self.robot_host = RobotHost([cfg.robot] * len(masters), rt_priority=prio)
+            # normal priority: a SCHED_FIFO child would preempt the service's normal threads, and
+            # one that holds the interpreter lock would keep the loop waiting
+            self.robot_host = RobotHost([cfg.robot] * len(masters))
             robots = self.robot_host.robots
         try:
             self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,

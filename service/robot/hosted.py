@@ -3,8 +3,7 @@
 A real arm's controller (the Raven II's RTAI loop, a Franka control box) steps its joints at
 its own rate while the haptic service streams setpoints and reads the measured state.
 ``RobotHost`` does the same for the simulated models of live runs: a child process builds the
-arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines (SCHED_FIFO below
-the haptic loop where the OS allows it); shared memory carries the service's commands one way
+arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines; shared memory carries the service's commands one way
 and the measured state the other. In the service each arm is a ``HostedRobot``: a local
 instance of the same model (kinematics, limits, workspace, tool geometry) whose state is
 copied from the child once per tick (``step``), and whose commands go to the child. A haptic
@@ -24,10 +23,10 @@ the tick and is deterministic):
 * a child that stops stepping for ``timeout_s`` (it died, or it starves) puts every arm in
   FAULT ("robot process not answering"), so the service holds; ``close`` ends the child.
 
-State and commands cross through one shared-memory block, each direction under a sequence
-lock with a checksum: the writer makes its counter odd, writes, sums, makes it even; a reader
-copies and keeps the copy only if the counter was even and unchanged and the sum matches
-(neither side ever waits for the other: a child that dies mid-write reads as not answering).
+State and commands cross through one shared-memory block, each direction a double-buffered
+channel (``_Channel``: sequence counters and a checksum per slot): neither side ever waits for
+the other, so the haptic tick never waits for a preempted robot process, nor the robot for the
+service.
 The child is started as ``python -m pointfence.service.robot.hosted`` (nothing of the
 parent's program is imported again) and ends when its parent does.
 """
@@ -60,12 +59,54 @@ _MODES = tuple(RobotMode)
 _HDR = 8
 
 
+class _Channel:
+    """One writer, one reader: a record of ``size`` floats in two slots. The writer fills the slot
+    the reader was not pointed at (its counter odd while it writes, then its checksum), then points
+    the reader at it; the reader copies the slot it is pointed at and keeps the copy if that
+    slot's counter was even and unchanged around the copy and the sum matches. Neither side ever
+    waits for the other: a reader only retries if the writer lapped it (two whole writes during
+    one copy), and a writer preempted mid-write leaves the previous record readable."""
+
+    def __init__(self, take, size: int):
+        self.size = size
+        self.data = take((2, size), np.float64)
+        self.meta = take((4,), np.int64)        # counter of slot 0, of slot 1, slot to read
+        self.sums = take((2,), np.float64)
+
+    @staticmethod
+    def nbytes(size: int) -> int:
+        return 16 * size + 32 + 16
+
+    def write(self, rec: np.ndarray) -> None:
+        w = 1 - int(self.meta[2])
+        self.meta[w] += 1
+        np.copyto(self.data[w], rec)
+        self.sums[w] = float(rec.sum())
+        self.meta[w] += 1
+        self.meta[2] = w
+
+    def read(self, out: np.ndarray, tries: int = 8) -> bool:
+        for _ in range(tries):
+            i = int(self.meta[2])
+            s1 = int(self.meta[i])
+            if s1 & 1:
+                continue
+            np.copyto(out, self.data[i])
+            if int(self.meta[i]) == s1 and float(out.sum()) == float(self.sums[i]):
+                return True
+        return False
+
+
 class _Block:
-    """NumPy views of the shared block for ``n`` arms of ``dof`` joints."""
+    """The shared block for ``n`` arms of ``dof`` joints: control words, the state channel
+    (child -> service: ``n`` rows of ``S`` floats), the command channel (service -> child: per arm
+    the servo count and the mode-command count, the latest setpoint pose, the mode-command ring)
+    and the arms' texts (fault reason, last error; versioned in the state rows)."""
 
     def __init__(self, buf, n: int, dof: int):
         self.n, self.dof = n, dof
         self.S = _HDR + 4 * dof + 32            # q, dq, tau, q_d; T_meas, T_d
+        self.C = n * (2 + 16 + RING)
         off = 0
 
         def take(shape, dtype):
@@ -75,38 +116,20 @@ class _Block:
             return a
 
         self.ctl = take((4,), np.int64)         # stop request, child ticks, child pid, child ready
-        self.seq = take((2,), np.int64)         # sequence counters: state (child), commands (service)
-        self.sums = take((2,), np.float64)      # checksums: state, commands
-        self.cmd = take((n, 2), np.int64)       # servo seq, mode commands written
-        self.pose = take((n, 16), np.float64)   # latest servo setpoint (world 4x4, row-major)
-        self.ring = take((n, RING), np.int64)   # mode command codes
-        self.state = take((n, self.S), np.float64)
+        self.state = _Channel(take, n * self.S)
+        self.cmd = _Channel(take, self.C)
         self.text = take((n, 2, TEXT), np.uint8)   # fault reason, last error (UTF-8)
         self.size = off
 
     @staticmethod
     def nbytes(n: int, dof: int) -> int:
-        return (8 + 2 * n + 16 * n + RING * n + n * (_HDR + 4 * dof + 32)) * 8 + n * 2 * TEXT
-
-    def state_sum(self) -> float:
-        return float(self.state.sum())
-
-    def command_sum(self) -> float:
-        return float(self.cmd.sum()) + float(self.pose.sum()) + float(self.ring.sum())
+        S = _HDR + 4 * dof + 32
+        return 32 + _Channel.nbytes(n * S) + _Channel.nbytes(n * (2 + 16 + RING)) + n * 2 * TEXT
 
 
-def _read(seq: np.ndarray, i: int, copy, check, tries: int = 1000) -> bool:
-    """Sequence-lock read: ``copy()`` until the counter ``seq[i]`` was even and unchanged around it
-    and ``check()`` accepts the copy; False after ``tries`` attempts (a writer died mid-write)."""
-    for _ in range(tries):
-        s1 = int(seq[i])
-        if s1 & 1:
-            time.sleep(0)
-            continue
-        copy()
-        if int(seq[i]) == s1 and check():
-            return True
-    return False
+def _command_views(rec: np.ndarray, n: int) -> tuple:
+    """(counts (n, 2), poses (n, 16), ring (n, RING)): views of a command record."""
+    return (rec[: 2 * n].reshape(n, 2), rec[2 * n: 18 * n].reshape(n, 16), rec[18 * n:].reshape(n, RING))
 
 
 def _put_text(dst: np.ndarray, s: Optional[str]) -> None:
@@ -120,26 +143,27 @@ def _get_text(src: np.ndarray) -> Optional[str]:
     return b.decode("utf-8", "replace") if b else None
 
 
-def _write_state(blk: _Block, b: int, r, applied: tuple, texts: list) -> None:
-    st, d = blk.state[b], blk.dof
-    st[0], st[1], st[2], st[3] = r.t, int(r.state), r.rejected_commands, r.ignored_commands
-    st[4], st[5] = applied
+def _write_state(row: np.ndarray, text: np.ndarray, r, applied: tuple, texts: list) -> None:
+    """Arm ``r``'s state into its state ``row`` (and ``text``, where a message changed)."""
+    d = r.dof
+    row[0], row[1], row[2], row[3] = r.t, int(r.state), r.rejected_commands, r.ignored_commands
+    row[4], row[5] = applied
     fault, err = r.fault_reason, r.last_error
     if fault != texts[0]:
         texts[0] = fault
-        _put_text(blk.text[b, 0], fault)
-        st[6] += 1
+        _put_text(text[0], fault)
+        row[6] += 1
     if err != texts[1]:
         texts[1] = err
-        _put_text(blk.text[b, 1], err)
-        st[7] += 1
+        _put_text(text[1], err)
+        row[7] += 1
     h = _HDR
-    st[h: h + d] = r._q
-    st[h + d: h + 2 * d] = r._dq
-    st[h + 2 * d: h + 3 * d] = r._tau
-    st[h + 3 * d: h + 4 * d] = r._q_d
-    st[h + 4 * d: h + 4 * d + 16] = r.measured_cp().ravel()
-    st[h + 4 * d + 16: h + 4 * d + 32] = r._T_d.ravel()
+    row[h: h + d] = r._q
+    row[h + d: h + 2 * d] = r._dq
+    row[h + 2 * d: h + 3 * d] = r._tau
+    row[h + 3 * d: h + 4 * d] = r._q_d
+    row[h + 4 * d: h + 4 * d + 16] = r.measured_cp().ravel()
+    row[h + 4 * d + 16: h + 4 * d + 32] = r._T_d.ravel()
 
 
 def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: int, parent: int) -> None:
@@ -163,23 +187,15 @@ def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: i
         seen = [[0, 0] for _ in robots]        # servo seq and mode commands applied
         texts = [[None, None] for _ in robots]
         period = 1.0 / rate_hz
+        n = len(robots)
+        state = np.zeros((n, blk.S))
+        rec = np.zeros(blk.C)
+        cmds, poses, ring = _command_views(rec, n)
 
         def publish():
-            blk.seq[0] += 1
             for b, r in enumerate(robots):
-                _write_state(blk, b, r, tuple(seen[b]), texts[b])
-            blk.sums[0] = blk.state_sum()
-            blk.seq[0] += 1
-
-        cmds, poses, ring = blk.cmd.copy(), blk.pose.copy(), blk.ring.copy()
-
-        def take_commands():
-            np.copyto(cmds, blk.cmd)
-            np.copyto(poses, blk.pose)
-            np.copyto(ring, blk.ring)
-
-        def commands_ok():
-            return float(cmds.sum()) + float(poses.sum()) + float(ring.sum()) == float(blk.sums[1])
+                _write_state(state[b], blk.text[b], r, tuple(seen[b]), texts[b])
+            blk.state.write(state.reshape(-1))
 
         publish()
         blk.ctl[2] = os.getpid()
@@ -193,10 +209,9 @@ def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: i
                 time.sleep(delay)
             late = time.monotonic() - due
             skip = int(late // period) if late >= period else 0   # periods lost: step them at once
-            if not _read(blk.seq, 1, take_commands, commands_ok):
-                continue                    # the service died mid-write; its getppid check ends us
+            got = blk.cmd.read(rec)          # else (lapped) this period keeps the last commands
             for b, r in enumerate(robots):
-                n_mode = int(cmds[b, 1])
+                n_mode = int(cmds[b, 1]) if got else seen[b][1]
                 while seen[b][1] < n_mode:
                     code = int(ring[b, seen[b][1] % RING])
                     if code == HOLD:
@@ -208,7 +223,7 @@ def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: i
                     elif code == FAULT:
                         r.fault("fault requested by the service")
                     seen[b][1] += 1
-                if cmds[b, 0] != seen[b][0]:
+                if got and cmds[b, 0] != seen[b][0]:
                     seen[b][0] = int(cmds[b, 0])
                     try:
                         r.servo_cp(poses[b].reshape(4, 4))
@@ -246,7 +261,6 @@ class RobotHost:
         self._shm = shared_memory.SharedMemory(create=True, size=size)
         self._blk = _Block(self._shm.buf, self.n, dof)
         self._shm.buf[:size] = bytes(size)
-        self._blk.sums[1] = self._blk.command_sum()
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
         # the parent's main module imported again, as multiprocessing's spawn would)
         self._proc = subprocess.Popen(
@@ -261,9 +275,8 @@ class RobotHost:
                                    "in the haptic loop instead with [service] robot_process = false")
             time.sleep(0.005)
         self._buf = np.zeros((self.n, self._blk.S))
-        self._cmd = np.zeros((self.n, 2), np.int64)       # what the service has written (its copy)
-        self._poses = np.zeros((self.n, 16))
-        self._ring = np.zeros((self.n, RING), np.int64)
+        self._rec = np.zeros(self._blk.C)          # the commands written so far (this side's copy)
+        self._cmd, self._poses, self._ring = _command_views(self._rec, self.n)
         self._texts_buf = np.zeros((self.n, 2, TEXT), np.uint8)
         self._versions = [(0.0, 0.0)] * self.n
         self._staged = False
@@ -279,24 +292,16 @@ class RobotHost:
         blk, buf, texts = self._blk, self._buf, self._texts_buf
         if blk is None:                    # closed: the arms keep their last state
             return
-        want_text = []
-
-        def copy():
-            np.copyto(buf, blk.state)
-            want_text.clear()
-            for b in range(self.n):        # a fault reason or an error message changed
-                if (buf[b, 6], buf[b, 7]) != self._versions[b]:
-                    want_text.append(b)
-                    np.copyto(texts[b], blk.text[b])
-
-        if not _read(blk.seq, 0, copy, lambda: float(buf.sum()) == float(blk.sums[0])):
-            self._lost("its state stays half-written")
-            return
-        ticks = int(blk.ctl[1])
+        if not blk.state.read(buf.reshape(-1)):
+            return                         # lapped (this thread was preempted): next tick
         changed = []
-        for b in want_text:
-            self._versions[b] = (buf[b, 6], buf[b, 7])
-            changed.append((b, _get_text(texts[b, 0]), _get_text(texts[b, 1])))
+        for b in range(self.n):            # a fault reason or an error message changed
+            v = (buf[b, 6], buf[b, 7])
+            if v != self._versions[b]:
+                self._versions[b] = v
+                np.copyto(texts[b], blk.text[b])
+                changed.append((b, _get_text(texts[b, 0]), _get_text(texts[b, 1])))
+        ticks = int(blk.ctl[1])
         now = time.monotonic()
         if ticks != self._ticks:
             self._ticks, self._ticks_at = ticks, now
@@ -327,11 +332,7 @@ class RobotHost:
         blk = self._blk
         if not self._staged or blk is None:
             return
-        blk.seq[1] += 1
-        np.copyto(blk.pose, self._poses)
-        np.copyto(blk.cmd, self._cmd)
-        blk.sums[1] = blk.command_sum()
-        blk.seq[1] += 1
+        blk.cmd.write(self._rec)
         self._staged = False
 
     def _send_mode(self, b: int, code: int) -> None:
@@ -342,12 +343,7 @@ class RobotHost:
         i = int(self._cmd[b, 1])
         self._ring[b, i % RING] = code
         self._cmd[b, 1] = i + 1
-        blk.seq[1] += 1
-        np.copyto(blk.ring, self._ring)
-        np.copyto(blk.pose, self._poses)
-        np.copyto(blk.cmd, self._cmd)
-        blk.sums[1] = blk.command_sum()
-        blk.seq[1] += 1
+        blk.cmd.write(self._rec)
         self._staged = False
 
     @property
