@@ -12,7 +12,11 @@ neighbourhood larger than the shared buffer (``ws_capacity_for``) is scanned fro
 global memory instead, as before. The normal sum, the smallest clearance and the swept-sphere
 step limit are block-wide reductions (warp shuffles, then one barrier over the warps' partial
 results; every thread reads the same partials in the same order). Every thread then takes the
-same decision from the reduced values, so the step loop stays uniform across the block.
+same decision from the reduced values, so the step loop stays uniform across the block. The
+evaluation also lists, per warp, the points close enough to shorten a step (clearance below
+``ProxyArgs.rclip``); the clip passes scan only those (the same step lengths, see the kernel), and
+the kernel has one clip pass in its code for the up to three tries of a step. The block size is
+a constant of each kernel's code.
 
 On CUDA the tick is captured once per snapshot slot into a CUDA graph and replayed each tick.
 For batches up to ``ZERO_COPY_MAX`` the graph is the kernel alone: it reads the HIPs, the
@@ -48,7 +52,7 @@ MAXREG = int(os.environ.get("POINTFENCE_WARP_MAXREG", "0"))
 #: points). 16 bytes a point; a small batch has an SM per proxy and takes what static shared
 #: memory allows (48 KB a block), a large one leaves room for more blocks per SM. A proxy with
 #: more points within reach + skin scans the hash from global memory instead.
-WS_CAPS = ((64, 2560), (4096, 1536), (1 << 62, 768))
+WS_CAPS = ((64, 2496), (4096, 1536), (1 << 62, 768))
 #: largest batch whose tick reads and writes pinned host memory directly (no copies in the graph;
 #: POINTFENCE_WARP_ZERO_COPY_MAX)
 ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
@@ -56,6 +60,9 @@ ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
 ROWS_CAP = wp.constant(128)
 #: candidates a thread tests per iteration of a gather (1 or 2; POINTFENCE_WARP_UNROLL)
 UNROLL = wp.constant(int(os.environ.get("POINTFENCE_WARP_UNROLL", "2")))
+#: 1: the clip passes scan only the points within a step's reach (a per-warp list made by the
+#: evaluation); 0: every point (POINTFENCE_WARP_NEAR; same results either way)
+NEAR = int(os.environ.get("POINTFENCE_WARP_NEAR", "1"))
 
 
 def block_dim_for(n: int) -> int:
@@ -90,6 +97,7 @@ class ProxyArgs:
     turn_back: float  # turn_back_cos
     skin: float  # regather when the proxy is further than this from where its set was gathered
     gather_r: float  # reach + skin: the working set's radius
+    rclip: float  # no step can be shortened by a point with clearance >= rclip (see the kernel)
     fixture: int
     max_steps: int
     span: int  # cells searched on each side (reach, without motion)
@@ -257,8 +265,9 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
 
 
 @wp.func
-def eval_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
-    """Step 1 for one point: its share of the normal sum and of the smallest clearance."""
+def eval_point_e(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
+    """Step 1 for one point: its share of the normal sum and of the smallest clearance, and
+    its clearance."""
     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
     d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
     e = d - clearance_radius(q, a)
@@ -266,6 +275,13 @@ def eval_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
         me = wp.min(me, e)
         if d > 0.0:
             ns = ns + dv * (1.0 / d)  # one reciprocal, as the reference
+    return ns, me, e
+
+
+@wp.func
+def eval_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
+    """Step 1 for one point: its share of the normal sum and of the smallest clearance."""
+    ns, me, e = eval_point_e(X, q, a, ns, me)
     return ns, me
 
 
@@ -396,17 +412,23 @@ def in_set(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: flo
     return keep, q
 
 
-def _tick_kernel(cap: int, maxreg: int = 0):
-    """The tick kernel with a shared working set of ``cap`` points and a register cap (one
-    kernel per pair)."""
-    key = (cap, maxreg)
-    return _KERNELS.get(key) or _KERNELS.setdefault(key, _make_tick_kernel(cap, maxreg))
+def _tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
+    """The tick kernel with a shared working set of ``cap`` points, a register cap and ``bd``
+    threads a block (a constant of the kernel's code; 1 on Warp's CPU device): one kernel per
+    triple."""
+    key = (cap, maxreg, bd)
+    return _KERNELS.get(key) or _KERNELS.setdefault(key, _make_tick_kernel(cap, maxreg, bd))
 
 
 _KERNELS: dict = {}
 
 
-def _make_tick_kernel(cap: int, maxreg: int = 0):
+def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
+    BD = bd
+    # a "warp" of the near lists: 32 threads on CUDA, the one thread of a block on the CPU
+    WL = 32 if BD >= 32 else 1
+    # near-list entries per warp: every point a warp's threads hold
+    NJ = WL * ((cap + BD - 1) // BD)
     ws_src = f"""
 #if defined(__CUDA_ARCH__)
     __shared__ float4 ws[{cap}];
@@ -425,20 +447,64 @@ def _make_tick_kernel(cap: int, maxreg: int = 0):
         """Working-set point i in shared memory: op 1 writes q, op 0 reads."""
         ...
 
+    nl_src = f"""
+#if defined(__CUDA_ARCH__)
+    __shared__ unsigned short nl[{BD * ((cap + BD - 1) // BD)}];
+    if (op == 1) {{
+        const unsigned b = __ballot_sync(0xffffffffu, flag);
+        if (flag) nl[base + cnt + __popc(b & ((1u << (threadIdx.x & 31)) - 1u))] = (unsigned short)k;
+        return cnt + __popc(b);
+    }}
+    return nl[base + cnt];
+#else
+    static unsigned short nl[{BD * ((cap + BD - 1) // BD)}];
+    if (op == 1) {{
+        if (flag) nl[base + cnt] = (unsigned short)k;
+        return cnt + (flag != 0 ? 1 : 0);
+    }}
+    return nl[base + cnt];
+#endif
+"""
+
+    @wp.func_native(nl_src)
+    def near(op: int, base: int, cnt: int, flag: int, k: int) -> int:
+        """The warp's near list from ``base`` on: op 1 appends k where flag is set (every thread of
+        the warp calls it together, ``cnt`` the list's length so far; returns the new length),
+        op 0 reads entry ``cnt``."""
+        ...
+
     # passes over the working set in shared memory
     @wp.func
-    def ws_eval(X: wp.vec3, a: ProxyArgs, n: int, lane: int, bd: int):
+    def ws_eval(X: wp.vec3, a: ProxyArgs, n: int, lane: int, wbase: int):
+        """Normal sum and smallest clearance of this thread's points (every BD-th), and the warp's
+        list of the points with clearance below rclip (its length)."""
         ns = wp.vec3(0.0)
         me = float(wp.inf)
-        for k in range(lane, n, bd):
-            ns, me = eval_point(X, ws(0, k, wp.vec4(0.0)), a, ns, me)
-        return ns, me
+        cnt = int(0)
+        for k0 in range(0, n, BD):   # the same trip count in every thread of a warp
+            k = k0 + lane
+            e = float(wp.inf)
+            if k < n:
+                ns, me, e = eval_point_e(X, ws(0, k, wp.vec4(0.0)), a, ns, me)
+            if wp.static(NEAR != 0):
+                fl = int(0)
+                if e < a.rclip:
+                    fl = 1
+                cnt = near(1, wbase, cnt, fl, k)
+        return ns, me, cnt
 
     @wp.func
-    def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, n: int, lane: int, bd: int) -> float:
+    def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, n: int, cnt: int, lane: int,
+                wbase: int) -> float:
+        """This thread's share of the step limit: over the warp's near list (the other points
+        cannot shorten any step, see the kernel), or every BD-th point."""
         tm = float(wp.inf)
-        for k in range(lane, n, bd):
-            tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+        if wp.static(NEAR != 0):
+            for i in range(lane % WL, cnt, WL):
+                tm = clip_point(X, u, ws(0, near(0, wbase, i, 0, 0), wp.vec4(0.0)), a, off, tm)
+        else:
+            for k in range(lane, n, BD):
+                tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
         return tm
 
     @wp.func
@@ -577,9 +643,16 @@ def _make_tick_kernel(cap: int, maxreg: int = 0):
         span = int(tv[1])
         gspan = int(tv[2])
         skin2 = a.skin * a.skin
+        # A step's limit F is at most band / 2 (slack >= 0) and its length at most a.step, so a
+        # point with clearance e >= band / 2 + margin + step cannot shorten it: the step reaches
+        # that point's swept sphere (radius rho + F + margin) no sooner than e - F - margin >= step
+        # >= L. ProxyArgs.rclip adds 1e-4 step and 1 um, which keep float32 rounding of e and of
+        # the hit time out of the decision (as kernels/opencl/proxy.cl): the clip scans only each
+        # warp's list of the points below rclip (ws_eval) and gets the very same step length.
+        wbase = (lane // WL) * NJ
         par = int(0)
         X0 = X
-        n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, bd, par)
+        n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, BD, par)
         steps = int(0)
         conv = int(0)
         st = int(0)
@@ -593,7 +666,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0):
                 dz = X[2] - X0[2]
                 if dx * dx + dy * dy + dz * dz > skin2:  # wandered off its working set
                     X0 = X
-                    n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, bd, par)
+                    n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, BD, par)
             c = wp.vec3i(0)
             if n_ws < 0:
                 c = cell_box(X, g, span)
@@ -601,11 +674,12 @@ def _make_tick_kernel(cap: int, maxreg: int = 0):
             # 1. clearances, normal sum, smallest clearance within the normal band
             ns = wp.vec3(0.0)
             me = float(wp.inf)
+            nnear = int(0)
             if n_ws >= 0:
-                ns, me = ws_eval(X, a, n_ws, lane, bd)
+                ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
             else:
-                ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, bd)
-            rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, bd)
+                ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, BD)
+            rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, BD)
             par = 1 - par
             nsum = wp.vec3(rd[0], rd[1], rd[2])
             min_e = rd[3]
@@ -640,7 +714,6 @@ def _make_tick_kernel(cap: int, maxreg: int = 0):
                 L2 = vpl
             L2 = wp.min(L2, a.step)
             u = u2
-            L = L2
             Lp = wp.min(0.5 * a.band - min_e, a.step)
             # limit F: mid-band for a free step, -slack otherwise, min e where buried (the deepest
             # penetration never grows); off = F + margin
@@ -652,53 +725,54 @@ def _make_tick_kernel(cap: int, maxreg: int = 0):
                 lim = min_e
             off = lim + a.margin
 
-            # 3. clipping (block-wide minimum)
+            # 3. clipping (block-wide minimum). Up to three tries, one clip pass in the code for
+            # all of them (a smaller kernel: fewer instruction-cache misses): the push-out along n,
+            # then (blocked) the contact rule's direction, then (buried and blocked again) away
+            # from the deepest points.
             push = st == 2 and has_n
+            along_n = push
+            Lc = L2
             if push:
                 u = nrm
-                L = Lp
-            tm = float(wp.inf)
-            if n_ws >= 0:
-                tm = ws_clip(X, u, a, off, n_ws, lane, bd)
-            else:
-                tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
-            t = block_min(tm, par, bd)
-            par = 1 - par
-            s = wp.max(wp.min(L, t), 0.0)
-            along_n = push
-            if push and s < a.tol:  # push-out blocked: the contact rule's direction instead
-                along_n = False
-                u = u2
+                Lc = Lp
+            s = float(0.0)
+            attempt = int(0)
+            while attempt < 3:
                 tm = float(wp.inf)
                 if n_ws >= 0:
-                    tm = ws_clip(X, u, a, off, n_ws, lane, bd)
+                    tm = ws_clip(X, u, a, off, n_ws, nnear, lane, wbase)
                 else:
-                    tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
-                t = block_min(tm, par, bd)
+                    tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
+                t = block_min(tm, par, BD)
                 par = 1 - par
-                s = wp.max(wp.min(L2, t), 0.0)
-                if buried and s < a.tol:  # both blocked: away from the deepest points
-                    along_n = True
+                s = wp.max(wp.min(Lc, t), 0.0)
+                if s >= a.tol:
+                    break
+                if attempt == 0:
+                    if not push:
+                        break
+                    along_n = False  # push-out blocked: the contact rule's direction instead
+                    u = u2
+                    Lc = L2
+                elif attempt == 1:
+                    if not buried:
+                        break
+                    along_n = True  # both blocked: away from the deepest points
                     av = wp.vec3(0.0)
                     if n_ws >= 0:
-                        av = ws_away(X, a, off, n_ws, lane, bd)
+                        av = ws_away(X, a, off, n_ws, lane, BD)
                     else:
-                        av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, bd)
-                    ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, bd)
+                        av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, BD)
+                    ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, BD)
                     par = 1 - par
                     asum = wp.vec3(ra[0], ra[1], ra[2])
                     al = wp.length(asum)
                     s = 0.0
-                    if al > 0.0:
-                        u = asum / al
-                        tm = float(wp.inf)
-                        if n_ws >= 0:
-                            tm = ws_clip(X, u, a, off, n_ws, lane, bd)
-                        else:
-                            tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, bd)
-                        t = block_min(tm, par, bd)
-                        par = 1 - par
-                        s = wp.max(wp.min(Lp, t), 0.0)
+                    if not (al > 0.0):
+                        break
+                    u = asum / al
+                    Lc = Lp
+                attempt += 1
             if s < a.tol:
                 conv = 1
                 break
@@ -748,6 +822,7 @@ class WarpProxies(ProxyBatch):
         a.turn_back = p.turn_back_cos
         a.skin = p.skin
         a.gather_r = self.reach + p.skin
+        a.rclip = 0.5 * p.band + p.margin + p.step * 1.0001 + 1.0e-6
         h = pipeline.grid.h
         a.span = search_span(self.reach, h)
         self._h = h
@@ -819,7 +894,7 @@ class WarpProxies(ProxyBatch):
     # --- the tick --------------------------------------------------------------------------
     def _record(self, slot, n):
         bd = self.block_dim(n)
-        kernel = _tick_kernel(ws_capacity_for(n), maxreg_for(bd) if self.cuda else 0)
+        kernel = _tick_kernel(ws_capacity_for(n), maxreg_for(bd) if self.cuda else 0, bd)
         if not self.cuda or self.zero_copy(n):
             arr, tick = self._views, self._tick_view
         else:
