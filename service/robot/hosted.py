@@ -247,7 +247,7 @@ class RobotHost:
     """
 
     def __init__(self, tables: Sequence[dict], rate_hz: float = 1000.0, rt_priority: int = 0,
-                 timeout_s: float = 0.25, start_timeout_s: float = 30.0):
+                 timeout_s: float = 0.5, start_timeout_s: float = 30.0):
         tables = [dict(t) for t in tables]
         if not tables:
             raise InputError("RobotHost: no robot tables; expected one [robot] table per arm")
