@@ -3,8 +3,8 @@
 A real arm's controller (the Raven II's RTAI loop, a Franka control box) steps its joints at
 its own rate while the haptic service streams setpoints and reads the measured state.
 ``RobotHost`` does the same for the simulated models of live runs: a child process builds the
-arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines; shared memory carries the service's commands one way
-and the measured state the other. In the service each arm is a ``HostedRobot``: a local
+arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines; shared memory
+carries the service's commands one way and the measured state the other. In the service each arm is a ``HostedRobot``: a local
 instance of the same model (kinematics, limits, workspace, tool geometry) whose state is
 copied from the child once per tick (``step``), and whose commands go to the child. A haptic
 tick then spends a few microseconds per arm instead of the simulation's 70 us (closed-form IK,
@@ -16,8 +16,9 @@ the tick and is deterministic):
 
 * the state read in a tick is the child's latest, at most one control period old;
 * a setpoint the child rejects (out of reach) is reported by a later ``servo_cp`` (a tick or
-  two on), which raises InputError with the child's message and sends nothing; ``setpoint_cp`` is then the
-  setpoint the child kept (the service falls back to it, as with an in-process rejection);
+  two on), which raises InputError with the child's message and sends nothing;
+  ``setpoint_cp`` is then the setpoint the child kept (the service falls back to it, as with
+  an in-process rejection);
   malformed or non-finite setpoints and workspace violations are refused at once, before they
   reach the child;
 * a child that stops stepping for ``timeout_s`` (it died, or it starves) puts every arm in
@@ -26,8 +27,7 @@ the tick and is deterministic):
 State and commands cross through one shared-memory block, each direction a double-buffered
 channel (``_Channel``: sequence counters and a checksum per slot): neither side ever waits for
 the other, so the haptic tick never waits for a preempted robot process, nor the robot for the
-service.
-The child is started as ``python -m pointfence.service.robot.hosted`` (nothing of the
+service. The child is started as ``python -m pointfence.service.robot.hosted`` (nothing of the
 parent's program is imported again) and ends when its parent does.
 """
 from __future__ import annotations
@@ -130,6 +130,15 @@ class _Block:
 def _command_views(rec: np.ndarray, n: int) -> tuple:
     """(counts (n, 2), poses (n, 16), ring (n, RING)): views of a command record."""
     return (rec[: 2 * n].reshape(n, 2), rec[2 * n: 18 * n].reshape(n, 16), rec[18 * n:].reshape(n, RING))
+
+
+def _plain(o):
+    """JSON for the NumPy values a programmatic ``[robot]`` table may hold."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"[robot] value {o!r} ({type(o).__name__}) cannot be sent to the robot process")
 
 
 def _put_text(dst: np.ndarray, s: Optional[str]) -> None:
@@ -264,7 +273,7 @@ class RobotHost:
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
         # the parent's main module imported again, as multiprocessing's spawn would)
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "pointfence.service.robot.hosted", self._shm.name, json.dumps(tables), str(dof),
+            [sys.executable, "-m", "pointfence.service.robot.hosted", self._shm.name, json.dumps(tables, default=_plain), str(dof),
              repr(float(rate_hz)), str(int(rt_priority)), str(os.getpid())], stdin=subprocess.DEVNULL)
         end = time.monotonic() + start_timeout_s
         while self._blk.ctl[3] == 0:
