@@ -4,10 +4,10 @@ A real arm's controller (the Raven II's RTAI loop, a Franka control box) steps i
 its own rate while the haptic service streams setpoints and reads the measured state.
 ``RobotHost`` does the same for the simulated models of live runs: a child process builds the
 arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines; shared memory
-carries the service's commands one way and the measured state the other. In the service each arm is a ``HostedRobot``: a local
-instance of the same model (kinematics, limits, workspace, tool geometry) whose state is
-copied from the child once per tick (``step``), and whose commands go to the child. A haptic
-tick then spends a few microseconds per arm instead of the simulation's 70 us (closed-form IK,
+carries the service's commands one way and the measured state the other. In the service each
+arm is a ``HostedRobot``: a local instance of the same model (kinematics, limits, workspace,
+tool geometry) whose state is copied from the child once per tick (``step``), and whose
+commands go to the child. A haptic tick then spends a few microseconds per arm instead of the simulation's 70 us (closed-form IK,
 joint PID, forward kinematics, all in Python), and the simulation runs on another core,
 without the interpreter lock of the service's process.
 
