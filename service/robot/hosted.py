@@ -7,9 +7,9 @@ arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines; shar
 carries the service's commands one way and the measured state the other. In the service each
 arm is a ``HostedRobot``: a local instance of the same model (kinematics, limits, workspace,
 tool geometry) whose state is copied from the child once per tick (``step``), and whose
-commands go to the child. A haptic tick then spends a few microseconds per arm instead of the simulation's 70 us (closed-form IK,
-joint PID, forward kinematics, all in Python), and the simulation runs on another core,
-without the interpreter lock of the service's process.
+commands go to the child. A haptic tick then spends about 15 us per arm instead of the
+simulation's 70 us (closed-form IK, joint PID, forward kinematics, all in Python), and the
+simulation runs on another core, without the interpreter lock of the service's process.
 
 Differences from an in-process robot (offline runs and replays keep that one, which steps in
 the tick and is deterministic):
