@@ -63,3 +63,18 @@ def canned_sources(cfg, n_frames: int = 30, cache: Optional[dict] = None) -> lis
             cache[key] = src
         out.append(src)
     return out
+
+
+def live_sources(cfg, prerender: int = 0) -> list:
+    """``cfg``'s cameras opened for a live run; with ``prerender`` > 0 the synthetic ones are
+    ``CannedSource`` objects of that many frames (their rendering would otherwise hold the
+    interpreter lock of the haptic loop's process), every other source as it is."""
+    from pointfence.service.sources import open_source
+
+    out = []
+    for c in cfg.cameras:
+        if prerender > 0 and str(c.source).startswith("synthetic:"):
+            out.append(CannedSource(open_source(c.source, c.camera, rate_hz=c.rate_hz, **c.options), prerender))
+        else:
+            out.append(open_source(c.source, c.camera, rate_hz=c.rate_hz, **{**c.options, "realtime": True}))
+    return out

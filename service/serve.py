@@ -56,6 +56,10 @@ def add_arguments(p):
                         "one is taken: see stderr and --ready-file; 0: any free port); `pointfence ctl` uses it")
     p.add_argument("--control-bind", default="127.0.0.1", help="control API address: loopback only (default 127.0.0.1)")
     p.add_argument("--no-control", action="store_true", help="no control API")
+    p.add_argument("--prerender", type=int, default=0, metavar="FRAMES",
+                   help="render this many frames of each synthetic camera before starting and serve them in a loop at "
+                        "the camera's rate (rendering live holds Python's interpreter lock for milliseconds a frame, "
+                        "which a real camera's driver does not; default 0: render live)")
     p.add_argument("--itp-checksum", choices=("sum", "none"), default="sum", help="ITP checksum rule (see service/itp.py)")
 
 
@@ -81,6 +85,8 @@ def run(args) -> int:
         new_key(args.new_key)
         print(f"pointfence serve: wrote a new 32-byte key to {args.new_key}; give the same file to every client")
         return 0
+    if args.prerender < 0:
+        raise InputError(f"--prerender {args.prerender}; expected a number of frames >= 0 (0: render live)")
     if not args.key_file:
         raise InputError("no key: pass --key-file FILE (or set POINTFENCE_KEY_FILE); make one with --new-key FILE")
     psk = P.load_key(args.key_file)
@@ -105,7 +111,13 @@ def run(args) -> int:
         for arm, i in enumerate(idx):   # the ITP arm replaces the UDP slot i (the hub keeps the rest)
             masters[i] = itp.arm_master(arm, poll_also=hub)
             hub.masters[i].session = _Reserved()
-    run_ = LiveRun(cfg, masters, architecture=args.architecture, backend=args.backend, device=args.device)
+    sources = None
+    if args.prerender:
+        from .canned import live_sources
+
+        sources = live_sources(cfg, args.prerender)
+    run_ = LiveRun(cfg, masters, architecture=args.architecture, backend=args.backend, device=args.device,
+                   sources=sources)
     hub.attach(run_.service)
     stop = {"now": False}
 

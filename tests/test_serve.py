@@ -248,7 +248,7 @@ def test_live_serve_process_with_the_client_sdk(tmp_path):
     ready, stats = tmp_path / "ready.json", tmp_path / "stats.json"
     proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key), "--port", "0",
                              "--config", str(scene), "--clients", "2", "--ready-file", str(ready), "--stats-file",
-                             str(stats), "--duration", "120", "--status-every", "0"], env=env,
+                             str(stats), "--duration", "120", "--status-every", "0", "--prerender", "5"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         end = time.monotonic() + 120
@@ -276,3 +276,23 @@ def test_live_serve_process_with_the_client_sdk(tmp_path):
         proc.wait(30)
     st = json.loads(stats.read_text())
     assert st["udp"]["sessions_opened"] == 1 and st["udp"]["accepted"] > 0 and st["loop"]["ticks"] > 0
+
+
+def test_prerender_cans_the_synthetic_cameras_only(tmp_path):
+    import argparse
+
+    from pointfence.kernels.errors import InputError
+    from pointfence.service import serve
+    from pointfence.service.canned import CannedSource, live_sources
+    from service_cases import balloon_config
+
+    cfg = balloon_config(tmp_path)
+    [canned] = live_sources(cfg, 3)
+    assert isinstance(canned, CannedSource) and len(canned.frames) == 3 and canned.realtime
+    [live] = live_sources(cfg, 0)
+    assert not isinstance(live, CannedSource)
+    canned.close(), live.close()
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    with pytest.raises(InputError, match="--prerender -1; expected a number of frames >= 0"):
+        serve.run(p.parse_args(["--prerender", "-1"]))
