@@ -435,7 +435,8 @@ class Service:
             "kernel_errors": self.kernel_errors, "robot_errors": self.robot_errors, "last_error": self.last_error,
             "frame_seq": self.frame_seq, "backend": self.backend.name, "device": self.backend.device_name,
             "proxy_device": getattr(self.batch, "device_kind", None) if self.batch is not None else None,
-            "robots": [None if r is None else {"model": r.model, "mode": r.state.name, "fault": r.fault_reason}
+            "robots": [None if r is None else {"model": r.model, "mode": r.state.name, "fault": r.fault_reason,
+                                               "process": "own" if getattr(r, "hosted", False) else "loop"}
                        for r in self.robots],
         }
         if self.feeder is not None and now is not None:

@@ -156,3 +156,4 @@ def test_live_run_hosts_the_arms_and_architecture_iii_keeps_them_out(tmp_path):
     assert xr[:, 2].min() > REGION_TOP - 0.001       # held out of the fixture (1 mm)
     assert xr[0, 2] - xr[:, 2].min() > 0.005           # and it did move down towards it
     assert run.robot_host._proc is None               # stop() ended the robot process
+    assert run.service.status()["robots"][0]["process"] == "own"
