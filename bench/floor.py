@@ -61,32 +61,26 @@ def _warp(backend, n):
     t = _time_us(plain, n)
     out.update(launch_copy_us_p50=round(pct(t, 50), 2), launch_copy_us_p99=round(pct(t, 99), 2))
     if dev.is_cuda:
-        with wp.ScopedStream(stream):
-            wp.capture_begin(device=dev, stream=stream)
-            record()
-            graph = wp.capture_end(device=dev, stream=stream)
+        def graph_us(record_fn):
+            """(p50, p99) us of replaying a graph of ``record_fn`` and waiting for it."""
+            with wp.ScopedStream(stream):
+                wp.capture_begin(device=dev, stream=stream)
+                record_fn()
+                graph = wp.capture_end(device=dev, stream=stream)
 
-        def replay():
-            wp.capture_launch(graph, stream=stream)
-            wp.synchronize_stream(stream)
+            def replay():
+                wp.capture_launch(graph, stream=stream)
+                wp.synchronize_stream(stream)
 
-        t = _time_us(replay, n)
-        out.update(graph_us_p50=round(pct(t, 50), 2), graph_us_p99=round(pct(t, 99), 2))
+            t = _time_us(replay, n)
+            return round(pct(t, 50), 2), round(pct(t, 99), 2)
 
+        out["graph_us_p50"], out["graph_us_p99"] = graph_us(record)
         # zero-copy: device views of the pinned host arrays, the graph is the kernel alone
         v_in = wp.array(ptr=h_in.ptr, dtype=wp.vec3, shape=1, device=dev)
         v_out = wp.array(ptr=h_out.ptr, dtype=wp.vec3, shape=1, device=dev)
-        with wp.ScopedStream(stream):
-            wp.capture_begin(device=dev, stream=stream)
-            wp.launch(touch, dim=1, inputs=[v_in, v_out], device=dev)
-            zc = wp.capture_end(device=dev, stream=stream)
-
-        def replay_zc():
-            wp.capture_launch(zc, stream=stream)
-            wp.synchronize_stream(stream)
-
-        t = _time_us(replay_zc, n)
-        out.update(graph_zero_copy_us_p50=round(pct(t, 50), 2), graph_zero_copy_us_p99=round(pct(t, 99), 2))
+        out["graph_zero_copy_us_p50"], out["graph_zero_copy_us_p99"] = graph_us(
+            lambda: wp.launch(touch, dim=1, inputs=[v_in, v_out], device=dev))
     return out
 
 

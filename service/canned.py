@@ -46,35 +46,27 @@ class CannedSource(DepthSource):
 def canned_sources(cfg, n_frames: int = 30, cache: Optional[dict] = None) -> list:
     """``cfg``'s cameras as ``CannedSource`` objects (pre-rendered, served in real time).
     ``cache`` (a dict) reuses frames rendered for the same camera and source spec."""
-    out = []
-    for c in cfg.cameras:
-        key = (c.camera.name, c.source, repr(sorted(c.options.items())), n_frames)
-        if cache is not None and key in cache:
-            src = CannedSource.__new__(CannedSource)
-            DepthSource.__init__(src, c.camera, c.rate_hz, True)
-            proto = cache[key]
-            src.source, src.frames, src.scene = proto.source, proto.frames, proto.scene
-            out.append(src)
-            continue
-        from pointfence.service.sources import open_source
-
-        src = CannedSource(open_source(c.source, c.camera, rate_hz=c.rate_hz, **c.options), n_frames)
-        if cache is not None:
-            cache[key] = src
-        out.append(src)
-    return out
+    return [_canned(cfg, c, n_frames, cache) for c in cfg.cameras]
 
 
 def live_sources(cfg, prerender: int = 0) -> list:
     """``cfg``'s cameras opened for a live run; with ``prerender`` > 0 the synthetic ones are
     ``CannedSource`` objects of that many frames (their rendering would otherwise hold the
     interpreter lock of the haptic loop's process), every other source as it is."""
-    from pointfence.service.sources import open_source
+    return [_canned(cfg, c, prerender) if prerender > 0 and str(c.source).startswith("synthetic:")
+            else cfg.open_source(c, realtime=True) for c in cfg.cameras]
 
-    out = []
-    for c in cfg.cameras:
-        if prerender > 0 and str(c.source).startswith("synthetic:"):
-            out.append(CannedSource(open_source(c.source, c.camera, rate_hz=c.rate_hz, **c.options), prerender))
-        else:
-            out.append(open_source(c.source, c.camera, rate_hz=c.rate_hz, **{**c.options, "realtime": True}))
-    return out
+
+def _canned(cfg, c, n_frames: int, cache: Optional[dict] = None) -> CannedSource:
+    """Camera entry ``c`` of ``cfg`` pre-rendered (see ``canned_sources`` for ``cache``)."""
+    key = (c.camera.name, c.source, repr(sorted(c.options.items())), n_frames)
+    if cache is not None and key in cache:
+        src = CannedSource.__new__(CannedSource)
+        DepthSource.__init__(src, c.camera, c.rate_hz, True)
+        proto = cache[key]
+        src.source, src.frames, src.scene = proto.source, proto.frames, proto.scene
+        return src
+    src = CannedSource(cfg.open_source(c), n_frames)
+    if cache is not None:
+        cache[key] = src
+    return src

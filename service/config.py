@@ -134,9 +134,15 @@ class SceneConfig:
 
     def open_sources(self, **options) -> list:
         """One open depth source per camera, in configuration order."""
+        return [self.open_source(c, **options) for c in self.cameras]
+
+    @staticmethod
+    def open_source(c, **options):
+        """The depth source of camera entry ``c`` (one of ``cameras``), opened; ``options`` add
+        to (and override) the entry's own."""
         from pointfence.service.sources import open_source
 
-        return [open_source(c.source, c.camera, rate_hz=c.rate_hz, **{**c.options, **options}) for c in self.cameras]
+        return open_source(c.source, c.camera, rate_hz=c.rate_hz, **{**c.options, **options})
 
 
 def _check_keys(table: dict, known: set, where: str) -> None:

@@ -58,11 +58,6 @@ WS_CAPS = ((64, 2496), (4096, 1536), (1 << 62, 768))
 ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
 #: hash rows (z, y) one gather may list: a gather reaching further scans the hash directly
 ROWS_CAP = wp.constant(128)
-#: candidates a thread tests per iteration of a gather (1 or 2; POINTFENCE_WARP_UNROLL)
-UNROLL = wp.constant(int(os.environ.get("POINTFENCE_WARP_UNROLL", "2")))
-#: 1: the clip passes scan only the points within a step's reach (a per-warp list made by the
-#: evaluation); 0: every point (POINTFENCE_WARP_NEAR; same results either way)
-NEAR = int(os.environ.get("POINTFENCE_WARP_NEAR", "1"))
 
 
 def block_dim_for(n: int) -> int:
@@ -486,25 +481,19 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             e = float(wp.inf)
             if k < n:
                 ns, me, e = eval_point_e(X, ws(0, k, wp.vec4(0.0)), a, ns, me)
-            if wp.static(NEAR != 0):
-                fl = int(0)
-                if e < a.rclip:
-                    fl = 1
-                cnt = near(1, wbase, cnt, fl, k)
+            fl = int(0)
+            if e < a.rclip:
+                fl = 1
+            cnt = near(1, wbase, cnt, fl, k)
         return ns, me, cnt
 
     @wp.func
-    def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, n: int, cnt: int, lane: int,
-                wbase: int) -> float:
-        """This thread's share of the step limit: over the warp's near list (the other points
-        cannot shorten any step, see the kernel), or every BD-th point."""
+    def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, cnt: int, lane: int, wbase: int) -> float:
+        """This thread's share of the step limit, over the warp's near list (the other points
+        cannot shorten any step, see the kernel)."""
         tm = float(wp.inf)
-        if wp.static(NEAR != 0):
-            for i in range(lane % WL, cnt, WL):
-                tm = clip_point(X, u, ws(0, near(0, wbase, i, 0, 0), wp.vec4(0.0)), a, off, tm)
-        else:
-            for k in range(lane, n, BD):
-                tm = clip_point(X, u, ws(0, k, wp.vec4(0.0)), a, off, tm)
+        for i in range(lane % WL, cnt, WL):
+            tm = clip_point(X, u, ws(0, near(0, wbase, i, 0, 0), wp.vec4(0.0)), a, off, tm)
         return tm
 
     @wp.func
@@ -519,8 +508,8 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                    order: wp.array(dtype=int), a: ProxyArgs, X0: wp.vec3, r2: float, total: int, lane: int,
                    bd: int):
         """Count this thread's candidates (every bd-th of the row table's) that belong to the
-        working set; (count, bit j set where the thread's j-th candidate does, j < 64). UNROLL
-        candidates an iteration, so that as many loads are in flight."""
+        working set; (count, bit j set where the thread's j-th candidate does, j < 64). Two
+        candidates an iteration, so that two loads are in flight."""
         cnt = int(0)
         mask = wp.uint64(0)
         j = int(0)
@@ -531,23 +520,18 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
         while k < total:
             r, rs, ab = next_row(k, r, rs, ab)
             k0, q0 = in_set(spts, svel, dt, order, a, ab[0] + k - rs, X0, r2)
-            if wp.static(UNROLL == 1):
-                if k0 != 0 and j < 64:
-                    mask = mask | (wp.uint64(1) << wp.uint64(j))
-                cnt += k0
-            else:
-                i1 = int(-1)
-                if k + bd < total:
-                    r, rs, ab = next_row(k + bd, r, rs, ab)
-                    i1 = ab[0] + k + bd - rs
-                k1, q1 = in_set(spts, svel, dt, order, a, i1, X0, r2)
-                if k0 != 0 and j < 64:
-                    mask = mask | (wp.uint64(1) << wp.uint64(j))
-                if k1 != 0 and j + 1 < 64:
-                    mask = mask | (wp.uint64(1) << wp.uint64(j + 1))
-                cnt += k0 + k1
-            k += UNROLL * bd
-            j += UNROLL
+            i1 = int(-1)
+            if k + bd < total:
+                r, rs, ab = next_row(k + bd, r, rs, ab)
+                i1 = ab[0] + k + bd - rs
+            k1, q1 = in_set(spts, svel, dt, order, a, i1, X0, r2)
+            if k0 != 0 and j < 64:
+                mask = mask | (wp.uint64(1) << wp.uint64(j))
+            if k1 != 0 and j + 1 < 64:
+                mask = mask | (wp.uint64(1) << wp.uint64(j + 1))
+            cnt += k0 + k1
+            k += 2 * bd
+            j += 2
         return cnt, mask
 
     @wp.func
@@ -740,7 +724,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             while attempt < 3:
                 tm = float(wp.inf)
                 if n_ws >= 0:
-                    tm = ws_clip(X, u, a, off, n_ws, nnear, lane, wbase)
+                    tm = ws_clip(X, u, a, off, nnear, lane, wbase)
                 else:
                     tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
                 t = block_min(tm, par, BD)

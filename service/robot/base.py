@@ -319,6 +319,9 @@ class Robot(ABC):
         if self._ws is None:
             return
         lo, hi = self._ws
+        x, y, z = float(p[0]), float(p[1]), float(p[2])
+        if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]:
+            return                        # (scalar compares: the common case costs no array op)
         if np.any(p < lo) or np.any(p > hi):
             axis = int(np.argmax(np.maximum(lo - p, p - hi)))
             self._reject(f"{what}: position {_fmt(p)} m is outside the workspace "
@@ -332,24 +335,38 @@ class Robot(ABC):
             self._reject(f"{what}: joint {self.joint_names[i]!r} = {q[i]:.6g} is outside its limits "
                          f"[{self._lower[i]:.6g}, {self._upper[i]:.6g}] (q = {_fmt(q)})")
 
-    def servo_cp(self, T) -> bool:
-        """Stream a Cartesian setpoint: a 4x4 world pose, or a position (3,) keeping the current
-        setpoint orientation. Returns True when applied, False when ignored (HOLDING or FAULT).
-        Raises InputError (and changes nothing) on a bad or unreachable pose."""
+    def _setpoint_pose(self, T, out: Optional[np.ndarray] = None) -> np.ndarray:
+        """The world pose a ``servo_cp`` argument asks for: ``T`` itself (4x4), or the setpoint
+        pose moved to the position ``T`` (3,), written into ``out`` (4x4) when given. Raises
+        InputError, counted as a rejected command, on a malformed or non-finite value or a
+        position outside the workspace."""
         try:
             a = np.asarray(T, dtype=float)
         except (TypeError, ValueError):
             self._reject(f"servo_cp: {T!r} is not a 4x4 pose or a 3-vector")
         try:
             if a.shape == (3,):
-                p = as_vector(a, 3, "servo_cp position")
-                pose = self._T_d.copy()
-                pose[:3, 3] = p
+                x, y, z = a.tolist()
+                if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+                    as_vector(a, 3, "servo_cp position")      # raises, naming the value
+                if out is None:
+                    pose = self._T_d.copy()
+                else:
+                    pose = out
+                    np.copyto(pose, self._T_d)
+                pose[0, 3], pose[1, 3], pose[2, 3] = x, y, z
             else:
                 pose = as_pose(a, "servo_cp pose")
         except InputError as e:
             self._reject(str(e))
         self._check_workspace(pose[:3, 3], "servo_cp")
+        return pose
+
+    def servo_cp(self, T) -> bool:
+        """Stream a Cartesian setpoint: a 4x4 world pose, or a position (3,) keeping the current
+        setpoint orientation. Returns True when applied, False when ignored (HOLDING or FAULT).
+        Raises InputError (and changes nothing) on a bad or unreachable pose."""
+        pose = self._setpoint_pose(T)
         try:
             q = self._ik(pose if self._identity_mount else self._T_base_world @ pose, self._q_d)
         except InputError as e:

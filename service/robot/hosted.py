@@ -45,7 +45,7 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
-from .base import RobotMode, as_pose, as_vector
+from .base import RobotMode
 from .factory import robot_from_config
 
 # mode commands (service -> child), in a ring per arm
@@ -72,10 +72,6 @@ class _Channel:
         self.data = take((2, size), np.float64)
         self.meta = take((4,), np.int64)        # counter of slot 0, of slot 1, slot to read
         self.sums = take((2,), np.float64)
-
-    @staticmethod
-    def nbytes(size: int) -> int:
-        return 16 * size + 32 + 16
 
     def write(self, rec: np.ndarray) -> None:
         w = 1 - int(self.meta[2])
@@ -109,9 +105,9 @@ class _Block:
         self.C = n * (2 + 16 + RING)
         off = 0
 
-        def take(shape, dtype):
+        def take(shape, dtype):   # buf None: only the layout (nbytes)
             nonlocal off
-            a = np.ndarray(shape, dtype, buffer=buf, offset=off)
+            a = np.empty(shape, dtype) if buf is None else np.ndarray(shape, dtype, buffer=buf, offset=off)
             off += a.nbytes
             return a
 
@@ -123,8 +119,7 @@ class _Block:
 
     @staticmethod
     def nbytes(n: int, dof: int) -> int:
-        S = _HDR + 4 * dof + 32
-        return 32 + _Channel.nbytes(n * S) + _Channel.nbytes(n * (2 + 16 + RING)) + n * 2 * TEXT
+        return _Block(None, n, dof).size
 
 
 def _command_views(rec: np.ndarray, n: int) -> tuple:
@@ -268,8 +263,7 @@ class RobotHost:
         self.timeout_s = float(timeout_s)
         size = _Block.nbytes(self.n, dof)
         self._shm = shared_memory.SharedMemory(create=True, size=size)
-        self._blk = _Block(self._shm.buf, self.n, dof)
-        self._shm.buf[:size] = bytes(size)
+        self._blk = _Block(self._shm.buf, self.n, dof)   # a new shared memory object reads as zeros
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
         # the parent's main module imported again, as multiprocessing's spawn would)
         self._proc = subprocess.Popen(
@@ -321,9 +315,9 @@ class RobotHost:
             return
         for b, fault, err in changed:
             self.robots[b]._texts(fault, err)
-        rows = buf.tolist()
+        rows, sent = buf.tolist(), self._cmd.tolist()
         for b, r in enumerate(self.robots):
-            r._load(rows[b], buf[b])
+            r._load(rows[b], buf[b], sent[b])
 
     def _lost(self, why: str) -> None:
         self._alive = False
@@ -402,8 +396,7 @@ class HostedRobot:
         self._child_rejected = 0          # setpoints the child rejected (out of reach)
         self._rejected_seen = 0           # ... of which servo_cp has reported
         self._local_rejected = 0          # setpoints refused here (malformed, workspace)
-        self._modes_sent = 0              # mode commands sent (the child reports how many it applied)
-        self._servo_sent = 0
+        self._lost = False                # FAULT because the robot process stopped answering
         self._T_meas16 = local._T_meas.reshape(16)      # views: the local poses, flat
         self._T_d16 = local._T_d.reshape(16)
         self._pose = np.eye(4)
@@ -417,13 +410,14 @@ class HostedRobot:
         return f"HostedRobot({self._r.model!r}, arm {self._b}, process {proc.pid if proc else None})"
 
     # --- state from the child ---------------------------------------------------------------------
-    def _load(self, row: list, st: np.ndarray) -> None:
-        """Take the child's state: ``row`` as floats, ``st`` the same as an array."""
+    def _load(self, row: list, st: np.ndarray, sent: list) -> None:
+        """Take the child's state: ``row`` as floats, ``st`` the same as an array; ``sent``: the
+        setpoints and mode commands sent to this arm so far (counts)."""
         r, d = self._r, self._r.dof
-        if self._lost_fault():
+        if self._lost:
             return                         # latched until the host answers again and enable() is called
         r.t = row[0]
-        if row[5] >= self._modes_sent:     # the child has applied our mode commands
+        if row[5] >= sent[1]:              # the child has applied our mode commands
             r._mode = _MODES[int(row[1])]
         self._child_rejected = int(row[2])
         r.rejected_commands = self._child_rejected + self._local_rejected
@@ -434,21 +428,18 @@ class HostedRobot:
         r._tau[:] = row[h + 2 * d: h + 3 * d]
         np.copyto(self._T_meas16, st[h + 4 * d: h + 4 * d + 16])
         r._T_meas_ok = True
-        if row[4] >= self._servo_sent:     # else keep the setpoint just sent
+        if row[4] >= sent[0]:              # else keep the setpoint just sent
             r._q_d[:] = row[h + 3 * d: h + 4 * d]
             np.copyto(self._T_d16, st[h + 4 * d + 16: h + 4 * d + 32])
 
-    def _lost_fault(self) -> bool:
-        r = self._r
-        return r._mode is RobotMode.FAULT and (r._fault or "").startswith(LOST)
-
     def _texts(self, fault: Optional[str], err: Optional[str]) -> None:
-        if not self._lost_fault():
+        if not self._lost:
             self._r._fault = fault
         self._r.last_error = err
 
     def _fail(self, why: str) -> None:
         r = self._r
+        self._lost = True
         if r._mode is not RobotMode.FAULT:
             r._mode = RobotMode.FAULT
             r._fault = why
@@ -484,31 +475,15 @@ class HostedRobot:
             self._rejected_seen = self._child_rejected
             raise InputError(r.last_error or "servo_cp: the robot rejected the previous setpoint")
         try:
-            a = np.asarray(T, dtype=float)
-            if a.shape == (3,):
-                x, y, z = a.tolist()
-                if not math.isfinite(x + y + z):
-                    as_vector(a, 3, "servo_cp position")          # raises, naming the bad value
-                pose = self._pose
-                np.copyto(pose, r._T_d)
-                pose[0, 3], pose[1, 3], pose[2, 3] = x, y, z
-            else:
-                pose = as_pose(a, "servo_cp pose")
-            ws = r._ws
-            if ws is not None and not (ws[0][0] <= pose[0, 3] <= ws[1][0] and ws[0][1] <= pose[1, 3] <= ws[1][1]
-                                       and ws[0][2] <= pose[2, 3] <= ws[1][2]):
-                r._check_workspace(pose[:3, 3], "servo_cp")            # raises with the message
-        except (TypeError, ValueError, InputError) as e:
+            pose = r._setpoint_pose(T, out=self._pose)     # checks it, as the arm in the tick does
+        except InputError:
             self._local_rejected += 1
             r.rejected_commands = self._child_rejected + self._local_rejected
-            msg = str(e) if isinstance(e, InputError) else f"servo_cp: {T!r} is not a 4x4 pose or a 3-vector"
-            r.last_error = msg
-            raise InputError(msg) from None
+            raise
         if r._mode is not RobotMode.ENABLED:
             r.ignored_commands += 1
             return False
         self._host._stage_pose(self._b, pose)
-        self._servo_sent += 1
         r._T_d[...] = pose
         return True
 
@@ -518,7 +493,6 @@ class HostedRobot:
 
     def _mode_cmd(self, code: int, local) -> None:
         self._host._send_mode(self._b, code)
-        self._modes_sent += 1
         local()
 
     def hold(self) -> None:
@@ -529,10 +503,10 @@ class HostedRobot:
 
     def enable(self) -> None:
         r = self._r
-        if self._lost_fault():
+        if self._lost:
             if not self._host.alive:
                 return                    # nothing to enable: the arm stays in FAULT
-            r._fault = None
+            self._lost = False
         self._mode_cmd(ENABLE, r.enable)
 
     def fault(self, reason: str) -> None:
