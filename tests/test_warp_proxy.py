@@ -29,18 +29,25 @@ def brute_normals(snap, X, p):
     return out
 
 
-PATHS = ["working-set", "hash", "copies"]
+PATHS = ["working-set", "hash", "copies", "params-skin", "skin-fallback"]
 
 
 @pytest.fixture(params=PATHS)
 def kernel_path(request, monkeypatch):
     """Which way the kernel runs: working sets in shared memory (the default), the hash scanned
-    from global memory (working sets that do not fit: capacity 16 points), and on CUDA the
-    graph with copies instead of zero-copy host memory (large batches)."""
+    from global memory (working sets that do not fit: capacity 16 points), on CUDA the graph
+    with copies instead of zero-copy host memory (large batches), working sets gathered with
+    HapticParams.skin instead of the wider GPU skin, and sets too large with a 10 mm skin for a
+    24-point buffer (most of this sparse rig's), gathered again with HapticParams.skin."""
     from pointfence.kernels.warp import proxy as wproxy
 
     if request.param == "hash":
         monkeypatch.setattr(wproxy, "WS_CAPS", ((1 << 62, 16),))
+    elif request.param == "params-skin":
+        monkeypatch.setattr(wproxy, "GATHER_SKIN", 0.0)
+    elif request.param == "skin-fallback":
+        monkeypatch.setattr(wproxy, "GATHER_SKIN", 0.01)
+        monkeypatch.setattr(wproxy, "WS_CAPS", ((1 << 62, 24),))
     elif request.param == "copies":
         if not get_backend("warp").device.is_cuda:
             pytest.skip("the copying path exists on CUDA only")

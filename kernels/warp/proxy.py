@@ -2,21 +2,29 @@
 
 Same algorithm as kernels/proxy.py (the NumPy reference and kernels/opencl/proxy.cl). On a
 GPU a proxy is spread over the ``block_dim`` threads of its block. At the start of a tick the
-block gathers its working set, the points within ``reach + skin`` of the proxy (as the
-reference does), into shared memory: the cells within reach are listed once, the block scans
-their points with every thread taking every block_dim-th candidate, counts the ones within
-range, and an exclusive scan of the counts gives each thread where to write its points, so the
-working set's order does not depend on timing. The steps then read on-chip memory only; a proxy
-that wanders further than ``skin`` from where its set was gathered gathers again, and a
-neighbourhood larger than the shared buffer (``ws_capacity_for``) is scanned from the hash in
-global memory instead, as before. The normal sum, the smallest clearance and the swept-sphere
-step limit are block-wide reductions (warp shuffles, then one barrier over the warps' partial
-results; every thread reads the same partials in the same order). Every thread then takes the
-same decision from the reduced values, so the step loop stays uniform across the block. The
-evaluation also lists, per warp, the points close enough to shorten a step (clearance below
-``ProxyArgs.rclip``); the clip passes scan only those (the same step lengths, see the kernel), and
-the kernel has one clip pass in its code for the up to three tries of a step. The block size is
-a constant of each kernel's code.
+block gathers its working set, the points within ``reach + skin`` of the proxy, into shared
+memory: the cells that the set's bounding box touches are listed once, the block scans their
+points with every thread taking every block_dim-th candidate, counts the ones within range, and
+an exclusive scan of the counts gives each thread where to write its points, so the working
+set's order does not depend on timing. The skin is ``GATHER_SKIN`` (wider than
+HapticParams.skin: a gather costs more on a GPU than the points it adds to each step), or
+HapticParams.skin for a set that would not fit in the shared buffer (``ws_capacity_for``); a
+set that does not fit even then is scanned from the hash in global memory. The steps then read
+on-chip memory only; a proxy that wanders further than its skin from where its set was gathered
+gathers again (results do not depend on the skin). The normal sum, the smallest clearance and
+the swept-sphere step limit are block-wide reductions (warp shuffles, then one barrier over the
+warps' partial results; every thread reads the same partials in the same order). Every thread
+then takes the same decision from the reduced values, so the step loop stays uniform across the
+block. The evaluation also lists, per warp, the points close enough to shorten a step (clearance
+below ``ProxyArgs.rclip``); the clip passes scan only those (the same step lengths, see the
+kernel), and the kernel has one clip pass in its code for the up to three tries of a step. The
+block size is a constant of each kernel's code.
+
+Square roots, reciprocals and the clip's division use the hardware's approximations (within
+2 ulp, no branch), not IEEE-rounded sequences whose slow-path branches split the step into
+basic blocks that cannot overlap: 2.6 -> 2.1 us a step on an H100. A 2-ulp error in a distance
+of 10 mm is 2 nm, far inside the clip's 1 um ``margin``, so no step ends closer to a point than
+the reference allows; the results agree with the reference within its tests' tolerances.
 
 On CUDA the tick is captured once per snapshot slot into a CUDA graph and replayed each tick.
 For batches up to ``ZERO_COPY_MAX`` the graph is the kernel alone: it reads the HIPs, the
@@ -56,6 +64,11 @@ WS_CAPS = ((64, 2496), (4096, 1536), (1 << 62, 768))
 #: largest batch whose tick reads and writes pinned host memory directly (no copies in the graph;
 #: POINTFENCE_WARP_ZERO_COPY_MAX)
 ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
+#: working-set skin on the GPU (m): a proxy gathers the points within reach + this (at least
+#: HapticParams.skin) and gathers again when it has moved further; a set that does not fit in
+#: shared memory is gathered with HapticParams.skin instead (results do not depend on the skin).
+#: H100, bench query, HapticParams.skin 0.5 mm (bench/RESULTS.md, 2026-11-24, later): 1.5 mm.
+GATHER_SKIN = float(os.environ.get("POINTFENCE_WARP_SKIN", "1.5e-3"))
 #: hash rows (z, y) one gather may list: a gather reaching further scans the hash directly
 ROWS_CAP = wp.constant(128)
 
@@ -92,6 +105,8 @@ class ProxyArgs:
     turn_back: float  # turn_back_cos
     skin: float  # regather when the proxy is further than this from where its set was gathered
     gather_r: float  # reach + skin: the working set's radius
+    skin_min: float  # the same for a set that does not fit with ``skin`` (HapticParams.skin)
+    gather_r_min: float
     rclip: float  # no step can be shortened by a point with clearance >= rclip (see the kernel)
     fixture: int
     max_steps: int
@@ -104,7 +119,7 @@ class TickArgs:
 
     dt: float  # prediction time: points are taken at p + v dt (kernels/motion.py)
     span: int  # cells searched on each side: reach plus the motion's extra reach
-    gspan: int  # the same for a gather: reach + skin plus the motion's extra reach
+    grad: float  # a gather's reach in the hash: reach + skin plus the motion's extra reach
 
 
 # --- block-wide primitives (native; Warp's CPU device runs one thread per block) -------------
@@ -259,17 +274,57 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
     return a.r1
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return rsqrtf(x);
+#else
+    return 1.0f / sqrtf(x);
+#endif
+""")
+def rsqrt_fast(x: float) -> float:
+    """1 / sqrt(x) without a branch (CUDA's MUFU.RSQ: within 2 ulp)."""
+    ...
+
+
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __fdividef(a, b);
+#else
+    return a / b;
+#endif
+""")
+def div_fast(a: float, b: float) -> float:
+    """a / b without a branch (within 2 ulp for |b| below 2^126)."""
+    ...
+
+
+@wp.func
+def unit_len(v: wp.vec3):
+    """(v / |v|, |v|), zero for v = 0."""
+    l2 = wp.dot(v, v)
+    inv = rsqrt_fast(l2)
+    if l2 > 0.0:
+        return v * inv, l2 * inv
+    return wp.vec3(0.0), float(0.0)
+
+
 @wp.func
 def eval_point_e(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
     """Step 1 for one point: its share of the normal sum and of the smallest clearance, and
     its clearance."""
     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
-    d = wp.sqrt(dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2])
+    d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
+    inv = rsqrt_fast(d2)
+    d = float(0.0)
+    if d2 > 0.0:
+        d = d2 * inv
     e = d - clearance_radius(q, a)
     if e < a.nreach:
         me = wp.min(me, e)
-        if d > 0.0:
-            ns = ns + dv * (1.0 / d)  # one reciprocal, as the reference
+        if d2 > 0.0:
+            ns = ns + dv * inv
     return ns, me, e
 
 
@@ -294,7 +349,7 @@ def clip_point(X: wp.vec3, u: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, tm:
     c = d2 - rc * rc
     disc = b * b - c
     if c >= 0.0 and b < 0.0 and disc > 0.0:
-        tm = wp.min(tm, c / (-b + wp.sqrt(disc)))
+        tm = wp.min(tm, div_fast(c, -b + disc * rsqrt_fast(disc)))
     elif c < 0.0 and b < 0.0:
         tm = 0.0
     return tm
@@ -305,11 +360,20 @@ def away_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, ns: wp.vec3) ->
     """This point's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
     d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
-    d = wp.sqrt(d2)
+    inv = rsqrt_fast(d2)
     rc = clearance_radius(q, a) + off
-    if d2 - rc * rc < 0.0 and d > 0.0:
-        ns = ns + dv * (1.0 / d)  # one reciprocal, as the reference
+    if d2 - rc * rc < 0.0 and d2 > 0.0:
+        ns = ns + dv * inv
     return ns
+
+
+@wp.func
+def cell_of(X: wp.vec3, g: GridArgs) -> wp.vec3i:
+    """Cell of X, clamped to one cell outside the grid (a cell range's end)."""
+    cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), -1.0, float(g.nx)))
+    cy = int(wp.clamp(wp.floor((X[1] - g.origin[1]) * g.inv_h), -1.0, float(g.ny)))
+    cz = int(wp.clamp(wp.floor((X[2] - g.origin[2]) * g.inv_h), -1.0, float(g.nz)))
+    return wp.vec3i(cx, cy, cz)
 
 
 @wp.func
@@ -563,22 +627,25 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
 
     @wp.func(inline=False)  # one copy for the first gather and the regathers
     def gather(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
-               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X0: wp.vec3, span: int, lane: int, bd: int,
-               par: int):
-        """Gather the working set around X0 into shared memory; return (its size, or -1 where it
-        does not fit and the steps scan the hash instead; the next reduction's ``par``)."""
-        c = cell_box(X0, g, span)
-        x0 = wp.max(c[0] - span, 0)
-        x1 = wp.min(c[0] + span, g.nx - 1)
-        y0 = wp.max(c[1] - span, 0)
-        z0 = wp.max(c[2] - span, 0)
-        nyr = wp.max(wp.min(c[1] + span, g.ny - 1) - y0 + 1, 0)
-        nzr = wp.max(wp.min(c[2] + span, g.nz - 1) - z0 + 1, 0)
+               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X0: wp.vec3, grad: float, lane: int,
+               bd: int, par: int):
+        """Gather the working set around X0 into shared memory, from the cells that the box of
+        radius ``grad`` around X0 touches; return (its size, or -1 where it does not fit and the
+        steps scan the hash instead; the next reduction's ``par``; the skin it was gathered with:
+        ``a.skin``, or ``a.skin_min`` where the larger set does not fit)."""
+        lo = cell_of(X0 - wp.vec3(grad), g)
+        hi = cell_of(X0 + wp.vec3(grad), g)
+        x0 = wp.max(lo[0], 0)
+        x1 = wp.min(hi[0], g.nx - 1)
+        y0 = wp.max(lo[1], 0)
+        z0 = wp.max(lo[2], 0)
+        nyr = wp.max(wp.min(hi[1], g.ny - 1) - y0 + 1, 0)
+        nzr = wp.max(wp.min(hi[2], g.nz - 1) - z0 + 1, 0)
         nrows = int(0)
         if x0 <= x1:
             nrows = nyr * nzr
         if nrows > ROWS_CAP:
-            return -1, par
+            return -1, par, a.skin
         for r in range(lane, nrows, bd):
             base = ((z0 + r // nyr) * g.ny + y0 + r % nyr) * g.nx
             rows(1, r, start[base + x0], start[base + x1 + 1])
@@ -588,16 +655,23 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             ab = rows(0, r, 0, 0)
             total += ab[1] - ab[0]
         r2 = a.gather_r * a.gather_r
+        skin = a.skin
         # pass 1: how many of this thread's candidates (every bd-th) belong to the set
         cnt, mask = count_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd)
         sc = block_scan(cnt, par, bd)
         par = 1 - par
+        if sc[1] > cap and a.skin_min < a.skin:   # too many points: the smaller skin
+            r2 = a.gather_r_min * a.gather_r_min
+            skin = a.skin_min
+            cnt, mask = count_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd)
+            sc = block_scan(cnt, par, bd)
+            par = 1 - par
         if sc[1] > cap:
-            return -1, par
+            return -1, par, skin
         # pass 2: the same candidates again, each thread writing its points from its offset on
         write_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, mask, sc[0])
         block_sync()
-        return sc[1], par
+        return sc[1], par, skin
 
     opts = {"cuda_max_registers": maxreg} if maxreg else {}
 
@@ -616,7 +690,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             hh = hips[p]
             shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
             shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
-            shared4(1, 2, wp.vec4(tk.dt, float(tk.span), float(tk.gspan), 0.0))
+            shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
         block_sync()
         xv = shared4(0, 0, wp.vec4(0.0))
         hv = shared4(0, 1, wp.vec4(0.0))
@@ -625,8 +699,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
         H = wp.vec3(hv[0], hv[1], hv[2])
         dt = tv[0]
         span = int(tv[1])
-        gspan = int(tv[2])
-        skin2 = a.skin * a.skin
+        grad = tv[2]
         # A step's limit F is at most band / 2 (slack >= 0) and its length at most a.step, so a
         # point with clearance e >= band / 2 + margin + step cannot shorten it: the step reaches
         # that point's swept sphere (radius rho + F + margin) no sooner than e - F - margin >= step
@@ -636,7 +709,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
         wbase = (lane // WL) * NJ
         par = int(0)
         X0 = X
-        n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, BD, par)
+        n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
         steps = int(0)
         conv = int(0)
         st = int(0)
@@ -648,9 +721,9 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                 dx = X[0] - X0[0]
                 dy = X[1] - X0[1]
                 dz = X[2] - X0[2]
-                if dx * dx + dy * dy + dz * dz > skin2:  # wandered off its working set
+                if dx * dx + dy * dy + dz * dz > skin * skin:  # wandered off its working set
                     X0 = X
-                    n_ws, par = gather(spts, svel, dt, order, start, g, a, X0, gspan, lane, BD, par)
+                    n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
             c = wp.vec3i(0)
             if n_ws < 0:
                 c = cell_box(X, g, span)
@@ -672,30 +745,22 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                 st = 2
             elif min_e < a.band:
                 st = 1
-            nn = wp.length(nsum)
-            nrm = wp.vec3(0.0)
-            if nn > 0.0:
-                nrm = nsum / nn
+            nrm, nn = unit_len(nsum)
             if it == a.max_steps:
                 break
 
             # 2. direction and length (dissertation 2.2.4)
             v = H - X
-            vl = wp.length(v)
             vn = wp.dot(v, nrm)
             vp = v - vn * nrm
-            vpl = wp.length(vp)
             has_n = nn > 0.0
             # contact rules (3/4): along v with the HIP outside or no normal, else along vp
             u2 = wp.vec3(0.0)
             L2 = float(0.0)
             if st == 0 or vn > 0.0 or not has_n:
-                if vl > 0.0:
-                    u2 = v / vl
-                    L2 = vl
-            elif vpl > 0.0:
-                u2 = vp / vpl
-                L2 = vpl
+                u2, L2 = unit_len(v)
+            else:
+                u2, L2 = unit_len(vp)
             L2 = wp.min(L2, a.step)
             u = u2
             Lp = wp.min(0.5 * a.band - min_e, a.step)
@@ -750,11 +815,11 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                     ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, BD)
                     par = 1 - par
                     asum = wp.vec3(ra[0], ra[1], ra[2])
-                    al = wp.length(asum)
+                    au, al = unit_len(asum)
                     s = 0.0
                     if not (al > 0.0):
                         break
-                    u = asum / al
+                    u = au
                     Lc = Lp
                 attempt += 1
             if s < a.tol:
@@ -804,8 +869,10 @@ class WarpProxies(ProxyBatch):
         a.tol, a.slack, a.fixture, a.max_steps = p.tolerance, p.slack, int(p.mode == "fixture"), p.max_steps
         a.margin = p.margin
         a.turn_back = p.turn_back_cos
-        a.skin = p.skin
-        a.gather_r = self.reach + p.skin
+        a.skin_min = p.skin
+        a.gather_r_min = self.reach + p.skin
+        self.skin = a.skin = max(p.skin, GATHER_SKIN)
+        a.gather_r = self.reach + a.skin
         a.rclip = 0.5 * p.band + p.margin + p.step * 1.0001 + 1.0e-6
         h = pipeline.grid.h
         a.span = search_span(self.reach, h)
@@ -872,7 +939,8 @@ class WarpProxies(ProxyBatch):
         tk = self._tick_np[0]
         tk["dt"] = dt
         tk["span"] = search_span(self.reach + extra, self._h)
-        tk["gspan"] = search_span(self.reach + self.params.skin + extra, self._h)
+        # + 1 um: the float32 rounding of the box's corners (cell_of) cannot drop a point
+        tk["grad"] = self.reach + self.skin + extra + 1.0e-6
         self._tick_dt_set = dt
 
     # --- the tick --------------------------------------------------------------------------
