@@ -49,6 +49,8 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         run.mark()
         run.wait(seconds)
         tm = run.timing()
+        gate = run.loop.gate
+        yields = (gate.waits, gate.waited_s) if gate is not None else (0, 0.0)
         st = run.service.status()
         ingest = list(run.frames.ingest_ms)
         frames = sum(run.frames.frames_in)
@@ -66,6 +68,8 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         "ingest_ms_p50": round(float(np.median(ingest)), 2) if ingest else None,
         "hold_at_end": st["hold"], "kernel_errors": st["kernel_errors"],
         "scheduling": run.loop.scheduling, "proxy_device": getattr(run.service.batch, "device_kind", None),
+        # frame-thread checkpoints that slept through a tick (kernels/yielding.py), warm-up included
+        "frame_yields": yields[0], "frame_yield_ms": round(yields[1] * 1e3, 1),
     }
 
 

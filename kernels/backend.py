@@ -15,6 +15,7 @@ from .neighbors import Neighbors, check_queries
 from .params import PipelineParams
 from .rig import Rig
 from .snapshot import HostSnapshot
+from .yielding import checkpoint
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,7 @@ class FramePipeline(ABC):
         t0 = time.perf_counter()
         ordered = self.rig.order(frames)
         packed = self.rig.pack(ordered, self.params.lateral_px)  # validates per-frame poses
+        checkpoint()
         n, per_cam = self._build(ordered, packed)
         self.seq += 1
         return IngestInfo(self.seq, n, per_cam, (time.perf_counter() - t0) * 1e3)

@@ -32,6 +32,7 @@ import numpy as np
 from .camera import Camera
 from .errors import InputError
 from .frame import DepthFrame
+from .yielding import checkpoint
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,7 @@ class SelfFilter:
         depth = frame.depth
         out = np.zeros(depth.shape, bool)
         for c in capsules:
+            checkpoint()
             a_c = R.T @ (np.asarray(c.a) - t)
             b_c = R.T @ (np.asarray(c.b) - t)
             reach = c.radius + self.margin

@@ -34,6 +34,7 @@ import time
 from typing import Optional, Sequence
 
 from pointfence.kernels.errors import PointfenceError
+from pointfence.kernels.yielding import checkpoint
 
 
 class PublishGate:
@@ -103,6 +104,7 @@ class _FeedBase:
         return [n for n, a in zip(self.names, self.arrival) if now - a > self.stale_s]
 
     def _ingest(self, frames: list) -> bool:
+        checkpoint()
         with self.ingest_lock:
             return self._ingest_locked(frames)
 

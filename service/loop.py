@@ -27,6 +27,10 @@ over and may wait up to ``tick_switch_s`` to get it back; PoCL's in-thread proxy
 blocking call. ``SCHED_FIFO`` (``rt_priority``) makes the thread wake on time;
 the loop cannot make a thread that holds the lock run, which is why the service lowers the
 priority of the OpenCL worker threads instead (``kernels/opencl/context.lower_pool_priority``).
+A thread that was forced out at the loop's wake-up waits for the lock with the 0.1 ms it found
+and forces the tick out in turn; so while the loop runs in its own thread it also installs a
+``kernels.yielding.Gate`` (``cooperate``): the frame threads' long Python work (self-filter,
+build enqueues) checks it between steps and sleeps through the ticks instead.
 """
 from __future__ import annotations
 
@@ -39,6 +43,8 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+
+from pointfence.kernels import yielding
 
 from .clock import RealClock
 
@@ -75,13 +81,16 @@ class HapticLoop:
 
     def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
                  switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0,
-                 tick_switch_s: float = 0.005):
+                 tick_switch_s: float = 0.005, cooperate: bool = True):
         self.target = target
         self.clock = clock if clock is not None else RealClock()
         self.period = 1.0 / float(rate_hz)
         self.max_lateness = float(max_lateness_s)
         self.switch_interval_s = switch_interval_s
         self.tick_switch_s = float(tick_switch_s)
+        self.cooperate = bool(cooperate)
+        #: the frame threads' gate while the loop runs in its own thread (None otherwise)
+        self.gate: Optional[yielding.Gate] = None
         self._threaded = False
         self.compute = np.zeros(RING)
         self.late = np.zeros(RING)
@@ -113,6 +122,9 @@ class HapticLoop:
             self.t0 = clock.now()
         due = self.t0 + self.k * P
         clock.sleep_until(due)
+        gate = self.gate
+        if gate is not None:
+            gate.busy = True
         if self._threaded:
             sys.setswitchinterval(self.tick_switch_s)
         start = clock.now()
@@ -155,6 +167,9 @@ class HapticLoop:
         self.ticks += 1
         self._k_prev = k
         self.k = k + 1
+        if gate is not None:
+            gate.next_due = self.t0 + self.k * P
+            gate.busy = False
 
     def clear_error(self) -> None:
         self.error = None
@@ -169,10 +184,15 @@ class HapticLoop:
             self._saved_switch = sys.getswitchinterval()
             sys.setswitchinterval(self.switch_interval_s)  # the loop waits less for the GIL
             self._threaded = True
+        if self.cooperate:
+            self.gate = yielding.Gate(now=self.clock.now)
+            yielding.install(self.gate)
         self._thread = threading.Thread(target=self._run, name="pointfence-haptic-loop", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
+        if self.gate is not None:
+            self.gate.owner = threading.get_ident()
         if self.rt_priority > 0:   # SCHED_FIFO for this thread only, where the OS allows it
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
@@ -188,6 +208,10 @@ class HapticLoop:
             self._thread.join(timeout=5.0)
             self._thread = None
         self._threaded = False
+        if self.gate is not None:
+            if yielding.installed() is self.gate:
+                yielding.install(None)
+            self.gate = None
         if self._saved_switch is not None:
             sys.setswitchinterval(self._saved_switch)
             self._saved_switch = None

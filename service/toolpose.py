@@ -23,6 +23,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.selffilter import Capsule, SelfFilter
+from pointfence.kernels.yielding import checkpoint
 
 from .robot.tool import ToolModel, tool_capsules
 
@@ -142,6 +143,7 @@ class ToolFilter:
         caps = []
         for b, r in enumerate(self.robots):
             if r is not None:
+                checkpoint()
                 caps += tool_capsules(r, q[b, : r.dof], self.model)
         if self.box is not None:
             caps = [c for c in (clip_capsule(c, *self.box) for c in caps) if c is not None]

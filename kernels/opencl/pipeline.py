@@ -19,6 +19,7 @@ from ..errors import KernelError
 from ..motion import N_MOMENTS
 from ..neighbors import Neighbors, search_span
 from ..snapshot import HostSnapshot
+from ..yielding import checkpoint
 from .context import _cl, build
 
 LOCAL = 64
@@ -154,6 +155,7 @@ class OpenCLPipeline(FramePipeline):
         events = []   # see the module docstring: dropped only after the blocking read below
         try:
             for i, f in enumerate(frames):
+                checkpoint()
                 off = int(rig.offsets[i])
                 events.append(cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off,
                                               is_blocking=False))
@@ -166,17 +168,20 @@ class OpenCLPipeline(FramePipeline):
             npix, C = np.int32(self.npix), np.int32(self.ncells)
             self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
             for i in range(len(rig)):
+                checkpoint()
                 pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
                 self.k_classify(q, (_round_up(int(cami[1])),), None, self.depth, self.rays, pose, cam, cami,
                                 self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
                                 self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
             self.k_count(q, (_round_up(self.n_runs),), None, self.pix_cell, npix, np.int32(self.per), self.counts, self.pix_rank)
+            checkpoint()
             chunk = np.int32(self.chunk)
             self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, slot.start, self.partial)
             self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), slot.start, C)
             self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
             self.k_scatter(q, (_round_up(self.npix),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
                            slot.start, slot.order)
+            checkpoint()
             self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
             for i in range(len(rig)):
                 cami = rig.ints[i].copy()
