@@ -10,9 +10,10 @@ loop's deadline misses fell while a frame was being ingested (bench/RESULTS.md, 
 Long Python work on a frame thread therefore calls ``checkpoint()`` between its steps (every
 capsule of the self-filter, every stage of a build). While a ``Gate`` is installed (the live
 haptic loop installs its own), a checkpoint reached while a tick runs, or less than
-``guard_s`` before the next one is due, sleeps (without the lock) until the tick is over, for
-at most ``max_wait_s``: the frame thread then spends its Python time in the loop's idle part
-of each period instead of inside the ticks. A checkpoint in the loop's own thread, or with no
+``guard_s`` before the next one is due (0.3 ms: time for one step to finish first; 0.15 ms
+left the loop's lateness p99 at 120-150 us instead of 10-60), sleeps (without the lock) until
+the tick is over, for at most ``max_wait_s``: the frame thread then spends its Python time in
+the loop's idle part of each period instead of inside the ticks. A checkpoint in the loop's own thread, or with no
 gate installed (offline runs, tests, other programs), returns at once.
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ class Gate:
     start (seconds on ``now``'s clock), ``owner`` the real-time thread's ident (its own
     checkpoints never wait). Counts the waits (``waits``) and their total time (``waited_s``)."""
 
-    def __init__(self, now=time.perf_counter, guard_s: float = 150e-6, max_wait_s: float = 0.002,
+    def __init__(self, now=time.perf_counter, guard_s: float = 300e-6, max_wait_s: float = 0.002,
                  poll_s: float = 50e-6):
         self.now = now
         self.guard_s = float(guard_s)

@@ -1,11 +1,13 @@
 """Replay: offline runs are deterministic, a live run's recording replays to the same ticks, and
 the ticks.csv / summary.json formats."""
 import argparse
+import gc
 import json
 
 import numpy as np
 import pytest
 
+from pointfence.kernels import yielding
 from pointfence.service import replay
 from pointfence.service.masters import write_trajectory
 from pointfence.service.record import TICK_COLUMNS, read_ticks_csv
@@ -81,10 +83,15 @@ def test_live_run_recording_replays_to_the_same_forces(tmp_path):
     run.start()
     try:
         run.wait_ticks(400)
+        # the live run's start-up objects are frozen out of garbage collection, and its frame
+        # threads step aside for the loop's ticks (kernels/yielding.py)
+        frozen, gate = gc.get_freeze_count(), yielding.installed()
         run.service.set_architecture("I")
         run.wait_ticks(800)
     finally:
         run.stop()
+    assert frozen > 1000 and gc.get_freeze_count() == 0
+    assert gate is not None and gate.owner is not None and yielding.installed() is None
     svc = run.service
     assert svc.recorder.count > 500 and run.loop.error is None   # (periods skipped on a loaded machine are not ticks)
     # frame threads: SCHED_FIFO below the loop where the loop got it, else left normal
