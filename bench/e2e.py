@@ -10,9 +10,13 @@ datagrams per second (forged tags, replays of earlier states, truncated, oversiz
 bad tag, unknown session; in turn) go to the same port from another socket.
 
 Reports ``rtt_us_p50/p99/max`` (a state's send -> arrival of the first force computed from it),
-``loss_ratio`` (states never answered / states sent), ``feedback_gaps`` (service ticks whose
-feedback never arrived), the service's ``rejected`` counters, its loop timing and the client's
-timing violations. When the link is lost (no feedback for the session timeout: the service or
+``loss_ratio`` (datagrams lost on the link, both ways: states the client sent that the service
+never accepted, plus feedback the service sent that the client never received, over all sent;
+the service's counters are read through its control API at the start and end of the measured
+run), ``unanswered_ratio`` (states whose own sequence no feedback echoed: lost, or accepted in
+the same tick as a newer state of the same device, which the tick used instead:
+``states_superseded``), ``feedback_gaps`` (service ticks whose feedback never arrived), the
+service's ``rejected`` counters, its loop timing and the client's timing violations. When the link is lost (no feedback for the session timeout: the service or
 this process stalled) the client reconnects and ``link_lost`` counts it. Target (2-core CPU,
 loopback): rtt p99 <= 1 ms, zero loss over 60 s.
 """
@@ -28,6 +32,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +111,16 @@ def _attack(sock, addr, client, k: int) -> None:
         pass
 
 
+def _hub_counters(host: str, control_port) -> tuple:
+    """(states accepted, feedback sent) by the service's UDP hub so far; (None, None) without a
+    control API."""
+    if not control_port:
+        return None, None
+    with urllib.request.urlopen(f"http://{host}:{control_port}/status", timeout=10) as r:
+        c = json.load(r)["clients"]
+    return int(c["accepted"]), int(c["feedback_sent"])
+
+
 def run(args) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="pf-e2e-"))
     key_path = tmp / "key"
@@ -166,6 +181,7 @@ def run(args) -> dict:
                        rt_priority=args.client_rt_priority)
         client.stats = type(client.stats)()
         ticks_seen.clear()
+        hub0 = _hub_counters(host, addr.get("control_port"))
         totals = {"sent": 0, "echoed": 0, "feedback": 0, "rejected_in": 0, "rtt": [], "ticks": 0}
         link_lost, timing_errors, lost_msgs = 0, 0, []
         t0 = time.perf_counter()
@@ -197,6 +213,7 @@ def run(args) -> dict:
             if time.perf_counter() - t0 < args.duration - 0.01:
                 client = new_client()
         wall = time.perf_counter() - t0
+        hub1 = _hub_counters(host, addr.get("control_port"))
         attacker.close()
     finally:
         if proc.poll() is None:
@@ -211,6 +228,16 @@ def run(args) -> dict:
     seen = np.unique(np.asarray(ticks_seen))
     gaps = int((seen[-1] - seen[0] + 1) - len(seen)) if len(seen) else None
     udp = service.get("udp", {})
+    sent, echoed, fb_in = totals["sent"], totals["echoed"], totals["feedback"]
+    if hub0[0] is not None and hub1[0] is not None:
+        accepted, fb_out = hub1[0] - hub0[0], hub1[1] - hub0[1]
+        # (a datagram of the warm-up still in flight at the first reading counts once too many)
+        lost_states, lost_fb = max(0, sent - accepted), max(0, fb_out - fb_in)
+        link = {"states_accepted_by_service": accepted, "states_lost": lost_states, "states_superseded": max(0, accepted - echoed),
+                "feedback_sent_by_service": fb_out, "feedback_lost": lost_fb,
+                "loss_ratio": round((lost_states + lost_fb) / (sent + fb_out), 6) if sent + fb_out else None}
+    else:
+        link = {"loss_ratio": None}
     return {
         "duration_s": round(wall, 2), "ticks": totals["ticks"], "states_sent": totals["sent"],
         "states_answered": totals["echoed"],
@@ -220,7 +247,8 @@ def run(args) -> dict:
         # a period more when it arrived after the tick had read the socket
         "answered_tick_after_send_us_p10_p50_p90": [round(float(np.percentile(totals.get("lead") or [math.nan], q)), 1)
                                                     for q in (10, 50, 90)],
-        "loss_ratio": round(1.0 - totals["echoed"] / totals["sent"], 6) if totals["sent"] else None,
+        **link,
+        "unanswered_ratio": round(1.0 - echoed / sent, 6) if sent else None,
         "link_lost": link_lost, "timing_errors": timing_errors, "link_events": lost_msgs[:5],
         "feedback_received": totals["feedback"], "feedback_gaps": gaps, "lead_us": args.lead_us, "spin_us": args.spin_us,
         "client_scheduling": client.scheduling,

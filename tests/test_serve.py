@@ -296,3 +296,20 @@ def test_prerender_cans_the_synthetic_cameras_only(tmp_path):
     serve.add_arguments(p)
     with pytest.raises(InputError, match="--prerender -1; expected a number of frames >= 0"):
         serve.run(p.parse_args(["--prerender", "-1"]))
+
+
+def test_bench_e2e_accounts_for_every_datagram():
+    """`pointfence bench e2e` for 3 s: the service's own counters (read through its control API)
+    account for every state sent, every feedback is counted, the hostile datagrams are all
+    rejected, and the link figures add up."""
+    out = subprocess.run([sys.executable, "-m", "pointfence.cli", "bench", "e2e", "--json", "--duration", "3",
+                          "--attack-hz", "50", "--client-rt-priority", "0"], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["states_sent"] > 2000 and r["link_lost"] == 0
+    assert r["states_accepted_by_service"] >= r["states_sent"] - 2 >= r["states_answered"] - 2
+    assert r["states_lost"] <= 2 and r["loss_ratio"] is not None and r["loss_ratio"] < 0.01
+    assert r["states_answered"] + r["states_superseded"] + r["states_lost"] >= r["states_sent"]
+    assert r["feedback_sent_by_service"] > 2000 and r["feedback_received"] > 2000
+    assert r["rejected_total"] >= r["attacks_sent"] > 100
+    assert 0 < r["rtt_us_p50"] < 100000
