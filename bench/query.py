@@ -171,6 +171,14 @@ def run(args) -> dict:
     tf = time_ticks(hs.step, hips1)
     out["tick_with_forces_us_1proxy_p50"] = round(pct(tf, 50), 2)
     out["tick_with_forces_us_1proxy_p99"] = round(pct(tf, 99), 2)
+    if hasattr(batch, "resident"):   # Warp: whether small batches ran on the resident kernel
+        out["resident_1proxy"] = batch.resident()
+        if batch.resident():   # the same ticks on the launched graph, for comparison
+            lb = hs.pipeline.proxies(spot + 0.02 * o, p, resident=False)
+            tl = time_ticks(lb.step, hips1)
+            out["tick_us_1proxy_launched_p50"] = round(pct(tl, 50), 2)
+            out["tick_us_1proxy_launched_p99"] = round(pct(tl, 99), 2)
+    batch.close()
 
     # steps per second: a 1000-step budget, HIP 3 cm along the surface and 5 mm behind it
     fast = HapticParams(max_steps=1000, turn_back_cos=-1.0)
@@ -185,6 +193,7 @@ def run(args) -> dict:
         far.step(h)
         tt += time.perf_counter() - t0
         steps += int(far.steps[0])
+    far.close()
     out["steps_per_s_1proxy"] = int(steps / tt)
     out["steps_per_tick_in_steps_run_mean"] = round(steps / max(20, n_ticks // 50), 1)
 
@@ -201,6 +210,7 @@ def run(args) -> dict:
             out["proxies_per_s"] = int(B / (pct(tb, 50) * 1e-6))
         if hasattr(pb, "block_dim"):   # Warp: threads per proxy chosen for this batch size
             out.setdefault("threads_per_proxy", {})[str(B)] = pb.block_dim()
+        pb.close()
 
     # peer: cKDTree neighbourhoods + the same algorithm in NumPy
     state, peer_step = ckdtree_peer(pts, tree, p)

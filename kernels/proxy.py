@@ -213,6 +213,16 @@ class ProxyBatch(ABC):
         self.last_dt = self.pipeline.params.motion.tick_dt(self._now, t_snapshot, vmax, self._dt_request)
         return self.last_dt
 
+    def close(self) -> None:
+        """Release what the backend holds between ticks (Warp's resident kernel); the batch can
+        still step afterwards."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     @abstractmethod
     def _upload_positions(self) -> None: ...
 

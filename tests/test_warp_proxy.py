@@ -29,17 +29,20 @@ def brute_normals(snap, X, p):
     return out
 
 
-PATHS = ["working-set", "hash", "copies", "params-skin", "skin-fallback"]
+PATHS = ["working-set", "launched", "hash", "copies", "params-skin", "skin-fallback"]
 
 
 @pytest.fixture(params=PATHS)
 def kernel_path(request, monkeypatch):
-    """Which way the kernel runs: working sets in shared memory (the default), the hash scanned
+    """Which way the kernel runs: working sets in shared memory (the default; on CUDA a batch
+    this small runs on the resident kernel), on CUDA the same launched each tick as a graph
+    ("launched"), the hash scanned
     from global memory (working sets that do not fit: capacity 16 points), on CUDA the graph
     with copies instead of zero-copy host memory (large batches), working sets gathered with
     HapticParams.skin instead of the wider GPU skin, and sets too large with a 10 mm skin for a
     24-point buffer (most of this sparse rig's), gathered again with HapticParams.skin."""
     from pointfence.kernels.warp import proxy as wproxy
+    from pointfence.kernels.warp import resident
 
     if request.param == "hash":
         monkeypatch.setattr(wproxy, "WS_CAPS", ((1 << 62, 16),))
@@ -52,6 +55,11 @@ def kernel_path(request, monkeypatch):
         if not get_backend("warp").device.is_cuda:
             pytest.skip("the copying path exists on CUDA only")
         monkeypatch.setattr(wproxy, "ZERO_COPY_MAX", 0)
+        monkeypatch.setattr(resident, "RESIDENT_MAX", 0)
+    elif request.param == "launched":
+        if not get_backend("warp").device.is_cuda:
+            pytest.skip("the resident kernel exists on CUDA only: every tick is launched on the CPU device")
+        monkeypatch.setattr(resident, "RESIDENT_MAX", 0)
     return request.param
 
 
@@ -73,6 +81,8 @@ def test_warp_proxies_agree_with_reference(mode, kernel_path):
     dev = pipe.proxies(start, p)
     if kernel_path == "copies":
         assert not dev.zero_copy()
+    assert dev.resident() == (kernel_path in ("working-set", "hash", "params-skin", "skin-fallback")
+                              and pipe.device.is_cuda)
     ref = NumpyProxies(pipe, start, p, snapshot=snap)
     h = start.copy()
     states = np.zeros(3, int)
@@ -105,3 +115,96 @@ def test_warp_empty_snapshot_is_free_motion():
     prox.step(np.zeros((3, 3)) + [0, 0.005, 0.8])
     np.testing.assert_allclose(prox.positions[:, 1], 0.005, atol=1e-6)
     assert np.all(prox.states == FREE) and np.all(prox.converged) and np.all(np.isinf(prox.nearest))
+
+
+def _cuda_pipe_and_batch(rng, B=8, **batch_options):
+    if not get_backend("warp").device.is_cuda:
+        pytest.skip("the resident kernel exists on CUDA only")
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
+    start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+    p = HapticParams(max_steps=40)
+    return pipe, frames, snap, start, p, pipe.proxies(start, p, **batch_options)
+
+
+def _agree(dev, ref, h):
+    ref.reset(dev.positions.copy())
+    dev.step(h)
+    ref.step(h)
+    same = np.abs(dev.positions - ref.positions).max(axis=1) <= 1e-5
+    assert same.mean() >= 0.8, (dev.positions, ref.positions)
+    np.testing.assert_array_equal(dev.states[same], ref.states[same])
+
+
+def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
+    """The resident kernel (CUDA): ticks agree with the reference; after IDLE_S without a tick it
+    has left and the next tick launches it again; close() stops it, the batch still steps; a
+    batch resized (reset with another B) gets a new one; a new snapshot is used at once."""
+    import time
+
+    from pointfence.kernels.warp import resident
+
+    rng = np.random.default_rng(5)
+    pipe, frames, snap, start, p, dev = _cuda_pipe_and_batch(rng)
+    assert dev.resident()
+    ref = NumpyProxies(pipe, start, p, snapshot=snap)
+    h = start.copy()
+    for _ in range(10):
+        h = h + rng.normal(0, 0.0015, h.shape) + [0, 0, 0.0008]
+        _agree(dev, ref, h)
+    r = dev._resident
+    assert r.launches == 1 and r.running
+    time.sleep(3 * resident.IDLE_S)
+    assert r.mb_np[resident.wproxy.MB_ALIVE] == 0   # left by itself
+    _agree(dev, ref, h + 0.001)
+    assert r.launches == 2
+    dev.close()
+    assert r.mb_np[resident.wproxy.MB_ALIVE] == 0 and not r.running
+    _agree(dev, ref, h)
+    assert r.launches == 3
+    # another batch size: another kernel (the old one stopped)
+    dev.reset(start[:3])
+    ref = NumpyProxies(pipe, start[:3], p, snapshot=snap)
+    _agree(dev, ref, h[:3])
+    assert dev._resident is not r and r.mb_np[resident.wproxy.MB_ALIVE] == 0 and dev._resident.n == 3
+    # a new snapshot (the other slot, then the first again): the working sets are gathered again
+    for k in range(2):
+        shifted = [type(f)(**{**f.__dict__, "depth": (f.depth.astype(np.int32) - 40 * (k + 1)).clip(0).astype(f.depth.dtype)})
+                   for f in frames]
+        pipe.ingest(shifted)
+        snap2 = pipe.host_snapshot()
+        ref = NumpyProxies(pipe, start[:3], p, snapshot=snap2)
+        _agree(dev, ref, h[:3])
+    dev.close()
+
+
+def test_resident_tick_that_times_out_raises_kernel_error_and_recovers(monkeypatch):
+    """A resident tick not done within TIMEOUT_S raises KernelError (the service holds the
+    robot); the kernel is stopped after that tick, and the next tick runs normally again."""
+    from pointfence.kernels.errors import KernelError
+    from pointfence.kernels.warp import resident
+
+    rng = np.random.default_rng(9)
+    pipe, frames, snap, start, p, dev = _cuda_pipe_and_batch(rng, B=4)
+    h = start + [0, 0, 0.004]
+    dev.step(h)
+    monkeypatch.setattr(resident, "TIMEOUT_S", 1e-9)
+    with pytest.raises(KernelError, match="did not finish tick"):
+        dev.step(h)
+    monkeypatch.setattr(resident, "TIMEOUT_S", 0.25)
+    ref = NumpyProxies(pipe, start, p, snapshot=snap)
+    _agree(dev, ref, h + 0.001)
+    dev.close()
+
+
+def test_resident_mailbox_layout_matches_the_native_code():
+    """The resident kernel's native code and the host's tick use the mailbox's word numbers as
+    literals (a read of a module attribute per word costs the 1 kHz tick): they must stay these."""
+    from pointfence.kernels.warp import proxy as wproxy
+
+    assert (wproxy.MB_SEQ, wproxy.MB_STOP, wproxy.MB_SLOT, wproxy.MB_BUILD, wproxy.MB_DT, wproxy.MB_SPAN,
+            wproxy.MB_GRAD, wproxy.MB_DONE, wproxy.MB_ALIVE) == tuple(range(9))
+    assert wproxy.STAGE_HEAD == 8 and wproxy.MB_WORDS >= 9

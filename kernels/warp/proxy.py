@@ -73,6 +73,13 @@ GATHER_SKIN = float(os.environ.get("POINTFENCE_WARP_SKIN", "1.5e-3"))
 ROWS_CAP = wp.constant(128)
 
 
+def resident_max() -> int:
+    """Largest batch that runs on the resident kernel (kernels/warp/resident.RESIDENT_MAX)."""
+    from . import resident
+
+    return resident.RESIDENT_MAX
+
+
 def block_dim_for(n: int) -> int:
     """Threads per proxy for a batch of ``n`` proxies on CUDA."""
     if BLOCK_DIM:
@@ -252,6 +259,198 @@ def shared4(op: int, k: int, v: wp.vec4) -> wp.vec4:
 """)
 def rows(op: int, r: int, a: int, b: int) -> wp.vec2i:
     """Row r of a gather's row table (first and end index into the sorted points): op 1 writes."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __shared__ int bci[8];
+    if (op == 1) { bci[4 * k] = v[0]; bci[4 * k + 1] = v[1]; bci[4 * k + 2] = v[2]; bci[4 * k + 3] = v[3]; }
+    return wp::vec4i(bci[4 * k], bci[4 * k + 1], bci[4 * k + 2], bci[4 * k + 3]);
+#else
+    static int bci[8];
+    if (op == 1) { bci[4 * k] = v[0]; bci[4 * k + 1] = v[1]; bci[4 * k + 2] = v[2]; bci[4 * k + 3] = v[3]; }
+    return wp::vec4i(bci[4 * k], bci[4 * k + 1], bci[4 * k + 2], bci[4 * k + 3]);
+#endif
+""")
+def sharedi4(op: int, k: int, v: wp.vec4i) -> wp.vec4i:
+    """Slot k (0 or 1) of a small shared integer array: op 1 writes v, op 0 reads."""
+    ...
+
+
+# --- the resident kernel's mailbox (kernels/warp/resident.py) --------------------------------
+
+#: words of the mailbox, an int32 array in pinned host memory: the host writes a tick's
+#: arguments and then its sequence number; the kernel writes DONE (the last tick finished) and
+#: ALIVE (0 once it has left)
+MB_SEQ, MB_STOP, MB_SLOT, MB_BUILD, MB_DT, MB_SPAN, MB_GRAD, MB_DONE, MB_ALIVE = (wp.constant(i) for i in range(9))
+MB_WORDS = 16
+#: staged words of the header (the mailbox's first words) before the positions and HIPs
+STAGE_HEAD = wp.constant(8)
+
+
+@wp.struct
+class SlotArrays:
+    """One snapshot slot's arrays, as the resident kernel picks them by the tick's slot index."""
+
+    spts: wp.array(dtype=wp.vec4)
+    svel: wp.array(dtype=wp.vec4)
+    order: wp.array(dtype=int)
+    start: wp.array(dtype=int)
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    volatile int* m = (volatile int*)mb.data;
+    unsigned long long t0, t;
+    asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t0));
+    for (;;) {
+        const int s = m[0];
+        if (s != last) { __threadfence_system(); return s; }
+        if (m[1] != 0) return -1;
+        asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t));
+        if (t - t0 > (unsigned long long)idle_ns) return -2;
+    }
+#else
+    return -1;
+#endif
+""")
+def mailbox_wait(mb: wp.array(dtype=wp.int32), last: int, idle_ns: int) -> int:
+    """Wait for the host's next tick (a sequence number other than ``last``); -1 when asked to
+    stop, -2 after ``idle_ns`` without a tick."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __threadfence_system();
+    ((volatile int*)mb.data)[i] = v;
+#else
+    mb.data[i] = v;
+#endif
+""")
+def mailbox_put(mb: wp.array(dtype=wp.int32), i: int, v: int):
+    """Write word i of the mailbox (after everything this thread wrote before)."""
+    ...
+
+
+@wp.func_native("""
+    union { int i; float f; } u;
+    u.i = b;
+    return u.f;
+""")
+def bits_float(b: int) -> float:
+    """The float whose bits are b."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __threadfence();
+    ((volatile int*)cmd.data)[0] = s;
+#endif
+""")
+def command_put(cmd: wp.array(dtype=wp.int32), s: int):
+    """Block 0 passes the host's command (a tick's sequence number, or <= 0: leave) to the others."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    volatile int* c = (volatile int*)cmd.data;
+    for (;;) {
+        const int s = c[0];
+        if (s != last) { __threadfence(); return s; }
+        __nanosleep(32);
+    }
+#else
+    return -1;
+#endif
+""")
+def command_wait(cmd: wp.array(dtype=wp.int32), last: int) -> int:
+    """Wait for block 0's next command (other than ``last``)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    // one load a thread, all in flight together: the header words, then the positions, then the HIPs
+    const volatile float* m = (const volatile float*)mb.data;
+    const volatile float* x = (const volatile float*)pos.data;
+    const volatile float* h = (const volatile float*)hips.data;
+    for (int i = lane; i < 8 + 6 * n; i += bd) {   // 8: STAGE_HEAD
+        const volatile float* src = i < 8 ? m + i : (i < 8 + 3 * n ? x + (i - 8) : h + (i - 8 - 3 * n));
+        stage.data[i] = *src;
+    }
+#endif
+""")
+def stage_inputs(mb: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3),
+                 stage: wp.array(dtype=float), n: int, lane: int, bd: int):
+    """Block 0 copies the tick's inputs from host memory into device memory (``stage``): the
+    mailbox's header, then every proxy's position and HIP, the block's threads reading together."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return ((const volatile float*)stage.data)[i];
+#else
+    return stage.data[i];
+#endif
+""")
+def staged(stage: wp.array(dtype=float), i: int) -> float:
+    """Word i of the staged inputs (read past the SM's cache: block 0 wrote it)."""
+    ...
+
+
+@wp.func_native("""
+    union { float f; int i; } u;
+    u.f = f;
+    return u.i;
+""")
+def float_bits(f: float) -> int:
+    """The bits of f."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __threadfence();   // this block's results are in device memory before its count
+    return atomicAdd(&count.data[0], 1) == n - 1 ? 1 : 0;
+#else
+    return 1;
+#endif
+""")
+def count_done(count: wp.array(dtype=wp.int32), n: int) -> int:
+    """Count this block's tick done; 1 for the last of the ``n`` blocks."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    // every proxy's results from device memory to the host arrays, a proxy a thread
+    const volatile float* rx = (const volatile float*)ox.data;
+    const volatile float* rn = (const volatile float*)onrm.data;
+    const volatile float* re = (const volatile float*)one.data;
+    const volatile int* ri = (const volatile int*)oint.data;
+    for (int i = lane; i < n; i += bd) {
+        for (int c = 0; c < 3; ++c) {
+            ((float*)pos.data)[3 * i + c] = rx[3 * i + c];
+            ((float*)nrm_out.data)[3 * i + c] = rn[3 * i + c];
+        }
+        near_out.data[i] = re[i];
+        state_out.data[i] = ri[3 * i];
+        steps_out.data[i] = ri[3 * i + 1];
+        conv_out.data[i] = ri[3 * i + 2] != 0;
+    }
+    __threadfence_system();
+#endif
+""")
+def results_out(ox: wp.array(dtype=wp.vec3), onrm: wp.array(dtype=wp.vec3), one: wp.array(dtype=float),
+                oint: wp.array(dtype=wp.vec3i), n: int, lane: int, bd: int, pos: wp.array(dtype=wp.vec3),
+                nrm_out: wp.array(dtype=wp.vec3), near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
+                steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool)):
+    """The last block copies every proxy's results into the batch's host arrays."""
     ...
 
 
@@ -471,12 +670,13 @@ def in_set(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: flo
     return keep, q
 
 
-def _tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
+def _tick_kernel(cap: int, maxreg: int = 0, bd: int = 1, resident: bool = False):
     """The tick kernel with a shared working set of ``cap`` points, a register cap and ``bd``
     threads a block (a constant of the kernel's code; 1 on Warp's CPU device): one kernel per
-    triple."""
+    triple; ``resident``: its resident form (kernels/warp/resident.py), CUDA only."""
     key = (cap, maxreg, bd)
-    return _KERNELS.get(key) or _KERNELS.setdefault(key, _make_tick_kernel(cap, maxreg, bd))
+    pair = _KERNELS.get(key) or _KERNELS.setdefault(key, _make_tick_kernel(cap, maxreg, bd))
+    return pair[1] if resident else pair[0]
 
 
 _KERNELS: dict = {}
@@ -675,41 +875,19 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
 
     opts = {"cuda_max_registers": maxreg} if maxreg else {}
 
-    @wp.kernel(enable_backward=False, module="unique", **opts)
-    def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
-                   g: GridArgs, a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
-                   svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs), nrm_out: wp.array(dtype=wp.vec3),
-                   near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
-                   steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool)):
-        p, lane = wp.tid()
-        # one thread reads the proxy's inputs (pinned host memory on the zero-copy path) and
-        # shares them with the block
-        if lane == 0:
-            tk = tick[0]
-            x = pos[p]
-            hh = hips[p]
-            shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
-            shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
-            shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
-        block_sync()
-        xv = shared4(0, 0, wp.vec4(0.0))
-        hv = shared4(0, 1, wp.vec4(0.0))
-        tv = shared4(0, 2, wp.vec4(0.0))
-        X = wp.vec3(xv[0], xv[1], xv[2])
-        H = wp.vec3(hv[0], hv[1], hv[2])
-        dt = tv[0]
-        span = int(tv[1])
-        grad = tv[2]
+    @wp.func
+    def run_steps(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+                  start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, H: wp.vec3, span: int,
+                  grad: float, lane: int, wbase: int, X0: wp.vec3, n_ws: int, par: int, skin: float):
+        """One tick's steps of a proxy at X towards H over its working set (gathered around X0:
+        ``n_ws`` points, -1 for the hash path); returns (X, normal, nearest, state, steps,
+        converged, and the working set's X0, n_ws, par, skin for the next tick)."""
         # A step's limit F is at most band / 2 (slack >= 0) and its length at most a.step, so a
         # point with clearance e >= band / 2 + margin + step cannot shorten it: the step reaches
         # that point's swept sphere (radius rho + F + margin) no sooner than e - F - margin >= step
         # >= L. ProxyArgs.rclip adds 1e-4 step and 1 um, which keep float32 rounding of e and of
         # the hit time out of the decision (as kernels/opencl/proxy.cl): the clip scans only each
         # warp's list of the points below rclip (ws_eval) and gets the very same step length.
-        wbase = (lane // WL) * NJ
-        par = int(0)
-        X0 = X
-        n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
         steps = int(0)
         conv = int(0)
         st = int(0)
@@ -833,6 +1011,38 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             X = X + s * u
             steps += 1
 
+        return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
+
+    @wp.kernel(enable_backward=False, module="unique", **opts)
+    def proxy_tick(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
+                   g: GridArgs, a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
+                   svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs), nrm_out: wp.array(dtype=wp.vec3),
+                   near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
+                   steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool)):
+        p, lane = wp.tid()
+        # one thread reads the proxy's inputs (pinned host memory on the zero-copy path) and
+        # shares them with the block
+        if lane == 0:
+            tk = tick[0]
+            x = pos[p]
+            hh = hips[p]
+            shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
+            shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
+            shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
+        block_sync()
+        xv = shared4(0, 0, wp.vec4(0.0))
+        hv = shared4(0, 1, wp.vec4(0.0))
+        tv = shared4(0, 2, wp.vec4(0.0))
+        X = wp.vec3(xv[0], xv[1], xv[2])
+        H = wp.vec3(hv[0], hv[1], hv[2])
+        dt = tv[0]
+        span = int(tv[1])
+        grad = tv[2]
+        wbase = (lane // WL) * NJ
+        X0 = X
+        n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, int(0))
+        X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
+            spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
         if lane == 0:
             pos[p] = X
             nrm_out[p] = nrm
@@ -841,18 +1051,105 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             steps_out[p] = steps
             conv_out[p] = conv != 0
 
-    return proxy_tick
+    @wp.kernel(enable_backward=False, module="unique", **opts)
+    def proxy_resident(slots: wp.array(dtype=SlotArrays), g: GridArgs, a: ProxyArgs, mb: wp.array(dtype=wp.int32),
+                       cmd: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n: int, last0: int,
+                       idle_ns: int, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3),
+                       nrm_out: wp.array(dtype=wp.vec3), near_out: wp.array(dtype=float),
+                       state_out: wp.array(dtype=wp.int32), steps_out: wp.array(dtype=wp.int32),
+                       conv_out: wp.array(dtype=wp.bool), stage: wp.array(dtype=float), ox: wp.array(dtype=wp.vec3),
+                       onrm: wp.array(dtype=wp.vec3), one: wp.array(dtype=float), oint: wp.array(dtype=wp.vec3i)):
+        """The resident form of ``proxy_tick`` (kernels/warp/resident.py): the blocks stay on
+        their SMs and run a tick each time the host posts one in the mailbox ``mb``; a proxy's
+        working set stays in shared memory from tick to tick while it is valid. Host memory is
+        read and written by one block a tick (block 0 stages the inputs in device memory, the
+        last block to finish copies every result out): reads of host memory from many blocks
+        at once queue on the bus."""
+        p, lane = wp.tid()
+        wbase = (lane // WL) * NJ
+        last = last0
+        par = int(0)
+        X0 = wp.vec3(0.0)
+        n_ws = int(-2)      # no working set yet
+        skin = float(0.0)
+        key = wp.vec4i(-1, -1, -1, -1)   # (slot, build, dt bits, span) the set was gathered for
+        while True:
+            s = int(0)
+            if p == 0:   # block 0 alone polls the host and stages the tick; the others follow
+                if lane == 0:
+                    sharedi4(1, 0, wp.vec4i(mailbox_wait(mb, last, idle_ns), 0, 0, 0))
+                block_sync()
+                s = sharedi4(0, 0, wp.vec4i(0))[0]
+                if s > 0:
+                    stage_inputs(mb, pos, hips, stage, n, lane, BD)
+                block_sync()
+                if lane == 0:
+                    command_put(cmd, s)
+            else:
+                if lane == 0:
+                    sharedi4(1, 0, wp.vec4i(command_wait(cmd, last), 0, 0, 0))
+                block_sync()
+                s = sharedi4(0, 0, wp.vec4i(0))[0]
+            if s <= 0:
+                break
+            last = s
+            si = float_bits(staged(stage, MB_SLOT))
+            build = float_bits(staged(stage, MB_BUILD))
+            dtb = float_bits(staged(stage, MB_DT))
+            span = float_bits(staged(stage, MB_SPAN))
+            dt = staged(stage, MB_DT)
+            grad = staged(stage, MB_GRAD)
+            o = STAGE_HEAD + 3 * p
+            X = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
+            o = STAGE_HEAD + 3 * n + 3 * p
+            H = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
+            # (block 0 stages the next tick only after the host has seen this one done, and a
+            # block counts itself done after reductions that every one of its threads reached
+            # with its inputs read: no barrier needed here)
+            k = wp.vec4i(si, build, dtb, span)
+            sl = slots[si]
+            dx = X[0] - X0[0]
+            dy = X[1] - X0[1]
+            dz = X[2] - X0[2]
+            if n_ws == -2 or k[0] != key[0] or k[1] != key[1] or k[2] != key[2] or k[3] != key[3] or dx * dx + dy * dy + dz * dz > skin * skin:
+                X0 = X
+                key = k
+                n_ws, par, skin = gather(sl.spts, sl.svel, dt, sl.order, sl.start, g, a, X0, grad, lane, BD, par)
+            X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
+                sl.spts, sl.svel, dt, sl.order, sl.start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
+            if lane == 0:
+                ox[p] = X
+                onrm[p] = nrm
+                one[p] = min_e
+                oint[p] = wp.vec3i(st, steps, conv)
+                sharedi4(1, 1, wp.vec4i(count_done(count, n), 0, 0, 0))
+            block_sync()
+            if sharedi4(0, 1, wp.vec4i(0))[0] != 0:   # the last block: every result out, then done
+                results_out(ox, onrm, one, oint, n, lane, BD, pos, nrm_out, near_out, state_out, steps_out, conv_out)
+                block_sync()
+                if lane == 0:
+                    count[0] = 0
+                    mailbox_put(mb, MB_DONE, s)
+        if p == 0 and lane == 0:
+            mailbox_put(mb, MB_ALIVE, 0)
+
+    return proxy_tick, proxy_resident
 
 
 class WarpProxies(ProxyBatch):
     """Proxies on a ``WarpPipeline``; create with ``pipeline.proxies(positions, params)``.
 
     The batch's host arrays (``positions``, ``normals``, ...) are pinned memory on CUDA that the
-    tick's graph writes into (directly, or by copies for batches over ``ZERO_COPY_MAX``)."""
+    tick's kernel writes into (directly, or by copies for batches over ``ZERO_COPY_MAX``). On
+    CUDA a batch of up to ``resident.RESIDENT_MAX`` proxies runs its ticks on a resident kernel
+    (kernels/warp/resident.py); ``close()`` lets that kernel go (the next tick brings it back)."""
 
-    def __init__(self, pipeline, positions, params=None, block_dim: int | None = None):
-        """``block_dim``: threads per proxy on CUDA (None: by batch size, ``block_dim_for``)."""
+    def __init__(self, pipeline, positions, params=None, block_dim: int | None = None, resident: bool = True):
+        """``block_dim``: threads per proxy on CUDA (None: by batch size, ``block_dim_for``);
+        ``resident``: whether small batches may run on a resident kernel (CUDA)."""
         self.dev = pipeline.device
+        self._resident_allowed = bool(resident) and self.dev.is_cuda
+        self._resident = None
         self.cuda = self.dev.is_cuda
         if self.cuda and block_dim is not None and (block_dim % 32 or not 32 <= block_dim <= 1024):
             raise ValueError(f"block_dim = {block_dim}; expected a multiple of 32 from 32 to 1024")
@@ -914,6 +1211,8 @@ class WarpProxies(ProxyBatch):
         self._grow(cap)
 
     def _grow(self, cap: int):
+        self.close()   # a resident kernel holds the old arrays
+        self._resident = None
         # zero-copy views of the host arrays, and device arrays for batches that copy
         self._views = {k: self._device_view(a, dt, cap) for k, (a, dt) in self._host.items()}
         if self.cuda:
@@ -931,6 +1230,15 @@ class WarpProxies(ProxyBatch):
             return 1
         return self._block_dim_request or block_dim_for(self.n if n is None else n)
 
+    def resident(self, n: int | None = None) -> bool:
+        """Whether a tick of ``n`` proxies runs on the resident kernel (kernels/warp/resident.py)."""
+        return self._resident_allowed and 0 < (self.n if n is None else n) <= resident_max()
+
+    def close(self) -> None:
+        """Let this batch's resident kernel go (it frees its SMs; the next tick launches it again)."""
+        if self._resident is not None:
+            self._resident.stop()
+
     def zero_copy(self, n: int | None = None) -> bool:
         """Whether a tick of ``n`` proxies reads and writes host memory directly (no copies)."""
         return self.cuda and (self.n if n is None else n) <= ZERO_COPY_MAX
@@ -941,6 +1249,7 @@ class WarpProxies(ProxyBatch):
         tk["span"] = search_span(self.reach + extra, self._h)
         # + 1 um: the float32 rounding of the box's corners (cell_of) cannot drop a point
         tk["grad"] = self.reach + self.skin + extra + 1.0e-6
+        self._tick_vals = (float(tk["dt"]), int(tk["span"]), float(tk["grad"]))   # (for the resident tick)
         self._tick_dt_set = dt
 
     # --- the tick --------------------------------------------------------------------------
@@ -960,6 +1269,14 @@ class WarpProxies(ProxyBatch):
         if self.cuda and not self.zero_copy(n):
             for k in ("positions", "normals", "nearest", "states", "steps", "converged"):
                 wp.copy(self._host[k][0], arr[k], count=n)
+
+    def _new_resident(self, n):
+        from .resident import ResidentTick
+
+        self.close()
+        bd = self.block_dim(n)
+        self._resident = ResidentTick(self, n, _tick_kernel(ws_capacity_for(n), maxreg_for(bd), bd, resident=True), bd)
+        return self._resident
 
     def _capture(self, slot, n):
         """The tick's CUDA graph for snapshot slot ``slot`` and ``n`` proxies (captured once)."""
@@ -995,6 +1312,11 @@ class WarpProxies(ProxyBatch):
                     self._set_tick(0.0, 0.0)
             if not self.cuda:
                 self._record(slot, n)
+            elif self.resident(n):
+                r = self._resident
+                if r is None or r.n != n:
+                    r = self._new_resident(n)
+                r.run(slot, slot.seq, self._tick_vals)
             else:
                 last_slot, last_n, graph = self._last
                 if last_slot is not slot or last_n != n:

@@ -1,0 +1,164 @@
+"""The resident tick: for small batches on CUDA, the proxy kernel stays on the GPU between ticks.
+
+A CUDA graph launch and the wait for it cost about 10 us on an H100 (``bench floor``), and a
+launched kernel starts with empty shared memory, so every tick also gathers each proxy's working
+set again. For a batch of up to ``RESIDENT_MAX`` proxies the tick kernel can instead be launched
+once and stay: one block a proxy sits on its SM and waits for ticks.
+
+The host and the kernel talk through a mailbox, a few int32 words in pinned host memory
+(``proxy.MB_*``). A tick: the host writes the HIPs and positions into the batch's pinned arrays
+and the tick's arguments (snapshot slot, its build number, dt, search span, gather radius) into
+the mailbox, then the tick's sequence number (x86 keeps the order of these stores); block 0 of
+the kernel polls the sequence number (a read over the bus about every microsecond), copies the
+header and every proxy's position and HIP into device memory with all its threads at once and
+passes the command to the other blocks through device memory; every block runs its proxy's tick
+as ``proxy_tick`` does and counts itself done; the last block copies every result into the
+pinned arrays and writes the sequence number into ``MB_DONE``, which the host spins on. Only
+one block a tick touches host memory: reads of host memory by many blocks queue on the bus
+(the first version, each block reading its own inputs, took 5.5 us more a proxy: 351 us a tick
+for 64 proxies). A proxy keeps its
+working set in shared memory from tick to tick while the snapshot (slot and build), dt, the
+search span are unchanged and it stays within its skin of where the set was gathered; results do
+not depend on the working set (kernels/warp/proxy.py), so a resident tick moves a proxy as a
+launched one does, up to the order of float sums.
+
+Safety and lifetime:
+* the host waits at most ``timeout_s`` for a tick (``KernelError`` then: the service holds the
+  robot); a GPU fault ends the kernel and the host's wait times out the same way;
+* the kernel leaves by itself after ``idle_s`` without a tick (a stalled or stopped loop does not
+  keep SMs spinning, and a host call that waits for the whole device is held up at most that
+  long), and when the host sets ``MB_STOP`` (``stop``: batch closed, resized or collected); the
+  next tick launches it again;
+* a process that ends takes its kernels with it (the driver tears the context down).
+
+The blocks must all be on the GPU at once (they wait for block 0's commands), so only batches of
+at most ``RESIDENT_MAX`` proxies run this way, which leaves most SMs to the frame builds; larger
+batches use the launched graph.
+"""
+from __future__ import annotations
+
+import os
+import time
+import weakref
+
+import numpy as np
+import warp as wp
+
+from ..errors import KernelError
+from . import proxy as wproxy
+
+#: largest batch that runs resident (POINTFENCE_WARP_RESIDENT_MAX; 0: never)
+RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "64"))
+#: the kernel leaves after this long without a tick (s)
+IDLE_S = 0.1
+#: a tick not done after this long is a failure (s)
+TIMEOUT_S = 0.25
+
+
+def _stop(mb_np, timeout_s=1.0) -> bool:
+    """Ask a resident kernel to leave and wait (bounded) until it has; whether it has. Only the
+    mailbox is read: no CUDA call, so this may run at any time (a finalizer during another
+    thread's graph capture, where a stream query would break the capture)."""
+    mb_np[wproxy.MB_STOP] = 1
+    t_end = time.perf_counter() + timeout_s
+    while mb_np[wproxy.MB_ALIVE] != 0:
+        if time.perf_counter() > t_end:
+            return False
+        time.sleep(2e-5)
+    return True
+
+
+class ResidentTick:
+    """One resident tick kernel for ``n`` proxies of a ``WarpProxies`` batch (see the module
+    docstring): ``run`` does one tick, ``stop`` lets the kernel go."""
+
+    def __init__(self, batch, n: int, kernel, bd: int):
+        dev = batch.dev
+        self.batch, self.n, self.kernel, self.bd, self.dev = batch, n, kernel, bd, dev
+        self.stream = wp.Stream(dev)
+        self.mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
+        self.mb_np = self.mb.numpy()
+        self.mb_f = self.mb_np.view(np.float32)
+        self.mb_dev = wp.array(ptr=self.mb.ptr, dtype=wp.int32, shape=wproxy.MB_WORDS, device=dev)
+        self.cmd = wp.zeros(1, dtype=wp.int32, device=dev)
+        self.count = wp.zeros(1, dtype=wp.int32, device=dev)
+        # the tick's inputs staged in device memory by block 0, the results before they go out
+        self.stage = wp.zeros(wproxy.STAGE_HEAD + 6 * n, dtype=float, device=dev)
+        self.out = [wp.zeros(n, dtype=dt, device=dev) for dt in (wp.vec3, wp.vec3, float, wp.vec3i)]
+        sl = []
+        for s in batch.pipeline.buffers.slots:
+            a = wproxy.SlotArrays()
+            a.spts, a.svel, a.order, a.start = s.sorted_pts, s.sorted_vel, s.order, s.start
+            sl.append(a)
+        self.slots = wp.array(sl, dtype=wproxy.SlotArrays, device=dev)
+        self.slot_index = {id(s): i for i, s in enumerate(batch.pipeline.buffers.slots)}
+        self.seq = 0
+        self.launches = 0
+        self.running = False
+        self.hung = False
+        self._fin = weakref.finalize(self, _stop, self.mb_np)
+
+    def _launch(self):
+        b = self.batch
+        v = b._views
+        self.mb_np[wproxy.MB_STOP] = 0
+        self.mb_np[wproxy.MB_ALIVE] = 1
+        with wp.ScopedStream(self.stream):
+            self.cmd.fill_(self.seq)
+            self.count.zero_()
+        wp.launch_tiled(self.kernel, dim=[self.n], block_dim=self.bd, device=self.dev, stream=self.stream,
+                        inputs=[self.slots, b.pipeline.grid_args, b.args, self.mb_dev, self.cmd, self.count, self.n,
+                                self.seq, int(IDLE_S * 1e9), v["positions"], v["hips"], v["normals"], v["nearest"],
+                                v["states"], v["steps"], v["converged"], self.stage, *self.out])
+        self.launches += 1
+        self.running = True
+
+    def run(self, slot, build: int, tick) -> None:
+        """One tick on snapshot ``slot`` (its build number ``build``) with the tick's arguments
+        ``tick`` (dt s, span cells, gather radius m); the HIPs and positions are in the batch's
+        pinned arrays. Returns when every proxy's results are there."""
+        mb, mf = self.mb_np, self.mb_f
+        if self.hung:
+            if mb[wproxy.MB_ALIVE] != 0:
+                raise KernelError("the resident Warp proxy kernel is still busy with a tick that timed out; close the batch")
+            self.hung = self.running = False
+        if not self.running or mb[wproxy.MB_ALIVE] == 0:
+            self._relaunch()
+        mb[2] = self.slot_index[id(slot)]   # MB_SLOT .. MB_GRAD (proxy.py)
+        mb[3] = build
+        mf[4] = tick[0]
+        mb[5] = tick[1]
+        mf[6] = tick[2]
+        seq = self.seq = self.seq % 0x7FFFFFF0 + 1
+        mb[0] = seq   # MB_SEQ, last: the kernel reads the words above once it sees it
+        deadline = None
+        while mb[7] != seq:   # MB_DONE
+            if mb[wproxy.MB_ALIVE] == 0:
+                # it left (idle) as this tick was posted, before taking it: again, from seq - 1
+                self.seq = seq - 1
+                self._relaunch()
+                self.seq = seq
+            if deadline is None:
+                deadline = time.perf_counter() + TIMEOUT_S
+            elif time.perf_counter() > deadline:
+                self._give_up(seq)
+
+    def _give_up(self, seq):
+        """A tick that did not finish in time: stop the kernel (it leaves after the tick it is in)
+        and report it; the next tick launches it again, or fails at once while it has not left."""
+        self.hung = not _stop(self.mb_np)
+        self.running = self.hung
+        raise KernelError(f"the resident Warp proxy kernel did not finish tick {seq} within {TIMEOUT_S * 1e3:.1f} ms "
+                          f"on {self.batch.pipeline.backend.device_name}"
+                          + ("; it has not left either (GPU hung?): close the batch" if self.hung else ""))
+
+    def _relaunch(self):
+        if self.running:
+            _stop(self.mb_np)
+        self._launch()
+
+    def stop(self) -> None:
+        """Let the kernel go (it is launched again by the next ``run``)."""
+        if self.running:
+            _stop(self.mb_np)
+            self.running = False
