@@ -46,6 +46,7 @@ def _tick_p99(pipeline, pts, cams, B, ticks, p, seed=0):
         ts = time_ticks(batch.step, hips, warm=50)
         p99.append(pct(ts, 99))
         p50.append(pct(ts, 50))
+    batch.close()
     return float(np.median(p99)), float(np.median(p50))
 
 

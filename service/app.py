@@ -195,6 +195,8 @@ class Service:
                         xr[b] = reg[b]
         self.teleop.start(self.dev, xr)
         self.xr[:] = self.teleop.cmd
+        if self.batch is not None:
+            self.batch.close()
         self.batch = self.pipeline.proxies(self.teleop.hip, self.params)
         self.renderer.reset()
         self._haptics_running = self.haptics_on
@@ -209,6 +211,7 @@ class Service:
         probe = self.pipeline.proxies(self.teleop.hip, self.params)
         with self.gate.lock:
             probe.step(self.teleop.hip)
+        probe.close()
 
     # --- control (any thread; applied at the start of the next tick) ----------------------------
     def set_architecture(self, architecture) -> None:
@@ -480,6 +483,8 @@ class Service:
             rec.rows[rec.count - 1, C["tick_us"]] = us
 
     def close(self) -> None:
+        if self.batch is not None:
+            self.batch.close()   # (Warp: lets a resident proxy kernel go)
         if self.feeder is not None:
             stop = getattr(self.feeder, "stop", None)
             if stop is not None:

@@ -411,6 +411,8 @@ class Controller:
             except ControlError:
                 feeder.swap_pipeline(old)       # back to the pipeline the ticks still query
                 raise
+            if res["old"][2] is not None:
+                res["old"][2].close()           # (Warp: the old batch's resident kernel goes)
             del res["old"]                      # the old pipeline is released here, not in a tick
             self.reconfigurations += 1
             return {"changed": True, "applied_before_tick": res["tick"], "fixture": self.fixture_config()}
