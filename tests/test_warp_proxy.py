@@ -140,9 +140,10 @@ def _agree(dev, ref, h):
 
 
 def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
-    """The resident kernel (CUDA): ticks agree with the reference; after IDLE_S without a tick it
-    has left and the next tick launches it again; close() stops it, the batch still steps; a
-    batch resized (reset with another B) gets a new one; a new snapshot is used at once."""
+    """The resident kernels (CUDA, one per snapshot slot): ticks agree with the reference; after
+    IDLE_S without a tick a kernel has left and the next tick launches it again; close() stops
+    it, the batch still steps; a batch resized (reset with another B) gets a new one; a new
+    snapshot (the other slot, then the first rebuilt) is used at once."""
     import time
 
     from pointfence.kernels.warp import resident
@@ -155,7 +156,7 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
     for _ in range(10):
         h = h + rng.normal(0, 0.0015, h.shape) + [0, 0, 0.0008]
         _agree(dev, ref, h)
-    r = dev._resident
+    r = dev._resident[pipe.buffers.front_index]   # one resident kernel per snapshot slot
     assert r.launches == 1 and r.running
     time.sleep(3 * resident.IDLE_S)
     assert r.mb_np[resident.wproxy.MB_ALIVE] == 0   # left by itself
@@ -169,7 +170,8 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
     dev.reset(start[:3])
     ref = NumpyProxies(pipe, start[:3], p, snapshot=snap)
     _agree(dev, ref, h[:3])
-    assert dev._resident is not r and r.mb_np[resident.wproxy.MB_ALIVE] == 0 and dev._resident.n == 3
+    r3 = dev._resident[pipe.buffers.front_index]
+    assert r3 is not r and r.mb_np[resident.wproxy.MB_ALIVE] == 0 and r3.n == 3
     # a new snapshot (the other slot, then the first again): the working sets are gathered again
     for k in range(2):
         shifted = [type(f)(**{**f.__dict__, "depth": (f.depth.astype(np.int32) - 40 * (k + 1)).clip(0).astype(f.depth.dtype)})
@@ -178,7 +180,10 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
         snap2 = pipe.host_snapshot()
         ref = NumpyProxies(pipe, start[:3], p, snapshot=snap2)
         _agree(dev, ref, h[:3])
+        assert dev._resident[pipe.buffers.front_index].slot is pipe.buffers.slots[pipe.buffers.front_index]
+    assert all(r is not None and r.running for r in dev._resident)   # both slots' kernels ran
     dev.close()
+    assert not any(r.running for r in dev._resident)
 
 
 def test_resident_tick_that_times_out_raises_kernel_error_and_recovers(monkeypatch):

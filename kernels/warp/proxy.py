@@ -75,9 +75,7 @@ ROWS_CAP = wp.constant(128)
 
 def resident_max() -> int:
     """Largest batch that runs on the resident kernel (kernels/warp/resident.RESIDENT_MAX)."""
-    from . import resident
-
-    return resident.RESIDENT_MAX
+    return _resident_mod.RESIDENT_MAX
 
 
 def block_dim_for(n: int) -> int:
@@ -264,17 +262,17 @@ def rows(op: int, r: int, a: int, b: int) -> wp.vec2i:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    __shared__ int bci[8];
+    __shared__ int bci[12];
     if (op == 1) { bci[4 * k] = v[0]; bci[4 * k + 1] = v[1]; bci[4 * k + 2] = v[2]; bci[4 * k + 3] = v[3]; }
     return wp::vec4i(bci[4 * k], bci[4 * k + 1], bci[4 * k + 2], bci[4 * k + 3]);
 #else
-    static int bci[8];
+    static int bci[12];
     if (op == 1) { bci[4 * k] = v[0]; bci[4 * k + 1] = v[1]; bci[4 * k + 2] = v[2]; bci[4 * k + 3] = v[3]; }
     return wp::vec4i(bci[4 * k], bci[4 * k + 1], bci[4 * k + 2], bci[4 * k + 3]);
 #endif
 """)
 def sharedi4(op: int, k: int, v: wp.vec4i) -> wp.vec4i:
-    """Slot k (0 or 1) of a small shared integer array: op 1 writes v, op 0 reads."""
+    """Slot k (0 to 2) of a small shared integer array: op 1 writes v, op 0 reads."""
     ...
 
 
@@ -282,21 +280,11 @@ def sharedi4(op: int, k: int, v: wp.vec4i) -> wp.vec4i:
 
 #: words of the mailbox, an int32 array in pinned host memory: the host writes a tick's
 #: arguments and then its sequence number; the kernel writes DONE (the last tick finished) and
-#: ALIVE (0 once it has left)
+#: ALIVE (0 once it has left). SLOT is not used (one kernel a snapshot slot).
 MB_SEQ, MB_STOP, MB_SLOT, MB_BUILD, MB_DT, MB_SPAN, MB_GRAD, MB_DONE, MB_ALIVE = (wp.constant(i) for i in range(9))
 MB_WORDS = 16
 #: staged words of the header (the mailbox's first words) before the positions and HIPs
 STAGE_HEAD = wp.constant(8)
-
-
-@wp.struct
-class SlotArrays:
-    """One snapshot slot's arrays, as the resident kernel picks them by the tick's slot index."""
-
-    spts: wp.array(dtype=wp.vec4)
-    svel: wp.array(dtype=wp.vec4)
-    order: wp.array(dtype=int)
-    start: wp.array(dtype=int)
 
 
 @wp.func_native("""
@@ -331,6 +319,18 @@ def mailbox_wait(mb: wp.array(dtype=wp.int32), last: int, idle_ns: int) -> int:
 """)
 def mailbox_put(mb: wp.array(dtype=wp.int32), i: int, v: int):
     """Write word i of the mailbox (after everything this thread wrote before)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    ((volatile int*)mb.data)[i] = v;
+#else
+    mb.data[i] = v;
+#endif
+""")
+def mailbox_set(mb: wp.array(dtype=wp.int32), i: int, v: int):
+    """Write word i of the mailbox (no fence: what must reach the host first was fenced)."""
     ...
 
 
@@ -416,7 +416,8 @@ def float_bits(f: float) -> int:
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
     __threadfence();   // this block's results are in device memory before its count
-    return atomicAdd(&count.data[0], 1) == n - 1 ? 1 : 0;
+    // counts 0 .. n - 1 and wraps to 0 by itself: no reset, and no overflow in a long run
+    return atomicInc((unsigned int*)count.data, (unsigned int)(n - 1)) == (unsigned int)(n - 1) ? 1 : 0;
 #else
     return 1;
 #endif
@@ -1052,32 +1053,37 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             conv_out[p] = conv != 0
 
     @wp.kernel(enable_backward=False, module="unique", **opts)
-    def proxy_resident(slots: wp.array(dtype=SlotArrays), g: GridArgs, a: ProxyArgs, mb: wp.array(dtype=wp.int32),
+    def proxy_resident(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
+                       svel: wp.array(dtype=wp.vec4), g: GridArgs, a: ProxyArgs, mb: wp.array(dtype=wp.int32),
                        cmd: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n: int, last0: int,
                        idle_ns: int, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3),
                        nrm_out: wp.array(dtype=wp.vec3), near_out: wp.array(dtype=float),
                        state_out: wp.array(dtype=wp.int32), steps_out: wp.array(dtype=wp.int32),
                        conv_out: wp.array(dtype=wp.bool), stage: wp.array(dtype=float), ox: wp.array(dtype=wp.vec3),
                        onrm: wp.array(dtype=wp.vec3), one: wp.array(dtype=float), oint: wp.array(dtype=wp.vec3i)):
-        """The resident form of ``proxy_tick`` (kernels/warp/resident.py): the blocks stay on
-        their SMs and run a tick each time the host posts one in the mailbox ``mb``; a proxy's
-        working set stays in shared memory from tick to tick while it is valid. Host memory is
-        read and written by one block a tick (block 0 stages the inputs in device memory, the
-        last block to finish copies every result out): reads of host memory from many blocks
-        at once queue on the bus."""
+        """The resident form of ``proxy_tick`` on one snapshot slot (kernels/warp/resident.py):
+        the blocks stay on their SMs and run a tick each time the host posts one in the mailbox
+        ``mb``; a proxy's working set stays in shared memory from tick to tick while it is valid.
+        Host memory is read and written by one block a tick (block 0 stages the inputs in device
+        memory, the last block to finish copies every result out): reads of host memory from
+        many blocks at once queue on the bus. The slot's arrays are kernel parameters and the
+        tick-to-tick bookkeeping lives in shared memory, so that the step loop has the registers
+        of ``proxy_tick``'s."""
         p, lane = wp.tid()
         wbase = (lane // WL) * NJ
-        last = last0
         par = int(0)
         X0 = wp.vec3(0.0)
         n_ws = int(-2)      # no working set yet
         skin = float(0.0)
-        key = wp.vec4i(-1, -1, -1, -1)   # (slot, build, dt bits, span) the set was gathered for
+        if lane == 0:
+            # (build, dt bits, span) the set was gathered for, and the last tick's number
+            sharedi4(1, 2, wp.vec4i(-1, -1, -1, last0))
+        block_sync()
         while True:
             s = int(0)
             if p == 0:   # block 0 alone polls the host and stages the tick; the others follow
                 if lane == 0:
-                    sharedi4(1, 0, wp.vec4i(mailbox_wait(mb, last, idle_ns), 0, 0, 0))
+                    sharedi4(1, 0, wp.vec4i(mailbox_wait(mb, sharedi4(0, 2, wp.vec4i(0))[3], idle_ns), 0, 0, 0))
                 block_sync()
                 s = sharedi4(0, 0, wp.vec4i(0))[0]
                 if s > 0:
@@ -1087,13 +1093,11 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                     command_put(cmd, s)
             else:
                 if lane == 0:
-                    sharedi4(1, 0, wp.vec4i(command_wait(cmd, last), 0, 0, 0))
+                    sharedi4(1, 0, wp.vec4i(command_wait(cmd, sharedi4(0, 2, wp.vec4i(0))[3]), 0, 0, 0))
                 block_sync()
                 s = sharedi4(0, 0, wp.vec4i(0))[0]
             if s <= 0:
                 break
-            last = s
-            si = float_bits(staged(stage, MB_SLOT))
             build = float_bits(staged(stage, MB_BUILD))
             dtb = float_bits(staged(stage, MB_DT))
             span = float_bits(staged(stage, MB_SPAN))
@@ -1103,20 +1107,22 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             X = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
             o = STAGE_HEAD + 3 * n + 3 * p
             H = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
-            # (block 0 stages the next tick only after the host has seen this one done, and a
-            # block counts itself done after reductions that every one of its threads reached
-            # with its inputs read: no barrier needed here)
-            k = wp.vec4i(si, build, dtb, span)
-            sl = slots[si]
+            kk = sharedi4(0, 2, wp.vec4i(0))
             dx = X[0] - X0[0]
             dy = X[1] - X0[1]
             dz = X[2] - X0[2]
-            if n_ws == -2 or k[0] != key[0] or k[1] != key[1] or k[2] != key[2] or k[3] != key[3] or dx * dx + dy * dy + dz * dz > skin * skin:
+            fresh = n_ws == -2 or build != kk[0] or dtb != kk[1] or span != kk[2] or dx * dx + dy * dy + dz * dz > skin * skin
+            block_sync()   # every thread has read the bookkeeping before lane 0 updates it
+            if lane == 0:
+                sharedi4(1, 2, wp.vec4i(build, dtb, span, s))
+            # (block 0 stages the next tick only after the host has seen this one done, and a
+            # block counts itself done after reductions that every one of its threads reached
+            # with its inputs read)
+            if fresh:
                 X0 = X
-                key = k
-                n_ws, par, skin = gather(sl.spts, sl.svel, dt, sl.order, sl.start, g, a, X0, grad, lane, BD, par)
+                n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
             X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
-                sl.spts, sl.svel, dt, sl.order, sl.start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
+                spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
             if lane == 0:
                 ox[p] = X
                 onrm[p] = nrm
@@ -1126,10 +1132,9 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             block_sync()
             if sharedi4(0, 1, wp.vec4i(0))[0] != 0:   # the last block: every result out, then done
                 results_out(ox, onrm, one, oint, n, lane, BD, pos, nrm_out, near_out, state_out, steps_out, conv_out)
-                block_sync()
+                block_sync()   # (every thread fenced its results out to the host before it)
                 if lane == 0:
-                    count[0] = 0
-                    mailbox_put(mb, MB_DONE, s)
+                    mailbox_set(mb, MB_DONE, sharedi4(0, 2, wp.vec4i(0))[3])
         if p == 0 and lane == 0:
             mailbox_put(mb, MB_ALIVE, 0)
 
@@ -1141,15 +1146,15 @@ class WarpProxies(ProxyBatch):
 
     The batch's host arrays (``positions``, ``normals``, ...) are pinned memory on CUDA that the
     tick's kernel writes into (directly, or by copies for batches over ``ZERO_COPY_MAX``). On
-    CUDA a batch of up to ``resident.RESIDENT_MAX`` proxies runs its ticks on a resident kernel
-    (kernels/warp/resident.py); ``close()`` lets that kernel go (the next tick brings it back)."""
+    CUDA a batch of up to ``resident.RESIDENT_MAX`` proxies runs its ticks on resident kernels
+    (kernels/warp/resident.py); ``close()`` lets them go (the next tick brings one back)."""
 
     def __init__(self, pipeline, positions, params=None, block_dim: int | None = None, resident: bool = True):
         """``block_dim``: threads per proxy on CUDA (None: by batch size, ``block_dim_for``);
         ``resident``: whether small batches may run on a resident kernel (CUDA)."""
         self.dev = pipeline.device
         self._resident_allowed = bool(resident) and self.dev.is_cuda
-        self._resident = None
+        self._resident = [None, None]   # one resident kernel per snapshot slot
         self.cuda = self.dev.is_cuda
         if self.cuda and block_dim is not None and (block_dim % 32 or not 32 <= block_dim <= 1024):
             raise ValueError(f"block_dim = {block_dim}; expected a multiple of 32 from 32 to 1024")
@@ -1212,7 +1217,7 @@ class WarpProxies(ProxyBatch):
 
     def _grow(self, cap: int):
         self.close()   # a resident kernel holds the old arrays
-        self._resident = None
+        self._resident = [None, None]
         # zero-copy views of the host arrays, and device arrays for batches that copy
         self._views = {k: self._device_view(a, dt, cap) for k, (a, dt) in self._host.items()}
         if self.cuda:
@@ -1235,9 +1240,11 @@ class WarpProxies(ProxyBatch):
         return self._resident_allowed and 0 < (self.n if n is None else n) <= resident_max()
 
     def close(self) -> None:
-        """Let this batch's resident kernel go (it frees its SMs; the next tick launches it again)."""
-        if self._resident is not None:
-            self._resident.stop()
+        """Let this batch's resident kernels go (they free their SMs; the next tick launches
+        the one it needs again)."""
+        for r in self._resident:
+            if r is not None:
+                r.stop()
 
     def zero_copy(self, n: int | None = None) -> bool:
         """Whether a tick of ``n`` proxies reads and writes host memory directly (no copies)."""
@@ -1270,13 +1277,17 @@ class WarpProxies(ProxyBatch):
             for k in ("positions", "normals", "nearest", "states", "steps", "converged"):
                 wp.copy(self._host[k][0], arr[k], count=n)
 
-    def _new_resident(self, n):
-        from .resident import ResidentTick
-
-        self.close()
+    def _new_resident(self, n, i):
+        """The resident kernel of ``n`` proxies on snapshot slot ``i`` (the other slot's is
+        stopped if its size differs)."""
+        for j, r in enumerate(self._resident):
+            if r is not None and (j == i or r.n != n):
+                r.stop()
+                self._resident[j] = None
         bd = self.block_dim(n)
-        self._resident = ResidentTick(self, n, _tick_kernel(ws_capacity_for(n), maxreg_for(bd), bd, resident=True), bd)
-        return self._resident
+        kernel = _tick_kernel(ws_capacity_for(n), maxreg_for(bd), bd, resident=True)
+        self._resident[i] = _resident_mod.ResidentTick(self, n, kernel, bd, self.pipeline.buffers.slots[i])
+        return self._resident[i]
 
     def _capture(self, slot, n):
         """The tick's CUDA graph for snapshot slot ``slot`` and ``n`` proxies (captured once)."""
@@ -1313,10 +1324,10 @@ class WarpProxies(ProxyBatch):
             if not self.cuda:
                 self._record(slot, n)
             elif self.resident(n):
-                r = self._resident
+                r = self._resident[i]
                 if r is None or r.n != n:
-                    r = self._new_resident(n)
-                r.run(slot, slot.seq, self._tick_vals)
+                    r = self._new_resident(n, i)
+                r.run(slot.seq, self._tick_vals)
             else:
                 last_slot, last_n, graph = self._last
                 if last_slot is not slot or last_n != n:
@@ -1330,3 +1341,6 @@ class WarpProxies(ProxyBatch):
             with cv:
                 buf._readers[i] -= 1
                 cv.notify_all()
+
+
+from . import resident as _resident_mod  # noqa: E402  (resident.py imports this module)

@@ -6,9 +6,15 @@ set again. For a batch of up to ``RESIDENT_MAX`` proxies the tick kernel can ins
 once and stay: one block a proxy sits on its SM and waits for ticks.
 
 The host and the kernel talk through a mailbox, a few int32 words in pinned host memory
-(``proxy.MB_*``). A tick: the host writes the HIPs and positions into the batch's pinned arrays
-and the tick's arguments (snapshot slot, its build number, dt, search span, gather radius) into
-the mailbox, then the tick's sequence number (x86 keeps the order of these stores); block 0 of
+(``proxy.MB_*``). There is one resident kernel per snapshot slot, with the slot's arrays as kernel parameters:
+a first version picked the slot's arrays per tick from a device array of structs, and those
+arrays' pointers and strides, held in registers through the step loop, cost it a third of its
+speed (300k steps/s against the launched kernel's 470k on an H100). Two kernels of a batch of
+up to ``RESIDENT_MAX`` proxies take at most 64 of the GPU's SMs.
+
+A tick: the host writes the HIPs and positions into the batch's pinned arrays
+and the tick's arguments (the slot's build number, dt, search span, gather radius) into
+the mailbox of the front slot's kernel, then the tick's sequence number (x86 keeps the order of these stores); block 0 of
 the kernel polls the sequence number (a read over the bus about every microsecond), copies the
 header and every proxy's position and HIP into device memory with all its threads at once and
 passes the command to the other blocks through device memory; every block runs its proxy's tick
@@ -17,7 +23,7 @@ pinned arrays and writes the sequence number into ``MB_DONE``, which the host sp
 one block a tick touches host memory: reads of host memory by many blocks queue on the bus
 (the first version, each block reading its own inputs, took 5.5 us more a proxy: 351 us a tick
 for 64 proxies). A proxy keeps its
-working set in shared memory from tick to tick while the snapshot (slot and build), dt, the
+working set in shared memory from tick to tick while the snapshot (the slot's build), dt, the
 search span are unchanged and it stays within its skin of where the set was gathered; results do
 not depend on the working set (kernels/warp/proxy.py), so a resident tick moves a proxy as a
 launched one does, up to the order of float sums.
@@ -32,8 +38,8 @@ Safety and lifetime:
 * a process that ends takes its kernels with it (the driver tears the context down).
 
 The blocks must all be on the GPU at once (they wait for block 0's commands), so only batches of
-at most ``RESIDENT_MAX`` proxies run this way, which leaves most SMs to the frame builds; larger
-batches use the launched graph.
+at most ``RESIDENT_MAX`` proxies run this way (two kernels, one block a proxy and an SM a block),
+which leaves the other SMs to the frame builds; larger batches use the launched graph.
 """
 from __future__ import annotations
 
@@ -48,7 +54,7 @@ from ..errors import KernelError
 from . import proxy as wproxy
 
 #: largest batch that runs resident (POINTFENCE_WARP_RESIDENT_MAX; 0: never)
-RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "64"))
+RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "32"))
 #: the kernel leaves after this long without a tick (s)
 IDLE_S = 0.1
 #: a tick not done after this long is a failure (s)
@@ -72,8 +78,9 @@ class ResidentTick:
     """One resident tick kernel for ``n`` proxies of a ``WarpProxies`` batch (see the module
     docstring): ``run`` does one tick, ``stop`` lets the kernel go."""
 
-    def __init__(self, batch, n: int, kernel, bd: int):
+    def __init__(self, batch, n: int, kernel, bd: int, slot):
         dev = batch.dev
+        self.slot = slot
         self.batch, self.n, self.kernel, self.bd, self.dev = batch, n, kernel, bd, dev
         self.stream = wp.Stream(dev)
         self.mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
@@ -85,13 +92,6 @@ class ResidentTick:
         # the tick's inputs staged in device memory by block 0, the results before they go out
         self.stage = wp.zeros(wproxy.STAGE_HEAD + 6 * n, dtype=float, device=dev)
         self.out = [wp.zeros(n, dtype=dt, device=dev) for dt in (wp.vec3, wp.vec3, float, wp.vec3i)]
-        sl = []
-        for s in batch.pipeline.buffers.slots:
-            a = wproxy.SlotArrays()
-            a.spts, a.svel, a.order, a.start = s.sorted_pts, s.sorted_vel, s.order, s.start
-            sl.append(a)
-        self.slots = wp.array(sl, dtype=wproxy.SlotArrays, device=dev)
-        self.slot_index = {id(s): i for i, s in enumerate(batch.pipeline.buffers.slots)}
         self.seq = 0
         self.launches = 0
         self.running = False
@@ -106,17 +106,19 @@ class ResidentTick:
         with wp.ScopedStream(self.stream):
             self.cmd.fill_(self.seq)
             self.count.zero_()
+        sl = self.slot
         wp.launch_tiled(self.kernel, dim=[self.n], block_dim=self.bd, device=self.dev, stream=self.stream,
-                        inputs=[self.slots, b.pipeline.grid_args, b.args, self.mb_dev, self.cmd, self.count, self.n,
+                        inputs=[sl.sorted_pts, sl.order, sl.start, sl.sorted_vel, b.pipeline.grid_args, b.args,
+                                self.mb_dev, self.cmd, self.count, self.n,
                                 self.seq, int(IDLE_S * 1e9), v["positions"], v["hips"], v["normals"], v["nearest"],
                                 v["states"], v["steps"], v["converged"], self.stage, *self.out])
         self.launches += 1
         self.running = True
 
-    def run(self, slot, build: int, tick) -> None:
-        """One tick on snapshot ``slot`` (its build number ``build``) with the tick's arguments
-        ``tick`` (dt s, span cells, gather radius m); the HIPs and positions are in the batch's
-        pinned arrays. Returns when every proxy's results are there."""
+    def run(self, build: int, tick) -> None:
+        """One tick on this kernel's snapshot slot (its build number ``build``) with the tick's
+        arguments ``tick`` (dt s, span cells, gather radius m); the HIPs and positions are in the
+        batch's pinned arrays. Returns when every proxy's results are there."""
         mb, mf = self.mb_np, self.mb_f
         if self.hung:
             if mb[wproxy.MB_ALIVE] != 0:
@@ -124,8 +126,7 @@ class ResidentTick:
             self.hung = self.running = False
         if not self.running or mb[wproxy.MB_ALIVE] == 0:
             self._relaunch()
-        mb[2] = self.slot_index[id(slot)]   # MB_SLOT .. MB_GRAD (proxy.py)
-        mb[3] = build
+        mb[3] = build   # MB_BUILD .. MB_GRAD (proxy.py)
         mf[4] = tick[0]
         mb[5] = tick[1]
         mf[6] = tick[2]
