@@ -6,32 +6,33 @@ set again. For a batch of up to ``RESIDENT_MAX`` proxies the tick kernel can ins
 once and stay: one block a proxy sits on its SM and waits for ticks.
 
 The host and the kernel talk through a mailbox, a few int32 words in pinned host memory
-(``proxy.MB_*``). There is one resident kernel per snapshot slot, with the slot's arrays as kernel parameters:
-a first version picked the slot's arrays per tick from a device array of structs, and those
-arrays' pointers and strides, held in registers through the step loop, cost it a third of its
-speed (300k steps/s against the launched kernel's 470k on an H100). Two kernels of a batch of
-up to ``RESIDENT_MAX`` proxies take at most 64 of the GPU's SMs.
+(``proxy.MB_*``). There is one resident kernel per snapshot slot, with the slot's arrays as
+kernel parameters (in the constant bank, as the launched kernel has them), rather than one
+kernel picking the slot's arrays per tick from device memory and holding their pointers in
+registers through the step loop. The two kernels of a batch of up to ``RESIDENT_MAX`` proxies
+take at most 64 of the GPU's SMs.
 
-A tick: the host writes the HIPs and positions into the batch's pinned arrays
-and the tick's arguments (the slot's build number, dt, search span, gather radius) into
-the mailbox of the front slot's kernel, then the tick's sequence number (x86 keeps the order of these stores); block 0 of
-the kernel polls the sequence number (a read over the bus about every microsecond), copies the
-header and every proxy's position and HIP into device memory with all its threads at once and
-passes the command to the other blocks through device memory; every block runs its proxy's tick
-as ``proxy_tick`` does and counts itself done; the last block copies every result into the
-pinned arrays and writes the sequence number into ``MB_DONE``, which the host spins on. Only
-one block a tick touches host memory: reads of host memory by many blocks queue on the bus
-(the first version, each block reading its own inputs, took 5.5 us more a proxy: 351 us a tick
-for 64 proxies). A proxy keeps its
-working set in shared memory from tick to tick while the snapshot (the slot's build), dt, the
-search span are unchanged and it stays within its skin of where the set was gathered; results do
-not depend on the working set (kernels/warp/proxy.py), so a resident tick moves a proxy as a
-launched one does, up to the order of float sums.
+A tick: the host writes the HIPs and positions into the batch's pinned arrays and the tick's
+arguments (the slot's build number, dt, search span, gather radius) into the mailbox of the
+front slot's kernel, then the tick's sequence number (x86 keeps the order of these stores).
+Block 0 of the kernel polls the sequence number (a read over the bus about every microsecond),
+copies the header and every proxy's position and HIP into device memory with all its threads at
+once and passes the command to the other blocks through device memory; every block runs its
+proxy's tick as ``proxy_tick`` does and counts itself done; the last block copies every result
+into the pinned arrays and writes the sequence number into ``MB_DONE``, which the host spins on.
+Only one block a tick touches host memory: reads of host memory by many blocks queue on the bus
+(a first version, each block reading its own inputs, took 5.5 us more a proxy: 351 us a tick
+for 64 proxies on an H100). A proxy keeps its working set in shared memory from tick to tick
+while the snapshot (the slot's build), dt and the search span are unchanged and it stays within
+its skin of where the set was gathered; results do not depend on the working set
+(kernels/warp/proxy.py), so a resident tick moves a proxy as a launched one does, up to the
+order of float sums.
 
 Safety and lifetime:
-* the host waits at most ``timeout_s`` for a tick (``KernelError`` then: the service holds the
-  robot); a GPU fault ends the kernel and the host's wait times out the same way;
-* the kernel leaves by itself after ``idle_s`` without a tick (a stalled or stopped loop does not
+* the host waits at most ``TIMEOUT_S`` for a tick (``KernelError`` then: the service holds the
+  robot), spinning for ``SPIN_S`` and then yielding the interpreter lock while it waits; a GPU
+  fault ends the kernel and the host's wait times out the same way;
+* the kernel leaves by itself after ``IDLE_S`` without a tick (a stalled or stopped loop does not
   keep SMs spinning, and a host call that waits for the whole device is held up at most that
   long), and when the host sets ``MB_STOP`` (``stop``: batch closed, resized or collected); the
   next tick launches it again;
@@ -59,12 +60,15 @@ RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "32"))
 IDLE_S = 0.1
 #: a tick not done after this long is a failure (s)
 TIMEOUT_S = 0.25
+#: the host spins this long on a tick, then yields the interpreter lock while it waits (s)
+SPIN_S = 0.002
 
 
-def _stop(mb_np, timeout_s=1.0) -> bool:
+def _stop(mb_np, mb=None, timeout_s=1.0) -> bool:
     """Ask a resident kernel to leave and wait (bounded) until it has; whether it has. Only the
     mailbox is read: no CUDA call, so this may run at any time (a finalizer during another
-    thread's graph capture, where a stream query would break the capture)."""
+    thread's graph capture, where a stream query would break the capture). ``mb``: the
+    mailbox's pinned array, kept alive until then."""
     mb_np[wproxy.MB_STOP] = 1
     t_end = time.perf_counter() + timeout_s
     while mb_np[wproxy.MB_ALIVE] != 0:
@@ -81,7 +85,10 @@ class ResidentTick:
     def __init__(self, batch, n: int, kernel, bd: int, slot):
         dev = batch.dev
         self.slot = slot
-        self.batch, self.n, self.kernel, self.bd, self.dev = batch, n, kernel, bd, dev
+        self.n, self.kernel, self.bd, self.dev = n, kernel, bd, dev
+        # what a launch needs of the batch (not the batch itself: no reference cycle)
+        self.views, self.grid_args, self.args = batch._views, batch.pipeline.grid_args, batch.args
+        self.device_name = batch.pipeline.backend.device_name
         self.stream = wp.Stream(dev)
         self.mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
         self.mb_np = self.mb.numpy()
@@ -96,11 +103,10 @@ class ResidentTick:
         self.launches = 0
         self.running = False
         self.hung = False
-        self._fin = weakref.finalize(self, _stop, self.mb_np)
+        self._fin = weakref.finalize(self, _stop, self.mb_np, self.mb)
 
     def _launch(self):
-        b = self.batch
-        v = b._views
+        v = self.views
         self.mb_np[wproxy.MB_STOP] = 0
         self.mb_np[wproxy.MB_ALIVE] = 1
         with wp.ScopedStream(self.stream):
@@ -108,7 +114,7 @@ class ResidentTick:
             self.count.zero_()
         sl = self.slot
         wp.launch_tiled(self.kernel, dim=[self.n], block_dim=self.bd, device=self.dev, stream=self.stream,
-                        inputs=[sl.sorted_pts, sl.order, sl.start, sl.sorted_vel, b.pipeline.grid_args, b.args,
+                        inputs=[sl.sorted_pts, sl.order, sl.start, sl.sorted_vel, self.grid_args, self.args,
                                 self.mb_dev, self.cmd, self.count, self.n,
                                 self.seq, int(IDLE_S * 1e9), v["positions"], v["hips"], v["normals"], v["nearest"],
                                 v["states"], v["steps"], v["converged"], self.stage, *self.out])
@@ -132,17 +138,21 @@ class ResidentTick:
         mf[6] = tick[2]
         seq = self.seq = self.seq % 0x7FFFFFF0 + 1
         mb[0] = seq   # MB_SEQ, last: the kernel reads the words above once it sees it
-        deadline = None
+        t0 = None
         while mb[7] != seq:   # MB_DONE
             if mb[wproxy.MB_ALIVE] == 0:
                 # it left (idle) as this tick was posted, before taking it: again, from seq - 1
                 self.seq = seq - 1
                 self._relaunch()
                 self.seq = seq
-            if deadline is None:
-                deadline = time.perf_counter() + TIMEOUT_S
-            elif time.perf_counter() > deadline:
+            if t0 is None:
+                t0 = time.perf_counter()
+                continue
+            waited = time.perf_counter() - t0
+            if waited > TIMEOUT_S:
                 self._give_up(seq)
+            elif waited > SPIN_S:
+                time.sleep(0)   # a slow tick: the other threads may run meanwhile
 
     def _give_up(self, seq):
         """A tick that did not finish in time: stop the kernel (it leaves after the tick it is in)
@@ -150,7 +160,7 @@ class ResidentTick:
         self.hung = not _stop(self.mb_np)
         self.running = self.hung
         raise KernelError(f"the resident Warp proxy kernel did not finish tick {seq} within {TIMEOUT_S * 1e3:.1f} ms "
-                          f"on {self.batch.pipeline.backend.device_name}"
+                          f"on {self.device_name}"
                           + ("; it has not left either (GPU hung?): close the batch" if self.hung else ""))
 
     def _relaunch(self):
