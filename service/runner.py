@@ -11,6 +11,7 @@ from .app import Service
 from .clock import RealClock
 from .frames import LiveFrames
 from .loop import HapticLoop
+from .memory import small_pages
 
 
 class LiveRun:
@@ -24,6 +25,8 @@ class LiveRun:
         self.cfg = cfg
         self.clock = RealClock()
         sc = cfg.service
+        # before the robot process starts (it inherits the switch): see service/memory.py
+        self.memory = small_pages()
         self.robot_host = None
         if robots is None and sc.robot_process and cfg.robot.get("model", "raven2") != "none":
             from .robot.hosted import RobotHost
@@ -97,6 +100,7 @@ class LiveRun:
         st = self.service.status(self.clock.now())
         st["loop"] = self.loop.timing(self._mark).as_dict()
         st["loop_error"] = self.loop.error
+        st["memory"] = self.memory
         return st
 
     def close_robots(self) -> None:
