@@ -335,16 +335,6 @@ def mailbox_set(mb: wp.array(dtype=wp.int32), i: int, v: int):
 
 
 @wp.func_native("""
-    union { int i; float f; } u;
-    u.i = b;
-    return u.f;
-""")
-def bits_float(b: int) -> float:
-    """The float whose bits are b."""
-    ...
-
-
-@wp.func_native("""
 #if defined(__CUDA_ARCH__)
     __threadfence();
     ((volatile int*)cmd.data)[0] = s;
