@@ -1175,6 +1175,7 @@ class WarpProxies(ProxyBatch):
         self._tick_np = self._tick_host.numpy()
         self._tick_dt_set = None
         self._set_tick(0.0, 0.0)
+        self._prepare_resident()
 
     # --- storage ---------------------------------------------------------------------------
     def _device_view(self, host, dtype, length):
@@ -1218,6 +1219,18 @@ class WarpProxies(ProxyBatch):
     def _upload_positions(self):
         if self.cuda:   # the copying path keeps its positions on the device
             wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
+            if hasattr(self, "args"):   # (not yet during __init__, which prepares them itself)
+                self._prepare_resident()
+
+    def _prepare_resident(self):
+        """Make both snapshot slots' resident kernels for this batch size now (their buffers and
+        streams), so that no tick allocates them; each is launched by its slot's first tick."""
+        n = self.n
+        if self.resident(n):
+            for i in (0, 1):
+                r = self._resident[i]
+                if r is None or r.n != n:
+                    self._new_resident(n, i)
 
     def block_dim(self, n: int | None = None) -> int:
         """Threads per proxy of a launch for ``n`` proxies (default: the batch's size)."""
@@ -1268,8 +1281,8 @@ class WarpProxies(ProxyBatch):
                 wp.copy(self._host[k][0], arr[k], count=n)
 
     def _new_resident(self, n, i):
-        """The resident kernel of ``n`` proxies on snapshot slot ``i`` (the other slot's is
-        stopped if its size differs)."""
+        """The resident kernel of ``n`` proxies on snapshot slot ``i`` (not launched yet; the
+        other slot's is stopped and dropped if its size differs)."""
         for j, r in enumerate(self._resident):
             if r is not None and (j == i or r.n != n):
                 r.stop()
