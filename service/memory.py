@@ -23,6 +23,10 @@ PR_SET_THP_DISABLE = 41
 PR_GET_THP_DISABLE = 42
 
 
+def _libc():
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+
+
 def small_pages() -> str:
     """Transparent huge pages off for this process (and later children) and NumPy's huge-page
     requests off; returns what was done, for the service's status."""
@@ -36,8 +40,7 @@ def small_pages() -> str:
         setter(False)
         done.append("numpy madvise off")
     if sys.platform.startswith("linux"):
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-        if libc.prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0:
+        if _libc().prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0:
             done.append("THP off (prctl)")
         else:
             done.append(f"THP prctl refused (errno {ctypes.get_errno()})")
@@ -48,5 +51,4 @@ def huge_pages_disabled() -> bool:
     """Whether the kernel's per-process THP switch is off for this process (Linux)."""
     if not sys.platform.startswith("linux"):
         return False
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    return libc.prctl(PR_GET_THP_DISABLE, 0, 0, 0, 0) == 1
+    return _libc().prctl(PR_GET_THP_DISABLE, 0, 0, 0, 0) == 1

@@ -206,8 +206,8 @@ def test_resident_tick_that_times_out_raises_kernel_error_and_recovers(monkeypat
 
 
 def test_resident_mailbox_layout_matches_the_native_code():
-    """The resident kernel's native code and the host's tick use the mailbox's word numbers as
-    literals (a read of a module attribute per word costs the 1 kHz tick): they must stay these."""
+    """The resident kernel's native code uses the mailbox's word numbers as literals (SEQ, STOP,
+    the staged header): the layout must stay this."""
     from pointfence.kernels.warp import proxy as wproxy
 
     assert (wproxy.MB_SEQ, wproxy.MB_STOP, wproxy.MB_SLOT, wproxy.MB_BUILD, wproxy.MB_DT, wproxy.MB_SPAN,

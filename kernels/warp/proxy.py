@@ -280,7 +280,8 @@ def sharedi4(op: int, k: int, v: wp.vec4i) -> wp.vec4i:
 
 #: words of the mailbox, an int32 array in pinned host memory: the host writes a tick's
 #: arguments and then its sequence number; the kernel writes DONE (the last tick finished) and
-#: ALIVE (0 once it has left). SLOT is not used (one kernel a snapshot slot).
+#: ALIVE (0 once it has left). SLOT is reserved (one kernel a snapshot slot). The native code
+#: reads SEQ and STOP as words 0 and 1 and stages words 0 .. STAGE_HEAD - 1.
 MB_SEQ, MB_STOP, MB_SLOT, MB_BUILD, MB_DT, MB_SPAN, MB_GRAD, MB_DONE, MB_ALIVE = (wp.constant(i) for i in range(9))
 MB_WORDS = 16
 #: staged words of the header (the mailbox's first words) before the positions and HIPs
@@ -311,26 +312,14 @@ def mailbox_wait(mb: wp.array(dtype=wp.int32), last: int, idle_ns: int) -> int:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    __threadfence_system();
-    ((volatile int*)mb.data)[i] = v;
-#else
-    mb.data[i] = v;
-#endif
-""")
-def mailbox_put(mb: wp.array(dtype=wp.int32), i: int, v: int):
-    """Write word i of the mailbox (after everything this thread wrote before)."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
     ((volatile int*)mb.data)[i] = v;
 #else
     mb.data[i] = v;
 #endif
 """)
 def mailbox_set(mb: wp.array(dtype=wp.int32), i: int, v: int):
-    """Write word i of the mailbox (no fence: what must reach the host first was fenced)."""
+    """Write word i of the mailbox (no fence: the results DONE announces were fenced by their
+    writers, and ALIVE announces nothing but the kernel's leaving)."""
     ...
 
 
@@ -1126,7 +1115,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                 if lane == 0:
                     mailbox_set(mb, MB_DONE, sharedi4(0, 2, wp.vec4i(0))[3])
         if p == 0 and lane == 0:
-            mailbox_put(mb, MB_ALIVE, 0)
+            mailbox_set(mb, MB_ALIVE, 0)
 
     return proxy_tick, proxy_resident
 

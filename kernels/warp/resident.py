@@ -53,6 +53,7 @@ import warp as wp
 
 from ..errors import KernelError
 from . import proxy as wproxy
+from .proxy import MB_ALIVE, MB_BUILD, MB_DONE, MB_DT, MB_GRAD, MB_SEQ, MB_SPAN, MB_STOP
 
 #: largest batch that runs resident (POINTFENCE_WARP_RESIDENT_MAX; 0: never)
 RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "32"))
@@ -69,9 +70,9 @@ def _stop(mb_np, mb=None, timeout_s=1.0) -> bool:
     mailbox is read: no CUDA call, so this may run at any time (a finalizer during another
     thread's graph capture, where a stream query would break the capture). ``mb``: the
     mailbox's pinned array, kept alive until then."""
-    mb_np[wproxy.MB_STOP] = 1
+    mb_np[MB_STOP] = 1
     t_end = time.perf_counter() + timeout_s
-    while mb_np[wproxy.MB_ALIVE] != 0:
+    while mb_np[MB_ALIVE] != 0:
         if time.perf_counter() > t_end:
             return False
         time.sleep(2e-5)
@@ -107,8 +108,8 @@ class ResidentTick:
 
     def _launch(self):
         v = self.views
-        self.mb_np[wproxy.MB_STOP] = 0
-        self.mb_np[wproxy.MB_ALIVE] = 1
+        self.mb_np[MB_STOP] = 0
+        self.mb_np[MB_ALIVE] = 1
         with wp.ScopedStream(self.stream):
             self.cmd.fill_(self.seq)
             self.count.zero_()
@@ -127,20 +128,20 @@ class ResidentTick:
         batch's pinned arrays. Returns when every proxy's results are there."""
         mb, mf = self.mb_np, self.mb_f
         if self.hung:
-            if mb[wproxy.MB_ALIVE] != 0:
+            if mb[MB_ALIVE] != 0:
                 raise KernelError("the resident Warp proxy kernel is still busy with a tick that timed out; close the batch")
             self.hung = self.running = False
-        if not self.running or mb[wproxy.MB_ALIVE] == 0:
+        if not self.running or mb[MB_ALIVE] == 0:
             self._relaunch()
-        mb[3] = build   # MB_BUILD .. MB_GRAD (proxy.py)
-        mf[4] = tick[0]
-        mb[5] = tick[1]
-        mf[6] = tick[2]
+        mb[MB_BUILD] = build
+        mf[MB_DT] = tick[0]
+        mb[MB_SPAN] = tick[1]
+        mf[MB_GRAD] = tick[2]
         seq = self.seq = self.seq % 0x7FFFFFF0 + 1
-        mb[0] = seq   # MB_SEQ, last: the kernel reads the words above once it sees it
+        mb[MB_SEQ] = seq   # last: the kernel reads the words above once it sees it
         t0 = None
-        while mb[7] != seq:   # MB_DONE
-            if mb[wproxy.MB_ALIVE] == 0:
+        while mb[MB_DONE] != seq:
+            if mb[MB_ALIVE] == 0:
                 # it left (idle) as this tick was posted, before taking it: again, from seq - 1
                 self.seq = seq - 1
                 self._relaunch()
