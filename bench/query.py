@@ -201,7 +201,7 @@ def run(args) -> dict:
     for B in (64, 1024) + ((args.big,) if args.big else ()):
         spots, _, _ = dense_spots(pts, B, target=int(np.median(tree.query_ball_point(pts[::97], R3, return_length=True))), seed=B)
         ob = outward(spots, cams)
-        hb = trajectory(spots, ob, min(n_ticks, 600 if B <= 64 else 300 if B <= 1024 else 60) + 50)
+        hb = trajectory(spots, ob, min(n_ticks, 1000 if B <= 1024 else 60) + 50)
         pb = hs.pipeline.proxies(spots + 0.02 * ob, p)
         tb = time_ticks(pb.step, hb, warm=50)
         out[f"tick_us_{B}proxy_p50"] = round(pct(tb, 50), 2)

@@ -18,6 +18,7 @@ class DoubleBuffer:
         assert len(self.slots) == 2
         self._front = 0
         self._readers = [0, 0]
+        self._waiting = 0   # builders waiting in back(): only then does a release notify
         self._cv = threading.Condition()
 
     @property
@@ -28,7 +29,12 @@ class DoubleBuffer:
         """Index of the slot the builder may overwrite now."""
         b = 1 - self._front
         with self._cv:
-            if not self._cv.wait_for(lambda: self._readers[b] == 0, timeout):
+            self._waiting += 1
+            try:
+                free = self._cv.wait_for(lambda: self._readers[b] == 0, timeout)
+            finally:
+                self._waiting -= 1
+            if not free:
                 raise TimeoutError(f"snapshot slot {b} still held by a reader after {timeout} s")
         return b
 
@@ -36,14 +42,26 @@ class DoubleBuffer:
         with self._cv:
             self._front = i
 
-    @contextmanager
-    def read(self):
+    def acquire(self) -> int:
+        """Hold the front slot for reading (the builder will not overwrite it); its index. The
+        1 kHz tick's form of ``read()`` (a generator-based context manager costs microseconds);
+        pair it with ``release``."""
         with self._cv:
             i = self._front
             self._readers[i] += 1
+        return i
+
+    def release(self, i: int) -> None:
+        """Let go of slot ``i`` (from ``acquire``)."""
+        with self._cv:
+            self._readers[i] -= 1
+            if self._waiting:
+                self._cv.notify_all()
+
+    @contextmanager
+    def read(self):
+        i = self.acquire()
         try:
             yield self.slots[i]
         finally:
-            with self._cv:
-                self._readers[i] -= 1
-                self._cv.notify_all()
+            self.release(i)

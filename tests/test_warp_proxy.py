@@ -213,3 +213,69 @@ def test_resident_mailbox_layout_matches_the_native_code():
     assert (wproxy.MB_SEQ, wproxy.MB_STOP, wproxy.MB_SLOT, wproxy.MB_BUILD, wproxy.MB_DT, wproxy.MB_SPAN,
             wproxy.MB_GRAD, wproxy.MB_DONE, wproxy.MB_ALIVE) == tuple(range(9))
     assert wproxy.STAGE_HEAD == 8 and wproxy.MB_WORDS >= 9
+
+
+def test_launched_working_set_cache_moves_proxies_exactly_as_gathering_every_tick(monkeypatch):
+    """The launched tick keeps each proxy's working set in device memory from tick to tick
+    (WS_CACHE_MAX). Each tick, from the same positions, a cached batch moves its proxies as one
+    that gathers every tick, through sliding (sets kept, and gathered again past the skin), a
+    position reset far away and a new snapshot (sets gathered again); every proxy's cache key
+    names the snapshot it last ran on. A kept set, gathered around an older position, holds
+    more points in another order, so sums may differ in the last bits."""
+    from pointfence.kernels.warp import proxy as wproxy
+    from pointfence.kernels.warp import resident
+
+    monkeypatch.setattr(resident, "RESIDENT_MAX", 0)   # on CUDA too: the launched path
+    rng = np.random.default_rng(31)
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    B = 12
+    surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
+    start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+    p = HapticParams(max_steps=40)
+    cached = pipe.proxies(start, p)
+    fresh = pipe.proxies(start, p, ws_cache=False)
+    cap = wproxy.ws_capacity_for(B)
+
+    parted = 0
+
+    def tick(h):
+        nonlocal parted
+        fresh.reset(cached.positions.copy())
+        cached.step(h)
+        fresh.step(h)
+        # (a sum a bit off may still flip a decision, as against the reference)
+        same = np.abs(cached.positions - fresh.positions).max(axis=1) <= 1e-6
+        parted += np.count_nonzero(~same)
+        np.testing.assert_array_equal(cached.states[same], fresh.states[same])
+        np.testing.assert_allclose(cached.normals[same], fresh.normals[same], atol=1e-5, rtol=0)
+
+    h = start.copy()
+    for _ in range(30):
+        h = h + rng.normal(0, 0.0005, h.shape) + [0, 0, 0.0008]
+        tick(h)
+    keys = cached._ws_cache[cap][3].numpy()[:B]
+    assert np.all(keys[:, 0] == pipe.buffers.slots[pipe.buffers.front_index].seq) and np.all(keys[:, 3] >= 0)
+    assert "off" not in cached._ws_cache and cap not in fresh._ws_cache
+    # each proxy set 4 mm from another one's surface point, entrenched: the kept sets no longer hold
+    jump = np.roll(surf, 1, axis=0) + [0.0, 0.0, -0.004]
+    assert np.all(np.linalg.norm(jump - cached.positions, axis=1) > 0.003)
+    cached.reset(jump)
+    fresh.reset(jump)
+    for _ in range(5):
+        h = jump + rng.normal(0, 0.002, h.shape) + [0, 0, 0.004]
+        tick(h)
+    # a new snapshot: every set is gathered again on it
+    shifted = [type(f)(**{**f.__dict__, "depth": (f.depth.astype(np.int32) - 60).clip(0).astype(f.depth.dtype)})
+               for f in frames]
+    pipe.ingest(shifted)
+    for _ in range(5):
+        h = h + rng.normal(0, 0.0005, h.shape)
+        tick(h)
+    keys = cached._ws_cache[cap][3].numpy()[:B]
+    assert np.all(keys[:, 0] == pipe.buffers.slots[pipe.buffers.front_index].seq)
+    assert parted <= 0.02 * 40 * B
+    ref = NumpyProxies(pipe, cached.positions.copy(), p, snapshot=pipe.host_snapshot())
+    _agree(cached, ref, h + 0.001)

@@ -154,7 +154,10 @@ class OpenCLProxies(ProxyBatch):
             self._lsize = None if ls is None else (ls,)
         q = self.queue
         out = self._out_host
-        with self.pipeline.buffers.read() as slot:
+        buf = self.pipeline.buffers
+        i = buf.acquire()   # the front slot: no build overwrites it during the tick
+        try:
+            slot = buf.slots[i]
             if slot is not self._arg_slot:
                 v = slot.inline if self._inline else slot
                 k.set_arg(0, v.pts)
@@ -180,6 +183,8 @@ class OpenCLProxies(ProxyBatch):
             except cl.Error as e:
                 raise KernelError(f"OpenCL proxy kernel failed on {self.pipeline.backend.device_name} "
                                   f"({self.device_kind}): {e}") from e
+        finally:
+            buf.release(i)
         np.copyto(self._positions[:n], out[:n, :3])
         np.copyto(self._nearest[:n], out[:n, 3])
         np.copyto(self._normals[:n], out[:n, 4:7])

@@ -69,6 +69,10 @@ ZERO_COPY_MAX = int(os.environ.get("POINTFENCE_WARP_ZERO_COPY_MAX", "4096"))
 #: shared memory is gathered with HapticParams.skin instead (results do not depend on the skin).
 #: H100, bench query, HapticParams.skin 0.5 mm (bench/RESULTS.md, 2026-11-24, later): 1.5 mm.
 GATHER_SKIN = float(os.environ.get("POINTFENCE_WARP_SKIN", "1.5e-3"))
+#: largest batch whose launched tick keeps each proxy's working set in device memory from tick
+#: to tick (16 bytes a point, ``ws_capacity_for(n)`` points a proxy: 25 MB for 1,024 proxies),
+#: gathering again only where a set no longer holds (POINTFENCE_WARP_WS_CACHE_MAX; 0: never)
+WS_CACHE_MAX = int(os.environ.get("POINTFENCE_WARP_WS_CACHE_MAX", "4096"))
 #: hash rows (z, y) one gather may list: a gather reaching further scans the hash directly
 ROWS_CAP = wp.constant(128)
 
@@ -125,6 +129,7 @@ class TickArgs:
     dt: float  # prediction time: points are taken at p + v dt (kernels/motion.py)
     span: int  # cells searched on each side: reach plus the motion's extra reach
     grad: float  # a gather's reach in the hash: reach + skin plus the motion's extra reach
+    build: int  # the snapshot's build number (slot.seq): the working-set cache's key
 
 
 # --- block-wide primitives (native; Warp's CPU device runs one thread per block) -------------
@@ -998,7 +1003,11 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                    g: GridArgs, a: ProxyArgs, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), bd: int,
                    svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs), nrm_out: wp.array(dtype=wp.vec3),
                    near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
-                   steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool)):
+                   steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool), caching: int,
+                   wsc: wp.array(dtype=wp.vec4), wsk: wp.array(dtype=wp.vec4), wsi: wp.array(dtype=wp.vec4i)):
+        """One tick of proxy p (a block of ``bd`` threads). ``caching``: whether the working sets
+        persist from tick to tick in ``wsc`` (``cap`` points a proxy), with each proxy's
+        (X0 m, skin m) in ``wsk`` and (build, dt bits, span, points or -1) in ``wsi``."""
         p, lane = wp.tid()
         # one thread reads the proxy's inputs (pinned host memory on the zero-copy path) and
         # shares them with the block
@@ -1009,6 +1018,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
             shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
             shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
+            sharedi4(1, 0, wp.vec4i(tk.build, 0, 0, 0))
         block_sync()
         xv = shared4(0, 0, wp.vec4(0.0))
         hv = shared4(0, 1, wp.vec4(0.0))
@@ -1018,11 +1028,43 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
         dt = tv[0]
         span = int(tv[1])
         grad = tv[2]
+        build = sharedi4(0, 0, wp.vec4i(0))[0]
+        dtb = float_bits(dt)
         wbase = (lane // WL) * NJ
+        # The working set of the proxy's last tick, from the cache in device memory, where it
+        # still holds: same build, dt and span, and the proxy within its skin of where the set
+        # was gathered (the conditions under which run_steps keeps a set); else gathered anew.
         X0 = X
-        n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, int(0))
+        n_ws = int(-2)
+        skin = a.skin
+        par = int(0)
+        hit = int(0)
+        if caching != 0:
+            ci = wsi[p]
+            ck = wsk[p]
+            dx = X[0] - ck[0]
+            dy = X[1] - ck[1]
+            dz = X[2] - ck[2]
+            if ci[0] == build and ci[1] == dtb and ci[2] == span and dx * dx + dy * dy + dz * dz <= ck[3] * ck[3]:
+                hit = 1
+                X0 = wp.vec3(ck[0], ck[1], ck[2])
+                skin = ck[3]
+                n_ws = ci[3]
+                for k in range(lane, n_ws, BD):
+                    ws(1, k, wsc[p * cap + k])
+                block_sync()
+        if hit == 0:
+            n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
+        Xs = X0
         X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
             spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
+        # (run_steps gathers again only at a position further than the skin from Xs)
+        if caching != 0 and (hit == 0 or X0[0] != Xs[0] or X0[1] != Xs[1] or X0[2] != Xs[2]):
+            for k in range(lane, n_ws, BD):
+                wsc[p * cap + k] = ws(0, k, wp.vec4(0.0))
+            if lane == 0:
+                wsi[p] = wp.vec4i(build, dtb, span, n_ws)
+                wsk[p] = wp.vec4(X0[0], X0[1], X0[2], skin)
         if lane == 0:
             pos[p] = X
             nrm_out[p] = nrm
@@ -1128,10 +1170,14 @@ class WarpProxies(ProxyBatch):
     CUDA a batch of up to ``resident.RESIDENT_MAX`` proxies runs its ticks on resident kernels
     (kernels/warp/resident.py); ``close()`` lets them go (the next tick brings one back)."""
 
-    def __init__(self, pipeline, positions, params=None, block_dim: int | None = None, resident: bool = True):
+    def __init__(self, pipeline, positions, params=None, block_dim: int | None = None, resident: bool = True,
+                 ws_cache: bool = True):
         """``block_dim``: threads per proxy on CUDA (None: by batch size, ``block_dim_for``);
-        ``resident``: whether small batches may run on a resident kernel (CUDA)."""
+        ``resident``: whether small batches may run on a resident kernel (CUDA); ``ws_cache``:
+        whether launched ticks of up to ``WS_CACHE_MAX`` proxies keep the working sets in device
+        memory between ticks (else they gather every proxy's set every tick)."""
         self.dev = pipeline.device
+        self._ws_cache_allowed = bool(ws_cache)
         self._resident_allowed = bool(resident) and self.dev.is_cuda
         self._resident = [None, None]   # one resident kernel per snapshot slot
         self.cuda = self.dev.is_cuda
@@ -1204,6 +1250,25 @@ class WarpProxies(ProxyBatch):
             self._dev = {k: wp.zeros(cap, dtype=dt, device=self.dev) for k, (a, dt) in self._host.items()}
         self._graphs.clear()
         self._last = (None, 0, None)
+        self._ws_cache = {}
+
+    def _cache_for(self, n: int):
+        """(caching, points, proxy states, proxy keys) for a launched tick of ``n`` proxies: the
+        working-set cache of the capacity ``ws_capacity_for(n)``, made on first use (never
+        while a graph is captured: ``_capture`` asks first), empty keys (build -1) at first."""
+        if not (self._ws_cache_allowed and 0 < n <= WS_CACHE_MAX):
+            if "off" not in self._ws_cache:
+                self._ws_cache["off"] = (0, wp.zeros(1, dtype=wp.vec4, device=self.dev),
+                                         wp.zeros(1, dtype=wp.vec4, device=self.dev),
+                                         wp.zeros(1, dtype=wp.vec4i, device=self.dev))
+            return self._ws_cache["off"]
+        cap = ws_capacity_for(n)
+        c = self._ws_cache.get(cap)
+        if c is None:
+            keys = wp.array(np.full((self._cap, 4), -1, np.int32), dtype=wp.vec4i, device=self.dev)
+            c = self._ws_cache[cap] = (1, wp.zeros(self._cap * cap, dtype=wp.vec4, device=self.dev),
+                                       wp.zeros(self._cap, dtype=wp.vec4, device=self.dev), keys)
+        return c
 
     def _upload_positions(self):
         if self.cuda:   # the copying path keeps its positions on the device
@@ -1263,7 +1328,7 @@ class WarpProxies(ProxyBatch):
             wp.copy(tick, self._tick_host)
         wp.launch_tiled(kernel, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
                         self.args, arr["positions"], arr["hips"], bd, slot.sorted_vel, tick, arr["normals"],
-                        arr["nearest"], arr["states"], arr["steps"], arr["converged"]],
+                        arr["nearest"], arr["states"], arr["steps"], arr["converged"], *self._cache_for(n)],
                         block_dim=bd, device=self.dev)
         if self.cuda and not self.zero_copy(n):
             for k in ("positions", "normals", "nearest", "states", "steps", "converged"):
@@ -1283,6 +1348,7 @@ class WarpProxies(ProxyBatch):
 
     def _capture(self, slot, n):
         """The tick's CUDA graph for snapshot slot ``slot`` and ``n`` proxies (captured once)."""
+        self._cache_for(n)   # (made before the capture: no allocation inside it)
         with wp.ScopedStream(self.stream):
             wp.capture_begin(device=self.dev, stream=self.stream)
             try:
@@ -1298,12 +1364,7 @@ class WarpProxies(ProxyBatch):
             return
         np.copyto(self._hips_np[:n], hips)
         buf = self.pipeline.buffers
-        # DoubleBuffer.read() inlined (a generator-based context manager costs microseconds):
-        # hold the front slot so that no build overwrites it during the tick
-        cv = buf._cv
-        with cv:
-            i = buf._front
-            buf._readers[i] += 1
+        i = buf.acquire()   # the front slot: no build overwrites it during the tick
         try:
             slot = buf.slots[i]
             if slot.vmax > 0.0:
@@ -1314,6 +1375,7 @@ class WarpProxies(ProxyBatch):
                 if self._tick_dt_set != 0.0:
                     self._set_tick(0.0, 0.0)
             if not self.cuda:
+                self._tick_np[0]["build"] = slot.seq   # (the working-set cache's key)
                 self._record(slot, n)
             elif self.resident(n):
                 r = self._resident[i]
@@ -1321,6 +1383,7 @@ class WarpProxies(ProxyBatch):
                     r = self._new_resident(n, i)
                 r.run(slot.seq, self._tick_vals)
             else:
+                self._tick_np[0]["build"] = slot.seq
                 last_slot, last_n, graph = self._last
                 if last_slot is not slot or last_n != n:
                     graph = self._graphs.get((id(slot), n)) or self._capture(slot, n)
@@ -1330,9 +1393,7 @@ class WarpProxies(ProxyBatch):
         except Exception as e:  # Warp reports CUDA failures as RuntimeError
             raise KernelError(f"Warp proxy kernel failed on {self.pipeline.backend.device_name}: {e}") from e
         finally:
-            with cv:
-                buf._readers[i] -= 1
-                cv.notify_all()
+            buf.release(i)
 
 
 from . import resident as _resident_mod  # noqa: E402  (resident.py imports this module)
