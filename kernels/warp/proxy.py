@@ -11,7 +11,11 @@ HapticParams.skin: a gather costs more on a GPU than the points it adds to each 
 HapticParams.skin for a set that would not fit in the shared buffer (``ws_capacity_for``); a
 set that does not fit even then is scanned from the hash in global memory. The steps then read
 on-chip memory only; a proxy that wanders further than its skin from where its set was gathered
-gathers again (results do not depend on the skin). The normal sum, the smallest clearance and
+gathers again (results do not depend on the skin). A launched tick of up to ``WS_CACHE_MAX``
+proxies keeps each set in device memory for the next tick, keyed by the snapshot's build, dt,
+the search span and where it was gathered, and copies a set that still holds instead of
+gathering it (the resident kernel, kernels/warp/resident.py, keeps its sets in shared memory
+itself). The normal sum, the smallest clearance and
 the swept-sphere step limit are block-wide reductions (warp shuffles, then one barrier over the
 warps' partial results; every thread reads the same partials in the same order). Every thread
 then takes the same decision from the reduced values, so the step loop stays uniform across the
