@@ -19,7 +19,9 @@ class DoubleBuffer:
         self._front = 0
         self._readers = [0, 0]
         self._waiting = 0   # builders waiting in back(): only then does a release notify
-        self._cv = threading.Condition()
+        # (readers take the lock itself: a Condition's own enter and exit are Python code)
+        self._lock = threading.Lock()
+        self._cv = threading.Condition(self._lock)
 
     @property
     def front_index(self) -> int:
@@ -46,14 +48,14 @@ class DoubleBuffer:
         """Hold the front slot for reading (the builder will not overwrite it); its index. The
         1 kHz tick's form of ``read()`` (a generator-based context manager costs microseconds);
         pair it with ``release``."""
-        with self._cv:
+        with self._lock:
             i = self._front
             self._readers[i] += 1
         return i
 
     def release(self, i: int) -> None:
         """Let go of slot ``i`` (from ``acquire``)."""
-        with self._cv:
+        with self._lock:
             self._readers[i] -= 1
             if self._waiting:
                 self._cv.notify_all()

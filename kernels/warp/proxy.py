@@ -1275,6 +1275,10 @@ class WarpProxies(ProxyBatch):
         return c
 
     def _upload_positions(self):
+        # the tick's view of the HIP buffer for this batch size, and whether it ticks resident
+        # (RESIDENT_MAX is read here, when the size is set)
+        self._hips_n = self._hips_np[: self.n]
+        self._resident_n = self.cuda and self.resident()
         if self.cuda:   # the copying path keeps its positions on the device
             wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
             if hasattr(self, "args"):   # (not yet during __init__, which prepares them itself)
@@ -1366,7 +1370,7 @@ class WarpProxies(ProxyBatch):
         n = self.n
         if n == 0:
             return
-        np.copyto(self._hips_np[:n], hips)
+        np.copyto(self._hips_n, hips)
         buf = self.pipeline.buffers
         i = buf.acquire()   # the front slot: no build overwrites it during the tick
         try:
@@ -1381,7 +1385,7 @@ class WarpProxies(ProxyBatch):
             if not self.cuda:
                 self._tick_np[0]["build"] = slot.seq   # (the working-set cache's key)
                 self._record(slot, n)
-            elif self.resident(n):
+            elif self._resident_n:
                 r = self._resident[i]
                 if r is None or r.n != n:
                     r = self._new_resident(n, i)
