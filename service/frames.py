@@ -36,6 +36,8 @@ from typing import Optional, Sequence
 from pointfence.kernels.errors import PointfenceError
 from pointfence.kernels.yielding import checkpoint
 
+from .osthread import name_this_thread
+
 
 class PublishGate:
     """Wraps the pipeline's snapshot publication in a lock that the haptic tick holds while it
@@ -283,6 +285,7 @@ class LiveFrames(_FeedBase):
         return st
 
     def _ingest_loop(self) -> None:
+        name_this_thread("pf-ingest")
         while not self._stop.is_set():
             if not self._new.wait(0.05):
                 continue

@@ -47,6 +47,7 @@ import numpy as np
 from pointfence.kernels import yielding
 
 from .clock import RealClock
+from .osthread import name_this_thread
 
 RING = 1 << 16
 
@@ -191,6 +192,7 @@ class HapticLoop:
         self._thread.start()
 
     def _run(self) -> None:
+        name_this_thread("pf-haptic-loop")
         if self.gate is not None:
             self.gate.owner = threading.get_ident()
         if self.rt_priority > 0:   # SCHED_FIFO for this thread only, where the OS allows it

@@ -24,6 +24,7 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
+from ..osthread import name_this_thread
 from .loop import ONLINE_UKF, CableLoop
 from .params import DT, GrasperParams
 from .tension import TensionMonitor
@@ -117,6 +118,7 @@ class CableController:
 
     # -- the loop --------------------------------------------------------------------------
     def _run(self) -> None:
+        name_this_thread("pf-cable-1kHz")
         try:
             self._loop()
         except BaseException as e:  # noqa: BLE001 - report, make the motor safe

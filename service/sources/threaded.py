@@ -24,6 +24,7 @@ from typing import Callable, Iterable, Optional
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
 
+from ..osthread import name_this_thread
 from .base import DepthSource
 
 
@@ -82,6 +83,7 @@ class CameraReader:
         return self
 
     def _run(self) -> None:
+        name_this_thread(f"pf-cam-{self.name}")
         src = self.source
         try:
             while not self._stop.is_set():
