@@ -10,13 +10,52 @@ ring buffers give tick compute time and lateness percentiles and the deadline mi
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
 from pointfence.service import config as config_mod
 from pointfence.service.canned import canned_sources
+from pointfence.service.clock import RealClock
+from pointfence.service.loop import HapticLoop
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.runner import LiveRun
+
+
+class _Busy:
+    """A haptic-loop target whose tick only spins for ``busy_s`` (the machine's floor)."""
+
+    def __init__(self, busy_s: float):
+        self.busy_s = float(busy_s)
+
+    def tick(self, k, t, dt, overrun, now):
+        end = time.perf_counter() + self.busy_s
+        while time.perf_counter() < end:
+            pass
+
+    def safe_tick(self, k, t, dt, now):
+        pass
+
+
+def machine_floor(cfg, seconds: float, busy_s: float) -> dict:
+    """The same ``HapticLoop`` (same rate, priority, clock and switch intervals) running a tick
+    that only spins ``busy_s`` with nothing else in the process: what the machine itself allows
+    (wake-up lateness, deadlines missed to preemption, interrupts, a stalled virtual CPU)."""
+    sc = cfg.service
+    loop = HapticLoop(_Busy(busy_s), RealClock(), sc.rate_hz, sc.max_lateness_s, rt_priority=sc.rt_priority,
+                      cooperate=False)
+    loop.start()
+    try:
+        time.sleep(0.5)
+        mark = loop.mark()
+        time.sleep(seconds)
+        tm = loop.timing(mark)
+    finally:
+        loop.stop()
+    return {"seconds": seconds, "busy_us": round(busy_s * 1e6, 1), "ticks": tm.ticks, "periods": tm.periods,
+            "loop_late_us_p50": round(tm.late_us_p50, 1), "loop_late_us_p99": round(tm.late_us_p99, 1),
+            "loop_late_us_max": round(tm.late_us_max, 1), "tick_us_max": round(tm.compute_us_max, 1),
+            "loop_misses": tm.misses, "loop_miss_ratio": round(tm.miss_ratio, 5), "scheduling": loop.scheduling}
 
 
 def add_arguments(p):
@@ -24,6 +63,10 @@ def add_arguments(p):
     p.add_argument("--warmup", type=float, default=1.0, help="seconds run before measuring (default 1)")
     p.add_argument("--proxies", default="1,4", help="comma-separated proxy counts (default 1,4)")
     p.add_argument("--config", default=None, help="scene configuration (default: the embedded defaults)")
+    p.add_argument("--floor", type=float, default=0.0, metavar="SECONDS",
+                   help="first run the same loop for SECONDS with a tick that only spins as long as the "
+                        "service's median tick, nothing else in the process: the machine's own floor "
+                        "(default 0: skip)")
     p.add_argument("--render-live", action="store_true",
                    help="render synthetic frames on the reader threads while the loop runs (default: 30 frames "
                         "pre-rendered and served at the camera rate, as a real camera's C driver would cost)")
@@ -77,6 +120,11 @@ def run(args) -> dict:
     cfg = config_mod.load(args.config)
     counts = [int(x) for x in str(args.proxies).split(",") if x.strip()]
     cache: dict = {}
+    floor = None
+    if args.floor > 0:
+        # (spin as long as the largest proxy count's median tick: a short run to measure it)
+        probe = _one(cfg, counts[-1], 2.0, args.warmup, args.backend, args.device, args.render_live, cache)
+        floor = machine_floor(cfg, args.floor, probe["tick_us_p50"] * 1e-6)
     runs = [_one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache)
             for n in counts]
     from pointfence.kernels import get_backend
@@ -86,6 +134,8 @@ def run(args) -> dict:
            "cameras": [f"{c.source} {c.camera.width}x{c.camera.height}@{c.rate_hz:g}Hz" for c in cfg.cameras],
            "frames": "rendered live" if args.render_live else "30 pre-rendered frames served in real time",
            "runs": runs}
+    if floor is not None:
+        out["machine_floor"] = floor
     last = runs[-1]
     for key in ("loop_late_us_p50", "loop_late_us_p99", "loop_miss_ratio", "tick_us_p50", "tick_us_p99"):
         out[key] = last[key]     # the largest proxy count, at top level

@@ -118,3 +118,16 @@ def test_thread_keeps_the_interpreter_lock_for_a_whole_tick():
     assert len(seen) >= 20 and all(s == pytest.approx(0.005) for s in seen)
     assert between in (pytest.approx(0.0001), pytest.approx(0.005))
     assert sys.getswitchinterval() == pytest.approx(before)
+
+
+def test_bench_loop_machine_floor_runs_the_same_loop_on_a_spinning_tick():
+    """`bench loop --floor`: the HapticLoop with a tick that only spins busy_s; its figures
+    are the loop's own accounting (every tick spun at least busy_s; periods = ticks + skipped)."""
+    from pointfence.bench.loop import machine_floor
+    from pointfence.service import config as config_mod
+
+    f = machine_floor(config_mod.load(None), 0.5, 200e-6)
+    assert f["busy_us"] == 200.0 and f["ticks"] > 50
+    assert f["tick_us_max"] >= 200.0
+    assert f["periods"] >= f["ticks"] and 0 <= f["loop_misses"] <= f["periods"]
+    assert f["loop_miss_ratio"] == round(f["loop_misses"] / f["periods"], 5)
