@@ -6,10 +6,16 @@ runs the ticks (masters, one proxy launch for all proxies, forces, teleoperation
 robot per proxy) on absolute deadlines. Each master circles slowly over the protected object,
 pressing into its fixture, so the proxies work in contact. After a warm-up, the loop's own
 ring buffers give tick compute time and lateness percentiles and the deadline misses.
+
+``--floor SECONDS`` first measures the machine's own floor in the same run: the same loop on a
+tick that only spins as long as the service's median tick, beside one busy process per core.
 """
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -37,22 +43,30 @@ class _Busy:
         pass
 
 
-def machine_floor(cfg, seconds: float, busy_s: float) -> dict:
+def machine_floor(cfg, seconds: float, busy_s: float, load: int = 0) -> dict:
     """The same ``HapticLoop`` (same rate, priority, clock and switch intervals) running a tick
     that only spins ``busy_s`` with nothing else in the process: what the machine itself allows
-    (wake-up lateness, deadlines missed to preemption, interrupts, a stalled virtual CPU)."""
+    (wake-up lateness, deadlines missed to preemption, interrupts, a stalled virtual CPU), while
+    ``load`` processes of normal priority spin beside it (as cyclictest is run under stress: the
+    service keeps the machine's cores busy too, and a virtual machine's host may take a core
+    away for milliseconds only when all of them are busy)."""
     sc = cfg.service
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(int(load))]
     loop = HapticLoop(_Busy(busy_s), RealClock(), sc.rate_hz, sc.max_lateness_s, rt_priority=sc.rt_priority,
                       cooperate=False)
-    loop.start()
     try:
+        loop.start()
         time.sleep(0.5)
         mark = loop.mark()
         time.sleep(seconds)
         tm = loop.timing(mark)
     finally:
         loop.stop()
-    return {"seconds": seconds, "busy_us": round(busy_s * 1e6, 1), "ticks": tm.ticks, "periods": tm.periods,
+        for h in hogs:
+            h.kill()
+            h.wait()
+    return {"seconds": seconds, "busy_us": round(busy_s * 1e6, 1), "load_processes": int(load),
+            "ticks": tm.ticks, "periods": tm.periods,
             "loop_late_us_p50": round(tm.late_us_p50, 1), "loop_late_us_p99": round(tm.late_us_p99, 1),
             "loop_late_us_max": round(tm.late_us_max, 1), "tick_us_max": round(tm.compute_us_max, 1),
             "loop_misses": tm.misses, "loop_miss_ratio": round(tm.miss_ratio, 5), "scheduling": loop.scheduling}
@@ -67,6 +81,8 @@ def add_arguments(p):
                    help="first run the same loop for SECONDS with a tick that only spins as long as the "
                         "service's median tick, nothing else in the process: the machine's own floor "
                         "(default 0: skip)")
+    p.add_argument("--floor-load", type=int, default=None, metavar="N",
+                   help="busy processes of normal priority beside the floor's loop (default: one per core)")
     p.add_argument("--render-live", action="store_true",
                    help="render synthetic frames on the reader threads while the loop runs (default: 30 frames "
                         "pre-rendered and served at the camera rate, as a real camera's C driver would cost)")
@@ -124,7 +140,8 @@ def run(args) -> dict:
     if args.floor > 0:
         # (spin as long as the largest proxy count's median tick: a short run to measure it)
         probe = _one(cfg, counts[-1], 2.0, args.warmup, args.backend, args.device, args.render_live, cache)
-        floor = machine_floor(cfg, args.floor, probe["tick_us_p50"] * 1e-6)
+        load = (os.cpu_count() or 1) if args.floor_load is None else args.floor_load
+        floor = machine_floor(cfg, args.floor, probe["tick_us_p50"] * 1e-6, load)
     runs = [_one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache)
             for n in counts]
     from pointfence.kernels import get_backend

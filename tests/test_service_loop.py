@@ -126,8 +126,8 @@ def test_bench_loop_machine_floor_runs_the_same_loop_on_a_spinning_tick():
     from pointfence.bench.loop import machine_floor
     from pointfence.service import config as config_mod
 
-    f = machine_floor(config_mod.load(None), 0.5, 200e-6)
-    assert f["busy_us"] == 200.0 and f["ticks"] > 50
+    f = machine_floor(config_mod.load(None), 0.5, 200e-6, load=1)
+    assert f["busy_us"] == 200.0 and f["ticks"] > 50 and f["load_processes"] == 1
     assert f["tick_us_max"] >= 200.0
     assert f["periods"] >= f["ticks"] and 0 <= f["loop_misses"] <= f["periods"]
     assert f["loop_miss_ratio"] == round(f["loop_misses"] / f["periods"], 5)
