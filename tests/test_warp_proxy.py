@@ -117,15 +117,21 @@ def test_warp_empty_snapshot_is_free_motion():
     assert np.all(prox.states == FREE) and np.all(prox.converged) and np.all(np.isinf(prox.nearest))
 
 
-def _cuda_pipe_and_batch(rng, B=8, **batch_options):
-    if not get_backend("warp").device.is_cuda:
-        pytest.skip("the resident kernel exists on CUDA only")
+def _rig(rng, B):
+    """A 2-camera random rig's pipeline (all points protected, 2 cm cells) with one snapshot, and
+    B proxy starts near its surface points: (pipe, frames, snap, surface points, starts)."""
     cams, frames = random_rig(rng, n_cams=2)
     pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
     pipe.ingest(frames)
     snap = pipe.host_snapshot()
     surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
-    start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+    return pipe, frames, snap, surf, surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+
+
+def _cuda_pipe_and_batch(rng, B=8, **batch_options):
+    if not get_backend("warp").device.is_cuda:
+        pytest.skip("the resident kernel exists on CUDA only")
+    pipe, frames, snap, surf, start = _rig(rng, B)
     p = HapticParams(max_steps=40)
     return pipe, frames, snap, start, p, pipe.proxies(start, p, **batch_options)
 
@@ -227,13 +233,8 @@ def test_launched_working_set_cache_moves_proxies_exactly_as_gathering_every_tic
 
     monkeypatch.setattr(resident, "RESIDENT_MAX", 0)   # on CUDA too: the launched path
     rng = np.random.default_rng(31)
-    cams, frames = random_rig(rng, n_cams=2)
-    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
-    pipe.ingest(frames)
-    snap = pipe.host_snapshot()
     B = 12
-    surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
-    start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+    pipe, frames, snap, surf, start = _rig(rng, B)
     p = HapticParams(max_steps=40)
     cached = pipe.proxies(start, p)
     fresh = pipe.proxies(start, p, ws_cache=False)
