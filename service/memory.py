@@ -16,15 +16,12 @@ collapse is needed for them). Live runs call it before anything else (service/ru
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import sys
+
+from .libc import libc
 
 PR_SET_THP_DISABLE = 41
 PR_GET_THP_DISABLE = 42
-
-
-def _libc():
-    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
 
 
 def small_pages() -> str:
@@ -40,7 +37,7 @@ def small_pages() -> str:
         setter(False)
         done.append("numpy madvise off")
     if sys.platform.startswith("linux"):
-        if _libc().prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0:
+        if libc().prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0) == 0:
             done.append("THP off (prctl)")
         else:
             done.append(f"THP prctl refused (errno {ctypes.get_errno()})")
@@ -51,4 +48,4 @@ def huge_pages_disabled() -> bool:
     """Whether the kernel's per-process THP switch is off for this process (Linux)."""
     if not sys.platform.startswith("linux"):
         return False
-    return _libc().prctl(PR_GET_THP_DISABLE, 0, 0, 0, 0) == 1
+    return libc().prctl(PR_GET_THP_DISABLE, 0, 0, 0, 0) == 1

@@ -4,23 +4,19 @@ the process). Linux keeps 15 bytes of it."""
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import sys
 import threading
 
-PR_SET_NAME = 15
+from .libc import libc
 
-_libc = None
+PR_SET_NAME = 15
 
 
 def name_this_thread(name: str) -> bool:
     """Give the calling thread ``name`` (cut to 15 bytes) at the OS level; whether it took."""
-    global _libc
     if not sys.platform.startswith("linux"):
         return False
-    if _libc is None:
-        _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    return _libc.prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0) == 0
+    return libc().prctl(PR_SET_NAME, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0) == 0
 
 
 def os_thread_name(native_id: int | None = None) -> str | None:

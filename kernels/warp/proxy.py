@@ -556,6 +556,17 @@ def away_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, ns: wp.vec3) ->
 
 
 @wp.func
+def set_holds(key: wp.vec4i, X0: wp.vec3, skin: float, build: int, dtb: int, span: int, X: wp.vec3) -> bool:
+    """Whether a working set gathered around X0 with ``skin`` for ``key`` (build, dt bits, span)
+    still serves a proxy at X in a tick of (build, dtb, span): the conditions under which
+    ``run_steps`` keeps a set."""
+    dx = X[0] - X0[0]
+    dy = X[1] - X0[1]
+    dz = X[2] - X0[2]
+    return key[0] == build and key[1] == dtb and key[2] == span and dx * dx + dy * dy + dz * dz <= skin * skin
+
+
+@wp.func
 def cell_of(X: wp.vec3, g: GridArgs) -> wp.vec3i:
     """Cell of X, clamped to one cell outside the grid (a cell range's end)."""
     cx = int(wp.clamp(wp.floor((X[0] - g.origin[0]) * g.inv_h), -1.0, float(g.nx)))
@@ -1035,9 +1046,8 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
         build = sharedi4(0, 0, wp.vec4i(0))[0]
         dtb = float_bits(dt)
         wbase = (lane // WL) * NJ
-        # The working set of the proxy's last tick, from the cache in device memory, where it
-        # still holds: same build, dt and span, and the proxy within its skin of where the set
-        # was gathered (the conditions under which run_steps keeps a set); else gathered anew.
+        # the working set of the proxy's last tick, from the cache in device memory, where it
+        # still holds; else gathered anew
         X0 = X
         n_ws = int(-2)
         skin = a.skin
@@ -1046,10 +1056,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
         if caching != 0:
             ci = wsi[p]
             ck = wsk[p]
-            dx = X[0] - ck[0]
-            dy = X[1] - ck[1]
-            dz = X[2] - ck[2]
-            if ci[0] == build and ci[1] == dtb and ci[2] == span and dx * dx + dy * dy + dz * dz <= ck[3] * ck[3]:
+            if set_holds(ci, wp.vec3(ck[0], ck[1], ck[2]), ck[3], build, dtb, span, X):
                 hit = 1
                 X0 = wp.vec3(ck[0], ck[1], ck[2])
                 skin = ck[3]
@@ -1132,11 +1139,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             X = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
             o = STAGE_HEAD + 3 * n + 3 * p
             H = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
-            kk = sharedi4(0, 2, wp.vec4i(0))
-            dx = X[0] - X0[0]
-            dy = X[1] - X0[1]
-            dz = X[2] - X0[2]
-            fresh = n_ws == -2 or build != kk[0] or dtb != kk[1] or span != kk[2] or dx * dx + dy * dy + dz * dz > skin * skin
+            fresh = n_ws == -2 or not set_holds(sharedi4(0, 2, wp.vec4i(0)), X0, skin, build, dtb, span, X)
             block_sync()   # every thread has read the bookkeeping before lane 0 updates it
             if lane == 0:
                 sharedi4(1, 2, wp.vec4i(build, dtb, span, s))
@@ -1213,6 +1216,7 @@ class WarpProxies(ProxyBatch):
         self._tick_view = self._device_view(self._tick_host, TickArgs, 1)
         self._tick_np = self._tick_host.numpy()
         self._tick_dt_set = None
+        self._tick_build = None   # the build number in the tick's arguments
         self._set_tick(0.0, 0.0)
         self._prepare_resident()
 
@@ -1324,6 +1328,12 @@ class WarpProxies(ProxyBatch):
         self._tick_vals = (float(tk["dt"]), int(tk["span"]), float(tk["grad"]))   # (for the resident tick)
         self._tick_dt_set = dt
 
+    def _set_build(self, build: int):
+        """The snapshot's build number in the tick's arguments (the working-set cache's key),
+        written when it changes."""
+        if build != self._tick_build:
+            self._tick_np[0]["build"] = self._tick_build = build
+
     # --- the tick --------------------------------------------------------------------------
     def _record(self, slot, n):
         bd = self.block_dim(n)
@@ -1382,16 +1392,16 @@ class WarpProxies(ProxyBatch):
                 self.last_dt = 0.0
                 if self._tick_dt_set != 0.0:
                     self._set_tick(0.0, 0.0)
-            if not self.cuda:
-                self._tick_np[0]["build"] = slot.seq   # (the working-set cache's key)
-                self._record(slot, n)
-            elif self._resident_n:
+            if self._resident_n:
                 r = self._resident[i]
                 if r is None or r.n != n:
                     r = self._new_resident(n, i)
                 r.run(slot.seq, self._tick_vals)
+            elif not self.cuda:
+                self._set_build(slot.seq)
+                self._record(slot, n)
             else:
-                self._tick_np[0]["build"] = slot.seq
+                self._set_build(slot.seq)
                 last_slot, last_n, graph = self._last
                 if last_slot is not slot or last_n != n:
                     graph = self._graphs.get((id(slot), n)) or self._capture(slot, n)
