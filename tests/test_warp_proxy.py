@@ -192,6 +192,24 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
     assert not any(r.running for r in dev._resident)
 
 
+def test_resident_ticks_take_reset_positions_for_one_and_several_proxies():
+    """A resident kernel keeps each proxy's position on the GPU between its own consecutive ticks
+    and takes the batch's positions after a reset (one proxy: block 0 alone; several: staged
+    for the other blocks): every tick after a reset starts where the reset put the proxies."""
+    rng = np.random.default_rng(13)
+    for B in (1, 5):
+        pipe, frames, snap, start, p, dev = _cuda_pipe_and_batch(rng, B=B)
+        assert dev.resident()
+        ref = NumpyProxies(pipe, start, p, snapshot=snap)
+        h = start.copy()
+        for k in range(12):
+            h = h + rng.normal(0, 0.0015, h.shape) + [0, 0, 0.0008]
+            if k % 4 == 3:   # somewhere else; the reference starts the next tick from there too
+                dev.reset(start + rng.normal(0, 0.004, start.shape))
+            _agree(dev, ref, h)
+        dev.close()
+
+
 def test_resident_tick_that_times_out_raises_kernel_error_and_recovers(monkeypatch):
     """A resident tick not done within TIMEOUT_S raises KernelError (the service holds the
     robot); the kernel is stopped after that tick, and the next tick runs normally again."""
@@ -211,14 +229,16 @@ def test_resident_tick_that_times_out_raises_kernel_error_and_recovers(monkeypat
     dev.close()
 
 
-def test_resident_mailbox_layout_matches_the_native_code():
-    """The resident kernel's native code uses the mailbox's word numbers as literals (SEQ, STOP,
-    the staged header): the layout must stay this."""
+def test_resident_mailbox_and_inbox_layout_matches_the_native_code():
+    """The resident kernel's native code uses the mailbox's word numbers (STOP, DONE) and the
+    inbox's header size as literals, and polls at most two inbox chunks a lane of one warp: the
+    layout must stay this."""
     from pointfence.kernels.warp import proxy as wproxy
+    from pointfence.kernels.warp import resident
 
-    assert (wproxy.MB_SEQ, wproxy.MB_STOP, wproxy.MB_SLOT, wproxy.MB_BUILD, wproxy.MB_DT, wproxy.MB_SPAN,
-            wproxy.MB_GRAD, wproxy.MB_DONE, wproxy.MB_ALIVE) == tuple(range(9))
-    assert wproxy.STAGE_HEAD == 8 and wproxy.MB_WORDS >= 9
+    assert (wproxy.MB_STOP, wproxy.MB_DONE, wproxy.MB_ALIVE) == (0, 1, 2) and wproxy.MB_WORDS >= 3
+    assert wproxy.IN_HEAD == 2 and wproxy.IN_HEAD + wproxy.RESIDENT_CAP <= 64
+    assert 0 <= resident.RESIDENT_MAX <= wproxy.RESIDENT_CAP
 
 
 def test_launched_working_set_cache_moves_proxies_exactly_as_gathering_every_tick(monkeypatch):

@@ -285,37 +285,117 @@ def sharedi4(op: int, k: int, v: wp.vec4i) -> wp.vec4i:
     ...
 
 
-# --- the resident kernel's mailbox (kernels/warp/resident.py) --------------------------------
+# --- the resident kernel's mailbox and inbox (kernels/warp/resident.py) ---------------------
 
-#: words of the mailbox, an int32 array in pinned host memory: the host writes a tick's
-#: arguments and then its sequence number; the kernel writes DONE (the last tick finished) and
-#: ALIVE (0 once it has left). SLOT is reserved (one kernel a snapshot slot). The native code
-#: reads SEQ and STOP as words 0 and 1 and stages words 0 .. STAGE_HEAD - 1.
-MB_SEQ, MB_STOP, MB_SLOT, MB_BUILD, MB_DT, MB_SPAN, MB_GRAD, MB_DONE, MB_ALIVE = (wp.constant(i) for i in range(9))
+#: words of the mailbox, an int32 array in pinned host memory: the host sets STOP to make the
+#: kernel leave; the kernel writes DONE (the number of the tick it finished last) and ALIVE (0
+#: once it has left). The native code reads STOP and writes DONE as words 0 and 1.
+MB_STOP, MB_DONE, MB_ALIVE = (wp.constant(i) for i in range(3))
 MB_WORDS = 16
-#: staged words of the header (the mailbox's first words) before the positions and HIPs
-STAGE_HEAD = wp.constant(8)
+#: the inbox, pinned host memory in 16-byte chunks of (tag, three words): chunk 0 (tag, snapshot
+#: build, dt bits, search span), chunk 1 (tag, gather radius bits, 0, 0), then one chunk
+#: (tag, HIP x, y, z) a proxy. The host writes a tick's words, then the tick's number into every
+#: tag; the kernel reads every chunk at once, one 16-byte load each, and takes the tick when all
+#: tags carry the same new number (a chunk is read whole, and x86 makes a tag visible only after
+#: the words written before it): one round trip over the bus, no fence.
+IN_HEAD = wp.constant(2)
+#: most proxies of a resident kernel (the inbox's chunks: two a lane of one warp)
+RESIDENT_CAP = 62
 
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    volatile int* m = (volatile int*)mb.data;
+    __shared__ int tin[12];   // chunks 0 .. 2 of the tick block 0 took: the header, proxy 0's HIP
+    if (op == 0) return wp::vec4i(tin[4 * i], tin[4 * i + 1], tin[4 * i + 2], tin[4 * i + 3]);
+    // op 1, warp 0 of block 0: poll every chunk (one 16-byte load each, all in flight together)
+    // and the mailbox's STOP word until every tag carries the same number, other than ``last``
+    const int* ib = (const int*)inbox.data;
+    const volatile int* m = (const volatile int*)mb.data;
+    const int nch = n + 2;   // 2: IN_HEAD
+    int a0 = 0, a1 = 0, a2 = 0, a3 = 0, b0 = 0, b1 = 0, b2 = 0, b3 = 0, s;
     unsigned long long t0, t;
     asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t0));
     for (;;) {
-        const int s = m[0];
-        if (s != last) { __threadfence_system(); return s; }
-        if (m[1] != 0) return -1;
+        if (lane < nch)
+            asm volatile("ld.volatile.v4.s32 {%0,%1,%2,%3}, [%4];"
+                         : "=r"(a0), "=r"(a1), "=r"(a2), "=r"(a3) : "l"(ib + 4 * lane) : "memory");
+        if (lane + 32 < nch)
+            asm volatile("ld.volatile.v4.s32 {%0,%1,%2,%3}, [%4];"
+                         : "=r"(b0), "=r"(b1), "=r"(b2), "=r"(b3) : "l"(ib + 4 * (lane + 32)) : "memory");
+        const int stop = __shfl_sync(0xffffffffu, m[0], 0);   // MB_STOP
+        const int tag = __shfl_sync(0xffffffffu, a0, 0);
+        const bool same = (lane >= nch || a0 == tag) && (lane + 32 >= nch || b0 == tag);
+        if (__all_sync(0xffffffffu, same) && tag != last) { s = tag; break; }
+        if (stop != 0) { s = -1; break; }
         asm volatile("mov.u64 %0, %%globaltimer;" : "=l"(t));
-        if (t - t0 > (unsigned long long)idle_ns) return -2;
+        if (__shfl_sync(0xffffffffu, (t - t0 > (unsigned long long)idle_ns) ? 1 : 0, 0)) { s = -2; break; }
     }
+    if (s > 0) {
+        if (lane < 3) { tin[4 * lane] = a0; tin[4 * lane + 1] = a1; tin[4 * lane + 2] = a2; tin[4 * lane + 3] = a3; }
+        if (n > 1) {   // every chunk to the other blocks, through device memory
+            if (lane < nch) stage.data[lane] = wp::vec4i(a0, a1, a2, a3);
+            if (lane + 32 < nch) stage.data[lane + 32] = wp::vec4i(b0, b1, b2, b3);
+        }
+    } else if (lane == 0) {
+        tin[0] = s;
+    }
+    return wp::vec4i(s, 0, 0, 0);
 #else
-    return -1;
+    return wp::vec4i(-1, 0, 0, 0);
 #endif
 """)
-def mailbox_wait(mb: wp.array(dtype=wp.int32), last: int, idle_ns: int) -> int:
-    """Wait for the host's next tick (a sequence number other than ``last``); -1 when asked to
-    stop, -2 after ``idle_ns`` without a tick."""
+def tick_in(op: int, i: int, inbox: wp.array(dtype=wp.int32), mb: wp.array(dtype=wp.int32),
+            stage: wp.array(dtype=wp.vec4i), n: int, last: int, idle_ns: int, lane: int) -> wp.vec4i:
+    """The resident kernel's tick inputs. op 1 (warp 0 of block 0, every lane): wait for the host's
+    next tick in the inbox; keep chunks 0 to 2 in shared memory (their tag word 0: the tick's
+    number, -1 when asked to stop, -2 after ``idle_ns`` without a tick) and, for ``n`` > 1, put
+    every chunk into ``stage`` for the other blocks. op 0: chunk ``i`` (0 to 2) of the tick taken."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    int x, y, z, w;
+    asm volatile("ld.volatile.v4.s32 {%0,%1,%2,%3}, [%4];" : "=r"(x), "=r"(y), "=r"(z), "=r"(w) : "l"(stage.data + i) : "memory");
+    return wp::vec4i(x, y, z, w);
+#else
+    return stage.data[i];
+#endif
+""")
+def staged4(stage: wp.array(dtype=wp.vec4i), i: int) -> wp.vec4i:
+    """Chunk i of the staged inputs (read past the SM's cache: block 0 wrote it)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __threadfence_system();   // (the host wrote any new positions before the tick's tags)
+    const volatile float* x = (const volatile float*)pos.data;
+    for (int i = lane; i < n; i += bd)
+        stage.data[2 + n + i] = wp::vec4i(0, __float_as_int(x[3 * i]), __float_as_int(x[3 * i + 1]),
+                                          __float_as_int(x[3 * i + 2]));   // 2: IN_HEAD; words 1-3, as a HIP's
+#endif
+""")
+def positions_in(pos: wp.array(dtype=wp.vec3), stage: wp.array(dtype=wp.vec4i), n: int, lane: int, bd: int):
+    """Block 0 stages every proxy's position from the batch's host array (chunks IN_HEAD + n on,
+    words 1 to 3 as an inbox chunk's), the block's threads reading together: for a tick that
+    follows another kernel's or a reset."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    __threadfence_system();   // this block's results are in host memory before it counts itself done
+    if (n > 1) {
+        // counts 0 .. n - 1 and wraps to 0 by itself: no reset, and no overflow in a long run
+        if (atomicInc((unsigned int*)count.data, (unsigned int)(n - 1)) != (unsigned int)(n - 1)) return;
+        __threadfence_system();   // every block's results before DONE
+    }
+    ((volatile int*)mb.data)[1] = s;   // MB_DONE
+#endif
+""")
+def tick_done(count: wp.array(dtype=wp.int32), mb: wp.array(dtype=wp.int32), n: int, s: int):
+    """A block's results are written: the last of the ``n`` blocks tells the host tick ``s`` is done."""
     ...
 
 
@@ -327,8 +407,7 @@ def mailbox_wait(mb: wp.array(dtype=wp.int32), last: int, idle_ns: int) -> int:
 #endif
 """)
 def mailbox_set(mb: wp.array(dtype=wp.int32), i: int, v: int):
-    """Write word i of the mailbox (no fence: the results DONE announces were fenced by their
-    writers, and ALIVE announces nothing but the kernel's leaving)."""
+    """Write word i of the mailbox (no fence: ALIVE announces nothing but the kernel's leaving)."""
     ...
 
 
@@ -361,37 +440,6 @@ def command_wait(cmd: wp.array(dtype=wp.int32), last: int) -> int:
 
 
 @wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    // one load a thread, all in flight together: the header words, then the positions, then the HIPs
-    const volatile float* m = (const volatile float*)mb.data;
-    const volatile float* x = (const volatile float*)pos.data;
-    const volatile float* h = (const volatile float*)hips.data;
-    for (int i = lane; i < 8 + 6 * n; i += bd) {   // 8: STAGE_HEAD
-        const volatile float* src = i < 8 ? m + i : (i < 8 + 3 * n ? x + (i - 8) : h + (i - 8 - 3 * n));
-        stage.data[i] = *src;
-    }
-#endif
-""")
-def stage_inputs(mb: wp.array(dtype=wp.int32), pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3),
-                 stage: wp.array(dtype=float), n: int, lane: int, bd: int):
-    """Block 0 copies the tick's inputs from host memory into device memory (``stage``): the
-    mailbox's header, then every proxy's position and HIP, the block's threads reading together."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    return ((const volatile float*)stage.data)[i];
-#else
-    return stage.data[i];
-#endif
-""")
-def staged(stage: wp.array(dtype=float), i: int) -> float:
-    """Word i of the staged inputs (read past the SM's cache: block 0 wrote it)."""
-    ...
-
-
-@wp.func_native("""
     union { float f; int i; } u;
     u.f = f;
     return u.i;
@@ -402,45 +450,19 @@ def float_bits(f: float) -> int:
 
 
 @wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    __threadfence();   // this block's results are in device memory before its count
-    // counts 0 .. n - 1 and wraps to 0 by itself: no reset, and no overflow in a long run
-    return atomicInc((unsigned int*)count.data, (unsigned int)(n - 1)) == (unsigned int)(n - 1) ? 1 : 0;
-#else
-    return 1;
-#endif
+    union { float f; int i; } u;
+    u.i = i;
+    return u.f;
 """)
-def count_done(count: wp.array(dtype=wp.int32), n: int) -> int:
-    """Count this block's tick done; 1 for the last of the ``n`` blocks."""
+def bits_float(i: int) -> float:
+    """The float with bits i."""
     ...
 
 
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    // every proxy's results from device memory to the host arrays, a proxy a thread
-    const volatile float* rx = (const volatile float*)ox.data;
-    const volatile float* rn = (const volatile float*)onrm.data;
-    const volatile float* re = (const volatile float*)one.data;
-    const volatile int* ri = (const volatile int*)oint.data;
-    for (int i = lane; i < n; i += bd) {
-        for (int c = 0; c < 3; ++c) {
-            ((float*)pos.data)[3 * i + c] = rx[3 * i + c];
-            ((float*)nrm_out.data)[3 * i + c] = rn[3 * i + c];
-        }
-        near_out.data[i] = re[i];
-        state_out.data[i] = ri[3 * i];
-        steps_out.data[i] = ri[3 * i + 1];
-        conv_out.data[i] = ri[3 * i + 2] != 0;
-    }
-    __threadfence_system();
-#endif
-""")
-def results_out(ox: wp.array(dtype=wp.vec3), onrm: wp.array(dtype=wp.vec3), one: wp.array(dtype=float),
-                oint: wp.array(dtype=wp.vec3i), n: int, lane: int, bd: int, pos: wp.array(dtype=wp.vec3),
-                nrm_out: wp.array(dtype=wp.vec3), near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
-                steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool)):
-    """The last block copies every proxy's results into the batch's host arrays."""
-    ...
+@wp.func
+def bits_vec3(c: wp.vec4i) -> wp.vec3:
+    """Words 1 to 3 of an inbox chunk as a vector."""
+    return wp.vec3(bits_float(c[1]), bits_float(c[2]), bits_float(c[3]))
 
 
 # --- per-point work, shared by the working-set and the hash paths ---------------------------
@@ -1086,64 +1108,81 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
 
     @wp.kernel(enable_backward=False, module="unique", **opts)
     def proxy_resident(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
-                       svel: wp.array(dtype=wp.vec4), g: GridArgs, a: ProxyArgs, mb: wp.array(dtype=wp.int32),
-                       cmd: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), n: int, last0: int,
-                       idle_ns: int, pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3),
+                       svel: wp.array(dtype=wp.vec4), g: GridArgs, a: ProxyArgs, inbox: wp.array(dtype=wp.int32),
+                       mb: wp.array(dtype=wp.int32), cmd: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                       n: int, last0: int, idle_ns: int, pos: wp.array(dtype=wp.vec3),
                        nrm_out: wp.array(dtype=wp.vec3), near_out: wp.array(dtype=float),
                        state_out: wp.array(dtype=wp.int32), steps_out: wp.array(dtype=wp.int32),
-                       conv_out: wp.array(dtype=wp.bool), stage: wp.array(dtype=float), ox: wp.array(dtype=wp.vec3),
-                       onrm: wp.array(dtype=wp.vec3), one: wp.array(dtype=float), oint: wp.array(dtype=wp.vec3i)):
+                       conv_out: wp.array(dtype=wp.bool), stage: wp.array(dtype=wp.vec4i)):
         """The resident form of ``proxy_tick`` on one snapshot slot (kernels/warp/resident.py):
-        the blocks stay on their SMs and run a tick each time the host posts one in the mailbox
-        ``mb``; a proxy's working set stays in shared memory from tick to tick while it is valid.
-        Host memory is read and written by one block a tick (block 0 stages the inputs in device
-        memory, the last block to finish copies every result out): reads of host memory from
-        many blocks at once queue on the bus. The slot's arrays are kernel parameters and the
-        tick-to-tick bookkeeping lives in shared memory, so that the step loop has the registers
-        of ``proxy_tick``'s."""
+        the blocks stay on their SMs and run a tick each time the host posts one in the inbox; a
+        proxy's working set stays in shared memory from tick to tick while it holds, and its
+        position in a register while the kernel ran the batch's previous tick (tick numbers are
+        consecutive then; after another kernel's tick or a reset block 0 stages the positions from
+        the host). Host memory is read by block 0 alone (reads from many blocks at once queue on
+        the bus): it passes the tick on to the others through device memory. Each block writes
+        its results into the host arrays; the last to finish writes the tick's number into the
+        mailbox. The slot's arrays are kernel parameters and the tick-to-tick bookkeeping lives in
+        shared memory, so that the step loop has the registers of ``proxy_tick``'s."""
         p, lane = wp.tid()
         wbase = (lane // WL) * NJ
         par = int(0)
+        X = wp.vec3(0.0)
         X0 = wp.vec3(0.0)
         n_ws = int(-2)      # no working set yet
         skin = float(0.0)
         if lane == 0:
-            # (build, dt bits, span) the set was gathered for, and the last tick's number
+            # (build, dt bits, span) the set was gathered for, and the last tick number seen;
+            # the last tick this kernel ran (none yet)
             sharedi4(1, 2, wp.vec4i(-1, -1, -1, last0))
+            sharedi4(1, 1, wp.vec4i(-1, 0, 0, 0))
         block_sync()
         while True:
             s = int(0)
-            if p == 0:   # block 0 alone polls the host and stages the tick; the others follow
-                if lane == 0:
-                    sharedi4(1, 0, wp.vec4i(mailbox_wait(mb, sharedi4(0, 2, wp.vec4i(0))[3], idle_ns), 0, 0, 0))
+            last = sharedi4(0, 2, wp.vec4i(0))[3]
+            ran = sharedi4(0, 1, wp.vec4i(0))[0]
+            if p == 0:   # block 0 alone polls the host and passes the tick on; the others follow
+                if lane < 32:
+                    tick_in(1, 0, inbox, mb, stage, n, last, idle_ns, lane)
                 block_sync()
-                s = sharedi4(0, 0, wp.vec4i(0))[0]
-                if s > 0:
-                    stage_inputs(mb, pos, hips, stage, n, lane, BD)
-                block_sync()
-                if lane == 0:
+                s = tick_in(0, 0, inbox, mb, stage, n, last, idle_ns, lane)[0]
+                if s > 0 and s != ran + 1:
+                    positions_in(pos, stage, n, lane, BD)
+                    block_sync()
+                if n > 1 and lane == 0:
                     command_put(cmd, s)
             else:
                 if lane == 0:
-                    sharedi4(1, 0, wp.vec4i(command_wait(cmd, sharedi4(0, 2, wp.vec4i(0))[3]), 0, 0, 0))
+                    sharedi4(1, 0, wp.vec4i(command_wait(cmd, last), 0, 0, 0))
                 block_sync()
                 s = sharedi4(0, 0, wp.vec4i(0))[0]
             if s <= 0:
                 break
-            build = float_bits(staged(stage, MB_BUILD))
-            dtb = float_bits(staged(stage, MB_DT))
-            span = float_bits(staged(stage, MB_SPAN))
-            dt = staged(stage, MB_DT)
-            grad = staged(stage, MB_GRAD)
-            o = STAGE_HEAD + 3 * p
-            X = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
-            o = STAGE_HEAD + 3 * n + 3 * p
-            H = wp.vec3(staged(stage, o), staged(stage, o + 1), staged(stage, o + 2))
+            hd = wp.vec4i(0)
+            hg = wp.vec4i(0)
+            hh = wp.vec4i(0)
+            if p == 0:
+                hd = tick_in(0, 0, inbox, mb, stage, n, last, idle_ns, lane)
+                hg = tick_in(0, 1, inbox, mb, stage, n, last, idle_ns, lane)
+                hh = tick_in(0, 2, inbox, mb, stage, n, last, idle_ns, lane)
+            else:
+                hd = staged4(stage, 0)
+                hg = staged4(stage, 1)
+                hh = staged4(stage, IN_HEAD + p)
+            if s != ran + 1:
+                X = bits_vec3(staged4(stage, IN_HEAD + n + p))
+            build = hd[1]
+            dtb = hd[2]
+            span = hd[3]
+            dt = bits_float(dtb)
+            grad = bits_float(hg[1])
+            H = bits_vec3(hh)
             fresh = n_ws == -2 or not set_holds(sharedi4(0, 2, wp.vec4i(0)), X0, skin, build, dtb, span, X)
             block_sync()   # every thread has read the bookkeeping before lane 0 updates it
             if lane == 0:
                 sharedi4(1, 2, wp.vec4i(build, dtb, span, s))
-            # (block 0 stages the next tick only after the host has seen this one done, and a
+                sharedi4(1, 1, wp.vec4i(s, 0, 0, 0))
+            # (block 0 takes the next tick only after the host has seen this one done, and a
             # block counts itself done after reductions that every one of its threads reached
             # with its inputs read)
             if fresh:
@@ -1152,17 +1191,13 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
                 spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
             if lane == 0:
-                ox[p] = X
-                onrm[p] = nrm
-                one[p] = min_e
-                oint[p] = wp.vec3i(st, steps, conv)
-                sharedi4(1, 1, wp.vec4i(count_done(count, n), 0, 0, 0))
-            block_sync()
-            if sharedi4(0, 1, wp.vec4i(0))[0] != 0:   # the last block: every result out, then done
-                results_out(ox, onrm, one, oint, n, lane, BD, pos, nrm_out, near_out, state_out, steps_out, conv_out)
-                block_sync()   # (every thread fenced its results out to the host before it)
-                if lane == 0:
-                    mailbox_set(mb, MB_DONE, sharedi4(0, 2, wp.vec4i(0))[3])
+                pos[p] = X
+                nrm_out[p] = nrm
+                near_out[p] = min_e
+                state_out[p] = st
+                steps_out[p] = steps
+                conv_out[p] = conv != 0
+                tick_done(count, mb, n, s)
         if p == 0 and lane == 0:
             mailbox_set(mb, MB_ALIVE, 0)
 
@@ -1193,6 +1228,7 @@ class WarpProxies(ProxyBatch):
         if self.cuda and BLOCK_DIM and (BLOCK_DIM % 32 or not 32 <= BLOCK_DIM <= 1024):
             raise ValueError(f"POINTFENCE_WARP_BLOCK_DIM = {BLOCK_DIM}; expected a multiple of 32 from 32 to 1024")
         self._block_dim_request = block_dim
+        self._tick_no = 0   # the resident ticks' number (kernels/warp/resident.py)
         self.stream = pipeline.query_stream
         self._graphs = {}
         self._last = (None, 0, None)   # (slot, n, graph) of the last tick
@@ -1283,6 +1319,8 @@ class WarpProxies(ProxyBatch):
         # (RESIDENT_MAX is read here, when the size is set)
         self._hips_n = self._hips_np[: self.n]
         self._resident_n = self.cuda and self.resident()
+        # a tick number skipped: no resident kernel keeps a proxy's position past a reset
+        self._tick_no = self._tick_no % 0x7FFFFFF0 + 1
         if self.cuda:   # the copying path keeps its positions on the device
             wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
             if hasattr(self, "args"):   # (not yet during __init__, which prepares them itself)
@@ -1380,7 +1418,6 @@ class WarpProxies(ProxyBatch):
         n = self.n
         if n == 0:
             return
-        np.copyto(self._hips_n, hips)
         buf = self.pipeline.buffers
         i = buf.acquire()   # the front slot: no build overwrites it during the tick
         try:
@@ -1396,11 +1433,14 @@ class WarpProxies(ProxyBatch):
                 r = self._resident[i]
                 if r is None or r.n != n:
                     r = self._new_resident(n, i)
-                r.run(slot.seq, self._tick_vals)
+                self._tick_no = self._tick_no % 0x7FFFFFF0 + 1
+                r.run(slot.seq, self._tick_vals, hips, self._tick_no)
             elif not self.cuda:
+                np.copyto(self._hips_n, hips)
                 self._set_build(slot.seq)
                 self._record(slot, n)
             else:
+                np.copyto(self._hips_n, hips)
                 self._set_build(slot.seq)
                 last_slot, last_n, graph = self._last
                 if last_slot is not slot or last_n != n:

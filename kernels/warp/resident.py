@@ -5,26 +5,30 @@ launched kernel starts with empty shared memory, so every tick also gathers each
 set again. For a batch of up to ``RESIDENT_MAX`` proxies the tick kernel can instead be launched
 once and stay: one block a proxy sits on its SM and waits for ticks.
 
-The host and the kernel talk through a mailbox, a few int32 words in pinned host memory
-(``proxy.MB_*``). There is one resident kernel per snapshot slot, with the slot's arrays as
-kernel parameters (in the constant bank, as the launched kernel has them), rather than one
-kernel picking the slot's arrays per tick from device memory and holding their pointers in
-registers through the step loop. The two kernels of a batch of up to ``RESIDENT_MAX`` proxies
-take at most 64 of the GPU's SMs.
+The host and the kernel talk through pinned host memory: an inbox of 16-byte chunks that the
+host writes and the kernel reads, and a mailbox of a few words (``proxy.MB_*``) for the rest.
+There is one resident kernel per snapshot slot, with the slot's arrays as kernel parameters (in
+the constant bank, as the launched kernel has them), rather than one kernel picking the slot's
+arrays per tick from device memory and holding their pointers in registers through the step
+loop. The two kernels of a batch of up to ``RESIDENT_MAX`` proxies take at most 64 of the GPU's
+SMs.
 
-A tick: the host writes the HIPs and positions into the batch's pinned arrays and the tick's
-arguments (the slot's build number, dt, search span, gather radius) into the mailbox of the
-front slot's kernel, then the tick's sequence number (x86 keeps the order of these stores).
-Block 0 of the kernel polls the sequence number (a read over the bus about every microsecond),
-copies the header and every proxy's position and HIP into device memory with all its threads at
-once and passes the command to the other blocks through device memory; every block runs its
-proxy's tick as ``proxy_tick`` does and counts itself done; the last block copies every result
-into the pinned arrays and writes the sequence number into ``MB_DONE``, which the host spins on.
-Only one block a tick touches host memory: reads of host memory by many blocks queue on the bus
-(a first version, each block reading its own inputs, took 5.5 us more a proxy: 351 us a tick
-for 64 proxies on an H100). A proxy keeps its working set in shared memory from tick to tick
-while the snapshot (the slot's build), dt and the search span are unchanged and it stays within
-its skin of where the set was gathered; results do not depend on the working set
+A tick: the host writes the tick's arguments (the slot's build number, dt, search span, gather
+radius: only when they change) and every proxy's HIP into the front slot's inbox, then the
+tick's number into every chunk's tag (``proxy.IN_HEAD``). Warp 0 of block 0 polls all chunks at
+once, one 16-byte load each (about a microsecond a round trip), until every tag carries the
+same new number: a chunk is read whole and x86 makes its tag visible only after the words
+written before it, so the tick arrives in one round trip over the bus, without a fence. Block 0
+passes the tick to the other blocks through device memory. A proxy's position stays in a
+register while its kernel ran the batch's previous tick (the batch numbers its ticks one after
+another and skips a number at a reset); otherwise block 0 stages every position from the batch's
+host array. Every block runs its proxy's tick as ``proxy_tick`` does, writes its results into
+the batch's host arrays and counts itself done; the last writes the tick's number into
+``MB_DONE``, which the host spins on. Only block 0 reads host memory: reads by many blocks queue
+on the bus (a first version, each block reading its own inputs, took 5.5 us more a proxy: 351 us
+a tick for 64 proxies on an H100). A proxy keeps its working set in shared memory from tick to
+tick while the snapshot (the slot's build), dt and the search span are unchanged and it stays
+within its skin of where the set was gathered; results do not depend on the working set
 (kernels/warp/proxy.py), so a resident tick moves a proxy as a launched one does, up to the
 order of float sums.
 
@@ -53,10 +57,13 @@ import warp as wp
 
 from ..errors import KernelError
 from . import proxy as wproxy
-from .proxy import MB_ALIVE, MB_BUILD, MB_DONE, MB_DT, MB_GRAD, MB_SEQ, MB_SPAN, MB_STOP
+from .proxy import MB_ALIVE, MB_DONE, MB_STOP
 
 #: largest batch that runs resident (POINTFENCE_WARP_RESIDENT_MAX; 0: never)
 RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "32"))
+if not 0 <= RESIDENT_MAX <= wproxy.RESIDENT_CAP:
+    raise ValueError(f"POINTFENCE_WARP_RESIDENT_MAX = {RESIDENT_MAX}; expected 0 (never resident) to "
+                     f"{wproxy.RESIDENT_CAP}")
 #: the kernel leaves after this long without a tick (s)
 IDLE_S = 0.1
 #: a tick not done after this long is a failure (s)
@@ -84,6 +91,8 @@ class ResidentTick:
     docstring): ``run`` does one tick, ``stop`` lets the kernel go."""
 
     def __init__(self, batch, n: int, kernel, bd: int, slot):
+        if n > wproxy.RESIDENT_CAP:
+            raise ValueError(f"a resident tick of {n} proxies; at most {wproxy.RESIDENT_CAP} (POINTFENCE_WARP_RESIDENT_MAX)")
         dev = batch.dev
         self.slot = slot
         self.n, self.kernel, self.bd, self.dev = n, kernel, bd, dev
@@ -93,15 +102,21 @@ class ResidentTick:
         self.stream = wp.Stream(dev)
         self.mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
         self.mb_np = self.mb.numpy()
-        self.mb_f = self.mb_np.view(np.float32)
         self.mb_dev = wp.array(ptr=self.mb.ptr, dtype=wp.int32, shape=wproxy.MB_WORDS, device=dev)
+        # the inbox: (tag, 3 words) chunks, the header's two and a HIP's a proxy (proxy.IN_HEAD)
+        words = 4 * (wproxy.IN_HEAD + n)
+        self.inbox = wp.zeros(words, dtype=wp.int32, device="cpu", pinned=True)
+        chunks = self.inbox.numpy().reshape(-1, 4)
+        self.in_i, self.in_f = chunks, chunks.view(np.float32)
+        self.tags = chunks[:, 0]
+        self.hips_in = self.in_f[wproxy.IN_HEAD:, 1:4]
+        self.inbox_dev = wp.array(ptr=self.inbox.ptr, dtype=wp.int32, shape=words, device=dev)
         self.cmd = wp.zeros(1, dtype=wp.int32, device=dev)
         self.count = wp.zeros(1, dtype=wp.int32, device=dev)
-        # the tick's inputs staged in device memory by block 0, the results before they go out
-        self.stage = wp.zeros(wproxy.STAGE_HEAD + 6 * n, dtype=float, device=dev)
-        self.out = [wp.zeros(n, dtype=dt, device=dev) for dt in (wp.vec3, wp.vec3, float, wp.vec3i)]
-        self.seq = 0
-        self._posted, self._posted_tick = None, None   # the arguments in the mailbox now
+        # the tick's chunks staged in device memory by block 0 for the others, then the positions
+        self.stage = wp.zeros(wproxy.IN_HEAD + 2 * n, dtype=wp.vec4i, device=dev)
+        self.seq = 0   # the tick number last posted in the inbox
+        self._posted, self._posted_tick = None, None   # the header in the inbox now
         self.launches = 0
         self.running = False
         self.hung = False
@@ -117,17 +132,18 @@ class ResidentTick:
         sl = self.slot
         wp.launch_tiled(self.kernel, dim=[self.n], block_dim=self.bd, device=self.dev, stream=self.stream,
                         inputs=[sl.sorted_pts, sl.order, sl.start, sl.sorted_vel, self.grid_args, self.args,
-                                self.mb_dev, self.cmd, self.count, self.n,
-                                self.seq, int(IDLE_S * 1e9), v["positions"], v["hips"], v["normals"], v["nearest"],
-                                v["states"], v["steps"], v["converged"], self.stage, *self.out])
+                                self.inbox_dev, self.mb_dev, self.cmd, self.count, self.n, self.seq,
+                                int(IDLE_S * 1e9), v["positions"], v["normals"], v["nearest"], v["states"],
+                                v["steps"], v["converged"], self.stage])
         self.launches += 1
         self.running = True
 
-    def run(self, build: int, tick) -> None:
-        """One tick on this kernel's snapshot slot (its build number ``build``) with the tick's
-        arguments ``tick`` (dt s, span cells, gather radius m); the HIPs and positions are in the
-        batch's pinned arrays. Returns when every proxy's results are there."""
-        mb, mf = self.mb_np, self.mb_f
+    def run(self, build: int, tick, hips, seq: int) -> None:
+        """Tick number ``seq`` (the batch's, one more than its last tick's unless the positions
+        were reset since) on this kernel's snapshot slot (its build number ``build``), with the
+        tick's arguments ``tick`` (dt s, span cells, gather radius m) and the HIPs ``hips`` (n, 3)
+        m. Returns when every proxy's results are in the batch's host arrays."""
+        mb = self.mb_np
         if self.hung:
             if mb[MB_ALIVE] != 0:
                 raise KernelError("the resident Warp proxy kernel is still busy with a tick that timed out; close the batch")
@@ -135,17 +151,19 @@ class ResidentTick:
         if not self.running or mb[MB_ALIVE] == 0:
             self._relaunch()
         if build != self._posted or tick is not self._posted_tick:   # (the same as last tick: as they are)
-            mb[MB_BUILD] = build
-            mf[MB_DT] = tick[0]
-            mb[MB_SPAN] = tick[1]
-            mf[MB_GRAD] = tick[2]
+            ib, fb = self.in_i, self.in_f
+            ib[0, 1] = build
+            fb[0, 2] = tick[0]
+            ib[0, 3] = tick[1]
+            fb[1, 1] = tick[2]
             self._posted, self._posted_tick = build, tick
-        seq = self.seq = self.seq % 0x7FFFFFF0 + 1
-        mb[MB_SEQ] = seq   # last: the kernel reads the words above once it sees it
+        np.copyto(self.hips_in, hips)
+        self.tags.fill(seq)   # last: a chunk that carries the tick's number holds the tick's words
+        self.seq = seq
         t0 = None
         while mb[MB_DONE] != seq:
             if mb[MB_ALIVE] == 0:
-                # it left (idle) as this tick was posted, before taking it: again, from seq - 1
+                # it left (idle) as this tick was posted, before taking it: again, from the last one
                 self.seq = seq - 1
                 self._relaunch()
                 self.seq = seq
