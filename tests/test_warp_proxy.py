@@ -210,6 +210,25 @@ def test_resident_ticks_take_reset_positions_for_one_and_several_proxies():
         dev.close()
 
 
+def test_resident_ticks_only_where_the_host_keeps_store_order(monkeypatch):
+    """The inbox's tags rely on x86's store order: on another host (an Arm CPU such as Grace)
+    no batch ticks resident, and a small CUDA batch ticks on the launched kernel instead."""
+    from pointfence.kernels.warp import proxy as wproxy
+    from pointfence.kernels.warp import resident
+
+    monkeypatch.setattr(resident, "HOST_STORE_ORDER", True)
+    assert wproxy.resident_max() == resident.RESIDENT_MAX
+    monkeypatch.setattr(resident, "HOST_STORE_ORDER", False)
+    assert wproxy.resident_max() == 0
+    if get_backend("warp").device.is_cuda:
+        rng = np.random.default_rng(3)
+        pipe, frames, snap, surf, start = _rig(rng, 4)
+        p = HapticParams(max_steps=40)
+        dev = pipe.proxies(start, p)
+        assert not dev.resident() and dev._resident == [None, None]
+        _agree(dev, NumpyProxies(pipe, start, p, snapshot=snap), start + [0, 0, 0.004])
+
+
 def test_resident_tick_that_times_out_raises_kernel_error_and_recovers(monkeypatch):
     """A resident tick not done within TIMEOUT_S raises KernelError (the service holds the
     robot); the kernel is stopped after that tick, and the next tick runs normally again."""

@@ -82,8 +82,9 @@ ROWS_CAP = wp.constant(128)
 
 
 def resident_max() -> int:
-    """Largest batch that runs on the resident kernel (kernels/warp/resident.RESIDENT_MAX)."""
-    return _resident_mod.RESIDENT_MAX
+    """Largest batch that runs on the resident kernel (kernels/warp/resident.RESIDENT_MAX; 0 on a
+    host without x86's store order, ``resident.HOST_STORE_ORDER``)."""
+    return _resident_mod.RESIDENT_MAX if _resident_mod.HOST_STORE_ORDER else 0
 
 
 def block_dim_for(n: int) -> int:

@@ -49,6 +49,7 @@ which leaves the other SMs to the frame builds; larger batches use the launched 
 from __future__ import annotations
 
 import os
+import platform
 import time
 import weakref
 
@@ -64,6 +65,9 @@ RESIDENT_MAX = int(os.environ.get("POINTFENCE_WARP_RESIDENT_MAX", "32"))
 if not 0 <= RESIDENT_MAX <= wproxy.RESIDENT_CAP:
     raise ValueError(f"POINTFENCE_WARP_RESIDENT_MAX = {RESIDENT_MAX}; expected 0 (never resident) to "
                      f"{wproxy.RESIDENT_CAP}")
+#: whether the host's stores become visible in program order (x86-64: total store order), which
+#: the inbox's tags rely on; elsewhere (an Arm host, such as Grace) every tick is launched
+HOST_STORE_ORDER = platform.machine().lower() in ("x86_64", "amd64")
 #: the kernel leaves after this long without a tick (s)
 IDLE_S = 0.1
 #: a tick not done after this long is a failure (s)
