@@ -4,7 +4,10 @@ Measured the way a proxy tick runs: a small upload (one HIP), one kernel launch,
 download (one result) and the wait for it, as plain calls and (Warp on CUDA) as one replayed
 CUDA graph; and (Warp on CUDA) a graph holding the kernel alone, which reads its input from and
 writes its result to pinned host memory (``graph_zero_copy``: how a Warp proxy tick of up to
-``ZERO_COPY_MAX`` proxies runs). Other figures are reported as distance from this floor.
+``ZERO_COPY_MAX`` proxies runs); and (Warp on CUDA) the resident tick's hand-over alone
+(``resident_round_trip``: a resident kernel of one block takes a HIP from the inbox and writes
+it back with the proxy kernel's own functions, kernels/warp/resident.py, no step in between).
+Other figures are reported as distance from this floor.
 """
 from __future__ import annotations
 
@@ -81,7 +84,75 @@ def _warp(backend, n):
         v_out = wp.array(ptr=h_out.ptr, dtype=wp.vec3, shape=1, device=dev)
         out["graph_zero_copy_us_p50"], out["graph_zero_copy_us_p99"] = graph_us(
             lambda: wp.launch(touch, dim=1, inputs=[v_in, v_out], device=dev))
+        out["resident_round_trip_us_p50"], out["resident_round_trip_us_p99"] = _resident_round_trip(dev, n)
     return out
+
+
+def _resident_round_trip(dev, n):
+    """(p50, p99) us of a resident tick with no step: the host posts one HIP in the inbox and
+    spins until the kernel has written it back and marked the tick done."""
+    import warp as wp
+
+    from pointfence.kernels.warp import proxy as wproxy
+    from pointfence.kernels.warp.proxy import (IN_HEAD, MB_ALIVE, MB_DONE, MB_STOP, bits_vec3, block_sync,
+                                               mailbox_set, tick_done, tick_in)
+
+    @wp.kernel(enable_backward=False)
+    def relay(inbox: wp.array(dtype=wp.int32), mb: wp.array(dtype=wp.int32), stage: wp.array(dtype=wp.vec4i),
+              count: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3), idle_ns: int):
+        p, lane = wp.tid()
+        last = int(0)
+        while True:
+            if lane < 32:
+                tick_in(1, 0, inbox, mb, stage, 1, last, idle_ns, lane)
+            block_sync()
+            s = tick_in(0, 0, inbox, mb, stage, 1, last, idle_ns, lane)[0]
+            if s <= 0:
+                break
+            h = tick_in(0, 2, inbox, mb, stage, 1, last, idle_ns, lane)
+            if lane == 0:
+                out[0] = bits_vec3(h)
+                tick_done(count, mb, 1, s)
+            last = s
+            block_sync()   # (every thread has read the tick before warp 0 takes the next)
+        if lane == 0:
+            mailbox_set(mb, MB_ALIVE, 0)
+
+    words = 4 * (IN_HEAD + 1)
+    inbox = wp.zeros(words, dtype=wp.int32, device="cpu", pinned=True)
+    chunks = inbox.numpy().reshape(-1, 4)
+    tags, hin = chunks[:, 0], chunks.view(np.float32)[IN_HEAD:, 1:4]
+    mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
+    res = wp.zeros(1, dtype=wp.vec3, device="cpu", pinned=True)
+    mbn, resn = mb.numpy(), res.numpy()
+    mbn[MB_ALIVE] = 1
+    stream = wp.Stream(dev)
+    wp.launch_tiled(relay, dim=[1], block_dim=wproxy.block_dim_for(1), device=dev, stream=stream,
+                    inputs=[wp.array(ptr=inbox.ptr, dtype=wp.int32, shape=words, device=dev),
+                            wp.array(ptr=mb.ptr, dtype=wp.int32, shape=wproxy.MB_WORDS, device=dev),
+                            wp.zeros(IN_HEAD + 2, dtype=wp.vec4i, device=dev), wp.zeros(1, dtype=wp.int32, device=dev),
+                            wp.array(ptr=res.ptr, dtype=wp.vec3, shape=1, device=dev), int(1e9)])
+    seq = [0]
+    h = np.array([[0.1, 0.2, 0.3]], np.float32)
+
+    def tick():
+        s = seq[0] = seq[0] + 1
+        h[0, 0] = s
+        np.copyto(hin, h)
+        tags.fill(s)
+        t_end = time.perf_counter() + 1.0
+        while mbn[MB_DONE] != s:
+            if time.perf_counter() > t_end:
+                raise RuntimeError(f"the resident round-trip kernel did not answer tick {s} within 1 s on {dev}")
+        if resn[0, 0] != s:
+            raise RuntimeError(f"the resident round-trip kernel wrote back {resn[0].tolist()} for tick {s}")
+
+    try:
+        t = _time_us(tick, n)
+    finally:
+        mbn[MB_STOP] = 1
+        wp.synchronize_stream(stream)
+    return round(pct(t, 50), 2), round(pct(t, 99), 2)
 
 
 def _opencl(backend, n):
