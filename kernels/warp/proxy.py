@@ -357,7 +357,8 @@ def tick_in(op: int, i: int, inbox: wp.array(dtype=wp.int32), mb: wp.array(dtype
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
     int x, y, z, w;
-    asm volatile("ld.volatile.v4.s32 {%0,%1,%2,%3}, [%4];" : "=r"(x), "=r"(y), "=r"(z), "=r"(w) : "l"(stage.data + i) : "memory");
+    asm volatile("ld.volatile.v4.s32 {%0,%1,%2,%3}, [%4];"
+                 : "=r"(x), "=r"(y), "=r"(z), "=r"(w) : "l"(stage.data + i) : "memory");
     return wp::vec4i(x, y, z, w);
 #else
     return stage.data[i];
@@ -576,6 +577,20 @@ def away_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, ns: wp.vec3) ->
     if d2 - rc * rc < 0.0 and d2 > 0.0:
         ns = ns + dv * inv
     return ns
+
+
+@wp.func
+def results_out(p: int, X: wp.vec3, nrm: wp.vec3, min_e: float, st: int, steps: int, conv: int,
+                pos: wp.array(dtype=wp.vec3), nrm_out: wp.array(dtype=wp.vec3), near_out: wp.array(dtype=float),
+                state_out: wp.array(dtype=wp.int32), steps_out: wp.array(dtype=wp.int32),
+                conv_out: wp.array(dtype=wp.bool)):
+    """Proxy p's tick results into the batch's arrays (one thread)."""
+    pos[p] = X
+    nrm_out[p] = nrm
+    near_out[p] = min_e
+    state_out[p] = st
+    steps_out[p] = steps
+    conv_out[p] = conv != 0
 
 
 @wp.func
@@ -1100,12 +1115,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
                 wsi[p] = wp.vec4i(build, dtb, span, n_ws)
                 wsk[p] = wp.vec4(X0[0], X0[1], X0[2], skin)
         if lane == 0:
-            pos[p] = X
-            nrm_out[p] = nrm
-            near_out[p] = min_e
-            state_out[p] = st
-            steps_out[p] = steps
-            conv_out[p] = conv != 0
+            results_out(p, X, nrm, min_e, st, steps, conv, pos, nrm_out, near_out, state_out, steps_out, conv_out)
 
     @wp.kernel(enable_backward=False, module="unique", **opts)
     def proxy_resident(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
@@ -1192,12 +1202,7 @@ def _make_tick_kernel(cap: int, maxreg: int = 0, bd: int = 1):
             X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
                 spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
             if lane == 0:
-                pos[p] = X
-                nrm_out[p] = nrm
-                near_out[p] = min_e
-                state_out[p] = st
-                steps_out[p] = steps
-                conv_out[p] = conv != 0
+                results_out(p, X, nrm, min_e, st, steps, conv, pos, nrm_out, near_out, state_out, steps_out, conv_out)
                 tick_done(count, mb, n, s)
         if p == 0 and lane == 0:
             mailbox_set(mb, MB_ALIVE, 0)

@@ -96,7 +96,8 @@ class ResidentTick:
 
     def __init__(self, batch, n: int, kernel, bd: int, slot):
         if n > wproxy.RESIDENT_CAP:
-            raise ValueError(f"a resident tick of {n} proxies; at most {wproxy.RESIDENT_CAP} (POINTFENCE_WARP_RESIDENT_MAX)")
+            raise ValueError(f"a resident tick of {n} proxies; at most {wproxy.RESIDENT_CAP} "
+                             "(POINTFENCE_WARP_RESIDENT_MAX)")
         dev = batch.dev
         self.slot = slot
         self.n, self.kernel, self.bd, self.dev = n, kernel, bd, dev
