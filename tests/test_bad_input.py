@@ -94,6 +94,14 @@ def test_unknown_backend_and_device_name_what_is_available():
         select_device("no-such-gpu")
 
 
+def test_opencl_device_spec_pocl_names_pocls_cpu_device():
+    """PoCL's platform calls itself "Portable Computing Language": "pocl" still picks its CPU
+    device (the threaded one before the in-thread "basic"), as the default does."""
+    dev = select_device("pocl")
+    assert "portable computing language" in dev.platform.name.lower()
+    assert dev == select_device("") and not dev.name.lower().startswith("basic")
+
+
 def test_rig_rejects_duplicate_camera_names():
     c = Camera("same", 8, 8, 10.0, 10.0, 4.0, 4.0)
     with pytest.raises(InputError, match="repeated: same"):

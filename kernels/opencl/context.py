@@ -103,9 +103,10 @@ def select_device(spec: str | None = None):
     """The OpenCL device for ``spec``.
 
     ``spec`` None or "" picks PoCL's CPU device (installed by pip with pyopencl[pocl]); else
-    it is matched case-insensitively against "<platform> <device>" (e.g. "nvidia",
-    "pocl", "H100"); "#k" at the end picks the k-th match. PoCL's in-thread ``basic`` device
-    comes after every other match unless ``spec`` names it.
+    it is matched case-insensitively against "<platform> <device>" (e.g. "nvidia", "H100"),
+    where PoCL's platform ("Portable Computing Language") also answers to "pocl"; "#k" at the
+    end picks the k-th match. PoCL's in-thread ``basic`` device comes after every other match
+    unless ``spec`` names it.
     """
     cl = _cl()
     try:
@@ -126,7 +127,7 @@ def select_device(spec: str | None = None):
         matches = [m for m in matches if m[1].type & cl.device_type.CPU] or matches
     else:
         needle = spec.lower()
-        matches = [(p, d) for p, d in devices if needle in f"{p.name} {d.name}".lower()]
+        matches = [(p, d) for p, d in devices if needle in _names(p, d)]
     if "basic" not in spec.lower():
         matches.sort(key=lambda m: _is_pocl_basic(m[1]))
     if len(matches) <= which:
@@ -137,6 +138,13 @@ def select_device(spec: str | None = None):
             "PoCL comes with: pip install 'pyopencl[pocl]'; for NVIDIA GPUs install the driver's OpenCL ICD"
         )
     return matches[which][1]
+
+
+def _names(platform, device) -> str:
+    """What a device spec is matched against: "<platform> <device>", lower case, and "pocl" for
+    PoCL's devices (its platform is "Portable Computing Language")."""
+    names = f"{platform.name} {device.name}".lower()
+    return names + " pocl" if "portable computing language" in names else names
 
 
 def _is_pocl(device) -> bool:
