@@ -96,6 +96,7 @@ def _resident_round_trip(dev, n):
     from pointfence.kernels.warp import proxy as wproxy
     from pointfence.kernels.warp.proxy import (IN_HEAD, MB_ALIVE, MB_DONE, MB_STOP, bits_vec3, block_sync,
                                                mailbox_set, tick_done, tick_in)
+    from pointfence.kernels.warp.resident import Inbox, pinned_words
 
     @wp.kernel(enable_backward=False)
     def relay(inbox: wp.array(dtype=wp.int32), mb: wp.array(dtype=wp.int32), stage: wp.array(dtype=wp.vec4i),
@@ -118,19 +119,15 @@ def _resident_round_trip(dev, n):
         if lane == 0:
             mailbox_set(mb, MB_ALIVE, 0)
 
-    words = 4 * (IN_HEAD + 1)
-    inbox = wp.zeros(words, dtype=wp.int32, device="cpu", pinned=True)
-    chunks = inbox.numpy().reshape(-1, 4)
-    tags, hin = chunks[:, 0], chunks.view(np.float32)[IN_HEAD:, 1:4]
-    mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
+    inbox = Inbox(1, dev)
+    mb, mbn, mb_dev = pinned_words(wproxy.MB_WORDS, dev)
     res = wp.zeros(1, dtype=wp.vec3, device="cpu", pinned=True)
-    mbn, resn = mb.numpy(), res.numpy()
+    resn = res.numpy()
     mbn[MB_ALIVE] = 1
     stream = wp.Stream(dev)
     wp.launch_tiled(relay, dim=[1], block_dim=wproxy.block_dim_for(1), device=dev, stream=stream,
-                    inputs=[wp.array(ptr=inbox.ptr, dtype=wp.int32, shape=words, device=dev),
-                            wp.array(ptr=mb.ptr, dtype=wp.int32, shape=wproxy.MB_WORDS, device=dev),
-                            wp.zeros(IN_HEAD + 2, dtype=wp.vec4i, device=dev), wp.zeros(1, dtype=wp.int32, device=dev),
+                    inputs=[inbox.dev, mb_dev, wp.zeros(IN_HEAD + 2, dtype=wp.vec4i, device=dev),
+                            wp.zeros(1, dtype=wp.int32, device=dev),
                             wp.array(ptr=res.ptr, dtype=wp.vec3, shape=1, device=dev), int(1e9)])
     seq = [0]
     h = np.array([[0.1, 0.2, 0.3]], np.float32)
@@ -138,8 +135,7 @@ def _resident_round_trip(dev, n):
     def tick():
         s = seq[0] = seq[0] + 1
         h[0, 0] = s
-        np.copyto(hin, h)
-        tags.fill(s)
+        inbox.post(h, s)
         t_end = time.perf_counter() + 1.0
         while mbn[MB_DONE] != s:
             if time.perf_counter() > t_end:

@@ -89,15 +89,11 @@ def test_warp_proxies_agree_with_reference(mode, kernel_path):
     parted = 0
     for _ in range(40):
         h = h + rng.normal(0, 0.0015, h.shape) + [0, 0, 0.0008]
-        ref.reset(dev.positions.copy())
-        dev.step(h)
-        ref.step(h)
-        same = np.abs(dev.positions - ref.positions).max(axis=1) <= 1e-5
+        same = _tick_pair(dev, ref, h, 1e-5)
         # Clearances near the clipping limit are decided with a margin (kernels/proxy.py), but a
         # step may still end within rounding of a state threshold (e = 0) by chance; then the
         # two may part within a tick (about one proxy-tick in 10^4).
         parted += np.count_nonzero(~same)
-        np.testing.assert_array_equal(dev.states[same], ref.states[same])
         np.testing.assert_allclose(dev.nearest[same], ref.nearest[same], atol=1e-5, rtol=0)
         # The normal is discontinuous in the position (a point entering the R3 band adds 1/N), so
         # check it against eq. 2.1 evaluated by brute force at the Warp proxy's own position.
@@ -136,13 +132,20 @@ def _cuda_pipe_and_batch(rng, B=8, **batch_options):
     return pipe, frames, snap, start, p, pipe.proxies(start, p, **batch_options)
 
 
-def _agree(dev, ref, h):
-    ref.reset(dev.positions.copy())
+def _tick_pair(dev, other, h, tol):
+    """One tick of ``dev`` and of ``other`` from dev's positions towards the HIPs ``h``: the
+    proxies that end within ``tol`` m of each other, whose states must then agree."""
+    other.reset(dev.positions.copy())
     dev.step(h)
-    ref.step(h)
-    same = np.abs(dev.positions - ref.positions).max(axis=1) <= 1e-5
+    other.step(h)
+    same = np.abs(dev.positions - other.positions).max(axis=1) <= tol
+    np.testing.assert_array_equal(dev.states[same], other.states[same])
+    return same
+
+
+def _agree(dev, ref, h):
+    same = _tick_pair(dev, ref, h, 1e-5)
     assert same.mean() >= 0.8, (dev.positions, ref.positions)
-    np.testing.assert_array_equal(dev.states[same], ref.states[same])
 
 
 def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
@@ -283,13 +286,9 @@ def test_launched_working_set_cache_moves_proxies_exactly_as_gathering_every_tic
 
     def tick(h):
         nonlocal parted
-        fresh.reset(cached.positions.copy())
-        cached.step(h)
-        fresh.step(h)
         # (a sum a bit off may still flip a decision, as against the reference)
-        same = np.abs(cached.positions - fresh.positions).max(axis=1) <= 1e-6
+        same = _tick_pair(cached, fresh, h, 1e-6)
         parted += np.count_nonzero(~same)
-        np.testing.assert_array_equal(cached.states[same], fresh.states[same])
         # (the normal turns about 200/m with the position: against eq. 2.1 where each proxy is)
         np.testing.assert_allclose(cached.normals, brute_normals(snap, cached.positions, p), atol=2e-4, rtol=0)
 

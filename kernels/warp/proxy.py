@@ -1326,7 +1326,7 @@ class WarpProxies(ProxyBatch):
         self._hips_n = self._hips_np[: self.n]
         self._resident_n = self.cuda and self.resident()
         # a tick number skipped: no resident kernel keeps a proxy's position past a reset
-        self._tick_no = self._tick_no % 0x7FFFFFF0 + 1
+        self._tick_no = _resident_mod.next_tick(self._tick_no)
         if self.cuda:   # the copying path keeps its positions on the device
             wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
             if hasattr(self, "args"):   # (not yet during __init__, which prepares them itself)
@@ -1439,7 +1439,7 @@ class WarpProxies(ProxyBatch):
                 r = self._resident[i]
                 if r is None or r.n != n:
                     r = self._new_resident(n, i)
-                self._tick_no = self._tick_no % 0x7FFFFFF0 + 1
+                self._tick_no = _resident_mod.next_tick(self._tick_no)
                 r.run(slot.seq, self._tick_vals, hips, self._tick_no)
             elif not self.cuda:
                 np.copyto(self._hips_n, hips)

@@ -74,6 +74,46 @@ IDLE_S = 0.1
 TIMEOUT_S = 0.25
 #: the host spins this long on a tick, then yields the interpreter lock while it waits (s)
 SPIN_S = 0.002
+#: tick numbers run 1 .. TICK_WRAP and start again (int32 words, never 0: a fresh inbox's tags)
+TICK_WRAP = 0x7FFFFFF0
+
+
+def next_tick(no: int) -> int:
+    """The tick number after ``no``."""
+    return no % TICK_WRAP + 1
+
+
+def pinned_words(words: int, dev):
+    """An int32 array of ``words`` in pinned host memory: (the array, its NumPy view, its view
+    as an array of the CUDA device ``dev``, which kernels read and write over the bus)."""
+    host = wp.zeros(words, dtype=wp.int32, device="cpu", pinned=True)
+    return host, host.numpy(), wp.array(ptr=host.ptr, dtype=wp.int32, shape=words, device=dev)
+
+
+class Inbox:
+    """The host's side of a resident kernel's inbox for ``n`` proxies (``proxy.IN_HEAD``): 16-byte
+    chunks of (tag, three words) in pinned memory, the header's two, then a HIP's a proxy."""
+
+    def __init__(self, n: int, dev):
+        self.host, words, self.dev = pinned_words(4 * (wproxy.IN_HEAD + n), dev)
+        chunks = words.reshape(-1, 4)
+        self._i, self._f = chunks, chunks.view(np.float32)
+        self._tags = chunks[:, 0]
+        self._hips = self._f[wproxy.IN_HEAD:, 1:4]
+
+    def header(self, build: int, dt: float, span: int, grad: float) -> None:
+        """The tick's arguments: the snapshot's build number, dt (s), span (cells), gather radius
+        (m); they hold for the ticks posted after this."""
+        self._i[0, 1] = build
+        self._f[0, 2] = dt
+        self._i[0, 3] = span
+        self._f[1, 1] = grad
+
+    def post(self, hips, seq: int) -> None:
+        """Tick ``seq`` with the HIPs ``hips`` (n, 3) m; the kernel takes it once every tag is
+        ``seq``, so the tags are written last."""
+        np.copyto(self._hips, hips)
+        self._tags.fill(seq)
 
 
 def _stop(mb_np, mb=None, timeout_s=1.0) -> bool:
@@ -105,17 +145,8 @@ class ResidentTick:
         self.views, self.grid_args, self.args = batch._views, batch.pipeline.grid_args, batch.args
         self.device_name = batch.pipeline.backend.device_name
         self.stream = wp.Stream(dev)
-        self.mb = wp.zeros(wproxy.MB_WORDS, dtype=wp.int32, device="cpu", pinned=True)
-        self.mb_np = self.mb.numpy()
-        self.mb_dev = wp.array(ptr=self.mb.ptr, dtype=wp.int32, shape=wproxy.MB_WORDS, device=dev)
-        # the inbox: (tag, 3 words) chunks, the header's two and a HIP's a proxy (proxy.IN_HEAD)
-        words = 4 * (wproxy.IN_HEAD + n)
-        self.inbox = wp.zeros(words, dtype=wp.int32, device="cpu", pinned=True)
-        chunks = self.inbox.numpy().reshape(-1, 4)
-        self.in_i, self.in_f = chunks, chunks.view(np.float32)
-        self.tags = chunks[:, 0]
-        self.hips_in = self.in_f[wproxy.IN_HEAD:, 1:4]
-        self.inbox_dev = wp.array(ptr=self.inbox.ptr, dtype=wp.int32, shape=words, device=dev)
+        self.mb, self.mb_np, self.mb_dev = pinned_words(wproxy.MB_WORDS, dev)
+        self.inbox = Inbox(n, dev)
         self.cmd = wp.zeros(1, dtype=wp.int32, device=dev)
         self.count = wp.zeros(1, dtype=wp.int32, device=dev)
         # the tick's chunks staged in device memory by block 0 for the others, then the positions
@@ -127,17 +158,18 @@ class ResidentTick:
         self.hung = False
         self._fin = weakref.finalize(self, _stop, self.mb_np, self.mb)
 
-    def _launch(self):
+    def _launch(self, last: int):
+        """Launch the kernel, waiting for a tick other than ``last`` (the tags in the inbox)."""
         v = self.views
         self.mb_np[MB_STOP] = 0
         self.mb_np[MB_ALIVE] = 1
         with wp.ScopedStream(self.stream):
-            self.cmd.fill_(self.seq)
+            self.cmd.fill_(last)
             self.count.zero_()
         sl = self.slot
         wp.launch_tiled(self.kernel, dim=[self.n], block_dim=self.bd, device=self.dev, stream=self.stream,
                         inputs=[sl.sorted_pts, sl.order, sl.start, sl.sorted_vel, self.grid_args, self.args,
-                                self.inbox_dev, self.mb_dev, self.cmd, self.count, self.n, self.seq,
+                                self.inbox.dev, self.mb_dev, self.cmd, self.count, self.n, last,
                                 int(IDLE_S * 1e9), v["positions"], v["normals"], v["nearest"], v["states"],
                                 v["steps"], v["converged"], self.stage])
         self.launches += 1
@@ -154,24 +186,17 @@ class ResidentTick:
                 raise KernelError("the resident Warp proxy kernel is still busy with a tick that timed out; close the batch")
             self.hung = self.running = False
         if not self.running or mb[MB_ALIVE] == 0:
-            self._relaunch()
+            self._relaunch(self.seq)
         if build != self._posted or tick is not self._posted_tick:   # (the same as last tick: as they are)
-            ib, fb = self.in_i, self.in_f
-            ib[0, 1] = build
-            fb[0, 2] = tick[0]
-            ib[0, 3] = tick[1]
-            fb[1, 1] = tick[2]
+            self.inbox.header(build, *tick)
             self._posted, self._posted_tick = build, tick
-        np.copyto(self.hips_in, hips)
-        self.tags.fill(seq)   # last: a chunk that carries the tick's number holds the tick's words
-        self.seq = seq
+        last, self.seq = self.seq, seq
+        self.inbox.post(hips, seq)
         t0 = None
         while mb[MB_DONE] != seq:
             if mb[MB_ALIVE] == 0:
                 # it left (idle) as this tick was posted, before taking it: again, from the last one
-                self.seq = seq - 1
-                self._relaunch()
-                self.seq = seq
+                self._relaunch(last)
             if t0 is None:
                 t0 = time.perf_counter()
                 continue
@@ -190,10 +215,10 @@ class ResidentTick:
                           f"on {self.device_name}"
                           + ("; it has not left either (GPU hung?): close the batch" if self.hung else ""))
 
-    def _relaunch(self):
+    def _relaunch(self, last: int):
         if self.running:
             _stop(self.mb_np)
-        self._launch()
+        self._launch(last)
 
     def stop(self) -> None:
         """Let the kernel go (it is launched again by the next ``run``)."""
