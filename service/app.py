@@ -40,17 +40,11 @@ from pointfence.kernels.haptics import haptic_pipeline_params
 from pointfence.kernels.params_haptics import HapticParams
 
 from .frames import PublishGate
+from .holds import (EXCEPTION, INGEST, KERNEL, LATCHED, MASTER, N_BITS, OVERRUN, REASONS, ROBOT, STALE,  # noqa: F401
+                    WATCHDOG, describe, index, reason_names)
 from .record import C, Recorder
+from .robot.base import RobotMode
 from .teleop import ARCHITECTURES, Teleop, arch_code
-
-# hold reasons (bit mask)
-OVERRUN, STALE, KERNEL, MASTER, ROBOT, EXCEPTION = 1, 2, 4, 8, 16, 32
-REASONS = {OVERRUN: "overrun", STALE: "frames too old", KERNEL: "kernel failure", MASTER: "master input invalid",
-           ROBOT: "robot fault or rejected command", EXCEPTION: "tick exception"}
-
-
-def reason_names(mask: int) -> list:
-    return [name for bit, name in REASONS.items() if mask & bit]
 
 
 class Service:
@@ -86,16 +80,7 @@ class Service:
         if len(robots) != n:
             raise InputError(f"{len(robots)} robots for {n} masters; expected one per master (None: ideal robot)")
         self.robots = list(robots)
-        # the robot self-filter: the tool at each frame's capture time, from a ring of joint poses
-        self.tool_poses = self.frame_filter = None
-        if cfg.self_filter and any(r is not None for r in self.robots):
-            from .toolpose import ToolFilter, ToolPoseRing
-
-            horizon = sc.max_frame_age_s + pp.motion.latency + 0.25
-            self.tool_poses = ToolPoseRing(self.robots, int(math.ceil(horizon * sc.rate_hz)))
-            self.frame_filter = ToolFilter([c.camera for c in cfg.cameras], self.robots, self.tool_poses,
-                                           latency=pp.motion.latency, margin=sc.self_filter_margin,
-                                           workspace=(pp.workspace.min, pp.workspace.max))
+        self._setup_self_filter(cfg, pp)
         #: this tick's time on the frames' clock (nan while unknown); the proxies' prediction time
         self.frame_time = math.nan
         self._predict = bool(pp.motion.enabled)
@@ -119,6 +104,8 @@ class Service:
         self.coupled = np.zeros(n, bool)
         self._coupled_prev = np.zeros(n, bool)
         self._newly = np.zeros(n, bool)
+        self._reseat = np.zeros(n, bool)        # arms re-anchored this tick
+        self._reseat_pos = np.zeros((n, 3))
         self._arm_ok = np.zeros(n, bool)
         self._rowok = np.zeros(n, bool)
         self._notb = np.zeros(n, bool)
@@ -128,15 +115,24 @@ class Service:
         self._ti = np.zeros(n, np.int64)
         self._master_bad_t = np.full(n, -math.inf)
         self._robot_bad_t = np.full(n, -math.inf)
-        self._bad_t = np.full(8, -math.inf)       # per global reason bit index
+        self._bad_t = np.full(N_BITS, -math.inf)  # last time of each condition, by reason bit index
         self._T4 = np.zeros((n, 4, 4))
         self.hold_mask = 0
+        #: latched faults (holds.LATCHED bits) until ``clear_faults``
+        self.latched = 0
         self.arm_hold = np.zeros(n, np.int64)
+        self._zero3 = np.zeros(3)
+        #: set by the tick watchdog's thread (``on_stall``): the loop time the stall was seen at
+        self._stall_at: Optional[float] = None
+        self.watchdog_trips = 0
+        self._tx_lock = threading.Lock()   # the masters' force sends: the tick's and the watchdog's
         # control state (set from other threads through the methods below; applied at tick start)
         self.haptics_on = bool(cfg.teleop.haptics)
         self.teleop_on = bool(cfg.teleop.teleop)
         self._haptics_running = False
+        self._teleop_prev = self.teleop_on
         self._pending_arch: Optional[int] = None
+        self._reanchor = False   # a change of control law asked for a re-anchoring (S1)
         self._ctl = threading.Lock()
         self._between: deque = deque()   # callables run by the tick thread before the next tick
         # results and counters
@@ -160,6 +156,36 @@ class Service:
         self._started = False
 
     # --- construction helpers -----------------------------------------------------------------
+    def _setup_self_filter(self, cfg, pp) -> None:
+        """The robot self-filter (the tool at each frame's capture time, from a ring of joint
+        poses) where every robot's tool is known (S5: ``robot.tool.tool_model_for``); else none,
+        and ``self_filter_off`` says why (an explicit ``self_filter = true`` is then an error)."""
+        from .robot.tool import tool_model_for
+
+        sc = cfg.service
+        self.tool_poses = self.frame_filter = None
+        self.self_filter_off: Optional[str] = "off in the configuration ([service] self_filter = false)"
+        robots = [r for r in self.robots if r is not None]
+        if not cfg.self_filter or not robots:
+            if not robots:
+                self.self_filter_off = "no robot model: nothing to filter"
+            return
+        models = [tool_model_for(r, cfg.robot.get("tool")) for r in robots]
+        unknown = [why for model, why in models if model is None]
+        if unknown:
+            if sc.self_filter:
+                raise InputError(f"[service] self_filter = true, but {unknown[0]}")
+            self.self_filter_off = unknown[0]
+            return
+        from .toolpose import ToolFilter, ToolPoseRing
+
+        self.self_filter_off = None
+        horizon = sc.max_frame_age_s + pp.motion.latency + 0.25
+        self.tool_poses = ToolPoseRing(self.robots, int(math.ceil(horizon * sc.rate_hz)))
+        self.frame_filter = ToolFilter([c.camera for c in cfg.cameras], self.robots, self.tool_poses,
+                                       latency=pp.motion.latency, margin=sc.self_filter_margin,
+                                       model=models[0][0], workspace=(pp.workspace.min, pp.workspace.max))
+
     @staticmethod
     def _make_robot(table: dict):
         if table.get("model", "raven2") == "none":
@@ -226,16 +252,49 @@ class Service:
         with self._ctl:
             self.teleop_on = bool(on)
 
-    def clear_faults(self) -> None:
-        """Re-enable robots in FAULT (their setpoint re-seats: no motion) and forget latched errors."""
+    def request_reanchor(self) -> None:
+        """A change of control law made outside the tick (a new radius or selection, a
+        re-registration): the next tick re-anchors every arm's goal to its command (S1)."""
         with self._ctl:
+            self._reanchor = True
+
+    def clear_faults(self) -> None:
+        """Forget latched faults and re-enable robots in FAULT (their setpoint re-seats: no
+        motion). Needs every arm decoupled (S3): raises InputError while a pedal is down. Call it
+        between ticks (``call_between_ticks``: the control API does), where the pedals read are
+        this tick's. An arm that couples again is re-anchored: clearing never moves a robot (S1)."""
+        with self._ctl:
+            down = [b for b in range(self.n) if self.pedal[b] or self.coupled[b]]
+            if down:
+                raise InputError(f"clear-faults refused: arm(s) {down} coupled (foot pedal down); release the "
+                                 "pedal(s) first, then clear the faults (SAFETY.md S3)")
             for r in self.robots:
-                if r is not None and int(r.state) == 2:
+                if r is not None and r.state == RobotMode.FAULT:
                     r.enable()
                     r.hold()
             self._bad_t[:] = -math.inf
             self._robot_bad_t[:] = -math.inf
+            self.latched = 0
             self.last_error = None
+            restart = getattr(self.feeder, "restart_ingest", None)
+            if restart is not None:
+                restart()
+
+    def on_stall(self, started: float, now: float) -> None:
+        """The tick watchdog (``loop.TickWatchdog``, its own thread): the tick that started at
+        ``started`` (loop clock, s) is still running at ``now``. The masters get zero force at
+        once; the stalled tick, when it returns, and the ticks after it hold every arm until the
+        fault is cleared (S9, S3). Robots need nothing here: they get no new command while the
+        tick is stalled."""
+        self._stall_at = now
+        self.watchdog_trips += 1
+        if self._tx_lock.acquire(blocking=False):   # (a tick stuck inside a send keeps its lock)
+            try:
+                self.gain[:] = 0.0
+                for m in self.masters:
+                    m.send_force(self._zero3)
+            finally:
+                self._tx_lock.release()
 
     def call_between_ticks(self, fn) -> None:
         """Run ``fn(service)`` in the tick thread at the start of the next tick, before anything
@@ -255,10 +314,15 @@ class Service:
             self._between.popleft()(self)
         n, tp = self.n, self.teleop
         with self._ctl:
+            law_change = self._reanchor
+            self._reanchor = False
             if self._pending_arch is not None:
+                law_change |= self._pending_arch != tp.arch
                 tp.set_architecture(self._pending_arch)
                 self._pending_arch = None
             haptics_on, teleop_on = self.haptics_on, self.teleop_on
+        law_change |= haptics_on != self._haptics_running or teleop_on != self._teleop_prev
+        self._teleop_prev = teleop_on
         # 1. masters
         for b in range(n):
             m = self.masters[b]
@@ -283,16 +347,16 @@ class Service:
         age = feeder.max_age(now) if feeder is not None else 0.0
         rec = self.cfg.service.recover_s
         if overrun:
-            self._bad_t[0] = t
-        if age > self.cfg.service.max_frame_age_s:
-            self._bad_t[1] = t
+            self._bad_t[index(OVERRUN)] = t
+        if age > self.cfg.service.max_frame_age_s:   # S2: the newest published snapshot is too old
+            self._bad_t[index(STALE if feeder.frames_too_old(now) else INGEST)] = t
         np.logical_not(self.m_ok, out=self._notb)
         np.copyto(self._master_bad_t, t, where=self._notb)
         for b, r in enumerate(self.robots):
-            if r is not None and int(r.state) == 2:
+            if r is not None and r.state == RobotMode.FAULT:
                 self._robot_bad_t[b] = t
-        hold = 0
-        for i in range(6):
+        hold = self.latched
+        for i in range(N_BITS):
             if t - self._bad_t[i] < rec:
                 hold |= 1 << i
         self.hold_mask = hold
@@ -313,8 +377,14 @@ class Service:
             self.coupled[:] = False
         np.logical_not(self._coupled_prev, out=self._notb)
         np.logical_and(self.coupled, self._notb, out=self._newly)
-        if self._newly.any():
-            tp.reanchor(self._newly)
+        # S1: an arm that (re)couples, and every arm at a change of control law, starts from
+        # where its robot is commanded
+        if law_change:
+            self._reseat[:] = True
+        else:
+            np.copyto(self._reseat, self._newly)
+        if law_change or self._newly.any():
+            tp.reanchor(self._reseat)
         for b, r in enumerate(self.robots):
             if r is None:
                 continue
@@ -324,31 +394,39 @@ class Service:
             if r is None:
                 self.xr[b] = tp.cmd[b]
         hip = tp.update_hip(self.xr)
+        phip = tp.proxy_hip()
         # 4. proxies and forces
-        if haptics_on and not self._haptics_running:
-            self.batch.reset(hip)
-            self.renderer.reset()
+        if haptics_on and (not self._haptics_running or (tp.arch == 3 and self._reseat.any())):
+            # re-anchored arms' proxies start on the command in III (the proxy is the goal there:
+            # a proxy that crept along the surface while the arm held must not pull the robot)
+            # and on the HIP otherwise; the other arms' proxies stay where they are
+            np.copyto(self._reseat_pos, self.batch.positions)
+            np.copyto(self._reseat_pos, tp.cmd if tp.arch == 3 else hip, where=self._reseat[:, None])
+            self.batch.reset(self._reseat_pos)
+            if not self._haptics_running:
+                self.renderer.reset()
         self._haptics_running = haptics_on
         if haptics_on:
             try:
                 with self.gate.lock:
                     seq = self.gate.front_seq()
                     if self._predict and tf is not None:
-                        self.batch.step(hip, now=tf)
+                        self.batch.step(phip, now=tf)
                     else:
-                        self.batch.step(hip)
+                        self.batch.step(phip)
                 if seq != self.frame_seq:
                     self.frame_seq = seq
                     self.snapshot_first_tick.setdefault(seq, k)
                 self.renderer.update(self.batch.positions, hip, self.batch.states)
             except KernelError as e:
-                self._bad_t[2] = t
-                self.hold_mask |= KERNEL
-                self.arm_hold |= KERNEL
-                self._arm_ok[:] = False
-                self.coupled[:] = False
+                self._fault_all(KERNEL)
                 self.kernel_errors += 1
                 self.last_error = f"tick {k}: {e}"
+        if self._stall_at is not None:   # the watchdog saw this tick (or the last) stall
+            self._fault_all(WATCHDOG)
+            self.gain[:] = 0.0
+            self.last_error = f"tick {k}: tick watchdog: a tick ran past {self.cfg.service.max_lateness_s * 1e3:g} ms"
+            self._stall_at = None
         F = self.renderer.forces
         np.logical_and(self._arm_ok, self.pedal, out=self._want)
         if not haptics_on:
@@ -360,8 +438,9 @@ class Service:
         self.gain += self._gstep
         np.multiply(F, self.gain[:, None], out=self.f_out)
         np.matmul(self.f_out, self.R, out=self.f_master)          # world -> master frame: R^T f
-        for b in range(n):
-            self.masters[b].send_force(self.f_master[b])
+        with self._tx_lock:
+            for b in range(n):
+                self.masters[b].send_force(self.f_master[b])
         # 5. robot commands
         proxies = self.batch.positions
         tp.command_goal(proxies, haptics_on)
@@ -391,17 +470,27 @@ class Service:
         self._publish(k, t, proxies)
         self._record(k, t, dt, overrun, age, proxies, haptics_on, teleop_on)
 
+    def _fault_all(self, bit: int) -> None:
+        """A latched fault of every arm, from this tick on: hold, decouple (S3)."""
+        self.latched |= bit
+        self.hold_mask |= bit
+        self.arm_hold |= bit
+        self._arm_ok[:] = False
+        self.coupled[:] = False
+
     def safe_tick(self, k: int, t: float, dt: float, now: float) -> None:
         """The loop's fallback after an exception: ramp forces down, hold robots, keep stepping."""
-        self._bad_t[5] = t
+        self.latched |= EXCEPTION
         self.hold_mask |= EXCEPTION
+        self.arm_hold |= EXCEPTION
         step = dt / self.cfg.service.force_ramp_s
         np.subtract(self.gain, step, out=self.gain)
         np.maximum(self.gain, 0.0, out=self.gain)
         np.multiply(self.renderer.forces, self.gain[:, None], out=self.f_out)
         np.matmul(self.f_out, self.R, out=self.f_master)
-        for b, m in enumerate(self.masters):
-            m.send_force(self.f_master[b])
+        with self._tx_lock:
+            for b, m in enumerate(self.masters):
+                m.send_force(self.f_master[b])
         for r in self.robots:
             if r is not None:
                 r.hold()
@@ -434,6 +523,8 @@ class Service:
         st = {
             "architecture": self.architecture, "haptics": self.haptics_on, "teleop": self.teleop_on,
             "hold": reason_names(self.hold_mask), "arms_holding": [reason_names(int(m)) for m in self.arm_hold],
+            "hold_causes": describe(self.hold_mask), "latched_faults": reason_names(self.latched),
+            "watchdog_trips": self.watchdog_trips,
             "coupled": self.coupled.tolist(), "force_gain": self.gain.round(3).tolist(),
             "kernel_errors": self.kernel_errors, "robot_errors": self.robot_errors, "last_error": self.last_error,
             "frame_seq": self.frame_seq, "backend": self.backend.name, "device": self.backend.device_name,
@@ -444,8 +535,8 @@ class Service:
         }
         if self.feeder is not None and now is not None:
             st["frames"] = self.feeder.status(now)
-        if self.frame_filter is not None:
-            st["self_filter"] = self.frame_filter.status()
+        st["self_filter"] = ({"on": False, "why": self.self_filter_off} if self.frame_filter is None
+                             else {"on": True, **self.frame_filter.status()})
         return st
 
     def _record(self, k, t, dt, overrun, age, proxies, haptics_on, teleop_on) -> None:

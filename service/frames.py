@@ -1,9 +1,15 @@
 """Feeding camera frames into the frame pipeline's double-buffered snapshots.
 
 Every snapshot is built from the latest frame of EVERY camera: a camera that stalls keeps
-contributing its last frame, so its fixtures never vanish. Its age (time since that frame
-arrived) is watched: beyond ``stale_s`` (default 100 ms) the camera is reported stale; beyond
-``max_age_s`` the service holds the robot (``frames_ok`` is False) until frames flow again.
+contributing its last frame, so its fixtures never vanish. Each camera's age (time since its
+latest frame arrived) is watched: beyond ``stale_s`` (default 100 ms) the camera is reported
+stale. What the service holds on is ``max_age(now)``: the age of the newest *published*
+snapshot, counted from the arrival of its oldest frame (SAFETY.md S2). A stalled camera, an
+ingest that fails on every frame, or an ingest thread that died all make it grow, and beyond
+``max_age_s`` the arms hold; ``frames_too_old`` tells the first case from the other two.
+A failed build (any exception, not only a bad frame) is counted and reported and leaves the
+previous snapshot current; a dead ingest thread is reported (``status``) and restarted by
+``restart_ingest`` (the service's clear-faults).
 
 * ``PublishGate`` makes a snapshot become visible only between haptic ticks, so each tick knows
   exactly which snapshot (``seq``) its one proxy launch used (recorded for replay).
@@ -78,6 +84,8 @@ class _FeedBase:
         n = len(self.sources)
         self.latest: list = [None] * n
         self.arrival = [-math.inf] * n     # loop/clock time each camera's latest frame arrived
+        #: arrival of the oldest frame of the newest published snapshot (-inf: none yet)
+        self.published_arrival = -math.inf
         self.frames_in = [0] * n
         self.snapshots = 0
         self.ingest_errors = 0
@@ -95,9 +103,14 @@ class _FeedBase:
         return None
 
     def max_age(self, now: float) -> float:
-        """Age (s) of the oldest camera's latest frame; inf until every camera delivered one."""
-        oldest = min(self.arrival)
-        return now - oldest
+        """Age (s) of the newest published snapshot: ``now`` minus the arrival of its oldest
+        frame; inf until a snapshot was published."""
+        return now - self.published_arrival
+
+    def frames_too_old(self, now: float) -> bool:
+        """Whether some camera's latest frame is older than ``max_age_s`` (a camera problem);
+        False when the frames are fresh and only the snapshots are old (an ingest problem)."""
+        return now - min(self.arrival) > self.max_age_s
 
     def ages(self, now: float) -> dict:
         return {n: (now - a if a > -math.inf else None) for n, a in zip(self.names, self.arrival)}
@@ -105,10 +118,12 @@ class _FeedBase:
     def stale(self, now: float) -> list:
         return [n for n, a in zip(self.names, self.arrival) if now - a > self.stale_s]
 
-    def _ingest(self, frames: list) -> bool:
+    def _ingest(self, frames: list, arrival: Optional[float] = None) -> bool:
+        """Build a snapshot of ``frames`` whose oldest arrived at ``arrival`` (default: the
+        cameras' latest arrivals, for frames that are ``latest``)."""
         checkpoint()
         with self.ingest_lock:
-            return self._ingest_locked(frames)
+            return self._ingest_locked(frames, min(self.arrival) if arrival is None else arrival)
 
     def swap_pipeline(self, new) -> bool:
         """Build snapshots in ``new`` from now on (the control API's runtime reconfiguration).
@@ -119,12 +134,12 @@ class _FeedBase:
             old = self.pipeline
             new.seq = max(int(new.seq), int(old.seq))
             self.pipeline = new
-            if self._ingest_locked(list(self.latest)):
+            if self._ingest_locked(list(self.latest), min(self.arrival)):
                 return True
             self.pipeline = old
             return False
 
-    def _ingest_locked(self, frames: list) -> bool:
+    def _ingest_locked(self, frames: list, arrival: float) -> bool:
         if any(f is None for f in frames):
             return False
         try:
@@ -134,7 +149,12 @@ class _FeedBase:
             self.ingest_errors += 1
             self.last_error = f"ingest: {e}"
             return False
+        except Exception as e:   # a failing build (driver, filter, backend): counted, reported, never fatal
+            self.ingest_errors += 1
+            self.last_error = f"ingest: {type(e).__name__}: {e}"
+            return False
         self.snapshots += 1
+        self.published_arrival = max(self.published_arrival, arrival)
         self.snapshot_frames[info.seq] = tuple(int(f.seq) for f in frames)
         return True
 
@@ -216,6 +236,7 @@ class LiveFrames(_FeedBase):
         self.readers = [CameraReader(s, stale_after=self.stale_s, on_frame=self._callback(i), clock=clock.now)
                         for i, s in enumerate(self.sources)]
         self._thread: Optional[threading.Thread] = None
+        self.ingest_dead: Optional[str] = None   # why the ingest thread died (None: it did not)
         self.ingest_ms: list = []
         #: clock time minus frame timestamp of the first frame of camera 0 (maps loop to frames' clock)
         self.clock_minus_stamp: Optional[float] = None
@@ -242,8 +263,20 @@ class LiveFrames(_FeedBase):
         self._stop.clear()
         for r in self.readers:
             r.start()
-        self._thread = threading.Thread(target=self._ingest_loop, name="pointfence-ingest", daemon=True)
+        self._start_ingest()
+
+    def _start_ingest(self) -> None:
+        self.ingest_dead = None
+        self._thread = threading.Thread(target=self._ingest_thread, name="pointfence-ingest", daemon=True)
         self._thread.start()
+
+    def restart_ingest(self) -> bool:
+        """Start the ingest thread again if it died (the service's clear-faults); True if it did."""
+        th = self._thread
+        if self._stop.is_set() or th is None or th.is_alive():
+            return False
+        self._start_ingest()
+        return True
 
     def set_rt_priority(self, priority: int) -> str:
         """SCHED_FIFO ``priority`` for the running reader and ingest threads where the OS allows
@@ -280,12 +313,22 @@ class LiveFrames(_FeedBase):
 
     def status(self, now: float) -> dict:
         st = super().status(now)
+        th = self._thread
+        st["ingest"] = ("dead: " + (self.ingest_dead or "thread ended") if th is not None and not th.is_alive()
+                        and not self._stop.is_set() else "running" if th is not None else "stopped")
         st["readers"] = {r.name: r.status().reason for r in self.readers}
         st["scheduling"] = self.scheduling
         return st
 
-    def _ingest_loop(self) -> None:
+    def _ingest_thread(self) -> None:
         name_this_thread("pf-ingest")
+        try:
+            self._ingest_loop()
+        except BaseException as e:   # noqa: B036 -- reported: the snapshots' age then holds the arms (S2, S9)
+            self.ingest_dead = f"{type(e).__name__}: {e}"
+            self.last_error = f"ingest thread died: {self.ingest_dead}"
+
+    def _ingest_loop(self) -> None:
         while not self._stop.is_set():
             if not self._new.wait(0.05):
                 continue
@@ -294,8 +337,9 @@ class LiveFrames(_FeedBase):
                 return
             with self._lock:
                 frames = list(self.latest)
+                arrival = min(self.arrival)
             t0 = time.perf_counter()
-            if self._ingest(frames):
+            if self._ingest(frames, arrival):
                 self.ingest_ms.append((time.perf_counter() - t0) * 1e3)
                 if len(self.ingest_ms) > 4096:
                     del self.ingest_ms[:2048]

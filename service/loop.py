@@ -9,6 +9,10 @@ the next tick advances the simulation by the elapsed time (``dt`` = periods x pe
 that starts more than ``max_lateness_s`` late is an overrun: the target is told, and goes into
 its degraded mode (force ramps to zero, robot holds).
 
+A tick that stalls (a hung kernel call) is seen from outside: running in its own thread, the
+loop starts a ``watchdog.TickWatchdog`` (limit ``watchdog_s``, default ``max_lateness_s``) that
+calls the target's ``on_stall(started, now)`` while the stall goes on (SAFETY.md S9).
+
 The loop never stops silently: an exception escaping ``target.tick`` is counted and kept in
 ``error``; from then on the loop runs ``target.safe_tick`` (forces ramp down, robots hold)
 until ``clear_error()``, so a broken tick cannot leave forces applied or a robot moving. Only
@@ -82,7 +86,7 @@ class HapticLoop:
 
     def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
                  switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0,
-                 tick_switch_s: float = 0.005, cooperate: bool = True):
+                 tick_switch_s: float = 0.005, cooperate: bool = True, watchdog_s: Optional[float] = None):
         self.target = target
         self.clock = clock if clock is not None else RealClock()
         self.period = 1.0 / float(rate_hz)
@@ -110,6 +114,10 @@ class HapticLoop:
         self._note = getattr(target, "note_tick_us", None)
         self.rt_priority = int(rt_priority)
         self.scheduling = "normal"
+        #: loop clock reading at the start of the running tick (None between ticks): the watchdog's view
+        self.tick_started: Optional[float] = None
+        self.watchdog_s = self.max_lateness if watchdog_s is None else float(watchdog_s)
+        self.watchdog = None
 
     # --- one tick ---------------------------------------------------------------------------------
     def run_ticks(self, n: int) -> None:
@@ -140,6 +148,7 @@ class HapticLoop:
         overrun = late > self.max_lateness
         if overrun:
             self.overruns += 1
+        self.tick_started = start
         try:
             if self.error is None:
                 self.target.tick(k, k * P, dt, overrun, start)
@@ -153,6 +162,7 @@ class HapticLoop:
                 self.target.safe_tick(k, k * P, dt, start)
             except Exception as e2:
                 self.error += f"; safe_tick failed too: {type(e2).__name__}: {e2}"
+        self.tick_started = None
         end = clock.now()
         if self._threaded:
             sys.setswitchinterval(self.switch_interval_s)
@@ -190,6 +200,11 @@ class HapticLoop:
             yielding.install(self.gate)
         self._thread = threading.Thread(target=self._run, name="pointfence-haptic-loop", daemon=True)
         self._thread.start()
+        if self.watchdog_s > 0 and hasattr(self.target, "on_stall"):
+            from .watchdog import TickWatchdog
+
+            self.watchdog = TickWatchdog(self, self.target, self.watchdog_s)
+            self.watchdog.start()
 
     def _run(self) -> None:
         name_this_thread("pf-haptic-loop")
@@ -205,6 +220,9 @@ class HapticLoop:
             self._one()
 
     def stop(self) -> None:
+        if self.watchdog is not None:
+            self.watchdog.stop()
+            self.watchdog = None
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)

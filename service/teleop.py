@@ -14,10 +14,15 @@ All quantities are world-frame positions (m) in (B, 3) arrays updated in place e
 * Architectures (``ARCHITECTURES``): I: HIP = X_m, X_r* = X_m; II: HIP = X_r, X_r* = X_m;
   III: HIP = X_m, X_r* = X_proxy. With haptic rendering disengaged there is no proxy and
   III's goal becomes X_m (the fixture is off).
+* Changes of control law (architecture switch, haptics or teleoperation engaged or disengaged,
+  new fixture parameters) re-anchor every arm (``reanchor``) as re-engaging does: X_m moves
+  onto the command, so no such change moves a robot by itself (SAFETY.md S1).
 * No jumps: whenever the HIP's source changes (architecture switch, re-anchoring), the HIP keeps
   its value and an offset e_hip = HIP - target takes up the difference; e_hip then shrinks by at
   most ``max_robot_speed * dt`` per tick, so the spring force changes by at most
-  ``k_s * max_robot_speed * dt`` per tick from the switch. Every robot command is rate-limited:
+  ``k_s * max_robot_speed * dt`` per tick from the switch. In III the proxies move towards the
+  target itself (``proxy_hip``): the proxy is the robot's goal there, and the offset exists
+  only for the force. Every robot command is rate-limited:
   the commanded point X_r* moves at most ``max_robot_speed * dt`` per tick towards its goal
   (this is architecture III's limit against the proxy jumping at edges; it also makes switching
   I <-> III smooth, and bounds I and II as a safety limit).
@@ -70,6 +75,7 @@ class Teleop:
         self.X_m = z()           # mapped master point (world)
         self.hip = z()           # HIP used this tick
         self.e_hip = z()         # HIP blend offset
+        self.target = z()        # the HIP's target (X_m, or X_r in II) without the blend offset
         self._blending = False   # e_hip may be non-zero
         self.cmd = z()           # robot command X_r* (world)
         self.goal = z()          # command goal before the rate limit
@@ -139,9 +145,15 @@ class Teleop:
         out[:] = xr if self.arch == 2 else self.X_m
         return out
 
+    def proxy_hip(self) -> np.ndarray:
+        """The point the proxies move towards this tick (after ``update_hip``): the HIP, except in
+        III, where the proxy is the robot's goal: there it is X_m itself, so that the HIP's
+        decaying blend offset, which keeps the force continuous, never moves the robot (S1)."""
+        return self.target if self.arch == 3 else self.hip
+
     def update_hip(self, xr: np.ndarray) -> np.ndarray:
         """This tick's HIP: target plus the decaying blend offset (continuous across switches)."""
-        target = self.hip_target(xr, self._t3)
+        target = self.hip_target(xr, self.target)
         if self.rebase:
             np.subtract(self.hip, target, out=self.e_hip)
             self.rebase = False
@@ -163,14 +175,14 @@ class Teleop:
         return self.goal
 
     def reanchor(self, mask: np.ndarray) -> None:
-        """Indexing for arms in ``mask``: shift X_m by (command - goal) so that the goal equals
-        the current command (the robot does not move); the HIP stays continuous."""
-        d = self._t3b
-        np.subtract(self.cmd, self.goal, out=d)
-        np.copyto(d, 0.0, where=~np.asarray(mask, bool)[:, None])
-        self.X_m += d
-        if self.arch != 3:      # the goal is X_m itself; in III it is the proxy, which follows the HIP
-            self.goal += d
+        """Indexing for arms in ``mask`` (re-engagement, a change of control law): X_m moves onto
+        the current command, so that the goal is the command and the robot does not move (S1).
+        The HIP stays continuous (it decays onto X_m), so the force does not jump. In III the
+        goal is the proxy: the caller places it on the command (``Service.tick``) and it moves
+        towards ``proxy_hip()``, which is X_m itself, not the decaying HIP."""
+        m = np.asarray(mask, bool)[:, None]
+        np.copyto(self.X_m, self.cmd, where=m)
+        np.copyto(self.goal, self.cmd, where=m)
         self.rebase = True
 
     def limit_command(self, coupled: np.ndarray) -> np.ndarray:

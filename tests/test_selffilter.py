@@ -8,7 +8,7 @@ from pointfence.kernels import DepthFrame, InputError
 from pointfence.kernels.selffilter import Capsule, SelfFilter, segment_distance
 from pointfence.service.robot import make_robot
 from pointfence.service.robot.raven2 import Raven2
-from pointfence.service.robot.tool import ToolModel, tool_capsules
+from pointfence.service.robot.tool import ToolModel, tool_capsules, tool_model_for
 from pointfence.service.sources import SyntheticSource, default_camera
 from pointfence.service.sources.scenes import make_scene
 from pointfence.service.sources.toolscene import ToolInScene
@@ -57,13 +57,30 @@ def test_capsules_of_both_robot_models():
     assert segment_distance(tip[None], wrist.a, wrist.b)[0] < 1e-9
     assert segment_distance(np.zeros((1, 3)) + [0, 0, 0.15], shaft.a, shaft.b)[0] < 1e-9  # through the RCM
     pm = make_robot("point-mass")
-    [c] = tool_capsules(pm, model=ToolModel(shaft_length=0.1))
-    assert np.allclose(np.subtract(c.b, c.a), [0, 0, 0.1])
+    assert tool_capsules(pm, model=ToolModel(shaft_length=0.1)) == []     # S5: no assumed shaft axis
+    [c] = tool_capsules(pm, model=ToolModel(parts=(((0, 0, 0), (0, 0, 0.1), 0.004),)))
+    assert np.allclose(np.subtract(c.b, c.a), [0, 0, 0.1]) and c.radius == 0.004
     with pytest.raises(InputError, match="radius"):
         Capsule((0, 0, 0), (0, 0, 1), float("nan"))
     with pytest.raises(InputError, match="unknown camera"):
         SelfFilter([default_camera("a", width=16, height=12)]).mask(
             DepthFrame("b", np.zeros((12, 16), np.uint16), 0.0), [c])
+
+
+def test_a_robot_without_a_known_tool_gets_no_self_filter_and_says_why():
+    """S5: the point mass has no tool until [robot.tool] parts gives one; the Raven II has its
+    instrument. An explicit self_filter = true without a tool is a configuration error."""
+    pm, rv = make_robot("point-mass"), make_robot("raven2")
+    model, why = tool_model_for(pm, None)
+    assert model is None and "[robot.tool] parts" in why
+    model, _ = tool_model_for(pm, {"parts": [[0, 0, 0, 0, 0, 0.02, 0.004]]})
+    assert model is not None and len(model.parts) == 1
+    model, _ = tool_model_for(rv, None)
+    assert model == ToolModel()
+    for bad, msg in (({"parts": [[0, 0, 0, 0, 0, 0.02]]}, "parts\\[0\\]"), ({"parts": [[0, 0, 0, 0, 0, 0.02, 0.5]]}, "radius"),
+                     ({"shaft_radius": float("nan")}, "shaft_radius"), ({"axis": "z"}, "unknown key")):
+        with pytest.raises(InputError, match=msg):
+            tool_model_for(pm, bad)
 
 
 def _mask_every_pixel(cam, frame, capsules, margin):

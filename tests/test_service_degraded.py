@@ -3,7 +3,7 @@ the force to zero within the configured time and hold the robot; recovery does n
 import numpy as np
 import pytest
 
-from pointfence.kernels.errors import KernelError
+from pointfence.kernels.errors import InputError, KernelError
 from pointfence.service.app import KERNEL, MASTER, OVERRUN, STALE
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.replay import simulate
@@ -50,18 +50,36 @@ def test_kernel_failure_ramps_force_and_holds_robot(tmp_path):
     def repair(svc):
         svc.batch.step = state["good"]
 
-    svc, rows, loop = in_contact_then(cfg, {900: break_kernel, 1100: repair})
+    seen = {}
+
+    def clear(svc):            # S3: a latched fault; clearing needs the pedal up
+        seen["latched"] = svc.status()
+        try:
+            svc.clear_faults()
+        except InputError as e:
+            seen.setdefault("refused", str(e))
+
+    # the pedal goes up at 1.25 s and down again at 1.35 s; clear-faults is tried at 1.2 and 1.3 s
+    t = np.array([0.0, 0.1, 0.8, 1.25, 1.35, 1.8])
+    p = np.array([[0, 0, 0], [0, 0, 0], [0, 0, -0.10], [0, 0, -0.10], [0, 0, -0.10], [0, 0, -0.10]], float)
+    master = ScriptedMaster(t, p, clutch=[1, 1, 1, 0, 1, 1])
+    svc, rows, loop = in_contact_then(cfg, {900: break_kernel, 1100: repair, 1200: clear, 1300: clear},
+                                      duration=1.5, master=master)
     assert np.linalg.norm(rows[899, 16:19]) > 2.0
     n = force_ramped_out(rows, 900)
     assert 0 < n <= RAMP / DT + 1, f"force took {n} ticks to reach zero"
     assert steps(rows[900:1100, 10:13]).max() < 1e-12                 # the command stopped
     assert steps(rows[950:1100, 13:16]).max() < 2e-5                  # the robot holds (settles)
-    assert svc.kernel_errors == 200 and "injected" in svc.last_error  # surfaced, loop kept running
-    assert loop.error is None and loop.ticks == 1400
-    # recovery: after recover_s the force comes back and nothing jumps
-    assert np.linalg.norm(rows[-1, 16:19]) > 2.0
+    assert svc.kernel_errors == 200                                   # surfaced, loop kept running
+    assert loop.error is None and loop.ticks == 1500
+    # latched: the repaired kernel does not bring the arm back; clearing with the pedal down is refused
+    assert seen["latched"]["hold"] == ["kernel failure"] and "pedal" in seen["refused"]
+    assert seen["latched"]["hold_causes"] == [{"reason": "kernel failure", "invariant": "S3", "latched": True}]
+    assert np.linalg.norm(rows[1100:1350, 16:19], axis=1).max() == 0.0
+    # cleared with the pedal up: the arm couples again when the pedal goes down; nothing jumps
+    assert svc.status()["hold"] == [] and svc.robots[0].state == RobotMode.ENABLED and svc.coupled[0]
     assert steps(rows[1090:, 10:13]).max() <= V * DT * (1 + 1e-6)
-    assert svc.status()["hold"] == [] and svc.robots[0].state == RobotMode.ENABLED
+    assert steps(rows[1300:, 13:16]).max() < 2e-5
 
 
 def test_nan_master_input_holds_that_arm(tmp_path):

@@ -52,20 +52,44 @@ def test_switching_mid_contact_changes_force_and_command_smoothly(tmp_path):
     df = steps(f)
     dc = steps(cmd)
     assert dc.max() <= V * DT * (1 + 1e-6)                               # no command jump, ever
-    # III -> II moves the HIP from X_m to X_r, 2 cm apart here: switched directly, the force would
-    # drop from saturation (3.3 N) to zero in one tick. Blended, no tick changes it by more than
-    # the proxy's own jitter on the noisy cloud (about 0.2 N per tick at k_s = 800 N/m), anywhere
-    assert np.linalg.norm(rows[1099, 13:16] - rows[1099, 1:4]) > 0.01
+    # every switch re-anchors X_m on the command (S1) while the HIP keeps its value and decays onto
+    # the new target: switched directly, the force would drop from saturation (3.3 N) to zero in
+    # one tick. Blended, no tick changes it by more than the proxy's own jitter on the noisy cloud
+    # (about 0.2 N per tick at k_s = 800 N/m), anywhere
+    assert np.linalg.norm(rows[1098, 4:7] - rows[1102, 4:7]) < 2 * V * DT * 4   # the HIP did not jump
     assert df.max() <= 0.25, f"force step {df.max():.3f} N"
     for k in switch_ticks:
         assert df[k - 1:k + 50].max() <= 0.25
-    # and the switches did change what the robot does: pushed in under I, backed out (at the
-    # speed limit) under III, pushed in again under II
+    # what the robot does: pushed in under I; under III the fixture pushes it back out (at the speed
+    # limit); the operator holds still from 0.9 s, so under II (1.1 s) and after nothing moves it
     assert rows[699, 15] < REGION_TOP - 0.002
     assert rows[899, 15] > REGION_TOP - 0.001
-    assert rows[1099, 15] < REGION_TOP - 0.002
+    assert np.linalg.norm(rows[1100:, 10:13] - rows[1099, 10:13], axis=1).max() < 1e-4
+    assert np.linalg.norm(rows[1100:, 13:16] - rows[1099, 13:16], axis=1).max() < 1e-4
     arch = rec.inputs[: rec.count, 4]
     assert list(np.unique(arch)) == [1, 2, 3]
+
+
+@pytest.mark.parametrize("action", ["haptics off", "III -> I", "III -> II", "teleop off and on", "radius change"])
+def test_no_change_of_control_law_moves_the_robot(tmp_path, action):
+    """S1 (issue 18, failure 2): architecture III, the operator 3 cm (robot 1.5 cm) inside the
+    fixture and holding still, the command resting on the surface. Any change of control law
+    must leave the robot where it is; before the fix, haptics off walked the command down to the
+    operator at max_robot_speed."""
+    cfg = balloon_config(tmp_path, arch="III")
+    events = {"haptics off": {1200: lambda s: s.engage_haptics(False)},
+              "III -> I": {1200: lambda s: s.set_architecture("I")},
+              "III -> II": {1200: lambda s: s.set_architecture("II")},
+              "teleop off and on": {1200: lambda s: s.engage_teleop(False), 1220: lambda s: s.engage_teleop(True)},
+              "radius change": {1200: lambda s: s.request_reanchor()}}[action]
+    # down 10 cm at the master (5 cm robot goal: 3.3 cm into the 2 cm fixture) by 0.9 s, then still
+    svc, rows, rec = run(cfg, push(0.10, t_end=0.9, hold=0.9), 1.8, events=events)
+    cmd, xr = rows[:, 10:13], rows[:, 13:16]
+    assert rows[1199, 1 + 2] < REGION_TOP - 0.02                        # the operator is deep inside
+    assert cmd[1199, 2] > REGION_TOP - 0.001                            # the command rests outside
+    assert np.linalg.norm(cmd[1200:] - cmd[1199], axis=1).max() < 1e-4  # and stays there (0.1 mm)
+    assert np.linalg.norm(xr[1250:] - cmd[1199], axis=1).max() < 1e-4   # the robot settles on it
+    assert svc.status()["hold"] == []
 
 
 def test_clutch_indexing_never_moves_the_robot(tmp_path):

@@ -28,6 +28,9 @@ name the key and suggest the closest known one)::
     gravity_vector = [0, 0, -9.81]
     tool_mass = 0.3
     gravity_compensation = 0.9
+    [robot.tool]                   # the tool the self-filter removes (robot/tool.py): a Raven II
+    shaft_radius = 0.0042          # has its instrument; any other robot has none until ``parts``
+    parts = [[0, 0, 0, 0, 0, 0.02, 0.004]]   # capsules [a, b, radius] in the tip frame
     control_rate_hz = 1000
 
     [robot]
@@ -118,6 +121,7 @@ def robot_from_config(table: dict) -> Robot:
         raise InputError(f"[robot]: expected a table, got {type(table).__name__}")
     opts = dict(table)
     model = opts.pop("model", "raven2")
+    opts.pop("tool", None)   # the tool model (robot/tool.py), not an option of the robot itself
     if not isinstance(model, str):
         raise InputError(f"[robot] model = {model!r}; expected 'raven2' or 'point-mass'")
     _model(model)

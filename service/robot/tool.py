@@ -1,28 +1,50 @@
 """The robot's own tool as capsules in the world frame (for the self-filter, kernels/selffilter.py).
 
-A Raven II instrument is a straight shaft through the remote centre of motion (RCM) down to the
-wrist, and a short wrist-to-tip link with the jaws; other robots carry a shaft along their tip
-frame's +z axis. Extra parts (jaws, a retractor blade, a camera housing) are capsules given in
-the tip frame.
+The self-filter removes only what is known to be the robot (SAFETY.md S5): its real kinematics
+and a tool model that was configured, never an assumed one.
+
+* A Raven II instrument is a straight shaft through the remote centre of motion (RCM) down to
+  the wrist, and a short wrist-to-tip link with the jaws; both follow from the arm's kinematics
+  (the RCM and the wrist point), and the instrument's dimensions are the Raven II's own
+  (``ToolModel`` defaults), so a Raven II has a tool model unless ``[robot.tool]`` says otherwise.
+* Any other robot (the Cartesian point mass, a robot behind the CRTK interface) has no tool
+  model until ``[robot.tool] parts`` gives its capsules in the tip frame. Without one there is
+  no self-filter (``tool_model_for`` says why, and the service's status shows it): a guessed
+  shaft axis would cut holes in the protected surface in front of the tool.
+
+``[robot.tool]`` keys (m): ``shaft_radius``, ``shaft_length``, ``wrist_radius`` (RCM instruments
+only) and ``parts = [[ax, ay, az, bx, by, bz, radius], ...]`` (capsules with ends a and b in the
+tip frame: jaws, a retractor blade, a camera housing).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.selffilter import Capsule
 
+#: the largest capsule radius and length accepted for a tool part (m): a "tool" larger than this
+#: would hide a whole scene from the fixtures (S5, S7)
+MAX_PART_RADIUS = 0.05
+MAX_PART_LENGTH = 0.6
+TOOL_KEYS = ("shaft_radius", "shaft_length", "wrist_radius", "parts")
+
 
 @dataclass(frozen=True)
 class ToolModel:
     """Capsule model of the instrument (m).
 
-    shaft_radius: the shaft (Raven II instruments: 8.3 mm diameter, about 4.2 mm).
+    shaft_radius: the shaft through the RCM (Raven II instruments: 8.3 mm diameter, about 4.2 mm).
     shaft_length: how much of the shaft to model, from the wrist back out through the RCM.
     wrist_radius: the wrist-to-tip link and the closed jaws.
     parts: extra capsules ((a, b, radius), ...) with a and b in the tip frame.
+
+    The shaft and wrist apply only to robots whose kinematics give an RCM and a wrist point
+    (Raven II); for any other robot the tool is ``parts`` alone.
     """
 
     shaft_radius: float = 0.0042
@@ -31,27 +53,74 @@ class ToolModel:
     parts: tuple = ()
 
     def __post_init__(self):
-        for key in ("shaft_radius", "shaft_length", "wrist_radius"):
+        limits = {"shaft_radius": MAX_PART_RADIUS, "shaft_length": MAX_PART_LENGTH, "wrist_radius": MAX_PART_RADIUS}
+        for key, top in limits.items():
             v = getattr(self, key)
-            if not (isinstance(v, (int, float)) and np.isfinite(v) and v >= 0):
-                raise InputError(f"tool {key} = {v!r}; expected a finite number >= 0 m")
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 <= v <= top):
+                raise InputError(f"tool {key} = {v!r}; expected a finite number in [0, {top}] m")
         for p in self.parts:
             if len(p) != 3:
                 raise InputError(f"tool part {p!r}; expected (a, b, radius) in the tip frame")
+            a, b, r = np.asarray(p[0], float), np.asarray(p[1], float), p[2]
+            if a.shape != (3,) or b.shape != (3,) or not (np.isfinite(a).all() and np.isfinite(b).all()):
+                raise InputError(f"tool part {p!r}: ends a and b must be 3 finite numbers each (m, tip frame)")
+            if not (isinstance(r, (int, float)) and math.isfinite(r) and 0 < r <= MAX_PART_RADIUS):
+                raise InputError(f"tool part {p!r}: radius {r!r} must be in (0, {MAX_PART_RADIUS}] m")
+            if np.linalg.norm(b - a) > MAX_PART_LENGTH:
+                raise InputError(f"tool part {p!r}: longer than {MAX_PART_LENGTH} m")
 
 
-def tool_capsules(robot, q=None, model: ToolModel | None = None) -> list:
-    """The tool of ``robot`` at joints ``q`` (default: measured) as world-frame capsules."""
+def has_rcm(robot) -> bool:
+    """Whether ``robot``'s kinematics give the instrument's axis (an RCM and a wrist point)."""
+    kin = getattr(robot, "kin", None)
+    return kin is not None and hasattr(kin, "wrist_point")
+
+
+def parse_tool(table) -> ToolModel:
+    """``[robot.tool]`` (see the module docstring) -> ToolModel; InputError naming the bad key."""
+    if not isinstance(table, dict):
+        raise InputError(f"[robot.tool]: expected a table, got {type(table).__name__}")
+    unknown = sorted(set(table) - set(TOOL_KEYS))
+    if unknown:
+        raise InputError(f"[robot.tool]: unknown key(s) {unknown}; known keys: {', '.join(TOOL_KEYS)}")
+    kw = {k: table[k] for k in ("shaft_radius", "shaft_length", "wrist_radius") if k in table}
+    parts = []
+    for i, p in enumerate(table.get("parts", [])):
+        if not isinstance(p, (list, tuple)) or len(p) != 7 or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in p):
+            raise InputError(f"[robot.tool] parts[{i}] = {p!r}; expected [ax, ay, az, bx, by, bz, radius] "
+                             "(m, tip frame)")
+        parts.append((tuple(float(v) for v in p[:3]), tuple(float(v) for v in p[3:6]), float(p[6])))
+    return ToolModel(**kw, parts=tuple(parts))
+
+
+def tool_model_for(robot, table=None) -> tuple:
+    """(ToolModel or None, reason): the tool of ``robot`` as configured by ``table``
+    (``[robot.tool]``, or None). None where the tool is not known (see the module docstring)."""
+    if robot is None:
+        return None, "no robot (ideal robot: nothing to filter)"
+    model = parse_tool(table) if table is not None else None
+    if has_rcm(robot):
+        return (model if model is not None else ToolModel()), "RCM instrument (shaft, wrist) from the kinematics"
+    if model is None or not model.parts:
+        return None, (f"robot model {getattr(robot, 'model', type(robot).__name__)!r} has no tool model: the "
+                      "self-filter is off; give the tool's capsules in [robot.tool] parts to turn it on")
+    return model, f"{len(model.parts)} configured part(s) in the tip frame"
+
+
+def tool_capsules(robot, q=None, model: Optional[ToolModel] = None) -> list:
+    """The tool of ``robot`` at joints ``q`` (default: measured) as world-frame capsules: the
+    instrument's shaft and wrist where the kinematics give them (Raven II), and ``model.parts``.
+    A robot without an RCM contributes only its configured parts (none: no capsules)."""
     model = model if model is not None else ToolModel()
     if q is None:
         q = robot.measured_js().position
     T = np.asarray(robot.forward_kinematics(q), dtype=np.float64)
     tip, R = T[:3, 3], T[:3, :3]
     caps = []
-    kin = getattr(robot, "kin", None)
-    if kin is not None and hasattr(kin, "wrist_point"):  # Raven II: shaft through the RCM
+    if has_rcm(robot):   # Raven II: the shaft runs through the RCM
         Twb = robot.T_world_base
-        w_base, u = kin.wrist_point(np.asarray(q, dtype=np.float64))
+        w_base, u = robot.kin.wrist_point(np.asarray(q, dtype=np.float64))
         wrist = Twb[:3, :3] @ np.asarray(w_base) + Twb[:3, 3]
         rcm = Twb[:3, 3]
         out = rcm - wrist
@@ -59,8 +128,6 @@ def tool_capsules(robot, q=None, model: ToolModel | None = None) -> list:
         out = out / n if n > 1e-9 else -(Twb[:3, :3] @ np.asarray(u))
         caps.append(Capsule(tuple(wrist), tuple(wrist + model.shaft_length * out), model.shaft_radius))
         caps.append(Capsule(tuple(wrist), tuple(tip), model.wrist_radius))
-    else:  # a shaft along the tip frame's +z
-        caps.append(Capsule(tuple(tip), tuple(tip + model.shaft_length * R[:, 2]), model.shaft_radius))
     for a, b, r in model.parts:
         caps.append(Capsule(tuple(R @ np.asarray(a, float) + tip), tuple(R @ np.asarray(b, float) + tip), float(r)))
     return caps

@@ -1,0 +1,61 @@
+"""Why an arm holds: the hold reasons of the haptic tick, the safety invariant behind each
+(``../shared/SAFETY.md``), and which of them are latched faults.
+
+An arm holds (its force gain ramps to zero within ``force_ramp_s``, its robot keeps its
+setpoint) while any reason is active. Two kinds:
+
+* conditions clear by themselves: the arm comes back (re-anchored, S1) once the condition has
+  been clear for ``recover_s`` (a late tick, frames too old, snapshots not published, an invalid
+  or silent master);
+* faults are latched (S3): they hold until the operator clears them (``Service.clear_faults``,
+  which needs every pedal up): a kernel error, a stalled tick (watchdog), an exception in the
+  tick, a robot fault.
+
+Reasons are bits of one mask (``Service.hold_mask`` for all arms, ``Service.arm_hold`` per arm),
+recorded with every tick; ``describe(mask)`` names them with their invariants for the status.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+OVERRUN, STALE, KERNEL, MASTER, ROBOT, EXCEPTION, INGEST, WATCHDOG = 1, 2, 4, 8, 16, 32, 64, 128
+
+
+@dataclass(frozen=True)
+class Reason:
+    bit: int
+    name: str
+    invariant: str   #: the SAFETY.md invariant this hold keeps
+    latched: bool    #: a fault that holds until cleared (else a condition that clears by itself)
+
+
+REASONS = {r.bit: r for r in (
+    Reason(OVERRUN, "overrun", "S9", False),
+    Reason(STALE, "frames too old", "S2", False),
+    Reason(KERNEL, "kernel failure", "S3", True),
+    Reason(MASTER, "master input invalid", "S6", False),
+    Reason(ROBOT, "robot fault or rejected command", "S3", True),
+    Reason(EXCEPTION, "tick exception", "S9", True),
+    Reason(INGEST, "snapshots not published", "S2", False),
+    Reason(WATCHDOG, "tick watchdog", "S9", True),
+)}
+#: the reasons that are latched faults (see the module docstring), as a mask
+LATCHED = sum(b for b, r in REASONS.items() if r.latched)
+#: the global (all-arm) reasons, in bit order: index i of ``Service``'s time table is bit 1 << i
+N_BITS = max(REASONS).bit_length()
+
+
+def index(bit: int) -> int:
+    """Position of reason ``bit`` in the mask (its row in a per-reason table)."""
+    return bit.bit_length() - 1
+
+
+def reason_names(mask: int) -> list:
+    """The names of the reasons in ``mask``, in bit order."""
+    return [r.name for bit, r in REASONS.items() if mask & bit]
+
+
+def describe(mask: int) -> list:
+    """``[{"reason", "invariant", "latched"}]`` for the reasons in ``mask`` (status, metrics)."""
+    return [{"reason": r.name, "invariant": r.invariant, "latched": r.latched} for bit, r in REASONS.items()
+            if mask & bit]
