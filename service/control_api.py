@@ -252,7 +252,7 @@ class Controller:
         arms = [{k: snap[k][b] for k in ("xm", "hip", "proxy", "cmd", "xr", "force")} | {"state": int(snap["state"][b])}
                 for b in range(len(snap["state"]))]
         return {**c["status"], "tick": c["tick"], "t": snap["t"], "arms": arms, "fixture": self.fixture_config(),
-                **{k: c[k] for k in self.extras}, "control": self._counters()}
+                **{k: c[k] for k in self.extras}, "control": self.counters()}
 
     def get_metrics(self, _body) -> dict:
         c = self._in_tick(self._collect, "metrics")
@@ -267,7 +267,7 @@ class Controller:
             "robot_errors": st["robot_errors"], "last_error": st["last_error"], "frame_seq": st["frame_seq"],
             "cameras": {"ages_s": fr.get("ages_s"), "stale": fr.get("stale"), "snapshots": fr.get("snapshots"),
                         "frames": fr.get("frames"), "ingest_errors": fr.get("ingest_errors")},
-            "control": self._counters(),
+            "control": self.counters(),
         }
         for name in self.extras:
             v = c[name]
@@ -288,7 +288,7 @@ class Controller:
         with self._count_lock:
             self.rejected[reason] += 1
 
-    def _counters(self) -> dict:
+    def counters(self) -> dict:
         """requests/refused: requests that reached a route and those of them refused;
         rejected: requests refused before that (no or wrong token, foreign Host, bad body,
         timed out, server busy)."""

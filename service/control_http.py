@@ -125,6 +125,7 @@ class _Handler(BaseHTTPRequestHandler):
                 timed_out.append(True)
                 self.controller.count_rejected("timeout")
 
+        self.rfile.close()          # the plain reader setup() made (the socket stays open)
         self.rfile = io.BufferedReader(_DeadlineReader(self.connection, time.monotonic() + self.read_timeout,
                                                        on_timeout))
 

@@ -22,6 +22,7 @@ import http.client
 import json
 import os
 import sys
+from typing import Optional
 
 from pointfence.kernels.errors import InputError, PointfenceError
 
@@ -44,7 +45,7 @@ class ControlClient:
     ``token_file``, else from where `serve` writes it for ``port`` (at the first request)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_CONTROL_PORT, timeout: float = 10.0,
-                 token: str = None, token_file=None):
+                 token: Optional[str] = None, token_file=None):
         self.host, self.port, self.timeout = host, int(port), float(timeout)
         self.token, self.token_file = token, token_file
 

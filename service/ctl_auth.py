@@ -127,15 +127,16 @@ class BearerCheck:
     """Checks a request's ``Authorization`` header against the run's token in constant time."""
 
     def __init__(self, token: str):
-        self._token = ("Bearer " + token).encode()
+        self._token = token.encode()
 
     def check(self, header: Optional[str]) -> Optional[tuple]:
-        """None if authorised, else (HTTP status, message): 401 without credentials, 403 with
-        wrong ones."""
-        if not header:
+        """None if authorised, else (HTTP status, message): 401 without bearer credentials,
+        403 with a wrong token. The scheme is case-insensitive (RFC 7235), the token exact."""
+        scheme, _, cred = (header or "").strip().partition(" ")
+        if scheme.lower() != "bearer":
             return 401, ("unauthenticated: every control request needs 'Authorization: Bearer <token>'; "
                          "`pointfence ctl` reads the token that `pointfence serve` wrote (see its "
                          "stderr: control token in ...)")
-        if not hmac.compare_digest(header.strip().encode("utf-8", "replace"), self._token):
+        if not hmac.compare_digest(cred.strip().encode("utf-8", "replace"), self._token):
             return 403, "wrong control token: refused (nothing changed)"
         return None

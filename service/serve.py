@@ -191,7 +191,7 @@ def run(args) -> int:
         run_.stop()
         status = {"udp": hub.status(), "loop": run_.timing().as_dict(), "service": _jsonable(run_.service.status())}
         if control is not None:
-            status["control"] = control.controller._counters()
+            status["control"] = control.controller.counters()
         if itp is not None:
             status["itp"] = itp.status()
             itp.close()
