@@ -35,30 +35,43 @@ pipeline and the request fails (nothing changed). A radius the fixed cell size c
 refused with a message saying so. Runtime changes are not part of a recording's inputs:
 ``pointfence replay --recording`` replays the configuration's parameters.
 
-POST bodies must be ``Content-Type: application/json`` and the ``Host`` a loopback name (a web
-page cannot post here: cross-origin JSON needs a CORS preflight this server never grants).
+Every request needs the run's bearer token (``control_http``, ``ctl_auth``): only the user who
+runs the service can read or change it. POST bodies must be ``Content-Type: application/json``
+and the ``Host`` a loopback name (a web page cannot post here: cross-origin JSON needs a CORS
+preflight this server never grants).
+
+Values that lower protection stay bounded: a radius in (0, ``MAX_RUNTIME_RADIUS``] m, finite
+numbers only, a selection box with min < max on every axis inside +-``MAX_BOX_COORD`` m, a
+colour range with lo <= hi, and no radius or selection that leaves the current frames without
+a protected point. ``/clear-faults`` is refused (409) while any arm is coupled: release the
+pedal first.
 """
 from __future__ import annotations
 
-import ipaddress
 import json
 import math
 import threading
 from dataclasses import replace
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Callable, Optional
+
+import numpy as np
 
 from pointfence.kernels.errors import InputError, PointfenceError
 from pointfence.kernels.params import PipelineParams, RadiusModel, Selection
 
+from .control_http import DEFAULT_CONTROL_PORT, ControlServer  # noqa: F401 - the API's server, importable here
 from .teleop import ARCHITECTURES, arch_code
 
-DEFAULT_CONTROL_PORT = 47801
 #: largest fixture radius (m) the API accepts at runtime (larger: edit the configuration)
 MAX_RUNTIME_RADIUS = 0.1
-MAX_BODY = 64 * 1024
+#: largest |coordinate| (m) of a selection box the API accepts
+MAX_BOX_COORD = 10.0
 #: the proxy's outer band used for the hash cell size (as in config.py)
 _DEFAULT_R3 = 0.010
+
+
+#: why the HTTP layer refused a request before any route saw it (``Controller.count_rejected``)
+REJECT_REASONS = ("unauthenticated", "wrong_token", "host", "bad_body", "timeout", "busy")
 
 
 class ControlError(Exception):
@@ -68,6 +81,32 @@ class ControlError(Exception):
         super().__init__(message)
         self.status = int(status)
         self.message = message
+
+
+def _short(v, n: int = 60) -> str:
+    """``repr(v)``, cut to ``n`` characters (a refused value is named, never echoed whole)."""
+    try:
+        r = repr(v)
+    except ValueError:   # an int too long to print
+        r = f"<{type(v).__name__}>"
+    return r if len(r) <= n else r[: n - 3] + "..."
+
+
+def _number(name: str, v, lo: float, hi: float, lo_open: bool = False, unit: str = "m", hint: str = "") -> float:
+    """``v`` as a float in [lo, hi] (or (lo, hi] with ``lo_open``), else a 400 naming it
+    (``hint``: appended to the out-of-range message)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ControlError(400, f"{name} = {_short(v)}; expected a number of {unit}")
+    try:
+        x = float(v)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise ControlError(400, f"{name} = {_short(v)}; expected a finite number of {unit}")
+    if x < lo or (lo_open and x <= lo) or x > hi:
+        raise ControlError(400, f"{name} = {_short(v)} {unit}; expected {lo:g} {'<' if lo_open else '<='} {name} "
+                                f"<= {hi:g} {unit}" + (f" {hint}" if hint else ""))
+    return x
 
 
 class _Pending:
@@ -136,18 +175,24 @@ class Controller:
         self.reconfigurations = 0
         self.requests = 0
         self.refused = 0
+        self._count_lock = threading.Lock()
+        self.rejected = {k: 0 for k in REJECT_REASONS}
 
     # --- the tick thread ------------------------------------------------------------------------
-    def _in_tick(self, fn: Callable, what: str):
-        """Run ``fn(service)`` in the tick thread between two ticks and return its result."""
+    def _in_tick(self, fn: Callable, what: str, leave_safe_mode: bool = False):
+        """Run ``fn(service)`` in the tick thread between two ticks and return its result.
+        ``leave_safe_mode``: clear the loop's error once ``fn`` is queued, so that ``fn`` runs
+        at the start of the first normal tick, before it reads the masters."""
         loop = self.loop
-        if loop is not None and loop.error is not None:
+        if loop is not None and loop.error is not None and not leave_safe_mode:
             raise ControlError(503, f"{what}: not applied: the haptic loop is in its safe mode after an error "
                                     f"({loop.error}); POST /clear-faults (pointfence ctl clear-faults) first")
         if loop is not None and not loop.running:
             raise ControlError(503, f"{what}: not applied: the haptic loop is not running")
         p = _Pending(fn)
         self.service.call_between_ticks(p)
+        if leave_safe_mode and loop is not None:
+            loop.clear_error()   # a flag; the next tick is a normal one again and runs p first
         if not p.done.wait(self.apply_timeout):
             if p.cancel():
                 raise ControlError(503, f"{what}: not applied: the haptic loop ran no tick within "
@@ -176,7 +221,8 @@ class Controller:
 
     # --- requests -------------------------------------------------------------------------------
     def handle(self, method: str, path: str, body: Optional[dict] = None):
-        self.requests += 1
+        with self._count_lock:
+            self.requests += 1
         route = path.split("?", 1)[0].rstrip("/") or "/"
         try:
             fn = self.ROUTES.get((method, route))
@@ -190,11 +236,15 @@ class Controller:
                 raise ControlError(400, f"POST {route}: expected a JSON object body")
             return 200, {"ok": True, **_jsonable(fn(self, body or {}))}
         except ControlError as e:
-            self.refused += 1
+            self._count_refused()
             return e.status, {"ok": False, "error": e.message}
         except InputError as e:
-            self.refused += 1
+            self._count_refused()
             return 400, {"ok": False, "error": str(e)}
+
+    def _count_refused(self) -> None:
+        with self._count_lock:
+            self.refused += 1
 
     def get_status(self, _body) -> dict:
         c = self._in_tick(self._collect, "status")
@@ -202,7 +252,7 @@ class Controller:
         arms = [{k: snap[k][b] for k in ("xm", "hip", "proxy", "cmd", "xr", "force")} | {"state": int(snap["state"][b])}
                 for b in range(len(snap["state"]))]
         return {**c["status"], "tick": c["tick"], "t": snap["t"], "arms": arms, "fixture": self.fixture_config(),
-                **{k: c[k] for k in self.extras}, "control": self._counters()}
+                **{k: c[k] for k in self.extras}, "control": self.counters()}
 
     def get_metrics(self, _body) -> dict:
         c = self._in_tick(self._collect, "metrics")
@@ -217,7 +267,7 @@ class Controller:
             "robot_errors": st["robot_errors"], "last_error": st["last_error"], "frame_seq": st["frame_seq"],
             "cameras": {"ages_s": fr.get("ages_s"), "stale": fr.get("stale"), "snapshots": fr.get("snapshots"),
                         "frames": fr.get("frames"), "ingest_errors": fr.get("ingest_errors")},
-            "control": self._counters(),
+            "control": self.counters(),
         }
         for name in self.extras:
             v = c[name]
@@ -233,8 +283,19 @@ class Controller:
         return {"fixture": self.fixture_config(), "architecture": self.service.architecture,
                 "architectures": list(ARCHITECTURES)}
 
-    def _counters(self) -> dict:
-        return {"requests": self.requests, "refused": self.refused, "reconfigurations": self.reconfigurations}
+    def count_rejected(self, reason: str) -> None:
+        """Count a request the HTTP layer refused before it reached a route (``REJECT_REASONS``)."""
+        with self._count_lock:
+            self.rejected[reason] += 1
+
+    def counters(self) -> dict:
+        """requests/refused: requests that reached a route and those of them refused;
+        rejected: requests refused before that (no or wrong token, foreign Host, bad body,
+        timed out, server busy)."""
+        with self._count_lock:
+            rejected = dict(self.rejected)
+        return {"requests": self.requests, "refused": self.refused, "reconfigurations": self.reconfigurations,
+                "rejected": rejected, "rejected_total": sum(rejected.values())}
 
     def fixture_config(self) -> dict:
         svc = self.service
@@ -248,7 +309,7 @@ class Controller:
     def post_architecture(self, body) -> dict:
         a = body.get("architecture")
         if not isinstance(a, str) or a.upper() not in ARCHITECTURES:
-            raise ControlError(400, f"architecture = {a!r}; expected one of {', '.join(ARCHITECTURES)} (eqs. 3.1-3.3)")
+            raise ControlError(400, f"architecture = {_short(a)}; expected one of {', '.join(ARCHITECTURES)} (eqs. 3.1-3.3)")
         code = arch_code(a)
 
         def apply(svc):
@@ -262,7 +323,7 @@ class Controller:
     def _engage(self, body, what: str) -> dict:
         on = body.get("engaged")
         if not isinstance(on, bool):
-            raise ControlError(400, f"engaged = {on!r}; expected true or false")
+            raise ControlError(400, f"engaged = {_short(on)}; expected true or false")
 
         def apply(svc):
             prev = svc.haptics_on if what == "haptics" else svc.teleop_on
@@ -278,30 +339,43 @@ class Controller:
     def post_teleop(self, body) -> dict:
         return self._engage(body, "teleop")
 
+    @staticmethod
+    def _refuse_if_coupled(status: dict) -> None:
+        arms = [b for b, c in enumerate(status["coupled"]) if c]
+        if arms:
+            raise ControlError(409, f"clear faults: refused: arm(s) {', '.join(map(str, arms))} coupled (pedal down, "
+                                    "teleoperation on); clearing faults needs every arm decoupled: release the "
+                                    "pedal, then clear faults (nothing changed)")
+
     def post_clear_faults(self, body) -> dict:
+        if body:
+            raise ControlError(400, f"clear-faults: unknown key(s) {_short(sorted(body))}; expected an empty object")
         with self._lock:
             was = self.loop.error if self.loop is not None else None
-            if self.loop is not None:
-                self.loop.clear_error()   # a flag; the next tick is a normal one again
-            return {**self._in_tick(lambda svc: (svc.clear_faults(), {})[1], "clear faults"), "cleared_loop_error": was}
+
+            def apply(svc):   # coupled: as published by the last tick (a safe tick decouples every arm)
+                self._refuse_if_coupled(svc.status())
+                svc.clear_faults()   # refuses (InputError -> 409) while an arm is coupled, too
+                return {}
+
+            return {**self._in_tick(apply, "clear faults", leave_safe_mode=True), "cleared_loop_error": was}
 
     def post_radius(self, body) -> dict:
-        r = body.get("radius")
-        if isinstance(r, bool) or not isinstance(r, (int, float)) or not math.isfinite(r):
-            raise ControlError(400, f"radius = {r!r}; expected a number of metres, e.g. 0.015")
-        if r < 0:
-            raise ControlError(400, f"radius = {r!r}; expected a fixture radius >= 0 m")
-        if r > MAX_RUNTIME_RADIUS:
-            raise ControlError(400, f"radius = {r!r} m is above the control API's limit {MAX_RUNTIME_RADIUS} m; "
-                                    "set larger radii in the configuration and restart")
+        extra = set(body) - {"radius", "radius_max"}
+        if extra:
+            raise ControlError(400, f"radius: unknown key(s) {_short(sorted(extra))}; expected radius, radius_max")
+        if "radius" not in body:
+            raise ControlError(400, "radius: missing; expected {\"radius\": metres}, e.g. 0.015")
+        lim = "(the control API's limit; set larger radii in the configuration and restart)"
+        r = _number("radius", body["radius"], 0.0, MAX_RUNTIME_RADIUS, lo_open=True, hint=lim)
         cur = self.service.pipeline.params.radius
+        margin = cur.r_max - cur.r_base
         rmax = body.get("radius_max")
         if rmax is None:
-            rmax = r + (cur.r_max - cur.r_base) if cur.adaptive else r
-        elif isinstance(rmax, bool) or not isinstance(rmax, (int, float)) or not math.isfinite(rmax):
-            raise ControlError(400, f"radius_max = {rmax!r}; expected a number of metres")
-        elif rmax > MAX_RUNTIME_RADIUS + (cur.r_max - cur.r_base):
-            raise ControlError(400, f"radius_max = {rmax!r} m is above the control API's limit")
+            rmax = r + margin if cur.adaptive else r
+        else:
+            rmax = _number("radius_max", rmax, 0.0, MAX_RUNTIME_RADIUS + margin, lo_open=True,
+                           hint="(the control API's limit: radius limit + the configured margin r_max - r_base)")
         try:
             model = RadiusModel(r_base=float(r), adaptive=cur.adaptive, k_sigma=cur.k_sigma, r_max=float(rmax))
         except InputError as e:
@@ -312,29 +386,45 @@ class Controller:
         kind = body.get("kind")
         extra = set(body) - {"kind", "min", "max", "lo", "hi"}
         if extra:
-            raise ControlError(400, f"selection: unknown key(s) {', '.join(sorted(extra))}; expected kind, min, max, lo, hi")
+            raise ControlError(400, f"selection: unknown key(s) {_short(sorted(extra))}; expected kind, min, max, lo, hi")
         try:
             if kind == "box":
-                for key in ("min", "max"):
-                    v = body.get(key)
-                    if not isinstance(v, list) or len(v) != 3 or not all(
-                            isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
-                        raise ControlError(400, f"selection box {key} = {v!r}; expected [x, y, z] in metres (world frame)")
-                sel = Selection("box", box_min=tuple(body["min"]), box_max=tuple(body["max"]))
+                lo, hi = (self._triple(body, key, "selection box", "expected [x, y, z] in metres (world frame)")
+                          for key in ("min", "max"))
+                lo = tuple(_number(f"selection box min[{i}]", x, -MAX_BOX_COORD, MAX_BOX_COORD) for i, x in enumerate(lo))
+                hi = tuple(_number(f"selection box max[{i}]", x, -MAX_BOX_COORD, MAX_BOX_COORD) for i, x in enumerate(hi))
+                if not all(a < b for a, b in zip(lo, hi)):
+                    raise ControlError(400, f"selection box min {list(lo)} / max {list(hi)}: expected min < max on "
+                                            "every axis (an empty or flat box protects nothing)")
+                ws = self.service.pipeline.params.workspace
+                if any(b <= wa or a >= wb for a, b, wa, wb in zip(lo, hi, ws.min, ws.max)):
+                    raise ControlError(400, f"selection box min {list(lo)} / max {list(hi)} lies outside the workspace "
+                                            f"{list(ws.min)}..{list(ws.max)} (m): it would protect nothing")
+                sel = Selection("box", box_min=lo, box_max=hi)
             elif kind == "color":
-                for key in ("lo", "hi"):
-                    v = body.get(key)
-                    if not isinstance(v, list) or len(v) != 3 or not all(
-                            isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 255 for x in v):
-                        raise ControlError(400, f"selection color {key} = {v!r}; expected [R, G, B] integers 0..255")
-                sel = Selection("color", color_lo=tuple(body["lo"]), color_hi=tuple(body["hi"]))
+                lo, hi = (self._triple(body, key, "selection color", "expected [R, G, B] integers 0..255")
+                          for key in ("lo", "hi"))
+                for key, v in (("lo", lo), ("hi", hi)):
+                    if not all(isinstance(x, int) and not isinstance(x, bool) and 0 <= x <= 255 for x in v):
+                        raise ControlError(400, f"selection color {key} = {_short(v)}; expected [R, G, B] integers 0..255")
+                if not all(a <= b for a, b in zip(lo, hi)):
+                    raise ControlError(400, f"selection color lo {lo} / hi {hi}: expected lo <= hi on every channel "
+                                            "(an empty range protects nothing)")
+                sel = Selection("color", color_lo=tuple(lo), color_hi=tuple(hi))
             elif kind in ("all", "mask"):
                 sel = Selection(kind)
             else:
-                raise ControlError(400, f"selection kind = {kind!r}; expected one of all, box, color, mask")
+                raise ControlError(400, f"selection kind = {_short(kind)}; expected one of all, box, color, mask")
         except InputError as e:
             raise ControlError(400, str(e)) from None
         return self._reconfigure(selection=sel, what="selection")
+
+    @staticmethod
+    def _triple(body: dict, key: str, what: str, expected: str) -> list:
+        v = body.get(key)
+        if not isinstance(v, list) or len(v) != 3:
+            raise ControlError(400, f"{what} {key} = {_short(v)}; {expected}")
+        return v
 
     # --- runtime reconfiguration of the snapshots' parameters -----------------------------------
     def _new_params(self, radius=None, selection=None) -> PipelineParams:
@@ -389,6 +479,12 @@ class Controller:
                 except PointfenceError as e:
                     raise ControlError(409, f"{what}: not applied: the frames do not build with the new "
                                             f"parameters: {e}") from None
+                protected_new = int(np.count_nonzero(new.host_snapshot().protected))
+                protected_old = int(np.count_nonzero(old.host_snapshot().protected))
+            if protected_new == 0 and protected_old > 0:
+                raise ControlError(409, f"{what}: not applied: with the new parameters no point of the current frames "
+                                        f"is protected (now {protected_old}): the fixture would vanish; choose a "
+                                        "selection that covers the protected anatomy (nothing changed)")
             hip = svc.teleop.hip.copy()
             batch = new.proxies(hip, svc.params)
             with gate.lock:
@@ -428,115 +524,3 @@ class Controller:
         ("POST", "/selection"): post_selection,
         ("POST", "/clear-faults"): post_clear_faults,
     }
-
-
-# --- HTTP ----------------------------------------------------------------------------------------
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
-class _Handler(BaseHTTPRequestHandler):
-    server_version = "pointfence-control/1"
-    controller: Controller = None   # set on the subclass made per server
-
-    def log_message(self, fmt, *args):   # no per-request logging to stderr
-        pass
-
-    def _reply(self, status: int, obj: dict) -> None:
-        data = (json.dumps(obj) + "\n").encode()
-        self.send_response(status)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Content-Length", str(len(data)))
-        self.send_header("Cache-Control", "no-store")
-        self.end_headers()
-        self.wfile.write(data)
-
-    def _host_ok(self) -> bool:
-        host = (self.headers.get("Host") or "").strip()
-        if host.startswith("["):
-            name = host[: host.find("]") + 1] if "]" in host else host
-        else:
-            name = host.rsplit(":", 1)[0] if host.count(":") == 1 else host
-        return is_loopback(name)
-
-    def do_GET(self):
-        if not self._host_ok():
-            return self._reply(403, {"ok": False, "error": "Host header is not a loopback name"})
-        self._reply(*self.controller.handle("GET", self.path))
-
-    def do_POST(self):
-        if not self._host_ok():
-            return self._reply(403, {"ok": False, "error": "Host header is not a loopback name"})
-        ctype = (self.headers.get("Content-Type") or "").split(";", 1)[0].strip().lower()
-        if ctype != "application/json":
-            return self._reply(415, {"ok": False, "error": f"Content-Type {ctype or 'missing'}; expected application/json"})
-        try:
-            n = int(self.headers.get("Content-Length") or 0)
-        except ValueError:
-            n = -1
-        if not 0 <= n <= MAX_BODY:
-            return self._reply(413 if n > MAX_BODY else 400, {"ok": False, "error": f"body of {n} bytes; expected 0..{MAX_BODY}"})
-        raw = self.rfile.read(n) if n else b"{}"
-        try:
-            body = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as e:
-            return self._reply(400, {"ok": False, "error": f"body is not valid JSON: {e}"})
-        self._reply(*self.controller.handle("POST", self.path, body))
-
-    def do_PUT(self):
-        self._reply(405, {"ok": False, "error": "use GET or POST"})
-
-    do_DELETE = do_PATCH = do_PUT
-
-
-class ControlServer:
-    """``Controller`` behind an HTTP server in its own daemon thread on ``host:port``
-    (loopback only; port 0: any free port, see ``address``)."""
-
-    def __init__(self, controller: Controller, host: str = "127.0.0.1", port: int = DEFAULT_CONTROL_PORT):
-        if not is_loopback(host):
-            raise InputError(f"control API address {host!r}: the control API has no authentication and binds to "
-                             "loopback only (127.0.0.1, ::1, localhost)")
-        self.controller = controller
-        handler = type("Handler", (_Handler,), {"controller": controller})
-        cls = ThreadingHTTPServer
-        if ":" in host:
-            import socket
-
-            cls = type("Server6", (ThreadingHTTPServer,), {"address_family": socket.AF_INET6})
-        try:
-            self.httpd = cls((host, int(port)), handler)
-        except OSError as e:
-            raise InputError(f"control API: cannot listen on {host}:{port}: {e} (choose another --control-port, "
-                             "or 0 for any free port)") from None
-        self.httpd.daemon_threads = True
-        self._thread: Optional[threading.Thread] = None
-
-    @property
-    def address(self) -> tuple:
-        return self.httpd.server_address[:2]
-
-    @property
-    def url(self) -> str:
-        host, port = self.address
-        return f"http://{'[' + host + ']' if ':' in host else host}:{port}"
-
-    def start(self) -> "ControlServer":
-        if self._thread is None:
-            self._thread = threading.Thread(target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1},
-                                            name="pointfence-control-api", daemon=True)
-            self._thread.start()
-        return self
-
-    def close(self) -> None:
-        if self._thread is not None:
-            self.httpd.shutdown()
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        self.httpd.server_close()
-

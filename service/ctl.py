@@ -10,8 +10,11 @@
     pointfence ctl clear-faults
 
 The service listens on 127.0.0.1:47801 by default (``pointfence serve --control-port``); use
-``--port`` / ``--host`` or ``$POINTFENCE_CONTROL``, e.g. ``127.0.0.1:47801``. The reply is
-printed as JSON; a refused command prints the service's reason and exits with status 1.
+``--port`` / ``--host`` or ``$POINTFENCE_CONTROL``, e.g. ``127.0.0.1:47801``. Every request
+carries the run's token (``ctl_auth.py``), read from ``--token-file``, ``$POINTFENCE_CONTROL_TOKEN``
+or where `serve` writes it for that port (``$XDG_RUNTIME_DIR/pointfence/control-<port>.token``);
+only the user who runs the service can read it. The reply is printed as JSON; a refused
+command prints the service's reason and exits with status 1.
 """
 from __future__ import annotations
 
@@ -19,10 +22,12 @@ import http.client
 import json
 import os
 import sys
+from typing import Optional
 
 from pointfence.kernels.errors import InputError, PointfenceError
 
-from .control_api import DEFAULT_CONTROL_PORT
+from . import ctl_auth
+from .control_http import DEFAULT_CONTROL_PORT
 
 
 class ControlRefused(PointfenceError):
@@ -34,16 +39,27 @@ class ControlRefused(PointfenceError):
 
 
 class ControlClient:
-    """A minimal client of the control API (``control_api``): ``get(path)``, ``post(path, body)``."""
+    """A minimal client of the control API (``control_api``): ``get(path)``, ``post(path, body)``.
 
-    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_CONTROL_PORT, timeout: float = 10.0):
+    ``token``: the run's control token (``ctl_auth.read_token``); None: read it from
+    ``token_file``, else from where `serve` writes it for ``port`` (at the first request)."""
+
+    def __init__(self, host: str = "127.0.0.1", port: int = DEFAULT_CONTROL_PORT, timeout: float = 10.0,
+                 token: Optional[str] = None, token_file=None):
         self.host, self.port, self.timeout = host, int(port), float(timeout)
+        self.token, self.token_file = token, token_file
+
+    def _authorization(self) -> str:
+        if self.token is None:
+            path = self.token_file if self.token_file is not None else ctl_auth.default_token_path(self.port)
+            self.token = ctl_auth.read_token(path, self.port)
+        return f"Bearer {self.token}"
 
     def request(self, method: str, path: str, body=None) -> tuple:
         """(HTTP status, decoded JSON reply)."""
         conn = http.client.HTTPConnection(self.host, self.port, timeout=self.timeout)
         try:
-            headers = {"Accept": "application/json"}
+            headers = {"Accept": "application/json", "Authorization": self._authorization()}
             data = None
             if method == "POST":
                 data = json.dumps(body if body is not None else {}).encode()
@@ -65,7 +81,11 @@ class ControlClient:
 
     def _ok(self, status: int, reply: dict) -> dict:
         if status >= 400 or not reply.get("ok", False):
-            raise ControlRefused(status, reply.get("error", "refused"))
+            msg = reply.get("error", "refused")
+            if status in (401, 403):
+                msg += (f"; the token used ({self.token_file or 'the default token file for port ' + str(self.port)}) "
+                        "is not this service's: pass the file `pointfence serve` names on stderr with --token-file")
+            raise ControlRefused(status, msg)
         return reply
 
     def get(self, path: str) -> dict:
@@ -116,6 +136,9 @@ def add_arguments(p):
     p.add_argument("--port", type=int, default=None, help=f"control API port (default {DEFAULT_CONTROL_PORT}, "
                                                           "or $POINTFENCE_CONTROL=[HOST:]PORT)")
     p.add_argument("--timeout", type=float, default=10.0, help="s to wait for the reply (default 10)")
+    p.add_argument("--token-file", default=os.environ.get(ctl_auth.TOKEN_ENV),
+                   help=f"the service's control token (default ${ctl_auth.TOKEN_ENV}, else the file `pointfence "
+                        "serve` writes for the port: $XDG_RUNTIME_DIR/pointfence/control-PORT.token)")
     sub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     sub.add_parser("status", help="architecture, engagement, holds, robots, frames, clients, positions, fixture")
     sub.add_parser("metrics", help="loop timing, misses, degraded reasons, camera staleness, client counts")
@@ -134,12 +157,13 @@ def add_arguments(p):
     s.add_argument("--max", type=float, nargs=3, metavar=("X", "Y", "Z"), help="box corner (world frame, m)")
     s.add_argument("--lo", type=int, nargs=3, metavar=("R", "G", "B"), help="colour range low (0..255)")
     s.add_argument("--hi", type=int, nargs=3, metavar=("R", "G", "B"), help="colour range high (0..255)")
-    sub.add_parser("clear-faults", help="leave the loop's safe mode after an error; re-enable faulted robots")
+    sub.add_parser("clear-faults", help="leave the loop's safe mode after an error; re-enable faulted robots "
+                                        "(refused while an arm is coupled: release the pedal first)")
 
 
 def run(args) -> int:
     host, port = _address(args)
-    c = ControlClient(host, port, args.timeout)
+    c = ControlClient(host, port, args.timeout, token_file=args.token_file)
     act = args.action
     if act in ("status", "metrics", "config"):
         reply = c.get(f"/{act}")

@@ -3,7 +3,7 @@
     pointfence serve --new-key pf.key                      # write a fresh 32-byte key and exit
     pointfence serve --key-file pf.key [--config F] [--clients N] [--port 47800] [--bind 127.0.0.1]
                      [--timeout-ms 50] [--duration S] [--itp 127.0.0.1:36000 --itp-slots 0,1]
-                     [--control-port 47801 | --no-control]
+                     [--control-port 47801 [--control-token FILE] | --no-control]
 
 Each client (``pointfence.clients.Client``, the C SDK, ``pointfence device-sim``) opens a
 session with a HELLO tagged with the key and then drives one master slot, i.e. one proxy and
@@ -13,6 +13,10 @@ Status lines go to stderr every ``--status-every`` s; the final status (sessions
 rejection counters, loop timing) is printed as JSON on exit and written to ``--stats-file``.
 The local HTTP JSON control API (``control_api.py``; ``pointfence ctl``) listens on
 127.0.0.1:``--control-port`` (status, metrics, architecture, engage/disengage, radius, selection).
+Every request to it needs this run's token, which serve writes (mode 0600) to ``--control-token``
+or ``$XDG_RUNTIME_DIR/pointfence/control-<port>.token`` (``ctl_auth.py``); ``pointfence ctl``
+finds it there. A UDP or control port that is in use is an error naming it (never a move to
+another port).
 """
 from __future__ import annotations
 
@@ -51,9 +55,13 @@ def add_arguments(p):
     p.add_argument("--itp", default=None, metavar="[HOST:]PORT",
                    help="also accept Raven II ITP master packets here (UNAUTHENTICATED; default off; host defaults to 127.0.0.1)")
     p.add_argument("--itp-slots", default="0", help="master slots the ITP arms 0 and 1 drive, e.g. '0,1' (default '0')")
-    p.add_argument("--control-port", type=int, default=None,
-                   help=f"local HTTP JSON control API port (default {DEFAULT_CONTROL_PORT}, or any free port if that "
-                        "one is taken: see stderr and --ready-file; 0: any free port); `pointfence ctl` uses it")
+    p.add_argument("--control-port", type=int, default=DEFAULT_CONTROL_PORT,
+                   help=f"local HTTP JSON control API port (default {DEFAULT_CONTROL_PORT}; in use: serve fails; "
+                        "0: any free port, see stderr and --ready-file); `pointfence ctl` uses it")
+    p.add_argument("--control-token", metavar="FILE", default=None,
+                   help="write the control API's per-run token here (mode 0600; default "
+                        "$XDG_RUNTIME_DIR/pointfence/control-PORT.token, or /tmp/pointfence-UID/ without "
+                        "XDG_RUNTIME_DIR); pass the same FILE to `pointfence ctl --token-file`")
     p.add_argument("--control-bind", default="127.0.0.1", help="control API address: loopback only (default 127.0.0.1)")
     p.add_argument("--no-control", action="store_true", help="no control API")
     p.add_argument("--prerender", type=int, default=0, metavar="FRAMES",
@@ -97,7 +105,11 @@ def run(args) -> int:
     cfg = config_mod.load(args.config)
     slots = args.clients if args.clients is not None else cfg.service.proxies
     max_force = cfg.haptics.max_force if cfg.haptics is not None else 10.0
-    hub = UdpHub(psk, slots, args.bind, args.port, args.timeout_ms, cfg.service.rate_hz, max_force)
+    try:
+        hub = UdpHub(psk, slots, args.bind, args.port, args.timeout_ms, cfg.service.rate_hz, max_force)
+    except OSError as e:
+        raise InputError(f"cannot listen on udp://{args.bind}:{args.port}: {e}; stop what holds that port, or choose "
+                         "another with --port N (0: any free port)") from None
     masters: list = list(hub.masters)
     itp = None
     if args.itp:
@@ -107,7 +119,11 @@ def run(args) -> int:
         idx = [int(s) for s in args.itp_slots.split(",") if s.strip()]
         if not 1 <= len(idx) <= 2 or any(not 0 <= i < slots for i in idx) or len(set(idx)) != len(idx):
             raise InputError(f"--itp-slots {args.itp_slots!r}; expected one or two distinct slots in 0..{slots - 1}")
-        itp = ItpReceiver(host, port, timeout_ms=args.timeout_ms, checksum=args.itp_checksum)
+        try:
+            itp = ItpReceiver(host, port, timeout_ms=args.timeout_ms, checksum=args.itp_checksum)
+        except OSError as e:
+            hub.close()
+            raise InputError(f"cannot listen for ITP on udp://{host}:{port}: {e}; choose another --itp [HOST:]PORT") from None
         for arm, i in enumerate(idx):   # the ITP arm replaces the UDP slot i (the hub keeps the rest)
             masters[i] = itp.arm_master(arm, poll_also=hub)
             hub.masters[i].session = _Reserved()
@@ -131,28 +147,23 @@ def run(args) -> int:
     t_start = time.monotonic()
     control = None
     try:
-        run_.start()
-        run_.wait_ticks(10)
-        run_.mark()
-        if not args.no_control:
+        if not args.no_control:   # bound first: a port in use fails the run before the loop starts
             from .control_api import Controller, ControlServer
 
             extras = {"clients": hub.status, **({"itp": itp.status} if itp is not None else {})}
             controller = Controller(run_.service, run_.loop, extras=extras)
-            if args.control_port is not None:
-                control = ControlServer(controller, args.control_bind, args.control_port).start()
-            else:
-                try:
-                    control = ControlServer(controller, args.control_bind, DEFAULT_CONTROL_PORT).start()
-                except InputError as e:
-                    print(f"pointfence serve: {e}; using any free port instead", file=sys.stderr)
-                    control = ControlServer(controller, args.control_bind, 0).start()
-            print(f"pointfence serve: control API on {control.url} (pointfence ctl --port {control.address[1]} status)",
-                  file=sys.stderr)
+            control = ControlServer(controller, args.control_bind, args.control_port, args.control_token).start()
+            tok = f" --token-file {control.token_file}" if args.control_token else ""
+            print(f"pointfence serve: control API on {control.url}, control token in {control.token_file} "
+                  f"(pointfence ctl --port {control.address[1]}{tok} status)", file=sys.stderr)
+        run_.start()
+        run_.wait_ticks(10)
+        run_.mark()
         if args.ready_file:
             ready = {"host": hub.address[0], "port": hub.address[1]}
             if control is not None:
                 ready["control_port"] = control.address[1]
+                ready["control_token_file"] = str(control.token_file)
             dest = Path(args.ready_file)   # written whole, then renamed: a reader never sees it half-written
             part = dest.with_name(dest.name + ".part")
             part.write_text(json.dumps(ready) + "\n")
@@ -180,7 +191,7 @@ def run(args) -> int:
         run_.stop()
         status = {"udp": hub.status(), "loop": run_.timing().as_dict(), "service": _jsonable(run_.service.status())}
         if control is not None:
-            status["control"] = control.controller._counters()
+            status["control"] = control.controller.counters()
         if itp is not None:
             status["itp"] = itp.status()
             itp.close()

@@ -247,7 +247,7 @@ def test_live_serve_process_with_the_client_sdk(tmp_path):
     scene.write_text(LIGHT_SCENE)
     ready, stats = tmp_path / "ready.json", tmp_path / "stats.json"
     proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key), "--port", "0",
-                             "--config", str(scene), "--clients", "2", "--ready-file", str(ready), "--stats-file",
+                             "--control-port", "0", "--config", str(scene), "--clients", "2", "--ready-file", str(ready), "--stats-file",
                              str(stats), "--duration", "120", "--status-every", "0", "--prerender", "5"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:

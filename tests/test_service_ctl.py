@@ -1,7 +1,7 @@
 """The control API (service/control_api.py) and `pointfence ctl` against a running Service: the
 haptic loop runs in its own thread on the simulated clock (FakeClock: as fast as it can, no
 wall-clock deadlines), frames arrive at their timestamps, requests go over HTTP on loopback.
-Every command's effect; bad commands are 4xx JSON errors and change nothing; radius and
+Every command's effect (with the run's token: tests/test_control_auth.py refuses without it); bad commands are 4xx JSON errors and change nothing; radius and
 selection changes swap the pipeline between ticks (new snapshots carry the new parameters; no
 step in the robot command or the force); and one live `pointfence serve` process driven with `pointfence ctl`."""
 import json
@@ -16,67 +16,14 @@ import numpy as np
 import pytest
 
 from pointfence.service import ctl
-from pointfence.service.app import Service
-from pointfence.service.clock import FakeClock
-from pointfence.service.control_api import Controller, ControlServer
-from pointfence.service.ctl import ControlClient, ControlRefused
-from pointfence.service.frames import SimFrames
-from pointfence.service.loop import HapticLoop
+from pointfence.service.control_api import ControlServer
+from pointfence.service.ctl import ControlRefused
 from pointfence.service.record import C
 
-from service_cases import POINT_MASS, balloon_config, needs_opencl, push
+from control_rig import Running
+from service_cases import needs_opencl
 
 pytestmark = needs_opencl
-
-
-class Running:
-    """Service + SimFrames + a HapticLoop thread on a FakeClock + the control API on port 0."""
-
-    def __init__(self, tmp_path, arch="III", extra="", record=60000, mode_line=None, start=True):
-        tmp_path.mkdir(parents=True, exist_ok=True)
-        cfg = balloon_config(tmp_path, arch=arch, robot=POINT_MASS, extra=extra)
-        if mode_line is not None:
-            from dataclasses import replace
-
-            cfg = replace(cfg, mode=mode_line)
-        self.cfg = cfg
-        self.svc = Service(cfg, [push(t_start=0.1, t_end=2.0, hold=100.0)], record=record)
-        self.sources = cfg.open_sources()
-        fe = SimFrames(self.svc.pipeline, self.sources, cfg.service.stale_s, cfg.service.max_frame_age_s)
-        self.svc.attach_frames(fe)
-        fe.poll(0.0)
-        self.loop = HapticLoop(self.svc, FakeClock(), 1000, cfg.service.max_lateness_s, switch_interval_s=None)
-        self.controller = Controller(self.svc, self.loop, extras={"clients": lambda: {"slots": 1, "sessions": []}},
-                                     apply_timeout=5.0)
-        self.server = ControlServer(self.controller, "127.0.0.1", 0).start()
-        self.client = ControlClient("127.0.0.1", self.server.address[1], timeout=30)
-        if start:
-            self.loop.start()
-
-    def raw(self, method, path, body=None, ctype="application/json"):
-        """(status, JSON) of a request made by hand (for malformed requests)."""
-        req = urllib.request.Request(self.server.url + path, method=method,
-                                     data=body if isinstance(body, bytes) else (None if body is None else json.dumps(body).encode()))
-        if ctype:
-            req.add_header("Content-Type", ctype)
-        try:
-            with urllib.request.urlopen(req, timeout=30) as r:
-                return r.status, json.loads(r.read())
-        except urllib.error.HTTPError as e:
-            return e.code, json.loads(e.read())
-
-    def wait_ticks(self, n):
-        k = self.loop.ticks + n
-        end = time.monotonic() + 60
-        while self.loop.ticks < k and time.monotonic() < end:
-            time.sleep(0.005)
-        assert self.loop.ticks >= k
-
-    def close(self):
-        self.server.close()
-        self.loop.stop()
-        for s in self.sources:
-            s.close()
 
 
 @pytest.fixture
@@ -133,11 +80,11 @@ def test_bad_commands_are_4xx_json_and_change_nothing(rig):
     cases = [
         ("POST", "/architecture", {"architecture": "IV"}, 400, "expected one of I, II, III"),
         ("POST", "/architecture", {}, 400, "architecture = None"),
-        ("POST", "/radius", {"radius": -0.01}, 400, ">= 0"),
+        ("POST", "/radius", {"radius": -0.01}, 400, "expected 0 < radius"),
         ("POST", "/radius", {"radius": "big"}, 400, "expected a number"),
         ("POST", "/radius", {"radius": 5.0}, 400, "limit"),
         ("POST", "/radius", {"radius": 0.02, "radius_max": 0.01}, 400, "r_max"),
-        ("POST", "/selection", {"kind": "box", "min": [0.1, 0, 0], "max": [0, 0.1, 0.1]}, 400, "min <= max"),
+        ("POST", "/selection", {"kind": "box", "min": [0.1, 0, 0], "max": [0, 0.1, 0.1]}, 400, "expected min < max"),
         ("POST", "/selection", {"kind": "box", "min": [0, 0]}, 400, "expected [x, y, z]"),
         ("POST", "/selection", {"kind": "color", "lo": [0, 0, 0], "hi": [300, 0, 0]}, 400, "0..255"),
         ("POST", "/selection", {"kind": "sphere"}, 400, "expected one of all, box, color, mask"),
@@ -240,6 +187,7 @@ def test_radius_and_selection_refused_in_rendering_mode(tmp_path):
 def test_safe_mode_and_stopped_loop_refuse_with_503(rig):
     rig.wait_ticks(20)
     rig.loop.error = "tick 7: RuntimeError: injected"      # as the loop records an escaped exception
+    rig.wait_ticks(5)                                      # safe ticks: every arm decoupled, holding
     status, reply = rig.raw("POST", "/architecture", {"architecture": "I"})
     assert status == 503 and "safe mode" in reply["error"] and rig.svc.architecture == "III"
     r = rig.client.post("/clear-faults", {})
@@ -290,9 +238,16 @@ def test_ctl_command_line(rig, capsys):
     assert ctl.main(["--port", port, "select", "box", "--min", "0", "0", "0"]) == 1
     assert "needs --min X Y Z and --max" in capsys.readouterr().err
     assert ctl.main(["--port", port, "metrics"]) == 0 and "loop" in json.loads(capsys.readouterr().out)
-    rig.server.close()
+    kept = rig.server.token_file.with_name("kept.token")
+    kept.write_text(rig.server.token_file.read_text())
+    kept.chmod(0o600)
+    rig.server.close()                            # the run's token file goes with it
+    assert not rig.server.token_file.exists()
     assert ctl.main(["--port", port, "status"]) == 1
+    assert "no control token" in capsys.readouterr().err
+    assert ctl.main(["--port", port, "--token-file", str(kept), "status"]) == 1
     assert "no control API" in capsys.readouterr().err
+    kept.unlink()
 
 
 def test_control_api_binds_loopback_only(rig):
