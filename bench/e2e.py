@@ -32,7 +32,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -111,13 +110,14 @@ def _attack(sock, addr, client, k: int) -> None:
         pass
 
 
-def _hub_counters(host: str, control_port) -> tuple:
-    """(states accepted, feedback sent) by the service's UDP hub so far; (None, None) without a
-    control API."""
+def _hub_counters(host: str, control_port, token_file=None) -> tuple:
+    """(states accepted, feedback sent) by the service's UDP hub so far, read through its control
+    API with the run's token; (None, None) without a control API."""
     if not control_port:
         return None, None
-    with urllib.request.urlopen(f"http://{host}:{control_port}/status", timeout=10) as r:
-        c = json.load(r)["clients"]
+    from pointfence.service.ctl import ControlClient
+
+    c = ControlClient(host, control_port, 10.0, token_file=token_file).status()["clients"]
     return int(c["accepted"]), int(c["feedback_sent"])
 
 
@@ -127,7 +127,7 @@ def run(args) -> dict:
     key_path.write_text(os.urandom(32).hex() + "\n")
     ready, stats = tmp / "ready.json", tmp / "stats.json"
     cmd = [sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key_path), "--port", "0",
-           "--clients", "1", "--ready-file", str(ready), "--stats-file", str(stats), "--status-every", "0",
+           "--control-port", "0", "--clients", "1", "--ready-file", str(ready), "--stats-file", str(stats), "--status-every", "0",
            "--duration", str(args.duration + args.startup_timeout + 30)]
     if not args.render_live:
         cmd += ["--prerender", "30"]
@@ -181,7 +181,7 @@ def run(args) -> dict:
                        rt_priority=args.client_rt_priority)
         client.stats = type(client.stats)()
         ticks_seen.clear()
-        hub0 = _hub_counters(host, addr.get("control_port"))
+        hub0 = _hub_counters(host, addr.get("control_port"), addr.get("control_token_file"))
         totals = {"sent": 0, "echoed": 0, "feedback": 0, "rejected_in": 0, "rtt": [], "ticks": 0}
         link_lost, timing_errors, lost_msgs = 0, 0, []
         t0 = time.perf_counter()
@@ -213,7 +213,7 @@ def run(args) -> dict:
             if time.perf_counter() - t0 < args.duration - 0.01:
                 client = new_client()
         wall = time.perf_counter() - t0
-        hub1 = _hub_counters(host, addr.get("control_port"))
+        hub1 = _hub_counters(host, addr.get("control_port"), addr.get("control_token_file"))
         attacker.close()
     finally:
         if proc.poll() is None:

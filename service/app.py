@@ -479,7 +479,15 @@ class Service:
         self.coupled[:] = False
 
     def safe_tick(self, k: int, t: float, dt: float, now: float) -> None:
-        """The loop's fallback after an exception: ramp forces down, hold robots, keep stepping."""
+        """The loop's fallback after an exception: ramp forces down, hold robots, keep stepping.
+        The pedals are still read (clearing the fault needs them up, S3); a master that cannot
+        be read counts as pedal down."""
+        for b, m in enumerate(self.masters):
+            try:
+                m.poll(t)
+                self.pedal[b] = m.clutch
+            except Exception:   # noqa: BLE001 -- unknown pedal: clearing stays refused
+                self.pedal[b] = True
         self.latched |= EXCEPTION
         self.hold_mask |= EXCEPTION
         self.arm_hold |= EXCEPTION
@@ -525,7 +533,7 @@ class Service:
             "hold": reason_names(self.hold_mask), "arms_holding": [reason_names(int(m)) for m in self.arm_hold],
             "hold_causes": describe(self.hold_mask), "latched_faults": reason_names(self.latched),
             "watchdog_trips": self.watchdog_trips,
-            "coupled": self.coupled.tolist(), "force_gain": self.gain.round(3).tolist(),
+            "coupled": self.coupled.tolist(), "pedal": self.pedal.tolist(), "force_gain": self.gain.round(3).tolist(),
             "kernel_errors": self.kernel_errors, "robot_errors": self.robot_errors, "last_error": self.last_error,
             "frame_seq": self.frame_seq, "backend": self.backend.name, "device": self.backend.device_name,
             "proxy_device": getattr(self.batch, "device_kind", None) if self.batch is not None else None,

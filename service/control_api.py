@@ -341,7 +341,7 @@ class Controller:
 
     @staticmethod
     def _refuse_if_coupled(status: dict) -> None:
-        arms = [b for b, c in enumerate(status["coupled"]) if c]
+        arms = [b for b, (c, p) in enumerate(zip(status["coupled"], status["pedal"])) if c or p]
         if arms:
             raise ControlError(409, f"clear faults: refused: arm(s) {', '.join(map(str, arms))} coupled (pedal down, "
                                     "teleoperation on); clearing faults needs every arm decoupled: release the "
@@ -500,6 +500,7 @@ class Controller:
                 batch.reset(s.batch.positions)     # the proxies carry on from where they are
                 s.pipeline, s.gate, s.batch = new, gate, batch
                 s.cfg = cfg_new
+                s.request_reanchor()               # S1: new fixture parameters move no robot by themselves
                 return {"old": prev, "tick": s._pub_k + 1}
 
             try:
