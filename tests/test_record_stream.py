@@ -4,7 +4,6 @@ full ring is counted, never silent; a streamed recording replays (S8)."""
 from __future__ import annotations
 
 import mmap
-import os
 import signal
 import subprocess
 import sys
