@@ -2,13 +2,16 @@
 
     pointfence replay --config F --trajectory T.csv --out DIR [--architecture A] [--backend B]
     pointfence replay --config F --recording RUN_DIR --out DIR      # re-run a recorded run
+    pointfence replay --config F --recording RUN.pfrec --out DIR    # ... from its streamed recording
 
 With ``--trajectory`` a scripted master plays ``t,x,y,z[,clutch]`` (master frame, m, s) at 1 ms
 ticks; camera frames arrive at their own timestamps (synthetic: seq / rate_hz) and are ingested
 inside the tick that first sees them. With ``--recording`` the ticks of a recorded run (its
 ``inputs.npz``: every master sample, each tick's dt, overrun flag and frame age, the control
 state, and the camera frames of every snapshot with the tick it became visible at) are played
-again exactly. Same inputs, same backend: identical ``ticks.csv`` except the ``tick_us``
+again exactly; a streamed recording (``.pfrec``, service/record.py: written while the run goes
+on, readable after a crash up to its last whole chunk) holds the same, and a folder holding a
+``recording.pfrec`` but no ``inputs.npz`` is read from it. Same inputs, same backend: identical ``ticks.csv`` except the ``tick_us``
 column (this machine's compute time of each tick).
 
 Writes ``DIR/ticks.csv`` (``record.TICK_COLUMNS``), ``DIR/summary.json`` (architecture, ticks,
@@ -30,14 +33,15 @@ from .clock import FakeClock
 from .frames import ScheduledFrames, SimFrames
 from .loop import HapticLoop
 from .masters import Master, ScriptedMaster
-from .record import load_inputs
+from .record import load_inputs, recording_inputs
 
 
 def add_arguments(p):
     p.add_argument("--config", default=None, help="scene configuration (TOML); default: the embedded defaults")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--trajectory", help="master trajectory CSV: t,x,y,z[,clutch] (master frame, m, s)")
-    src.add_argument("--recording", help="folder of a recorded run (its inputs.npz) to play again exactly")
+    src.add_argument("--recording", help="a recorded run to play again exactly: its folder (inputs.npz, or recording.pfrec) "
+                     "or its streamed .pfrec file")
     p.add_argument("--out", required=True, help="output folder for ticks.csv, summary.json, inputs.npz")
     p.add_argument("--architecture", choices=("I", "II", "III"), default=None, help="override [teleop] architecture")
     p.add_argument("--backend", default=None, help="override the configured backend (numpy, opencl, warp)")
@@ -105,9 +109,19 @@ def simulate(cfg, masters, duration: float, *, architecture: Optional[str] = Non
     return svc, loop, sources
 
 
+def load_run(rec) -> dict:
+    """The inputs of a recorded run: ``rec`` is a ``.pfrec`` file, or a folder with ``inputs.npz``
+    (a clean end) or else ``recording.pfrec`` (streamed: a crash leaves this one)."""
+    p = Path(rec)
+    if p.is_dir():
+        return load_inputs(p / "inputs.npz") if (p / "inputs.npz").is_file() or not (p / "recording.pfrec").is_file() \
+            else recording_inputs(p / "recording.pfrec")
+    return recording_inputs(p)
+
+
 def replay_recording(cfg, rec_dir, *, backend=None, device=None):
     """Play a recorded run's ticks again exactly (see the module docstring)."""
-    data = load_inputs(Path(rec_dir) / "inputs.npz")
+    data = load_run(rec_dir)
     inputs, samples = data["inputs"], data["masters"]
     n_ticks, n_arms = samples.shape[0], samples.shape[1]
     masters = [PlaybackMaster(samples[:, b]) for b in range(n_arms)]
@@ -142,15 +156,15 @@ def replay_recording(cfg, rec_dir, *, backend=None, device=None):
 
 
 def summary(svc, sources, cfg, frames: int) -> dict:
-    rec = svc.recorder
-    rows = rec.ticks()
+    rec = svc.recorder.arrays()
+    rows = rec["rows"]
     region = measures.region_for(cfg, sources, svc.pipeline)
-    teleop = rec.inputs[: rec.count, 6] > 0
-    m = measures.compute(rows[:, 0] + svc.scene_time_offset, rec.robots[: rec.count, 0, :3], rec.robots[: rec.count, 0, 3:],
-                         rec.masters_world[: rec.count, 0], region, mask=teleop)
+    teleop = rec["inputs"][:, 6] > 0
+    m = measures.compute(rows[:, 0] + svc.scene_time_offset, rec["robots"][:, 0, :3], rec["robots"][:, 0, 3:],
+                         rec["masters_world"][:, 0], region, mask=teleop)
     us = rows[:, -1]
     return {
-        "architecture": svc.architecture, "ticks": int(rec.count), "frames": int(frames), **m,
+        "architecture": svc.architecture, "ticks": int(len(rows)), "frames": int(frames), **m,
         "tick_us_p50": round(float(np.percentile(us, 50)), 1) if len(us) else None,
         "tick_us_p99": round(float(np.percentile(us, 99)), 1) if len(us) else None,
         "deadline_misses": int((us > 1e6 / svc.rate_hz).sum()),

@@ -200,6 +200,8 @@ class Robot(ABC):
         self._T_meas = np.eye(4)         # cached measured pose (world)
         self._T_meas_ok = False
         self._scratch4 = np.eye(4)
+        self._T_meas16 = self._T_meas.reshape(16)   # flat views of the poses (adopt_*)
+        self._T_d16 = self._T_d.reshape(16)
         self.t = 0.0
         self._mode = RobotMode.ENABLED
         self._fault: Optional[str] = None
@@ -430,6 +432,44 @@ class Robot(ABC):
         self._mode = RobotMode.FAULT
         self._fault = str(reason)
         self._stop()
+
+    # ---------------------------------------------------------------- a controller running elsewhere
+    def copy_state(self, q, dq, tau, q_d, T_meas, T_d) -> None:
+        """Write the state into the given arrays (what a robot process publishes): joints ``q``,
+        ``dq``, ``tau``, setpoint ``q_d`` (``dof`` values each); measured and setpoint poses
+        ``T_meas``, ``T_d`` (16 values each: 4x4 world, row-major)."""
+        q[:] = self._q
+        dq[:] = self._dq
+        tau[:] = self._tau
+        q_d[:] = self._q_d
+        T_meas[:] = self.measured_cp().ravel()
+        T_d[:] = self._T_d.ravel()
+
+    def adopt_state(self, t: float, q, dq, tau, T_meas, mode: Optional[RobotMode] = None) -> None:
+        """Take the measured state of this model's controller running in another process (the
+        service's copy of a hosted arm, robot/hosted.py): time ``t`` (s), joints ``q``, ``dq``,
+        ``tau`` (``dof`` values each), measured pose ``T_meas`` (16 values, world, row-major) and,
+        where given, the operating ``mode``. Nothing is checked: the caller checked it."""
+        self.t = t
+        if mode is not None:
+            self._mode = mode
+        self._q[:] = q
+        self._dq[:] = dq
+        self._tau[:] = tau
+        np.copyto(self._T_meas16, T_meas)
+        self._T_meas_ok = True
+
+    def adopt_setpoint(self, T_d, q_d=None) -> None:
+        """Take the setpoint (pose ``T_d``: 16 values or 4x4, world; joints ``q_d`` where given) of
+        this model's controller running in another process."""
+        np.copyto(self._T_d16, np.reshape(T_d, 16))
+        if q_d is not None:
+            self._q_d[:] = q_d
+
+    def adopt_texts(self, fault: Optional[str], last_error: Optional[str]) -> None:
+        """Take the fault reason and last error of this model's controller in another process."""
+        self._fault = fault
+        self.last_error = last_error
 
     # ---------------------------------------------------------------- simulation
     def reset(self, q=None) -> None:

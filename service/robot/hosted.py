@@ -21,11 +21,22 @@ the tick and is deterministic):
   an in-process rejection);
   malformed or non-finite setpoints and workspace violations are refused at once, before they
   reach the child;
-* a child that stops stepping for ``timeout_s`` (it died, or it starves) puts every arm in
-  FAULT ("robot process not answering"), so the service holds; ``close`` ends the child.
+* a watchdog runs in every ``sync`` (each tick), whatever the state record holds: a child that
+  stops stepping, or whose record does not read, for ``timeout_s`` (default 20 ms, at most
+  0.25 s: it died, hangs or starves) puts every arm in FAULT ("robot process not answering:
+  ..."); an arm whose published state holds a NaN or an infinity is in FAULT ("robot state
+  non-finite: q, T_meas (arm 0)") and its state is not taken. Either FAULT is latched in the
+  service (the arm sends nothing, ``servo_cp`` returns False, the child is told to brake) and
+  ``enable()`` clears it only while the child steps and the arm's state is finite; so the
+  service holds (its tick holds an arm whose robot is in FAULT) and says why (``fault_reason``);
+* faults can be injected on purpose (tests, ``pointfence bench soak``): ``RobotHost.inject(kind,
+  arm)`` with ``"nan"`` (NaN state), ``"stall"`` (SIGSTOP), ``"kill"`` (SIGKILL) or ``"none"``
+  (NaN off, SIGCONT); ``RobotHost.restart()`` starts a new process after a death, at the
+  arms' last joints; ``close`` ends the child.
 
-State and commands cross through one shared-memory block, each direction a double-buffered
-channel (``_Channel``: sequence counters and a checksum per slot): neither side ever waits for
+State and commands cross through one shared-memory block (robot/hosted_block.py: the layout,
+defined once for both sides), each direction a double-buffered channel (sequence counters and
+a CRC-32 of the bytes per slot): neither side ever waits for
 the other, so the haptic tick never waits for a preempted robot process, nor the robot for the
 service. The child is started as ``python -m pointfence.service.robot.hosted`` (nothing of the
 parent's program is imported again) and ends when its parent does.
@@ -35,6 +46,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -47,84 +59,16 @@ from pointfence.kernels.errors import InputError
 
 from .base import RobotMode
 from .factory import robot_from_config
+from .hosted_block import (CTL_PID, CTL_READY, CTL_STOP, CTL_TICKS, ENABLE, FAULT, HOLD, INJECT_NAN, INJECT_NONE,
+                           POISONED, RESUME, RING, TEXT, Block, command_views, get_text, put_text)
 
-# mode commands (service -> child), in a ring per arm
-HOLD, RESUME, ENABLE, FAULT = 1, 2, 3, 4
-RING = 64
-TEXT = 240
 LOST = "robot process not answering"
+NONFINITE = "robot state non-finite"
 _MODES = tuple(RobotMode)
-#: state floats before the joint arrays: t, mode, rejected, ignored, servo seq applied,
-#: mode commands applied, fault text version, error text version
-_HDR = 8
-
-
-class _Channel:
-    """One writer, one reader: a record of ``size`` floats in two slots. The writer fills the slot
-    the reader was not pointed at (its counter odd while it writes, then its checksum), then points
-    the reader at it; the reader copies the slot it is pointed at and keeps the copy if that
-    slot's counter was even and unchanged around the copy and the sum matches. Neither side ever
-    waits for the other: a reader only retries if the writer lapped it (two whole writes during
-    one copy), and a writer preempted mid-write leaves the previous record readable."""
-
-    def __init__(self, take, size: int):
-        self.size = size
-        self.data = take((2, size), np.float64)
-        self.meta = take((4,), np.int64)        # counter of slot 0, of slot 1, slot to read
-        self.sums = take((2,), np.float64)
-
-    def write(self, rec: np.ndarray) -> None:
-        w = 1 - int(self.meta[2])
-        self.meta[w] += 1
-        np.copyto(self.data[w], rec)
-        self.sums[w] = float(rec.sum())
-        self.meta[w] += 1
-        self.meta[2] = w
-
-    def read(self, out: np.ndarray, tries: int = 8) -> bool:
-        for _ in range(tries):
-            i = int(self.meta[2])
-            s1 = int(self.meta[i])
-            if s1 & 1:
-                continue
-            np.copyto(out, self.data[i])
-            if int(self.meta[i]) == s1 and float(out.sum()) == float(self.sums[i]):
-                return True
-        return False
-
-
-class _Block:
-    """The shared block for ``n`` arms of ``dof`` joints: control words, the state channel
-    (child -> service: ``n`` rows of ``S`` floats), the command channel (service -> child: per arm
-    the servo count and the mode-command count, the latest setpoint pose, the mode-command ring)
-    and the arms' texts (fault reason, last error; versioned in the state rows)."""
-
-    def __init__(self, buf, n: int, dof: int):
-        self.n, self.dof = n, dof
-        self.S = _HDR + 4 * dof + 32            # q, dq, tau, q_d; T_meas, T_d
-        self.C = n * (2 + 16 + RING)
-        off = 0
-
-        def take(shape, dtype):   # buf None: only the layout (nbytes)
-            nonlocal off
-            a = np.empty(shape, dtype) if buf is None else np.ndarray(shape, dtype, buffer=buf, offset=off)
-            off += a.nbytes
-            return a
-
-        self.ctl = take((4,), np.int64)         # stop request, child ticks, child pid, child ready
-        self.state = _Channel(take, n * self.S)
-        self.cmd = _Channel(take, self.C)
-        self.text = take((n, 2, TEXT), np.uint8)   # fault reason, last error (UTF-8)
-        self.size = off
-
-    @staticmethod
-    def nbytes(n: int, dof: int) -> int:
-        return _Block(None, n, dof).size
-
-
-def _command_views(rec: np.ndarray, n: int) -> tuple:
-    """(counts (n, 2), poses (n, 16), ring (n, RING)): views of a command record."""
-    return (rec[: 2 * n].reshape(n, 2), rec[2 * n: 18 * n].reshape(n, 16), rec[18 * n:].reshape(n, RING))
+#: the watchdog: default and ceiling (s) of how long the child may go without stepping
+WATCHDOG_S, WATCHDOG_MAX_S = 0.02, 0.25
+#: fault kinds of ``RobotHost.inject``
+FAULT_KINDS = ("nan", "stall", "kill", "none")
 
 
 def _plain(o):
@@ -136,43 +80,31 @@ def _plain(o):
     raise TypeError(f"[robot] value {o!r} ({type(o).__name__}) cannot be sent to the robot process")
 
 
-def _put_text(dst: np.ndarray, s: Optional[str]) -> None:
-    b = (s or "").encode("utf-8", "replace")[:TEXT]
-    dst[:] = 0
-    dst[: len(b)] = np.frombuffer(b, np.uint8)
-
-
-def _get_text(src: np.ndarray) -> Optional[str]:
-    b = bytes(src).rstrip(b"\0")
-    return b.decode("utf-8", "replace") if b else None
-
-
-def _write_state(row: np.ndarray, text: np.ndarray, r, applied: tuple, texts: list) -> None:
-    """Arm ``r``'s state into its state ``row`` (and ``text``, where a message changed)."""
-    d = r.dof
-    row[0], row[1], row[2], row[3] = r.t, int(r.state), r.rejected_commands, r.ignored_commands
-    row[4], row[5] = applied
+def _write_state(L, row: np.ndarray, text: np.ndarray, r, applied: tuple, texts: list, poison: bool) -> None:
+    """Arm ``r``'s state into its state ``row`` (layout ``L``; and ``text``, where a message
+    changed); ``poison``: the fields ``POISONED`` as NaN (fault injection)."""
+    row[L.t], row[L.mode], row[L.rejected], row[L.ignored] = r.t, int(r.state), r.rejected_commands, r.ignored_commands
+    row[L.servo_seq], row[L.mode_seq] = applied
     fault, err = r.fault_reason, r.last_error
     if fault != texts[0]:
         texts[0] = fault
-        _put_text(text[0], fault)
-        row[6] += 1
+        put_text(text[0], fault)
+        row[L.fault_ver] += 1
     if err != texts[1]:
         texts[1] = err
-        _put_text(text[1], err)
-        row[7] += 1
-    h = _HDR
-    row[h: h + d] = r._q
-    row[h + d: h + 2 * d] = r._dq
-    row[h + 2 * d: h + 3 * d] = r._tau
-    row[h + 3 * d: h + 4 * d] = r._q_d
-    row[h + 4 * d: h + 4 * d + 16] = r.measured_cp().ravel()
-    row[h + 4 * d + 16: h + 4 * d + 32] = r._T_d.ravel()
+        put_text(text[1], err)
+        row[L.error_ver] += 1
+    r.copy_state(row[L.q], row[L.dq], row[L.tau], row[L.q_d], row[L.T_meas], row[L.T_d])
+    if poison:
+        for name in POISONED:
+            row[getattr(L, name)] = math.nan
 
 
-def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: int, parent: int) -> None:
-    """The child process: build the arms, then step them on absolute deadlines until told to stop
-    (or until the parent is gone)."""
+def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: int, parent: int,
+           start_q: Optional[list] = None) -> None:
+    """The child process: build the arms (placed at ``start_q``, one joint list or None per arm,
+    after a restart), then step them on absolute deadlines until told to stop (or until the
+    parent is gone)."""
     shm = shared_memory.SharedMemory(name=shm_name)
     try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
         from multiprocessing import resource_tracker
@@ -181,8 +113,12 @@ def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: i
     except Exception:
         pass
     try:
-        blk = _Block(shm.buf, len(tables), dof)
+        blk = Block(shm.buf, len(tables), dof)
+        L = blk.layout
         robots = [robot_from_config(t) for t in tables]
+        for r, q in zip(robots, start_q or []):
+            if q is not None:                # (within the limits: a joint read at a limit may lie past it by rounding)
+                r.reset(np.clip(q, *r.joint_limits))
         if rt_priority > 0:
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(rt_priority)))
@@ -194,19 +130,19 @@ def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: i
         n = len(robots)
         state = np.zeros((n, blk.S))
         rec = np.zeros(blk.C)
-        cmds, poses, ring = _command_views(rec, n)
+        cmds, poses, ring = command_views(rec, n)
 
         def publish():
             for b, r in enumerate(robots):
-                _write_state(state[b], blk.text[b], r, tuple(seen[b]), texts[b])
+                _write_state(L, state[b], blk.text[b], r, tuple(seen[b]), texts[b], blk.inject[b] == INJECT_NAN)
             blk.state.write(state.reshape(-1))
 
         publish()
-        blk.ctl[2] = os.getpid()
-        blk.ctl[3] = 1
+        blk.ctl[CTL_PID] = os.getpid()
+        blk.ctl[CTL_READY] = 1
         t0 = time.monotonic()
         k = 0
-        while blk.ctl[0] == 0 and os.getppid() == parent:
+        while blk.ctl[CTL_STOP] == 0 and os.getppid() == parent:
             due = t0 + k * period
             delay = due - time.monotonic()
             if delay > 0:
@@ -235,7 +171,7 @@ def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: i
                         pass            # counted in rejected_commands, kept in last_error
                 r.step(period * (1 + skip))
             publish()
-            blk.ctl[1] += 1 + skip
+            blk.ctl[CTL_TICKS] += 1 + skip
             k += 1 + skip
     finally:
         shm.close()
@@ -245,84 +181,176 @@ class RobotHost:
     """Robots built from ``tables`` (one ``[robot]`` table per arm) in a child process.
 
     ``robots``: one ``HostedRobot`` per arm, for the service. ``rt_priority``: SCHED_FIFO
-    priority of the child where allowed (0: normal). ``timeout_s``: how long the child may go
-    without stepping before the arms read as FAULT. ``start_timeout_s``: how long to wait for
-    the child to build the arms. Call ``close()`` when done (the child also ends with its parent).
+    priority of the child where allowed (0: normal). ``timeout_s``: the watchdog, how long the
+    child may go without stepping (or its state record without reading) before every arm reads
+    as FAULT (default ``WATCHDOG_S``, at most ``WATCHDOG_MAX_S``). ``start_timeout_s``: how long to
+    wait for the child to build the arms. Call ``close()`` when done (the child also ends with
+    its parent).
+
+    Faults, for tests and fault-injection benchmarks: ``inject(kind, arm)``; after a ``kill``,
+    ``restart()`` starts a new robot process at the arms' last joints (they stay in FAULT until
+    ``enable()``).
     """
 
     def __init__(self, tables: Sequence[dict], rate_hz: float = 1000.0, rt_priority: int = 0,
-                 timeout_s: float = 0.5, start_timeout_s: float = 30.0):
+                 timeout_s: float = WATCHDOG_S, start_timeout_s: float = 30.0):
         tables = [dict(t) for t in tables]
         if not tables:
             raise InputError("RobotHost: no robot tables; expected one [robot] table per arm")
+        if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s <= WATCHDOG_MAX_S):
+            raise InputError(f"RobotHost: timeout_s = {timeout_s!r}; expected a watchdog time > 0 and "
+                             f"<= {WATCHDOG_MAX_S} s (a robot process silent for longer must read as FAULT)")
         local = [robot_from_config(t) for t in tables]      # validates every table here, first
         dof = max(r.dof for r in local)
         if any(r.dof != dof for r in local):
             raise InputError("RobotHost: every hosted arm must have the same number of joints")
+        self._tables, self._rate, self._prio, self._start_timeout = tables, float(rate_hz), int(rt_priority), start_timeout_s
         self.n, self.dof = len(tables), dof
         self.timeout_s = float(timeout_s)
-        size = _Block.nbytes(self.n, dof)
-        self._shm = shared_memory.SharedMemory(create=True, size=size)
-        self._blk = _Block(self._shm.buf, self.n, dof)   # a new shared memory object reads as zeros
+        self._proc = None
+        self._shm = shared_memory.SharedMemory(create=True, size=Block.nbytes(self.n, dof))
+        self._blk = Block(self._shm.buf, self.n, dof)   # a new shared memory object reads as zeros
+        self._L = self._blk.layout
+        self._buf = np.zeros((self.n, self._blk.S))
+        self._sum = np.zeros(self.n)
+        self._finite = [True] * self.n
+        self._rec = np.zeros(self._blk.C)          # the commands written so far (this side's copy)
+        self._cmd, self._poses, self._ring = command_views(self._rec, self.n)
+        self._texts_buf = np.zeros((self.n, 2, TEXT), np.uint8)
+        self._spawn(None)
+        self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
+        self.sync()
+
+    def _spawn(self, start_q: Optional[list]) -> None:
+        """Start the child on a zeroed block and wait until it has built the arms."""
+        np.ndarray((self._blk.size,), np.uint8, buffer=self._shm.buf)[:] = 0   # no command of a previous child
+        self._rec[:] = 0
+        self._staged = False
+        self._versions = [(0.0, 0.0)] * self.n
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
         # the parent's main module imported again, as multiprocessing's spawn would)
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "pointfence.service.robot.hosted", self._shm.name, json.dumps(tables, default=_plain), str(dof),
-             repr(float(rate_hz)), str(int(rt_priority)), str(os.getpid())], stdin=subprocess.DEVNULL)
-        end = time.monotonic() + start_timeout_s
-        while self._blk.ctl[3] == 0:
+            [sys.executable, "-m", "pointfence.service.robot.hosted", self._shm.name,
+             json.dumps(self._tables, default=_plain), str(self.dof), repr(self._rate), str(self._prio),
+             str(os.getpid()), json.dumps(start_q)], stdin=subprocess.DEVNULL)
+        end = time.monotonic() + self._start_timeout
+        while self._blk.ctl[CTL_READY] == 0:
             if self._proc.poll() is not None or time.monotonic() > end:
                 code = self._proc.poll()
                 self.close()
                 raise RuntimeError(f"the robot process did not start (exit code {code}); run the robots "
                                    "in the haptic loop instead with [service] robot_process = false")
             time.sleep(0.005)
-        self._buf = np.zeros((self.n, self._blk.S))
-        self._rec = np.zeros(self._blk.C)          # the commands written so far (this side's copy)
-        self._cmd, self._poses, self._ring = _command_views(self._rec, self.n)
-        self._texts_buf = np.zeros((self.n, 2, TEXT), np.uint8)
-        self._versions = [(0.0, 0.0)] * self.n
-        self._staged = False
-        self._ticks = -1
-        self._ticks_at = time.monotonic()
+        self._ticks, self._ticks_at = -1, time.monotonic()
+        self._read_at = self._ticks_at
         self._alive = True
-        self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
-        self.sync()
 
     # --- service side ---------------------------------------------------------------------------
     def sync(self) -> None:
-        """Copy the child's latest state into every arm's local instance (one copy for all arms)."""
-        blk, buf, texts = self._blk, self._buf, self._texts_buf
+        """Copy the child's latest state into every arm's local instance (one copy for all arms),
+        after the watchdog: a child that has not stepped, or whose state record has not read,
+        for ``timeout_s`` faults every arm; an arm whose state is not finite faults."""
+        blk, buf, L = self._blk, self._buf, self._L
         if blk is None:                    # closed: the arms keep their last state
             return
-        if not blk.state.read(buf.reshape(-1)):
-            return                         # lapped (this thread was preempted): next tick
-        changed = []
-        for b in range(self.n):            # a fault reason or an error message changed
-            v = (buf[b, 6], buf[b, 7])
-            if v != self._versions[b]:
-                self._versions[b] = v
-                np.copyto(texts[b], blk.text[b])
-                changed.append((b, _get_text(texts[b, 0]), _get_text(texts[b, 1])))
-        ticks = int(blk.ctl[1])
         now = time.monotonic()
+        ticks = int(blk.ctl[CTL_TICKS])
         if ticks != self._ticks:
             self._ticks, self._ticks_at = ticks, now
-            self._alive = True
-        elif now - self._ticks_at > self.timeout_s:
-            self._lost(f"no step for {1e3 * (now - self._ticks_at):.0f} ms "
-                       f"(process {'alive' if self._proc.poll() is None else 'ended'})")
+        got = blk.state.read(buf.reshape(-1))
+        if got:
+            self._read_at = now
+        silent, unread = now - self._ticks_at, now - self._read_at
+        self._alive = silent <= self.timeout_s and unread <= self.timeout_s
+        if not self._alive and not all(r.latched for r in self.robots):
+            self._lost(silent, unread)
+        if not got:            return                         # lapped (this thread was preempted): next tick
+        np.sum(buf, axis=1, out=self._sum)
+        for b in range(self.n):
+            ok = math.isfinite(self._sum[b])
+            self._finite[b] = ok
+            if not ok:
+                if not self.robots[b].latched:
+                    self.robots[b]._fail(f"{NONFINITE}: {', '.join(L.nonfinite_fields(buf[b]))} (arm {b})")
+                continue
+            v = (buf[b, L.fault_ver], buf[b, L.error_ver])
+            if v != self._versions[b]:     # a fault reason or an error message changed
+                self._versions[b] = v
+                self.robots[b]._texts(get_text(blk.text[b, 0]), get_text(blk.text[b, 1]))
+        if not self._alive:
             return
-        for b, fault, err in changed:
-            self.robots[b]._texts(fault, err)
         rows, sent = buf.tolist(), self._cmd.tolist()
         for b, r in enumerate(self.robots):
-            r._load(rows[b], buf[b], sent[b])
+            if self._finite[b]:
+                r._load(rows[b], buf[b], sent[b])
 
-    def _lost(self, why: str) -> None:
-        self._alive = False
-        for r in getattr(self, "robots", []):
+    def _lost(self, silent: float, unread: float) -> None:
+        """Every arm FAULT: the child has not stepped for ``silent`` s, or its state record has not
+        read for ``unread`` s."""
+        if silent > self.timeout_s:
+            ended = self._proc is None or self._proc.poll() is not None
+            why = f"no step for {1e3 * silent:.0f} ms (process {'ended' if ended else 'alive'})"
+        else:
+            why = f"state record unreadable for {1e3 * unread:.0f} ms"
+        for r in self.robots:
             r._fail(f"{LOST}: {why}")
+
+    def ready(self, b: int) -> Optional[str]:
+        """Why arm ``b`` cannot be enabled now (None: it can): the robot process must be running
+        and stepping, and the arm's latest state finite."""
+        if self._blk is None or self._proc is None or self._proc.poll() is not None:
+            return f"{LOST}: the robot process has ended (restart() starts a new one)"
+        if not self._alive:
+            return f"{LOST}: no step for {1e3 * (time.monotonic() - self._ticks_at):.0f} ms"
+        if not self._finite[b]:
+            return f"{NONFINITE}: {', '.join(self._L.nonfinite_fields(self._buf[b]))} (arm {b})"
+        return None
+
+    def inject(self, kind: str, arm: Optional[int] = None) -> None:
+        """Inject a robot fault (tests, ``pointfence bench soak``): ``"nan"``: the child publishes
+        NaN joints and pose for ``arm`` (None: every arm) from its next period on; ``"stall"``:
+        the child is stopped (SIGSTOP), as a starved or hung controller; ``"kill"``: the child is
+        killed (SIGKILL), as a crashed one (``restart()`` starts a new one); ``"none"``: the NaN
+        injection ends and a stalled child continues (SIGCONT). The arms read FAULT within the
+        watchdog time (``timeout_s``) and stay so until ``enable()``."""
+        if kind not in FAULT_KINDS:
+            raise InputError(f"inject: kind {kind!r}; expected one of {', '.join(FAULT_KINDS)}")
+        arms = range(self.n) if arm is None else [int(arm)]
+        if any(not 0 <= b < self.n for b in arms):
+            raise InputError(f"inject: arm {arm!r}; expected 0..{self.n - 1} or None (every arm)")
+        if self._blk is None or self._proc is None:
+            raise InputError("inject: the robot host is closed")
+        if kind in ("nan", "none"):
+            for b in arms:
+                self._blk.inject[b] = INJECT_NAN if kind == "nan" else INJECT_NONE
+        if self._proc.poll() is None:
+            sig = {"stall": signal.SIGSTOP, "kill": signal.SIGKILL, "none": signal.SIGCONT}.get(kind)
+            if sig is not None:
+                os.kill(self._proc.pid, sig)
+        if kind == "kill":
+            self._proc.wait(timeout=5.0)
+
+    def restart(self) -> None:
+        """Start a new robot process after the last one ended (a ``kill``, a crash), its arms at
+        the joints last read from the old one; every arm stays in FAULT until ``enable()``. A
+        running process is ended first."""
+        if self._blk is None:
+            raise InputError("restart: the robot host is closed")
+        if self._proc is not None:
+            if self._proc.poll() is None:
+                os.kill(self._proc.pid, signal.SIGCONT)
+                self._blk.ctl[CTL_STOP] = 1
+                try:
+                    self._proc.wait(timeout=2.0)
+                except subprocess.TimeoutExpired:
+                    self._proc.kill()
+                    self._proc.wait(timeout=2.0)
+        start_q = [r.measured_js().position.tolist() for r in self.robots]
+        for r in self.robots:
+            r._fail(f"{LOST}: the robot process was restarted")
+        self._spawn(start_q)
+        for b in range(self.n):
+            self._send_mode(b, FAULT)      # the new process starts braked, as the arms read here
 
     def _stage_pose(self, b: int, pose: np.ndarray) -> None:
         """Queue arm b's setpoint; ``publish`` sends every queued one at once."""
@@ -351,14 +379,17 @@ class RobotHost:
 
     @property
     def alive(self) -> bool:
+        """The robot process runs and stepped within the watchdog time (as of the last sync)."""
         return self._alive and self._proc is not None and self._proc.poll() is None
 
     def close(self) -> None:
         """Stop the child (it finishes its period) and free the shared memory. Idempotent."""
         proc = getattr(self, "_proc", None)
         if proc is not None:
+            if proc.poll() is None:
+                os.kill(proc.pid, signal.SIGCONT)    # (a stalled child cannot see the stop request)
             if self._blk is not None:
-                self._blk.ctl[0] = 1
+                self._blk.ctl[CTL_STOP] = 1
             try:
                 proc.wait(timeout=2.0)
             except subprocess.TimeoutExpired:
@@ -389,16 +420,18 @@ class HostedRobot:
     Reads (``state``, ``measured_cp``, ``setpoint_cp``, ``measured_js``, the joint lists, the
     kinematics) come from a local instance of the model whose state ``step`` copies from the
     child; commands (``servo_cp``, ``hold``, ``resume``, ``enable``, ``fault``) go to the child.
+    A FAULT of the robot process itself (silent, dead, non-finite state) is latched here: the
+    arm reads FAULT with that reason, sends nothing, and only ``enable()`` clears it, once
+    ``RobotHost.ready`` allows.
     """
 
     def __init__(self, host: RobotHost, index: int, local):
         self._host, self._b, self._r = host, index, local
+        self._L = host._L
         self._child_rejected = 0          # setpoints the child rejected (out of reach)
         self._rejected_seen = 0           # ... of which servo_cp has reported
         self._local_rejected = 0          # setpoints refused here (malformed, workspace)
-        self._lost = False                # FAULT because the robot process stopped answering
-        self._T_meas16 = local._T_meas.reshape(16)      # views: the local poses, flat
-        self._T_d16 = local._T_d.reshape(16)
+        self._latched: Optional[str] = None   # FAULT of the robot process (reason), until enable()
         self._pose = np.eye(4)
         self.hosted = True
 
@@ -413,46 +446,41 @@ class HostedRobot:
     def _load(self, row: list, st: np.ndarray, sent: list) -> None:
         """Take the child's state: ``row`` as floats, ``st`` the same as an array; ``sent``: the
         setpoints and mode commands sent to this arm so far (counts)."""
-        r, d = self._r, self._r.dof
-        if self._lost:
+        r, L = self._r, self._L
+        if self._latched is not None:
             return                         # latched until the host answers again and enable() is called
-        r.t = row[0]
-        if row[5] >= sent[1]:              # the child has applied our mode commands
-            r._mode = _MODES[int(row[1])]
-        self._child_rejected = int(row[2])
+        mode = _MODES[int(row[L.mode])] if row[L.mode_seq] >= sent[1] else None   # our mode commands applied
+        r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], st[L.T_meas], mode)
+        self._child_rejected = int(row[L.rejected])
         r.rejected_commands = self._child_rejected + self._local_rejected
-        r.ignored_commands = int(row[3])
-        h = _HDR
-        r._q[:] = row[h: h + d]
-        r._dq[:] = row[h + d: h + 2 * d]
-        r._tau[:] = row[h + 2 * d: h + 3 * d]
-        np.copyto(self._T_meas16, st[h + 4 * d: h + 4 * d + 16])
-        r._T_meas_ok = True
-        if row[4] >= sent[0]:              # else keep the setpoint just sent
-            r._q_d[:] = row[h + 3 * d: h + 4 * d]
-            np.copyto(self._T_d16, st[h + 4 * d + 16: h + 4 * d + 32])
+        r.ignored_commands = int(row[L.ignored])
+        if row[L.servo_seq] >= sent[0]:    # else keep the setpoint just sent
+            r.adopt_setpoint(st[L.T_d], row[L.q_d])
 
     def _texts(self, fault: Optional[str], err: Optional[str]) -> None:
-        if not self._lost:
-            self._r._fault = fault
-        self._r.last_error = err
+        self._r.adopt_texts(self._r.fault_reason if self._latched is not None else fault, err)
+
+    @property
+    def latched(self) -> bool:
+        """Whether the arm is in a FAULT of the robot process (cleared only by ``enable()``)."""
+        return self._latched is not None
 
     def _fail(self, why: str) -> None:
-        r = self._r
-        self._lost = True
-        if r._mode is not RobotMode.FAULT:
-            r._mode = RobotMode.FAULT
-            r._fault = why
-            r._dq[:] = [0.0] * r.dof
+        """Latch a FAULT of the robot process (the first reason stays) and brake the child's arm."""
+        if self._latched is not None:
+            return
+        self._latched = why
+        self._r.fault(why)                 # local copy: FAULT, joints stopped; servo_cp sends nothing
+        self._host._send_mode(self._b, FAULT)
 
     # --- the robot interface ------------------------------------------------------------------------
     @property
     def state(self) -> RobotMode:
-        return self._r._mode
+        return self._r.state
 
     @property
     def fault_reason(self) -> Optional[str]:
-        return self._r._fault
+        return self._r.fault_reason
 
     def step(self, dt: float = 1e-3) -> None:
         """The child steps on its own clock. The last arm's call of a tick sends every setpoint
@@ -469,7 +497,8 @@ class HostedRobot:
     def servo_cp(self, T) -> bool:
         """Send a Cartesian setpoint (4x4 world pose, or a position (3,) with the setpoint's
         orientation). Raises InputError, sending nothing, on a malformed or non-finite pose, a
-        workspace violation, or when the child rejected the previous setpoint (its message)."""
+        workspace violation, or when the child rejected the previous setpoint (its message).
+        Returns False, sending nothing, unless the arm is ENABLED."""
         r = self._r
         if self._child_rejected > self._rejected_seen:
             self._rejected_seen = self._child_rejected
@@ -480,11 +509,11 @@ class HostedRobot:
             self._local_rejected += 1
             r.rejected_commands = self._child_rejected + self._local_rejected
             raise
-        if r._mode is not RobotMode.ENABLED:
+        if self._latched is not None or r.state is not RobotMode.ENABLED:
             r.ignored_commands += 1
             return False
         self._host._stage_pose(self._b, pose)
-        r._T_d[...] = pose
+        r.adopt_setpoint(pose)
         return True
 
     def servo_jp(self, q) -> bool:
@@ -502,12 +531,16 @@ class HostedRobot:
         self._mode_cmd(RESUME, self._r.resume)
 
     def enable(self) -> None:
-        r = self._r
-        if self._lost:
-            if not self._host.alive:
-                return                    # nothing to enable: the arm stays in FAULT
-            self._lost = False
-        self._mode_cmd(ENABLE, r.enable)
+        """Clear a FAULT (the setpoint re-seats on the measured joints: no motion). A FAULT of the
+        robot process stays, with ``last_error`` saying why, unless ``RobotHost.ready`` allows:
+        the process runs and steps and this arm's state is finite."""
+        if self._latched is not None:
+            why = self._host.ready(self._b)
+            if why is not None:
+                self._r.last_error = f"enable refused: {why}"
+                return
+            self._latched = None
+        self._mode_cmd(ENABLE, self._r.enable)
 
     def fault(self, reason: str) -> None:
         self._mode_cmd(FAULT, lambda: self._r.fault(reason))
@@ -521,5 +554,5 @@ class HostedRobot:
 
 
 if __name__ == "__main__":
-    _shm, _tables, _dof, _rate, _prio, _parent = sys.argv[1:7]
-    _child(_shm, json.loads(_tables), int(_dof), float(_rate), int(_prio), int(_parent))
+    _shm, _tables, _dof, _rate, _prio, _parent, _q = sys.argv[1:8]
+    _child(_shm, json.loads(_tables), int(_dof), float(_rate), int(_prio), int(_parent), json.loads(_q))
