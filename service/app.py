@@ -56,11 +56,14 @@ class Service:
         robots: one robot per arm (``service.robot`` interface) or None per arm for an ideal
             robot (X_r = X_r*); default: built from ``cfg.robot`` (model "none": ideal).
         backend, device: override the configured compute backend.
-        record: ticks to record (0: no recording).
+        record: ticks to record in memory (0: no recording).
+        record_path: stream the recording to this ``.pfrec`` file instead (record.py: a crash
+            loses at most the last fraction of a second, S8).
     """
 
     def __init__(self, cfg, masters: Sequence, robots: Optional[Sequence] = None, backend: Optional[str] = None,
-                 device: Optional[str] = None, record: int = 0, architecture: Optional[str] = None):
+                 device: Optional[str] = None, record: int = 0, architecture: Optional[str] = None,
+                 record_path=None):
         self.cfg = cfg
         sc = cfg.service
         self.rate_hz = sc.rate_hz
@@ -144,7 +147,8 @@ class Service:
         self.feeder = None
         self.scene_time_offset = 0.0   # scene (camera) time at loop time 0
         self._poll_tick = self._poll = False
-        self.recorder = Recorder(record, n) if record else None
+        self.recorder = (Recorder(n=n, path=record_path) if record_path is not None
+                         else Recorder(record, n) if record else None)
         self._pub_lock = threading.Lock()
         self._pub = {k: np.zeros((n, 3)) for k in ("xm", "hip", "proxy", "cmd", "xr", "force")}
         self._pub_state = np.zeros(n, np.int32)
@@ -574,14 +578,17 @@ class Service:
         rec.robots[i, :, :3] = self.xr
         rec.robots[i, :, 3:] = tp.cmd
         rec.masters_world[i] = tp.X_m
+        rec.holds[i, 0] = self.hold_mask
+        rec.holds[i, 1:] = self.arm_hold
 
     def note_tick_us(self, us: float) -> None:
         """The loop's wall-clock compute time of the tick just recorded."""
-        rec = self.recorder
-        if rec is not None and 0 < rec.count and not rec.full:
-            rec.rows[rec.count - 1, C["tick_us"]] = us
+        if self.recorder is not None:
+            self.recorder.note_tick_us(us)
 
     def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()   # (streamed: the last rows reach the file)
         if self.batch is not None:
             self.batch.close()   # (Warp: lets a resident proxy kernel go)
         if self.feeder is not None:

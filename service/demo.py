@@ -84,8 +84,13 @@ def _one(cfg, scene, arch, args, viewer=None):
     else:
         n = 90 if scene == "rocking_platform" else 30     # one rocking period, or 1 s of noise
         sources = None if args.render_live else canned_sources(cfg, n, _CACHE)
+        out_dir = Path(args.out) / f"{scene}_{arch}" if args.out else None
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        # a live run streams its recording to disk as it goes (S8); without --out it stays in memory
         run = LiveRun(cfg, [master], architecture=arch, backend=args.backend, device=args.device,
-                      record_s=duration + 1.0, sources=sources)
+                      record_s=duration + 1.0, sources=sources,
+                      record_path=None if out_dir is None else out_dir / "recording.pfrec")
         run.start()
         try:
             run.wait(duration)

@@ -29,12 +29,12 @@ def trace_of(svc, sources, cfg, every: int = 5) -> Optional[dict]:
     rec = svc.recorder
     if rec is None or rec.count == 0:
         return None
-    n = rec.count
-    sl = slice(0, n, every)
-    rows = rec.ticks()[sl]
+    a = rec.arrays()     # in tick order (a streamed recording: read back from its file)
+    sl = slice(0, len(a["rows"]), every)
+    rows = a["rows"][sl]
     t = rows[:, 0] + svc.scene_time_offset
-    xr, cmd = rec.robots[sl, 0, :3].copy(), rec.robots[sl, 0, 3:].copy()
-    xm, proxy = rec.masters_world[sl, 0].copy(), rows[:, 7:10].copy()
+    xr, cmd = a["robots"][sl, 0, :3].copy(), a["robots"][sl, 0, 3:].copy()
+    xm, proxy = a["masters_world"][sl, 0].copy(), rows[:, 7:10].copy()
     out = {"t": rows[:, 0].copy(), "xr": xr, "cmd": cmd, "xm": xm, "proxy": proxy, "force": rows[:, 16:19].copy(),
            "radius": cfg.pipeline.radius.r_base}
     try:

@@ -21,7 +21,7 @@ class LiveRun:
 
     def __init__(self, cfg, masters, *, architecture: Optional[str] = None, backend: Optional[str] = None,
                  device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None,
-                 rt_priority: Optional[int] = None):
+                 rt_priority: Optional[int] = None, record_path=None):
         self.cfg = cfg
         self.clock = RealClock()
         sc = cfg.service
@@ -37,7 +37,8 @@ class LiveRun:
             robots = self.robot_host.robots
         try:
             self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
-                                   record=int(record_s * sc.rate_hz), architecture=architecture)
+                                   record=int(record_s * sc.rate_hz), architecture=architecture,
+                                   record_path=record_path)
         except BaseException:
             self.close_robots()
             raise
@@ -45,6 +46,11 @@ class LiveRun:
         self.frames = LiveFrames(self.service.pipeline, self.sources, self.clock, cfg.service.stale_s,
                                  cfg.service.max_frame_age_s)
         self.service.attach_frames(self.frames)
+        rec = self.service.recorder
+        if rec is not None and rec.streaming:
+            rec.describe({"architecture": self.service.architecture, "backend": self.service.backend.name,
+                          "device_spec": cfg.device, "rate_hz": self.service.rate_hz, "cameras": self.frames.names},
+                         self.frames.snapshot_frames)
         self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
                                rt_priority=cfg.service.rt_priority if rt_priority is None else rt_priority)
         self._mark = (0, 0, 0, 0)
@@ -110,6 +116,8 @@ class LiveRun:
 
     def stop(self) -> None:
         self.loop.stop()
+        if self.service.recorder is not None:
+            self.service.recorder.close()   # (streamed: the last rows reach the file)
         self.frames.stop()
         for s in self.sources:
             s.close()

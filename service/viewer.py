@@ -139,13 +139,14 @@ class Viewer:
         if r is None or r.count == 0:
             return out
         every = max(1, int(round(svc.rate_hz / self.rate_hz)))
-        rows = r.ticks()[::every]
+        a = r.arrays()       # in tick order (a streamed recording: read back from its file)
+        rows = a["rows"][::every]
         n = rows.shape[0]
         times = [rr.TimeColumn(TIMELINE, duration=rows[:, 0])]
         hip, proxy, force = rows[:, 4:7], rows[:, 7:10], rows[:, 16:19]
         state = np.clip(rows[:, 19].astype(int), 0, 2)
-        xr, cmd = r.robots[: r.count: every, 0, :3], r.robots[: r.count: every, 0, 3:]
-        xm = r.masters_world[: r.count: every, 0]
+        xr, cmd = a["robots"][::every, 0, :3], a["robots"][::every, 0, 3:]
+        xm = a["masters_world"][::every, 0]
         r1 = float(svc.params.r1)
         streams = {
             "proxy": rr.Points3D.columns(positions=proxy, radii=np.full(n, r1), colors=STATE_RGB[state]),
