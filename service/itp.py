@@ -77,7 +77,7 @@ class ItpArmMaster(Master):
             r.drain(t)
         hub = self.poll_also
         if hub is not None and t != hub.t:
-            hub.drain(t)
+            hub.tick(t)
         self.ok = r.seen and t - self.last_t <= r.timeout_s
 
 
