@@ -214,8 +214,9 @@ def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
         q = [[0, 0, 0, 1], [0, 0, 0, 1]]
         good = [pack_itp(s, [[100, 0, -50], [0, 20, 0]], q, surgeon_mode=1) for s in (1, 2, 3)]
         assert all(len(g) == ITP_SIZE == 124 for g in good)
+        src = ("127.0.0.1", 40000)
         for g in good:
-            assert r.handle(g, 0.001)
+            assert r.handle(g, 0.001, src)
         np.testing.assert_allclose(arm0.position, [300e-6, 0, -150e-6])
         np.testing.assert_allclose(arm1.position, [0, 60e-6, 0])
         assert arm0.clutch and arm1.clutch
@@ -228,7 +229,7 @@ def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
                pack_itp(11, [[1, 0, 0], [0, 0, 0]], [[math.nan, 0, 0, 1], [0, 0, 0, 1]]),
                pack_itp(12, [[1, 0, 0], [0, 0, 0]], q, surgeon_mode=5)]
         for d in bad:
-            assert not r.handle(d, 0.002)
+            assert not r.handle(d, 0.002, src)
         np.testing.assert_array_equal(arm0.position, before)
         assert sum(r.counters.values()) == len(bad) and r.status()["authenticated"] is False
         arm0.poll(0.002)
