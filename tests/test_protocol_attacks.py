@@ -251,13 +251,13 @@ def test_a_forged_flood_from_one_source_neither_starves_a_client_nor_costs_the_t
     import subprocess
     import sys
 
-    hub = UdpHub(KEY, 2)
+    hub = UdpHub(KEY, 2, timeout_ms=1000)       # generous: a loaded test machine may stall a thread for tens of ms
     ticker = _Ticker(hub)
     monkeypatch.setattr(hmac, "digest", ticker.digest(hmac.digest))
     ticker.th.start()
     proc = None
     try:
-        c = Client(*hub.address, KEY, 3)
+        c = Client(*hub.address, KEY, 3, timeout_ms=1000)
         c.connect(timeout=10)
         forged = P.State(1, 0, (0.09, 0.09, 0.09)).encode(bytes([9]) * 32, 3, c.session, 10**9)
         proc = subprocess.Popen([sys.executable, "-c", FLOODER, hub.address[0], str(hub.address[1]), "50000"],
