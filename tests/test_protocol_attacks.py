@@ -339,3 +339,29 @@ def test_itp_warns_loudly_when_bound_beyond_loopback(caplog):
         assert r.status()["exposed"] is False and r.status()["warning"] is None
     finally:
         r.close()
+
+
+def test_source_limiter_buckets_are_per_source_and_the_table_is_bounded():
+    from pointfence.service.udp_ratelimit import SourceLimiter
+
+    lim = SourceLimiter(rate=100.0, burst=10.0, max_sources=4, idle_s=5.0)
+    a, b = ("10.0.0.1", 1), ("10.0.0.2", 1)
+    assert sum(lim.allow(a, 0.0) for _ in range(50)) == 10        # a's burst, then dropped
+    assert all(lim.allow(b, 0.0) for _ in range(10))              # b is untouched by a's flood
+    assert lim.allow(a, 0.1)                                       # refilled at 100/s
+    for i in range(100):                                           # many spoofed sources: one shared bucket
+        lim.allow(("10.1.0.%d" % i, 1), 0.2)
+    assert len(lim) == 4 and lim.overflowed > 0
+    assert lim.allow(b, 0.3)                                       # known sources keep their buckets
+
+
+def test_a_cookie_is_bound_to_its_address():
+    hub = UdpHub(KEY, 1, receiver=False)
+    try:
+        h = P.Hello(os.urandom(16))
+        h.cookie = hub.cookies.issue(("127.0.0.1", 5000), DEV, h.nonce)
+        assert hub.handle(h.encode(KEY, DEV, 2), ("127.0.0.1", 5001)) == P.E_COOKIE
+        assert not hub.sessions
+        assert hub.handle(h.encode(KEY, DEV, 2), ("127.0.0.1", 5000)) == P.E_OK and len(hub.sessions) == 1
+    finally:
+        hub.close()
