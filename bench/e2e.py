@@ -125,6 +125,7 @@ def run(args) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="pf-e2e-"))
     key_path = tmp / "key"
     key_path.write_text(os.urandom(32).hex() + "\n")
+    key_path.chmod(0o600)        # a key file others may read is refused (clients/keyfile.py)
     ready, stats = tmp / "ready.json", tmp / "stats.json"
     cmd = [sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key_path), "--port", "0",
            "--control-port", "0", "--clients", "1", "--ready-file", str(ready), "--stats-file", str(stats), "--status-every", "0",

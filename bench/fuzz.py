@@ -1,13 +1,15 @@
 """`pointfence bench fuzz`: random and mutated datagrams thrown at the service's packet handler.
 
-A ``UdpHub`` with one live session (opened by an authentic HELLO) receives ``--packets``
-datagrams through ``UdpHub.handle``, the exact code path of the haptic tick: uniformly random
+A ``UdpHub`` with one live session (opened by an authentic handshake: HELLO, COOKIE, HELLO with
+the cookie) receives ``--packets`` datagrams through ``UdpHub.handle``, the exact code path of
+the service's receiver thread (which verifies datagrams outside the haptic tick): uniformly random
 bytes (half of them with a valid magic/version/type and an exact message size), and authentic
 datagrams (HELLO, STATE, BYE, and FEEDBACK/WELCOME sent the wrong way) mutated by bit flips,
 byte overwrites, truncation, extension and sequence changes. Reports the per-reason rejection
 counts, datagrams per second, and ``accepted_forgeries``: mutated or random datagrams that were
-accepted (must be 0), and ``master_changed``: times the session's master sample changed on a
-datagram that was not authentic (must be 0). No datagram may raise.
+accepted (must be 0), and ``master_changed``: times the session's published sample (what the
+tick copies into the master) or the session table changed on a datagram that was not authentic
+(must be 0). No datagram may raise.
 
 The generator (``Fuzzer``) is shared with tests/test_protocol_fuzz.py.
 """
@@ -28,24 +30,28 @@ class Fuzzer:
     def __init__(self, seed: int = 0):
         from pointfence.service.udp_server import UdpHub
 
-        self.hub = UdpHub(PSK, 2, port=0)
+        self.hub = UdpHub(PSK, 2, port=0, receiver=False)
         self.addr = ("127.0.0.1", 9)
         self.rng = random.Random(seed)
         hello = P.Hello(b"N" * 16, 3.3, (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), 1000.0, 50, P.CAP_FORCE, "fuzz")
-        data = hello.encode(PSK, 77, 1)
-        assert self.hub.handle(data, self.addr, 0.0) == P.E_OK
+        assert self.hub.handle(hello.encode(PSK, 77, 1), self.addr) == P.E_OK      # answered with a COOKIE
+        assert not self.hub.sessions
+        hello.cookie = self.hub.cookies.issue(self.addr, 77, hello.nonce)        # the COOKIE's content
+        second = hello.encode(PSK, 77, 2)
+        assert self.hub.handle(second, self.addr) == P.E_OK
         self.session = next(iter(self.hub.sessions.values()))
         self.master = self.hub.masters[self.session.slot]
         s = self.session
         self.seq = 1
         st = P.State(1, 0, (0.01, 0.02, 0.03), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), 0.0, 0, P.F_CLUTCH)
         first = st.encode(s.key, s.device_id, s.id, 1)
-        assert self.hub.handle(first, self.addr, 0.0) == P.E_OK
+        assert self.hub.handle(first, self.addr) == P.E_OK
         self.bases = [
             first,
             P.State(2, 0, (-0.05, 0.0, 0.09), (0.0, 0.0, 0.0), (0.5, 0.5, 0.5, 0.5), 0.3, 3,
                     P.F_CLUTCH | P.F_ORIENTATION | P.F_GRASP).encode(s.key, s.device_id, s.id, 2),
             P.Hello(b"M" * 16, 3.3, (-0.1, -0.1, -0.1), (0.1, 0.1, 0.1), 1000.0, 50, 1, "x").encode(PSK, 78, 1),
+            second,                                                          # the session's own second HELLO
             P.Bye(0).encode(s.key, s.device_id, s.id, 3),
             P.Feedback().encode(s.key, s.device_id, s.id, 4),
             P.Welcome(b"N" * 16, b"S" * 16, 0, 50, 1000.0, 3.0, 1).encode(PSK, 77, s.id, 0),
@@ -57,7 +63,7 @@ class Fuzzer:
 
     def random_datagram(self) -> bytes:
         r = self.rng
-        typ = r.randint(1, 6)
+        typ = r.randint(1, 7)
         n = P.SIZES[typ] if r.random() < 0.5 else r.randint(0, 300)
         b = bytearray(r.getrandbits(8) for _ in range(n)) if n < 64 else bytearray(r.randbytes(n))
         if n >= P.HEADER_LEN and r.random() < 0.7:
@@ -99,19 +105,24 @@ class Fuzzer:
             if data == base:          # a mutation that undid itself: make it a real mutation
                 data += b"\0"
             authentic = False
-        before = (m.position.tobytes(), m.clutch, m.buttons)
-        sessions = len(hub.sessions)
-        code = hub.handle(data, self.addr, 0.0)
+        before = self.sample()
+        sessions = dict(hub.sessions)
+        code = hub.handle(data, self.addr)
         self.count += 1
         if not authentic:
             if code == P.E_OK:
                 self.accepted_forgeries += 1
-            if (m.position.tobytes(), m.clutch, m.buttons) != before or len(hub.sessions) != sessions:
+            if self.sample() != before or hub.sessions != sessions or m.session is not self.session:
                 self.master_changed += 1
         return code
 
+    def sample(self):
+        """The session's published sample (what the tick would copy into the master)."""
+        s = self.session
+        return (s.n, tuple(s.s_pos), s.s_flags, s.s_buttons, tuple(s.s_quat), s.s_grasp)
+
     def close(self) -> None:
-        self.hub.sock.close()
+        self.hub.close()
 
 
 def add_arguments(p):

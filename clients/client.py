@@ -177,7 +177,8 @@ class Client:
 
     # --- session ------------------------------------------------------------------------------------
     def connect(self, timeout: float = 5.0, retry: float = 0.1) -> P.Welcome:
-        """Handshake: HELLO (fresh nonce) every ``retry`` s until a WELCOME or REJECT, or raise."""
+        """Handshake: HELLO (fresh nonce), the service's COOKIE, HELLO again with the cookie, then
+        WELCOME or REJECT; restarted with a fresh nonce every ``retry`` s, until ``timeout`` s."""
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             self.hello_send()
@@ -185,22 +186,28 @@ class Client:
             if w is not None:
                 return w
         raise ClientError(f"no answer from the service at {self.addr[0]}:{self.addr[1]} within {timeout} s "
-                          "(is `pointfence serve` running there, with the same key?)")
+                          "(is `pointfence serve` running there, with the same key and protocol version "
+                          f"{P.VERSION}?)")
 
     def hello_send(self) -> bytes:
-        """Send a HELLO with a fresh nonce (the first half of ``connect``); returns the nonce."""
+        """Start a handshake: send a HELLO with a fresh nonce and no cookie; returns the nonce."""
         self._nonce = os.urandom(16)
         self.hello.nonce = self._nonce
+        self.hello.cookie = bytes(P.COOKIE_LEN)
+        self._send_hello()
+        return self._nonce
+
+    def _send_hello(self) -> None:
         self._hellos = getattr(self, "_hellos", 0) + 1
         try:
             self.sock.send(self.hello.encode(self.psk, self.device_id, self._hellos))
         except OSError:
             pass
-        return self._nonce
 
     def hello_wait(self, timeout: float) -> Optional[P.Welcome]:
-        """Wait up to ``timeout`` s for the answer to the last HELLO: the WELCOME (session set up),
-        None, or raise :class:`Rejected`."""
+        """Wait up to ``timeout`` s for the answer to the current handshake: a COOKIE for its
+        nonce is answered at once (the HELLO again, with the cookie) and waiting goes on; returns
+        the WELCOME (session set up), None (no answer yet), or raises :class:`Rejected`."""
         nonce = self._nonce
         until = time.monotonic() + timeout
         while True:
@@ -208,9 +215,16 @@ class Client:
             if data is not None:
                 try:
                     h = P.parse_header(data)
-                    if h.type not in (P.WELCOME, P.REJECT) or h.device_id != self.device_id:
+                    if h.type not in (P.WELCOME, P.REJECT, P.COOKIE) or h.device_id != self.device_id:
                         raise P.ProtocolError(P.E_DIRECTION)
                     P.verify(data, self.psk)
+                    if h.type == P.COOKIE:
+                        ck = P.Cookie.decode(data)
+                        if ck.client_nonce != nonce:
+                            raise P.ProtocolError(P.E_STALE)
+                        self.hello.cookie = ck.cookie
+                        self._send_hello()
+                        continue
                     if h.type == P.REJECT:
                         r = P.Reject.decode(data)
                         if r.client_nonce == nonce:

@@ -1,10 +1,12 @@
-"""The pointfence wire protocol, version 1 (``clients/PROTOCOL.md`` is the normative text).
+"""The pointfence wire protocol, version 2 (``clients/PROTOCOL.md`` is the normative text).
 
 Every datagram is ``header (24 B) | payload | tag (16 B)``, little-endian, of a fixed size per
 message type; the tag is HMAC-SHA256 truncated to 16 bytes over everything before it. HELLO,
-WELCOME and REJECT are keyed with the pre-shared key (PSK); STATE, FEEDBACK and BYE with the
-session key ``HMAC-SHA256(PSK, "pointfence v1 session" | client nonce | server nonce |
-device id | session id)``.
+WELCOME, REJECT and COOKIE are keyed with the pre-shared key (PSK); STATE, FEEDBACK and BYE
+with the session key ``HMAC-SHA256(PSK, "pointfence v2 session" | client nonce | server nonce |
+device id | session id)``. A session opens only after a stateless server challenge: the first
+HELLO of a handshake is answered with a COOKIE, and only a HELLO that repeats that cookie (valid
+for ``COOKIE_VALID_S``) gets a WELCOME; a captured HELLO replayed later opens nothing.
 
 This module is pure codec: ``encode_*`` build exact bytes, ``parse_header`` checks size, magic,
 version and type without a key, ``verify`` checks the tag in constant time, ``decode_*`` unpack
@@ -21,7 +23,9 @@ from typing import Tuple
 
 from pointfence.kernels.errors import PointfenceError
 
-VERSION = 1
+from .keyfile import check_key, load_key, parse_key_text  # noqa: F401  (the protocol's key rules)
+
+VERSION = 2
 MAGIC = b"PF"
 TAG_LEN = 16
 HEADER = struct.Struct("<2sBBIIQI")         # magic, version, type, device id, session id, seq, reserved (0)
@@ -29,21 +33,26 @@ HEADER_LEN = HEADER.size                    # 24
 MAX_DATAGRAM = 2048                         # receive buffer: anything longer is "oversized" anyway
 
 # message types
-HELLO, WELCOME, REJECT, STATE, FEEDBACK, BYE = 1, 2, 3, 4, 5, 6
-TYPE_NAMES = {HELLO: "HELLO", WELCOME: "WELCOME", REJECT: "REJECT", STATE: "STATE", FEEDBACK: "FEEDBACK", BYE: "BYE"}
+HELLO, WELCOME, REJECT, STATE, FEEDBACK, BYE, COOKIE = 1, 2, 3, 4, 5, 6, 7
+TYPE_NAMES = {HELLO: "HELLO", WELCOME: "WELCOME", REJECT: "REJECT", STATE: "STATE", FEEDBACK: "FEEDBACK", BYE: "BYE",
+              COOKIE: "COOKIE"}
+COOKIE_LEN = 24             # opaque to clients: echoed verbatim in the second HELLO
 
 # payload layouts (after the header, before the tag)
-P_HELLO = struct.Struct("<16sd3d3ddHHI16s")            # nonce, max_force, ws_min, ws_max, rate, timeout_ms, caps, rsv, model
+P_HELLO = struct.Struct("<16sd3d3ddHHI16s24s")         # nonce, max_force, ws_min, ws_max, rate, timeout_ms, caps, rsv, model,
+#                                                        cookie (zeros in the first HELLO of a handshake)
 P_WELCOME = struct.Struct("<16s16sHHIddQ")             # client nonce, server nonce, slot, timeout_ms, rsv, rate, max_force, t_service_ns
 P_REJECT = struct.Struct("<16sHHI")                    # client nonce, error, rsv, rsv
 P_STATE = struct.Struct("<QQ3d3d4ddIHH")               # t_client, t_echo, pos, inc, quat wxyz, grasp, buttons, flags, rsv
 P_FEEDBACK = struct.Struct("<QQQQQ3d3d3dBBBBIHHII")    # tick, t_tick, t_sent, echo_seq, echo_t_client, force, proxy, robot,
 #                                                        contact, fixture, robot_mode, link, hold, error, slot, rejected, rsv
 P_BYE = struct.Struct("<HHI")                          # reason, rsv, rsv
-PAYLOADS = {HELLO: P_HELLO, WELCOME: P_WELCOME, REJECT: P_REJECT, STATE: P_STATE, FEEDBACK: P_FEEDBACK, BYE: P_BYE}
+P_COOKIE = struct.Struct("<16s24s")                    # client nonce (echo), cookie
+PAYLOADS = {HELLO: P_HELLO, WELCOME: P_WELCOME, REJECT: P_REJECT, STATE: P_STATE, FEEDBACK: P_FEEDBACK, BYE: P_BYE,
+            COOKIE: P_COOKIE}
 SIZES = {t: HEADER_LEN + p.size + TAG_LEN for t, p in PAYLOADS.items()}
 #: messages keyed with the PSK (the others with the session key)
-PSK_TYPES = (HELLO, WELCOME, REJECT)
+PSK_TYPES = (HELLO, WELCOME, REJECT, COOKIE)
 
 # capability bits (HELLO caps)
 CAP_FORCE = 1 << 0          # displays 3-DOF force
@@ -85,11 +94,12 @@ E_BUSY = 12            # the device id already has a live session
 E_TIMEOUT = 13         # the session was dropped after silence
 E_CAPABILITY = 14      # HELLO values out of range
 E_DIRECTION = 15       # a message type the receiver never accepts (e.g. FEEDBACK sent to the service)
+E_COOKIE = 16          # HELLO cookie invalid or expired (answered with a fresh COOKIE)
 ERROR_NAMES = {
     E_OK: "ok", E_MALFORMED: "malformed", E_VERSION: "version", E_TRUNCATED: "truncated",
     E_OVERSIZED: "oversized", E_AUTH: "auth", E_REPLAY: "replay", E_STALE: "stale",
     E_NO_SESSION: "no_session", E_NON_FINITE: "non_finite", E_WORKSPACE: "workspace", E_FULL: "full",
-    E_BUSY: "busy", E_TIMEOUT: "timeout", E_CAPABILITY: "capability", E_DIRECTION: "direction",
+    E_BUSY: "busy", E_TIMEOUT: "timeout", E_CAPABILITY: "capability", E_DIRECTION: "direction", E_COOKIE: "cookie",
 }
 
 # limits the receivers enforce
@@ -101,7 +111,9 @@ MAX_EXTENT_M = 10.0             # |workspace coordinate| bound
 MAX_RATE_HZ = 10000.0
 WORKSPACE_MARGIN_M = 0.001      # positions may exceed the declared workspace by this much
 QUAT_TOL = 1e-3                 # | |q| - 1 | bound for a valid orientation
-SESSION_LABEL = b"pointfence v1 session"
+SESSION_LABEL = b"pointfence v2 session"
+COOKIE_VALID_S = 2.0            # a HELLO's cookie opens a session only this long after it was issued
+PROOF_S = 0.5                   # a session that has sent no valid STATE this long after WELCOME holds nothing
 
 
 class ProtocolError(PointfenceError, ValueError):
@@ -113,13 +125,6 @@ class ProtocolError(PointfenceError, ValueError):
 
 
 # --- keys ---------------------------------------------------------------------------------------
-def check_key(key: bytes) -> bytes:
-    if not isinstance(key, (bytes, bytearray)) or not 16 <= len(key) <= 64:
-        raise PointfenceError(f"pre-shared key of {len(key) if isinstance(key, (bytes, bytearray)) else type(key).__name__} bytes; "
-                              "expected 16 to 64 bytes (32 random bytes recommended: `pointfence serve --new-key FILE`)")
-    return bytes(key)
-
-
 def session_key(psk: bytes, client_nonce: bytes, server_nonce: bytes, device_id: int, session_id: int) -> bytes:
     """The 32-byte key of one session (STATE, FEEDBACK and BYE are tagged with it)."""
     msg = SESSION_LABEL + bytes(client_nonce) + bytes(server_nonce) + struct.pack("<II", device_id, session_id)
@@ -128,21 +133,6 @@ def session_key(psk: bytes, client_nonce: bytes, server_nonce: bytes, device_id:
 
 def tag(key: bytes, body) -> bytes:
     return hmac.digest(key, body, "sha256")[:TAG_LEN]
-
-
-def load_key(path) -> bytes:
-    """A key file: 64 hex digits (32 bytes; 32 to 128 hex digits accepted) on its first line."""
-    from pathlib import Path
-
-    p = Path(path)
-    if not p.is_file():
-        raise PointfenceError(f"key file {str(p)!r} not found; create one with `pointfence serve --new-key {p}`")
-    text = p.read_text().strip().split()
-    try:
-        key = bytes.fromhex(text[0]) if text else b""
-    except ValueError:
-        raise PointfenceError(f"{p}: expected hex digits (e.g. 64 for a 32-byte key) on the first line") from None
-    return check_key(key)
 
 
 # --- header --------------------------------------------------------------------------------------
@@ -201,7 +191,8 @@ def _finite(values, what: str) -> None:
 # --- messages ------------------------------------------------------------------------------------
 @dataclass
 class Hello:
-    """Client -> service, PSK-tagged: device capabilities and a fresh 16-byte nonce."""
+    """Client -> service, PSK-tagged: device capabilities, a fresh 16-byte nonce and the cookie
+    (``COOKIE_LEN`` zero bytes in the first HELLO of a handshake; the service's COOKIE in the second)."""
 
     nonce: bytes
     max_force: float = 3.3
@@ -211,17 +202,19 @@ class Hello:
     timeout_ms: int = DEFAULT_TIMEOUT_MS
     caps: int = CAP_FORCE | CAP_CLUTCH
     model: str = ""
+    cookie: bytes = bytes(COOKIE_LEN)
 
     def encode(self, psk: bytes, device_id: int, seq: int = 0) -> bytes:
         model = self.model.encode("ascii")[:16]
         return _seal(psk, _head(HELLO, device_id, 0, seq),
                      P_HELLO.pack(bytes(self.nonce), self.max_force, *self.workspace_min, *self.workspace_max,
-                                  self.rate_hz, self.timeout_ms, self.caps, 0, model))
+                                  self.rate_hz, self.timeout_ms, self.caps, 0, model, bytes(self.cookie)))
 
     @classmethod
     def decode(cls, buf) -> "Hello":
         v = P_HELLO.unpack_from(buf, HEADER_LEN)
         nonce, fmax, wmin, wmax, rate, tmo, caps, rsv, model = v[0], v[1], v[2:5], v[5:8], v[8], v[9], v[10], v[11], v[12]
+        cookie = v[13]
         _finite((fmax, *wmin, *wmax, rate), "HELLO value")
         if rsv or caps & ~CAP_MASK:
             raise ProtocolError(E_MALFORMED, "HELLO reserved bits set")
@@ -236,7 +229,12 @@ class Hello:
             raise ProtocolError(E_CAPABILITY, f"rate {rate} Hz outside [1, {MAX_RATE_HZ}]")
         if tmo > MAX_TIMEOUT_MS:
             raise ProtocolError(E_CAPABILITY, f"timeout {tmo} ms above {MAX_TIMEOUT_MS}")
-        return cls(bytes(nonce), fmax, tuple(wmin), tuple(wmax), rate, tmo, caps, m.decode("ascii"))
+        return cls(bytes(nonce), fmax, tuple(wmin), tuple(wmax), rate, tmo, caps, m.decode("ascii"), bytes(cookie))
+
+    @property
+    def has_cookie(self) -> bool:
+        """True for the second HELLO of a handshake (a cookie is present)."""
+        return any(self.cookie)
 
 
 @dataclass
@@ -283,6 +281,25 @@ class Reject:
         if r1 or r2:
             raise ProtocolError(E_MALFORMED, "REJECT reserved field set")
         return cls(bytes(cn), err)
+
+
+@dataclass
+class Cookie:
+    """Service -> client, PSK-tagged: the stateless challenge answering a HELLO without a valid
+    cookie. The client repeats its HELLO (same nonce) with ``cookie`` in it."""
+
+    client_nonce: bytes
+    cookie: bytes
+
+    def encode(self, psk: bytes, device_id: int, seq: int = 0) -> bytes:
+        return _seal(psk, _head(COOKIE, device_id, 0, seq), P_COOKIE.pack(bytes(self.client_nonce), bytes(self.cookie)))
+
+    @classmethod
+    def decode(cls, buf) -> "Cookie":
+        cn, ck = P_COOKIE.unpack_from(buf, HEADER_LEN)
+        if not any(ck):
+            raise ProtocolError(E_MALFORMED, "COOKIE of zero bytes")
+        return cls(bytes(cn), bytes(ck))
 
 
 @dataclass
@@ -399,7 +416,7 @@ class Bye:
         return cls(reason)
 
 
-DECODERS = {HELLO: Hello, WELCOME: Welcome, REJECT: Reject, STATE: State, FEEDBACK: Feedback, BYE: Bye}
+DECODERS = {HELLO: Hello, WELCOME: Welcome, REJECT: Reject, STATE: State, FEEDBACK: Feedback, BYE: Bye, COOKIE: Cookie}
 
 
 def decode(buf, key: bytes, workspace=None):

@@ -6,7 +6,8 @@ nonces). Both SDKs must reproduce every ``bytes_hex`` byte for byte and every ex
 Files: ``sha256.json`` and ``hmac_sha256.json`` (FIPS 180 / RFC 4231 cases, computed here with
 hashlib), ``session_keys.json``, ``messages.json`` (fields -> exact bytes, one per message type
 and edge cases), ``rejects.json`` (datagrams -> the error code the receiver must give) and
-``replay.json`` (sequence streams -> accept / replay / stale).
+``replay.json`` (sequence streams -> accept / replay / stale) and ``keyfiles.json`` (key file
+contents and modes -> the key, or the class of refusal: ``mode``, ``format``, ``zero``).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ CLIENT_NONCE = bytes.fromhex("00112233445566778899aabbccddeeff")
 SERVER_NONCE = bytes.fromhex("f0e1d2c3b4a5968778695a4b3c2d1e0f")
 DEVICE, SESSION = 0x01020304, 0xA1B2C3D4
 WS = ((-0.08, -0.06, -0.05), (0.08, 0.06, 0.07))
+COOKIE = bytes.fromhex("0807060504030201") + bytes(range(0xC0, 0xD0))   # opaque to clients: any 24 bytes
 
 
 def _hex(b) -> str:
@@ -74,16 +76,22 @@ def message_vectors():
         v.append({"name": name, "type": P.TYPE_NAMES[typ], "key": key_name, "key_hex": _hex(key), "device_id": DEVICE,
                   "session": session, "seq": seq, "fields": fields, "size": len(data), "bytes_hex": _hex(data)})
 
+    def hello_fields(h):
+        return {"nonce_hex": _hex(h.nonce), "max_force": h.max_force, "workspace_min": list(h.workspace_min),
+                "workspace_max": list(h.workspace_max), "rate_hz": h.rate_hz, "timeout_ms": h.timeout_ms,
+                "caps": h.caps, "model": h.model, "cookie_hex": _hex(h.cookie)}
+
     hello = P.Hello(CLIENT_NONCE, 3.3, WS[0], WS[1], 1000.0, 50, P.CAP_FORCE | P.CAP_CLUTCH | P.CAP_GRASP, "Touch")
-    add("hello", P.HELLO, "psk", PSK, 1, 0,
-        {"nonce_hex": _hex(hello.nonce), "max_force": hello.max_force, "workspace_min": list(WS[0]),
-         "workspace_max": list(WS[1]), "rate_hz": hello.rate_hz, "timeout_ms": hello.timeout_ms, "caps": hello.caps,
-         "model": hello.model}, hello.encode(PSK, DEVICE, 1))
+    add("hello", P.HELLO, "psk", PSK, 1, 0, hello_fields(hello), hello.encode(PSK, DEVICE, 1))
     h2 = P.Hello(SERVER_NONCE, 12.0, (-0.2, -0.2, -0.2), (0.2, 0.2, 0.2), 4000.0, 20, P.CAP_MASK, "sigma.7 lefthand")
-    add("hello-all-caps", P.HELLO, "psk", PSK, 0xFFFFFFFFFFFFFFFF, 0,
-        {"nonce_hex": _hex(h2.nonce), "max_force": h2.max_force, "workspace_min": list(h2.workspace_min),
-         "workspace_max": list(h2.workspace_max), "rate_hz": h2.rate_hz, "timeout_ms": h2.timeout_ms, "caps": h2.caps,
-         "model": h2.model}, h2.encode(PSK, DEVICE, 0xFFFFFFFFFFFFFFFF))
+    add("hello-all-caps", P.HELLO, "psk", PSK, 0xFFFFFFFFFFFFFFFF, 0, hello_fields(h2),
+        h2.encode(PSK, DEVICE, 0xFFFFFFFFFFFFFFFF))
+    ck = P.Cookie(CLIENT_NONCE, COOKIE)
+    add("cookie", P.COOKIE, "psk", PSK, 0, 0, {"client_nonce_hex": _hex(ck.client_nonce), "cookie_hex": _hex(ck.cookie)},
+        ck.encode(PSK, DEVICE, 0))
+    h3 = P.Hello(CLIENT_NONCE, 3.3, WS[0], WS[1], 1000.0, 50, P.CAP_FORCE | P.CAP_CLUTCH | P.CAP_GRASP, "Touch",
+                 COOKIE)
+    add("hello-with-cookie", P.HELLO, "psk", PSK, 2, 0, hello_fields(h3), h3.encode(PSK, DEVICE, 2))
     w = P.Welcome(CLIENT_NONCE, SERVER_NONCE, 1, 50, 1000.0, 3.3, 123456789012345)
     add("welcome", P.WELCOME, "psk", PSK, 0, SESSION,
         {"client_nonce_hex": _hex(w.client_nonce), "server_nonce_hex": _hex(w.server_nonce), "slot": w.slot,
@@ -148,8 +156,8 @@ def reject_vectors():
     add("state-oversized", bytes(base) + b"\0", skey, P.E_OVERSIZED)
     m = bytearray(base); m[0] = ord("X")
     add("bad-magic", m, skey, P.E_MALFORMED)
-    m = bytearray(base); m[2] = 2
-    add("version-2", _retag(m, skey), skey, P.E_VERSION)
+    m = bytearray(base); m[2] = 1
+    add("version-1", _retag(m, skey), skey, P.E_VERSION)
     m = bytearray(base); m[3] = 9
     add("unknown-type", m, skey, P.E_MALFORMED)
     m = bytearray(base); m[-1] ^= 1
@@ -187,6 +195,49 @@ def reject_vectors():
     add("hello-unknown-cap", _retag(m, PSK), PSK, P.E_MALFORMED)
     m = bytearray(hello); m[P.HEADER_LEN + 88] = 7
     add("hello-model-control-char", _retag(m, PSK), PSK, P.E_MALFORMED)
+    add("cookie-of-zeros", P.Cookie(CLIENT_NONCE, bytes(P.COOKIE_LEN)).encode(PSK, DEVICE, 0), PSK, P.E_MALFORMED)
+    m = bytearray(P.Cookie(CLIENT_NONCE, COOKIE).encode(PSK, DEVICE, 0)); m[P.HEADER_LEN + 20] ^= 1
+    add("cookie-bit-flip", m, PSK, P.E_AUTH)
+    return out
+
+
+def keyfile_vectors():
+    """Key file contents (hex of the file's bytes) and mode -> accepted key, or the refusal class.
+    Both loaders (``keyfile.load_key``, C ``pf_load_key``) must agree on every case."""
+    k = PSK.hex()
+    cases = [
+        ("hex-newline", (k + "\n").encode(), 0o600, "ok"),
+        ("hex-no-newline", k.encode(), 0o600, "ok"),
+        ("hex-crlf", (k + "\r\n").encode(), 0o600, "ok"),
+        ("hex-upper", (k.upper() + "\n").encode(), 0o600, "ok"),
+        ("owner-read-only", (k + "\n").encode(), 0o400, "ok"),
+        ("16-bytes", (k[:32] + "\n").encode(), 0o600, "ok"),
+        ("64-bytes", (k * 2 + "\n").encode(), 0o600, "ok"),
+        ("15-bytes", (k[:30] + "\n").encode(), 0o600, "format"),
+        ("65-bytes", (k * 2 + "ab\n").encode(), 0o600, "format"),
+        ("odd-digits", (k[:-1] + "\n").encode(), 0o600, "format"),
+        ("two-newlines", (k + "\n\n").encode(), 0o600, "format"),
+        ("trailing-space", (k + " \n").encode(), 0o600, "format"),
+        ("leading-space", (" " + k + "\n").encode(), 0o600, "format"),
+        ("trailing-junk", (k + " junk\n").encode(), 0o600, "format"),
+        ("second-line", (k + "\n# my key\n").encode(), 0o600, "format"),
+        ("lone-cr", (k + "\r").encode(), 0o600, "format"),
+        ("nul-after", (k + "\0").encode(), 0o600, "format"),
+        ("0x-prefix", ("0x" + k + "\n").encode(), 0o600, "format"),
+        ("raw-bytes", PSK, 0o600, "format"),
+        ("empty", b"", 0o600, "format"),
+        ("newline-only", b"\n", 0o600, "format"),
+        ("all-zero", ("00" * 32 + "\n").encode(), 0o600, "zero"),
+        ("all-zero-16", ("0" * 32).encode(), 0o600, "zero"),
+        ("mode-644", (k + "\n").encode(), 0o644, "mode"),
+        ("mode-640", (k + "\n").encode(), 0o640, "mode"),
+        ("mode-604", (k + "\n").encode(), 0o604, "mode"),
+        ("mode-620", (k + "\n").encode(), 0o620, "mode"),
+    ]
+    out = []
+    for name, data, mode, result in cases:
+        key = bytes.fromhex(data.decode().strip()) if result == "ok" else b""
+        out.append({"name": name, "content_hex": _hex(data), "mode": mode, "result": result, "key_hex": _hex(key)})
     return out
 
 
@@ -221,6 +272,7 @@ def generate() -> dict:
                           "vectors": message_vectors()},
         "rejects.json": {"error_codes": {name: code for code, name in P.ERROR_NAMES.items()}, "vectors": reject_vectors()},
         "replay.json": {"streams": replay_vectors()},
+        "keyfiles.json": {"cases": keyfile_vectors()},
     }
 
 

@@ -16,14 +16,22 @@ otherwise, and exists only so that existing masters can be used on a trusted hos
 authenticated protocol (``clients/PROTOCOL.md``) for anything else. It still rejects what it
 can: wrong size, bad checksum (``checksum="sum"``: the unsigned 32-bit sum of bytes 0..119; use
 ``"none"`` for masters that leave the field unset), a sequence not newer than the last one
-(32-bit, wrapping), non-finite or non-unit quaternions, increments above ``max_step_um`` per
-packet and surgeon modes other than 0/1. Rejected packets are counted and change nothing. An arm
-whose packets stop for longer than the timeout reports ``ok = False`` (its robot holds).
+(32-bit, wrapping), a sequence more than ``max_jump`` ahead of the last one (``jump``: one
+spoofed packet numbered last + 2^31 - 1 must not make every genuine packet look old), packets
+from any source other than the one the link is locked to (``source``: the address of the first
+valid packet; the lock is released after ``lock_timeout_s`` without an accepted packet, so a
+restarted master gets the link back), non-finite or non-unit quaternions, increments above
+``max_step_um`` per packet and surgeon modes other than 0/1. Rejected packets are counted and
+change nothing. An arm whose packets stop for longer than the timeout reports ``ok = False``
+(its robot holds). Bound to a non-loopback address, the adapter logs a warning and its status
+says ``exposed``.
 Positions are the increments integrated from zero (master frame, m); the adapter sends no force
 back.
 """
 from __future__ import annotations
 
+import ipaddress
+import logging
 import math
 import socket
 import struct
@@ -31,6 +39,8 @@ import struct
 import numpy as np
 
 from .masters import Master
+
+log = logging.getLogger("pointfence.itp")
 
 ITP = struct.Struct("<III2i2i2i2d2d2d2d2i2iii")
 ITP_SIZE = ITP.size   # 124
@@ -77,29 +87,54 @@ class ItpArmMaster(Master):
             r.drain(t)
         hub = self.poll_also
         if hub is not None and t != hub.t:
-            hub.drain(t)
+            hub.tick(t)
         self.ok = r.seen and t - self.last_t <= r.timeout_s
 
 
 class ItpReceiver:
-    """The ITP socket and its two arms (see the module docstring)."""
+    """The ITP socket and its two arms (see the module docstring).
+
+    Args:
+        host, port: where to bind (loopback unless the masters are on another host: then the
+            link is exposed to anyone on that network, and a warning says so).
+        timeout_ms: an arm silent this long reports ``ok = False``.
+        checksum: "sum" or "none" (see ``itp_checksum``).
+        max_step_um: largest increment per packet and axis, micrometres.
+        max_jump: largest sequence advance accepted from one packet to the next (packets).
+        lock_timeout_s: the source lock is released after this long without an accepted packet, s
+            of loop time.
+        budget: packets handled per tick at most.
+    """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 36000, timeout_ms: int = 50, checksum: str = "sum",
-                 max_step_um: int = 10000, budget: int = 64):
+                 max_step_um: int = 10000, max_jump: int = 1000, lock_timeout_s: float = 1.0, budget: int = 64):
+        if not 1 <= int(max_jump) < 0x80000000:
+            raise ValueError(f"max_jump = {max_jump}; expected 1 .. 2^31 - 1 packets")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, int(port)))
         self.sock.setblocking(False)
         self.timeout_s = timeout_ms / 1000.0
         self.checksum = checksum
         self.max_step_um = int(max_step_um)
+        self.max_jump = int(max_jump)
+        self.lock_timeout_s = float(lock_timeout_s)
         self.budget = int(budget)
         self.arms = [None, None]
         self.t = None
         self.seq = None
         self.seen = False
+        self.source = None               # the address the link is locked to
+        self.last_accept_t = None        # loop time of the last accepted packet
         self._buf = bytearray(2048)
         self.accepted = 0
-        self.counters = {"size": 0, "checksum": 0, "stale": 0, "non_finite": 0, "range": 0}
+        self.counters = {"size": 0, "checksum": 0, "stale": 0, "jump": 0, "source": 0, "non_finite": 0, "range": 0}
+        self.exposed = not ipaddress.ip_address(self.sock.getsockname()[0]).is_loopback
+        self.warning = None
+        if self.exposed:
+            self.warning = (f"ITP adapter bound to {self.sock.getsockname()[0]}:{self.sock.getsockname()[1]}, which is "
+                            "not loopback: the ITP link is UNAUTHENTICATED, anyone who can reach this port can move the "
+                            "robot; bind to 127.0.0.1 or use the authenticated protocol (clients/PROTOCOL.md)")
+            log.warning(self.warning)
 
     @property
     def address(self):
@@ -114,14 +149,21 @@ class ItpReceiver:
         self.t = t
         for _ in range(self.budget):
             try:
-                n = self.sock.recv_into(self._buf)
+                n, addr = self.sock.recvfrom_into(self._buf)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
                 continue
-            self.handle(memoryview(self._buf)[:n], t)
+            self.handle(memoryview(self._buf)[:n], t, addr)
 
-    def handle(self, data, t: float) -> bool:
+    def handle(self, data, t: float, addr) -> bool:
+        """Check and apply one packet from ``addr`` at loop time ``t`` (s); False: rejected (counted)."""
+        if self.source is not None and self.last_accept_t is not None and t - self.last_accept_t > self.lock_timeout_s:
+            self.source = None           # the locked master fell silent: the next valid packet may take the link
+            self.seq = None
+        if self.source is not None and addr != self.source:
+            self.counters["source"] += 1
+            return False
         if len(data) != ITP_SIZE:
             self.counters["size"] += 1
             return False
@@ -130,9 +172,14 @@ class ItpReceiver:
             self.counters["checksum"] += 1
             return False
         seq = v[0]
-        if self.seq is not None and not 0 < (seq - self.seq) & 0xFFFFFFFF < 0x80000000:
-            self.counters["stale"] += 1
-            return False
+        if self.seq is not None:
+            d = (seq - self.seq) & 0xFFFFFFFF
+            if d == 0 or d >= 0x80000000:
+                self.counters["stale"] += 1
+                return False
+            if d > self.max_jump:
+                self.counters["jump"] += 1
+                return False
         dx, dy, dz = v[3:5], v[5:7], v[7:9]
         qx, qy, qz, qw = v[9:11], v[11:13], v[13:15], v[15:17]
         if not all(math.isfinite(x) for x in v[9:17]):
@@ -149,6 +196,8 @@ class ItpReceiver:
             return False
         self.seq = seq
         self.seen = True
+        self.source = addr
+        self.last_accept_t = t
         self.accepted += 1
         for a, m in enumerate(self.arms):
             if m is None:
@@ -165,7 +214,8 @@ class ItpReceiver:
 
     def status(self) -> dict:
         return {"address": list(self.address), "accepted": self.accepted, "rejected": dict(self.counters),
-                "authenticated": False}
+                "authenticated": False, "exposed": self.exposed, "warning": self.warning,
+                "locked_to": list(self.source) if self.source is not None else None}
 
     def close(self) -> None:
         self.sock.close()

@@ -1,26 +1,36 @@
 """The service side of the wire protocol: authenticated UDP clients as masters of the haptic loop.
 
 ``UdpHub`` owns one UDP socket and ``slots`` :class:`UdpMaster` objects (one per proxy of the
-service). A client's HELLO (tagged with the pre-shared key) opens a session on a free slot; its
-STATE messages (tagged with the session key) drive that slot's master; every tick the slot's
-force goes back in a FEEDBACK message. See ``clients/PROTOCOL.md``.
+service). See ``clients/PROTOCOL.md``. Two sides, two threads:
 
-The socket is drained inside the haptic tick, by the first master polled on a new tick (at most
-``budget`` datagrams per tick; the rest wait for the next tick): no receiver thread competes
-with the loop for the interpreter, and a sample that arrives just before a tick is used by it.
+* **The receiver** (a thread of its own, or ``pump()`` called by the owner outside the tick when
+  built with ``receiver=False``) reads the socket, drops floods per source address before any
+  tag is computed (``udp_ratelimit.SourceLimiter``), checks every datagram (size, header, tag,
+  sequence, values), answers handshakes and publishes each accepted STATE into its session's
+  latest-sample slot: a few floats written under the session's own short lock.
+* **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot under that lock
+  (no socket, no HMAC, no allocation), decides timeouts in loop time and sends FEEDBACK
+  (non-blocking ``sendto``).
+
+Handshake (PROTOCOL.md section 6): a HELLO without a valid cookie is answered with a COOKIE
+(``udp_cookies.CookieJar``; no state kept); the HELLO that repeats the cookie opens a session.
+A session that has not proved its key with a valid STATE (``proven``) never makes its device
+``busy`` and gives up its slot to a new handshake after ``PROOF_S``; a captured HELLO replayed
+after its cookie expired, after a restart or inside the validity opens nothing.
 
 A datagram that is truncated, oversized or malformed, fails authentication, replays or is older
 than the newest sample, belongs to no session, or carries non-finite or out-of-workspace values
 is counted (``counters``, per reason) and dropped: it never touches a slot's sample, so it never
 changes a robot command. A session silent for longer than its timeout (default 50 ms, measured
-in loop time) is dropped: its master reports ``ok = False``, so the service holds that arm's
-robot and ramps its force to zero (``service.app``, hold reason "master input invalid").
+in loop time by the tick) is dropped: its master reports ``ok = False``, so the service holds
+that arm's robot and ramps its force to zero (``service.app``, hold reason "master input invalid").
 """
 from __future__ import annotations
 
-import collections
 import os
+import select
 import socket
+import threading
 import time
 from typing import Optional
 
@@ -30,16 +40,21 @@ from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
 from .masters import Master
+from .udp_cookies import CookieJar
+from .udp_ratelimit import SourceLimiter
 
 
 class Session:
-    """One authenticated client bound to a slot."""
+    """One authenticated client bound to a slot. Written by the receiver: the latest sample
+    (under ``lock``), ``proven``, ``addr``, ``rejected``, ``error``, ``accepted``; by the tick:
+    ``seen``, ``last_rx_t``, ``has_state``, ``seq``, ``t_client_ns``, ``tx_seq``."""
 
     __slots__ = ("id", "device_id", "slot", "key", "addr", "window", "workspace", "timeout_s", "max_force",
-                 "last_rx_t", "has_state", "seq", "t_client_ns", "tx_seq", "rejected", "error", "hello",
-                 "accepted")
+                 "hello", "t_open", "proven", "rejected", "error", "accepted",
+                 "lock", "n", "s_seq", "s_pos", "s_flags", "s_buttons", "s_quat", "s_grasp", "s_t_client",
+                 "seen", "last_rx_t", "has_state", "seq", "t_client_ns", "tx_seq")
 
-    def __init__(self, sid, device_id, slot, key, addr, hello: P.Hello, timeout_s, max_force, t):
+    def __init__(self, sid, device_id, slot, key, addr, hello: P.Hello, timeout_s, max_force, t_open: float):
         self.id = sid
         self.device_id = device_id
         self.slot = slot
@@ -49,18 +64,45 @@ class Session:
         self.workspace = (hello.workspace_min, hello.workspace_max)
         self.timeout_s = timeout_s
         self.max_force = max_force
-        self.last_rx_t = t
+        self.hello = hello
+        self.t_open = t_open             # receiver clock (monotonic s) at WELCOME
+        self.proven = False              # a valid STATE arrived: the client holds the session key
+        self.rejected = 0
+        self.error = P.E_OK
+        self.accepted = 0
+        self.lock = threading.Lock()     # guards the latest sample below (held for a copy of a few values)
+        self.n = 0                       # samples published so far
+        self.s_seq = 0
+        self.s_pos = [0.0, 0.0, 0.0]
+        self.s_flags = 0
+        self.s_buttons = 0
+        self.s_quat = [1.0, 0.0, 0.0, 0.0]
+        self.s_grasp = 0.0
+        self.s_t_client = 0
+        self.seen = 0                    # tick: samples copied so far
+        self.last_rx_t = None            # tick: loop time of the newest sample (or of the first tick that saw the session)
         self.has_state = False
         self.seq = 0
         self.t_client_ns = 0
         self.tx_seq = 0
-        self.rejected = 0
-        self.error = P.E_OK
-        self.hello = hello
-        self.accepted = 0
+
+    def publish(self, seq: int, st: P.State) -> None:
+        """Receiver: make ``st`` (checked) the session's latest sample."""
+        p, q = st.position, st.orientation
+        with self.lock:
+            self.s_seq = seq
+            self.s_pos[0], self.s_pos[1], self.s_pos[2] = p[0], p[1], p[2]
+            self.s_flags = st.flags
+            self.s_buttons = st.buttons
+            if st.flags & P.F_ORIENTATION:
+                self.s_quat[0], self.s_quat[1], self.s_quat[2], self.s_quat[3] = q[0], q[1], q[2], q[3]
+            if st.flags & P.F_GRASP:
+                self.s_grasp = st.grasp
+            self.s_t_client = st.t_client_ns
+            self.n += 1
 
 
-#: drains per window of the deadline-grid estimate (UdpHub.drain)
+#: drains per window of the deadline-grid estimate (UdpHub.tick)
 BASE_WINDOW = 1000
 
 
@@ -82,11 +124,47 @@ class UdpMaster(Master):
         self.session: Optional[Session] = None
 
     def poll(self, t: float) -> None:
+        """The tick's read: copy the slot's newest sample (loop time ``t``, s), decide its timeout."""
         hub = self.hub
         if t != hub.t:
-            hub.drain(t)
+            hub.tick(t)
         s = self.session
-        self.ok = s is not None and s.has_state
+        if s is None or not isinstance(s, Session):
+            self.ok = False
+            self.clutch = False
+            return
+        if s.n != s.seen:
+            with s.lock:
+                n = s.n
+                x, y, z = s.s_pos
+                flags = s.s_flags
+                buttons = s.s_buttons
+                qw, qx, qy, qz = s.s_quat
+                grasp = s.s_grasp
+                seq = s.s_seq
+                t_client = s.s_t_client
+            pos = self.position
+            pos[0], pos[1], pos[2] = x, y, z
+            self.clutch = bool(flags & P.F_CLUTCH)
+            self.buttons = buttons
+            if flags & P.F_ORIENTATION:
+                o = self.orientation
+                o[0], o[1], o[2], o[3] = qw, qx, qy, qz
+            if flags & P.F_GRASP:
+                self.grasp = grasp
+            s.seen = n
+            s.seq = seq
+            s.t_client_ns = t_client
+            s.last_rx_t = t
+            s.has_state = True
+        elif s.last_rx_t is None:
+            s.last_rx_t = t                      # a new session: its silence counts from this tick
+        if t - s.last_rx_t > s.timeout_s:
+            hub.drop(s)
+            self.ok = False
+            self.clutch = False
+            return
+        self.ok = s.has_state
 
     def send_force(self, f: np.ndarray) -> None:
         self.force[:] = f
@@ -105,12 +183,14 @@ class UdpHub:
         timeout_ms: the default and largest session timeout (a client may ask for less).
         rate_hz: the service tick rate, told to clients.
         max_force: the service's force limit, N (the lower of it and the device's is used).
-        budget: datagrams handled per tick at most.
+        receiver: run the receiver thread (default); False: the owner calls ``pump()`` itself,
+            outside the tick (deterministic tests on a simulated clock).
+        limiter: the per-source rate limiter (default: 4,000 datagrams/s, bursts of 400).
     """
 
     def __init__(self, psk: bytes, slots: int = 1, host: str = "127.0.0.1", port: int = 0,
                  timeout_ms: int = P.DEFAULT_TIMEOUT_MS, rate_hz: float = 1000.0, max_force: float = 10.0,
-                 budget: int = 64):
+                 receiver: bool = True, limiter: Optional[SourceLimiter] = None):
         self.psk = P.check_key(psk)
         if int(slots) < 1:
             raise InputError(f"slots = {slots}; expected at least one master slot")
@@ -119,7 +199,6 @@ class UdpHub:
         self.timeout_ms = int(timeout_ms)
         self.rate_hz = float(rate_hz)
         self.max_force = float(max_force)
-        self.budget = int(budget)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
@@ -130,22 +209,33 @@ class UdpHub:
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
-        self._nonces = collections.OrderedDict()   # recent HELLO nonces (replayed HELLOs are refused)
+        self.cookies = CookieJar()
+        self.limiter = limiter if limiter is not None else SourceLimiter()
+        self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
         self._view = memoryview(self._buf)
-        self.t = None                     # loop time of the last drain
-        self._base_ns = None              # perf_counter_ns at loop time 0 (tick deadlines): see drain
-        self._base_win = [None, None]     # minima of the current and the previous window of drains
+        self.t = None                     # loop time of the last tick
+        self._base_ns = None              # perf_counter_ns at loop time 0 (tick deadlines): see tick
+        self._base_win = [None, None]     # minima of the current and the previous window of ticks
         self._base_n = 0
         self.service = None
         self.counters = {name: 0 for name in P.ERROR_NAMES.values() if name != "ok"}
-        self.accepted = 0                 # STATE messages applied
+        self.counters["rate_limited"] = 0
+        self.accepted = 0                 # STATE messages accepted
+        self.received = 0                 # datagrams read from the socket
         self.hellos = 0
+        self.cookies_sent = 0
         self.sessions_opened = 0
         self.sessions_dropped = 0         # timeouts
         self.sessions_closed = 0          # BYE
+        self.sessions_displaced = 0       # unproven sessions given up to a new handshake
         self.feedback_sent = 0
         self.send_errors = 0
+        self._stop = threading.Event()
+        self._thread = None
+        if receiver:
+            self._thread = threading.Thread(target=self._run, name="pointfence-udp-rx", daemon=True)
+            self._thread.start()
 
     @property
     def address(self):
@@ -156,45 +246,52 @@ class UdpHub:
         self.service = service
 
     def close(self) -> None:
-        for s in list(self.sessions.values()):
-            self._send(s.addr, P.Bye(P.E_OK).encode(s.key, s.device_id, s.id, self._next_tx(s)))
-            self._end(s)
-        self.sock.close()
+        """Stop the receiver, end every session (BYE) and close the socket."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        if self.sock.fileno() >= 0:
+            for s in list(self.sessions.values()):
+                self._send(s.addr, P.Bye(P.E_OK).encode(s.key, s.device_id, s.id, self._next_tx(s)))
+                self._end(s)
+            self.sock.close()
 
-    # --- receive (in the tick) --------------------------------------------------------------------
-    def drain(self, t: float) -> None:
-        """Handle waiting datagrams (at most ``budget``), then drop silent sessions."""
-        self.t = t
-        now_ns = time.perf_counter_ns()
-        # the deadline grid's origin: drain time minus loop time, at its minimum (the least late
-        # tick). A windowed minimum (the last 1,000 to 2,000 drains), so that a drain outside the
-        # loop's timeline (the service's start-up poll at loop time 0, before the first tick;
-        # measured 32 ms early) cannot shift the clients' phase lock for good.
-        base = now_ns - int(round(t * 1e9))
-        w = self._base_win
-        if w[0] is None or base < w[0]:
-            w[0] = base
-        self._base_n += 1
-        if self._base_n >= BASE_WINDOW:
-            w[1], w[0], self._base_n = w[0], None, 0
-        self._base_ns = w[0] if w[1] is None else (w[1] if w[0] is None else min(w[0], w[1]))
-        sock, buf = self.sock, self._buf
-        for _ in range(self.budget):
+    # --- receiver (outside the tick) ------------------------------------------------------------------
+    def _run(self) -> None:
+        poller = select.poll()
+        poller.register(self.sock, select.POLLIN)
+        while not self._stop.is_set() and self.sock.fileno() >= 0:
+            try:
+                ready = poller.poll(50)
+            except OSError:
+                return
+            if ready:
+                self.pump()
+
+    def pump(self, limit: int = 4096) -> int:
+        """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
+        sock, buf, view = self.sock, self._buf, self._view
+        allow = self.limiter.allow
+        k = 0
+        while k < limit and not self._stop.is_set():
             try:
                 n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
                 break
-            except OSError:      # e.g. ICMP port unreachable reported on a UDP socket
+            except OSError:      # e.g. ICMP port unreachable reported on a UDP socket; a closed socket
+                if sock.fileno() < 0:
+                    break
                 continue
-            self.handle(self._view[:n], addr, t)
-        for s in list(self.sessions.values()):
-            if t - s.last_rx_t > s.timeout_s:
-                self.counters["timeout"] += 1
-                self.sessions_dropped += 1
-                self._end(s)
+            k += 1
+            self.received += 1
+            if not allow(addr, time.monotonic()):
+                self.counters["rate_limited"] += 1
+                continue
+            self.handle(view[:n], addr)
+        return k
 
-    def handle(self, data, addr, t: float) -> int:
-        """Check and apply one datagram; returns the E_* code (E_OK when accepted)."""
+    def handle(self, data, addr) -> int:
+        """Check and apply one datagram from ``addr``; returns the E_* code (E_OK when accepted)."""
         session = None
         try:
             h = P.parse_header(data)
@@ -209,7 +306,11 @@ class UdpHub:
                 st = P.State.decode(data, session.workspace)
                 if not session.window.commit(h.seq):
                     raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-                self._apply(session, h, st, addr, t)
+                session.publish(h.seq, st)
+                session.proven = True
+                session.addr = addr
+                session.accepted += 1
+                self.accepted += 1
                 return P.E_OK
             if typ == P.HELLO:
                 P.verify(data, self.psk)
@@ -218,7 +319,7 @@ class UdpHub:
                 except P.ProtocolError as e:   # authentic but unusable: say why
                     self._reject(addr, h.device_id, bytes(data[P.HEADER_LEN:P.HEADER_LEN + 16]), e.code)
                     raise
-                self._hello(h, hello, addr, t)
+                self._hello(h, hello, addr)
                 return P.E_OK
             if typ == P.BYE:
                 session = self.sessions.get(h.session)
@@ -240,69 +341,114 @@ class UdpHub:
                 session.error = e.code
             return e.code
 
-    def _apply(self, s: Session, h, st: P.State, addr, t: float) -> None:
-        m = self.masters[s.slot]
-        m.position[0], m.position[1], m.position[2] = st.position
-        m.clutch = bool(st.flags & P.F_CLUTCH)
-        m.buttons = st.buttons
-        if st.flags & P.F_ORIENTATION:
-            m.orientation[:] = st.orientation
-        if st.flags & P.F_GRASP:
-            m.grasp = st.grasp
-        s.has_state = True
-        s.seq = h.seq
-        s.t_client_ns = st.t_client_ns
-        s.last_rx_t = t
-        s.addr = addr
-        s.accepted += 1
-        self.accepted += 1
-
-    def _hello(self, h, hello: P.Hello, addr, t: float) -> None:
+    def _hello(self, h, hello: P.Hello, addr) -> None:
         self.hellos += 1
-        if hello.nonce in self._nonces:
-            raise P.ProtocolError(P.E_REPLAY, "HELLO nonce already used")
-        self._nonces[hello.nonce] = None
-        if len(self._nonces) > 4096:
-            self._nonces.popitem(last=False)
-        old = self.by_device.get(h.device_id)
-        if old is not None:
-            self._reject(addr, h.device_id, hello.nonce, P.E_BUSY)
-            raise P.ProtocolError(P.E_BUSY, f"device {h.device_id} already has session {old.id}")
-        slot = next((m.slot for m in self.masters if m.session is None), None)
-        if slot is None:
-            self._reject(addr, h.device_id, hello.nonce, P.E_FULL)
-            raise P.ProtocolError(P.E_FULL, f"all {len(self.masters)} slots in use")
+        dev, nonce = h.device_id, hello.nonce
+        if not hello.has_cookie:
+            self._send_cookie(addr, dev, nonce)
+            return
+        try:
+            t_issue = self.cookies.check(hello.cookie, addr, dev, nonce)
+        except P.ProtocolError:
+            self._send_cookie(addr, dev, nonce)      # expired or foreign: a fresh challenge (no session)
+            raise
+        with self._lock:
+            self.cookies.consume(nonce, t_issue)     # a cookie'd HELLO counts once: a replay is E_REPLAY, unanswered
+        now = time.monotonic()
+        with self._lock:
+            old = self.by_device.get(dev)
+            if old is not None and old.proven:
+                code, why = P.E_BUSY, f"device {dev} already has session {old.id}"
+            else:
+                code, why = P.E_OK, ""
+                slot = old.slot if old is not None else next((m.slot for m in self.masters if m.session is None), None)
+                if slot is None:
+                    slot = self._displace(now)
+                if slot is None:
+                    code, why = P.E_FULL, f"all {len(self.masters)} slots in use"
+            if code == P.E_OK:
+                if old is not None:                  # an unproven session of this device: a new handshake wins
+                    self.sessions_displaced += 1
+                    self._end_locked(old)
+                s, server_nonce = self._open(dev, hello, addr, slot, now)
+        if code != P.E_OK:
+            self._reject(addr, dev, nonce, code)
+            raise P.ProtocolError(code, why)
+        w = P.Welcome(nonce, server_nonce, slot, round(s.timeout_s * 1000), self.rate_hz, s.max_force,
+                      time.perf_counter_ns())
+        self._send(addr, w.encode(self.psk, dev, s.id, 0))
+
+    def _displace(self, now: float):
+        """The slot of the oldest session that never proved its key within PROOF_S (or None)."""
+        victim = None
+        for m in self.masters:
+            s = m.session
+            if isinstance(s, Session) and not s.proven and now - s.t_open > P.PROOF_S:
+                if victim is None or s.t_open < victim.t_open:
+                    victim = s
+        if victim is None:
+            return None
+        self.sessions_displaced += 1
+        self._end_locked(victim)
+        return victim.slot
+
+    def _open(self, dev: int, hello: P.Hello, addr, slot: int, now: float):
+        """A new (unproven) session on ``slot``: (Session, server nonce). Called under the lock."""
         sid = 0
         while sid == 0 or sid in self.sessions:
             sid = int.from_bytes(os.urandom(4), "little")
         server_nonce = os.urandom(16)
-        key = P.session_key(self.psk, hello.nonce, server_nonce, h.device_id, sid)
+        key = P.session_key(self.psk, hello.nonce, server_nonce, dev, sid)
         tmo = min(hello.timeout_ms or self.timeout_ms, self.timeout_ms)
-        fmax = min(hello.max_force, self.max_force)
-        s = Session(sid, h.device_id, slot, key, addr, hello, tmo / 1000.0, fmax, t)
+        s = Session(sid, dev, slot, key, addr, hello, tmo / 1000.0, min(hello.max_force, self.max_force), now)
         self.sessions[sid] = s
-        self.by_device[h.device_id] = s
-        m = self.masters[slot]
-        m.session = s
-        m.ok = False
+        self.by_device[dev] = s
+        self.masters[slot].session = s
         self.sessions_opened += 1
-        w = P.Welcome(hello.nonce, server_nonce, slot, tmo, self.rate_hz, fmax, time.perf_counter_ns())
-        self._send(addr, w.encode(self.psk, h.device_id, sid, 0))
+        return s, server_nonce
+
+    def _send_cookie(self, addr, dev: int, nonce: bytes) -> None:
+        self.cookies_sent += 1
+        self._send(addr, P.Cookie(nonce, self.cookies.issue(addr, dev, nonce)).encode(self.psk, dev, 0))
 
     def _reject(self, addr, device_id, nonce, code) -> None:
         self._send(addr, P.Reject(nonce, code).encode(self.psk, device_id, 0))
 
     def _end(self, s: Session) -> None:
+        with self._lock:
+            self._end_locked(s)
+
+    def _end_locked(self, s: Session) -> None:
         self.sessions.pop(s.id, None)
         if self.by_device.get(s.device_id) is s:
             del self.by_device[s.device_id]
         m = self.masters[s.slot]
         if m.session is s:
             m.session = None
-            m.ok = False
-            m.clutch = False
 
-    # --- send (in the tick) -----------------------------------------------------------------------------
+    # --- the tick ------------------------------------------------------------------------------------
+    def tick(self, t: float) -> None:
+        """Once per tick (by the first master polled): the deadline grid's origin for FEEDBACK."""
+        self.t = t
+        # the deadline grid's origin: tick time minus loop time, at its minimum (the least late
+        # tick). A windowed minimum (the last 1,000 to 2,000 ticks), so that a poll outside the
+        # loop's timeline (the service's start-up poll at loop time 0, before the first tick;
+        # measured 32 ms early) cannot shift the clients' phase lock for good.
+        base = time.perf_counter_ns() - int(round(t * 1e9))
+        w = self._base_win
+        if w[0] is None or base < w[0]:
+            w[0] = base
+        self._base_n += 1
+        if self._base_n >= BASE_WINDOW:
+            w[1], w[0], self._base_n = w[0], None, 0
+        self._base_ns = w[0] if w[1] is None else (w[1] if w[0] is None else min(w[0], w[1]))
+
+    def drop(self, s: Session) -> None:
+        """The tick: session ``s`` was silent longer than its timeout (loop time)."""
+        self.counters["timeout"] += 1
+        self.sessions_dropped += 1
+        self._end(s)
+
     def _next_tx(self, s: Session) -> int:
         s.tx_seq += 1
         return s.tx_seq
@@ -348,10 +494,14 @@ class UdpHub:
             "address": list(self.address) if self.sock.fileno() >= 0 else None,
             "slots": len(self.masters),
             "sessions": [{"session": s.id, "device_id": s.device_id, "slot": s.slot, "model": s.hello.model,
-                          "accepted": s.accepted, "rejected": s.rejected, "timeout_ms": round(s.timeout_s * 1000)}
-                         for s in self.sessions.values()],
-            "accepted": self.accepted, "hellos": self.hellos, "sessions_opened": self.sessions_opened,
+                          "proven": s.proven, "accepted": s.accepted, "rejected": s.rejected,
+                          "timeout_ms": round(s.timeout_s * 1000)}
+                         for s in list(self.sessions.values())],
+            "accepted": self.accepted, "received": self.received, "hellos": self.hellos,
+            "cookies_sent": self.cookies_sent, "sessions_opened": self.sessions_opened,
             "sessions_timed_out": self.sessions_dropped, "sessions_closed": self.sessions_closed,
-            "feedback_sent": self.feedback_sent, "send_errors": self.send_errors,
+            "sessions_displaced": self.sessions_displaced, "feedback_sent": self.feedback_sent,
+            "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
+            "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
             "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
         }

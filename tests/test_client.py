@@ -1,5 +1,5 @@
-"""The Python client SDK against the service's UDP hub (pumped by a thread that plays the haptic
-loop's part: drain, then a force per slot), and `device-sim`. No wall-clock assertions: waits are
+"""The Python client SDK against the service's UDP hub (its receiver thread verifies datagrams; a
+thread plays the haptic loop's part: poll each slot, then a force per slot), and `device-sim`. No wall-clock assertions: waits are
 bounded, outcomes are checked."""
 import json
 import os
@@ -18,7 +18,7 @@ KEY = bytes(range(1, 33))
 
 
 class Pump:
-    """Drains the hub every ~1 ms and sends each live slot a force of -100 x its position."""
+    """Ticks the hub's masters every ~1 ms and sends each live slot a force of -100 x its position."""
 
     def __init__(self, hub, feedback=True):
         self.hub, self.feedback = hub, feedback
@@ -48,7 +48,7 @@ class Pump:
 def hub():
     h = UdpHub(KEY, 2)
     yield h
-    h.sock.close()
+    h.close()
 
 
 def wait_for(cond, timeout=5.0):
@@ -77,7 +77,8 @@ def test_connect_send_receive_force_and_close(hub):
             m = hub.masters[0]
             assert m.ok and m.clutch and m.buttons == 3 and m.grasp == pytest.approx(0.2)
         assert wait_for(lambda: not hub.sessions)       # BYE ended the session
-        assert hub.sessions_closed == 1 and not hub.masters[0].ok
+        assert hub.sessions_closed == 1
+        assert wait_for(lambda: not hub.masters[0].ok)  # ... and the next tick's poll sees no sample
     finally:
         pump.close()
 
@@ -88,22 +89,47 @@ def test_busy_and_full_are_rejected(hub):
         a, b, c, d = (Client(*hub.address, KEY, i) for i in (1, 2, 3, 1))
         a.connect(timeout=5)
         b.connect(timeout=5)
-        with pytest.raises(Rejected) as e:
-            c.connect(timeout=5)
-        assert e.value.code == P.E_FULL
-        with pytest.raises(Rejected) as e:
-            d.connect(timeout=5)
-        assert e.value.code == P.E_BUSY
+        keep = Sender([a, b])            # a and b prove their keys and stay live
+        try:
+            assert wait_for(lambda: len(hub.sessions) == 2 and all(s.proven for s in list(hub.sessions.values())))
+            with pytest.raises(Rejected) as e:
+                c.connect(timeout=5)
+            assert e.value.code == P.E_FULL
+            with pytest.raises(Rejected) as e:
+                d.connect(timeout=5)
+            assert e.value.code == P.E_BUSY
+        finally:
+            keep.close()
         for x in (a, b, c, d):
             x.close()
     finally:
         pump.close()
 
 
+class Sender:
+    """Keeps clients live: each sends a sample every ~2 ms from a thread of its own."""
+
+    def __init__(self, clients):
+        self.clients = clients
+        self.stop = threading.Event()
+        self.th = threading.Thread(target=self.run, daemon=True)
+        self.th.start()
+
+    def run(self):
+        while not self.stop.is_set():
+            for c in self.clients:
+                c.send_state((0.0, 0.0, 0.0))
+            time.sleep(0.002)
+
+    def close(self):
+        self.stop.set()
+        self.th.join(2)
+
+
 def test_wrong_key_gets_no_answer(hub):
     pump = Pump(hub, feedback=False)
     try:
-        c = Client(*hub.address, bytes(32), 9)
+        c = Client(*hub.address, bytes([7]) * 32, 9)
         with pytest.raises(ClientError, match="no answer"):
             c.connect(timeout=0.3)
         c.close()
@@ -207,6 +233,7 @@ def test_device_sim_runs_a_scripted_motion_and_a_trajectory(hub, tmp_path, capsy
 
     key = tmp_path / "k"
     key.write_text(KEY.hex() + "\n")
+    key.chmod(0o600)
     traj = tmp_path / "t.csv"
     write_trajectory(traj, [0.0, 0.2], [[0, 0, 0], [0, 0, -0.01]], [1, 1])
     pump = Pump(hub)
@@ -223,22 +250,22 @@ def test_device_sim_runs_a_scripted_motion_and_a_trajectory(hub, tmp_path, capsy
         pump.close()
 
 
-def test_deadline_grid_estimate_recovers_from_a_drain_off_the_timeline(monkeypatch):
+def test_deadline_grid_estimate_recovers_from_a_tick_off_the_timeline(monkeypatch):
     """The hub stamps feedback with its tick's deadline (origin of the grid + loop time). A
-    drain outside the loop's timeline (the service's start-up poll at loop time 0, tens of ms
+    tick outside the loop's timeline (the service's start-up poll at loop time 0, tens of ms
     before the first tick) must not shift that origin for good: it is a windowed minimum."""
     from pointfence.service import udp_server as U
 
     clock = {"ns": 1_000_000_000}
     monkeypatch.setattr(U.time, "perf_counter_ns", lambda: clock["ns"])
-    h = UdpHub(KEY, 1)
+    h = UdpHub(KEY, 1, receiver=False)
     try:
-        h.drain(0.0)                       # start-up poll, 32 ms before the loop's t0
+        h.tick(0.0)                       # start-up poll, 32 ms before the loop's t0
         t0 = clock["ns"] + 32_000_000
         assert h._base_ns == clock["ns"]
         for k in range(1, 2 * U.BASE_WINDOW + 2):
             clock["ns"] = t0 + k * 1_000_000 + 3_000 + (k % 7) * 1_000   # ticks 3-9 us late
-            h.drain(k * 0.001)
+            h.tick(k * 0.001)
         assert h._base_ns == t0 + 3_000
     finally:
         h.close()

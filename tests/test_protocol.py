@@ -1,4 +1,4 @@
-"""Wire protocol v1: the test vectors (Python side; the C SDK runs the same files under ctest),
+"""Wire protocol v2: the test vectors (Python side; the C SDK runs the same files under ctest),
 layout, keys, replay window."""
 import hashlib
 import hmac
@@ -25,7 +25,8 @@ def test_vector_files_are_exactly_what_the_generator_writes():
 
 def test_sizes_are_fixed_and_documented():
     assert P.HEADER_LEN == 24 and P.TAG_LEN == 16
-    assert P.SIZES == {P.HELLO: 144, P.WELCOME: 104, P.REJECT: 64, P.STATE: 152, P.FEEDBACK: 172, P.BYE: 48}
+    assert P.SIZES == {P.HELLO: 168, P.WELCOME: 104, P.REJECT: 64, P.STATE: 152, P.FEEDBACK: 172, P.BYE: 48,
+                       P.COOKIE: 80}
     assert load("messages.json")["sizes"] == {P.TYPE_NAMES[t]: n for t, n in P.SIZES.items()}
     doc = (Path(__file__).resolve().parents[1] / "clients" / "PROTOCOL.md").read_text()
     for t, n in P.SIZES.items():
@@ -52,7 +53,9 @@ def _from_fields(v):
     typ = v["type"]
     if typ == "HELLO":
         return P.Hello(bytes.fromhex(f["nonce_hex"]), f["max_force"], tuple(f["workspace_min"]), tuple(f["workspace_max"]),
-                       f["rate_hz"], f["timeout_ms"], f["caps"], f["model"])
+                       f["rate_hz"], f["timeout_ms"], f["caps"], f["model"], bytes.fromhex(f["cookie_hex"]))
+    if typ == "COOKIE":
+        return P.Cookie(bytes.fromhex(f["client_nonce_hex"]), bytes.fromhex(f["cookie_hex"]))
     if typ == "WELCOME":
         return P.Welcome(bytes.fromhex(f["client_nonce_hex"]), bytes.fromhex(f["server_nonce_hex"]), f["slot"],
                          f["timeout_ms"], f["rate_hz"], f["max_force"], f["t_service_ns"])
@@ -74,7 +77,7 @@ def test_message_vectors_byte_for_byte_and_back():
     for v in vs:
         key = bytes.fromhex(v["key_hex"])
         msg = _from_fields(v)
-        if v["type"] in ("HELLO", "REJECT"):
+        if v["type"] in ("HELLO", "REJECT", "COOKIE"):
             data = msg.encode(key, v["device_id"], v["seq"])
         elif v["type"] == "WELCOME":
             data = msg.encode(key, v["device_id"], v["session"], v["seq"])
@@ -90,7 +93,7 @@ def test_state_layout_by_hand():
     """The STATE vector rebuilt from the spec's table with struct and hmac alone."""
     v = next(x for x in load("messages.json")["vectors"] if x["name"] == "state-orientation-grasp")
     f = v["fields"]
-    head = b"PF" + bytes([1, 4]) + struct.pack("<IIQI", v["device_id"], v["session"], v["seq"], 0)
+    head = b"PF" + bytes([2, 4]) + struct.pack("<IIQI", v["device_id"], v["session"], v["seq"], 0)
     body = struct.pack("<QQ", f["t_client_ns"], f["t_echo_ns"])
     body += struct.pack("<3d3d4dd", *f["position"], *f["increment"], *f["orientation"], f["grasp"])
     body += struct.pack("<IHH", f["buttons"], f["flags"], 0)
@@ -123,11 +126,33 @@ def test_replay_window_streams():
 def test_keys_and_key_files(tmp_path):
     with pytest.raises(Exception, match="16 to 64 bytes"):
         P.check_key(b"short")
-    p = tmp_path / "k"
-    p.write_text("00" * 32 + "\n")
-    assert P.load_key(p) == bytes(32)
-    p.write_text("zz\n")
-    with pytest.raises(Exception, match="hex"):
-        P.load_key(p)
+    with pytest.raises(Exception, match="all zero"):
+        P.check_key(bytes(32))
     with pytest.raises(Exception, match="not found"):
         P.load_key(tmp_path / "missing")
+
+
+#: what each refusal class of keyfiles.json must say (the user's next step)
+KEY_ERRORS = {"mode": r"mode 0\d+.*chmod 600 .*--new-key", "format": r"hex digit|empty|longer than",
+              "zero": r"all zero.*--new-key"}
+
+
+def test_key_file_table_shared_with_the_c_sdk(tmp_path):
+    """clients/vectors/keyfiles.json: contents and mode -> key or refusal (the C ctest runs it too)."""
+    cases = load("keyfiles.json")["cases"]
+    assert {c["result"] for c in cases} == {"ok", "mode", "format", "zero"}
+    for i, c in enumerate(cases):
+        p = tmp_path / f"k{i}"
+        p.write_bytes(bytes.fromhex(c["content_hex"]))
+        p.chmod(c["mode"])
+        if c["result"] == "ok":
+            assert P.load_key(p).hex() == c["key_hex"], c["name"]
+        else:
+            with pytest.raises(P.PointfenceError, match=KEY_ERRORS[c["result"]]) as e:
+                P.load_key(p)
+            assert str(p) in str(e.value), c["name"]
+
+
+def test_key_file_that_is_not_a_regular_file(tmp_path):
+    with pytest.raises(P.PointfenceError, match="not a regular file"):
+        P.load_key(tmp_path)

@@ -27,12 +27,13 @@ KEY = bytes(range(40, 72))
 
 
 class Rig:
-    """A Service whose masters are a UdpHub's slots, ticked on a FakeClock by the test."""
+    """A Service whose masters are a UdpHub's slots, ticked on a FakeClock by the test; the hub's
+    receiver is pumped by the test before each tick (deterministic: no receiver thread)."""
 
     def __init__(self, tmp_path, slots=1, robot=POINT_MASS, arch="I"):
         tmp_path.mkdir(parents=True, exist_ok=True)
         cfg = balloon_config(tmp_path, arch=arch, robot=robot)
-        self.hub = UdpHub(KEY, slots)
+        self.hub = UdpHub(KEY, slots, receiver=False)
         self.svc = Service(cfg, self.hub.masters, record=4000)
         self.hub.attach(self.svc)
         self.sources = cfg.open_sources()
@@ -44,12 +45,16 @@ class Rig:
     def connect(self, device_id):
         c = Client(*self.hub.address, KEY, device_id)
         c.hello_send()
-        self.tick()
+        self.hub.pump()                         # HELLO -> COOKIE
+        assert c.hello_wait(0.0) is None        # COOKIE -> HELLO with the cookie
+        self.tick()                             # -> WELCOME
         assert c.hello_wait(2.0) is not None
         return c
 
     def tick(self, n=1):
-        self.loop.run_ticks(n)
+        for _ in range(n):
+            self.hub.pump()
+            self.loop.run_ticks(1)
 
     def robot(self, b=0):
         return self.svc.robots[b].setpoint_cp()[:3, 3].copy()
@@ -57,7 +62,7 @@ class Rig:
     def close(self):
         for s in self.sources:
             s.close()
-        self.hub.sock.close()
+        self.hub.close()
 
 
 def settle(rig, clients_positions, n):
@@ -209,8 +214,9 @@ def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
         q = [[0, 0, 0, 1], [0, 0, 0, 1]]
         good = [pack_itp(s, [[100, 0, -50], [0, 20, 0]], q, surgeon_mode=1) for s in (1, 2, 3)]
         assert all(len(g) == ITP_SIZE == 124 for g in good)
+        src = ("127.0.0.1", 40000)
         for g in good:
-            assert r.handle(g, 0.001)
+            assert r.handle(g, 0.001, src)
         np.testing.assert_allclose(arm0.position, [300e-6, 0, -150e-6])
         np.testing.assert_allclose(arm1.position, [0, 60e-6, 0])
         assert arm0.clutch and arm1.clutch
@@ -223,7 +229,7 @@ def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
                pack_itp(11, [[1, 0, 0], [0, 0, 0]], [[math.nan, 0, 0, 1], [0, 0, 0, 1]]),
                pack_itp(12, [[1, 0, 0], [0, 0, 0]], q, surgeon_mode=5)]
         for d in bad:
-            assert not r.handle(d, 0.002)
+            assert not r.handle(d, 0.002, src)
         np.testing.assert_array_equal(arm0.position, before)
         assert sum(r.counters.values()) == len(bad) and r.status()["authenticated"] is False
         arm0.poll(0.002)

@@ -61,7 +61,15 @@ int main(int argc, char **argv) {
         return 2;
     }
     seconds = argc > 5 ? atof(argv[5]) : 5.0;
-    if (pf_load_key(argv[3], key, sizeof key, &key_len)) { fprintf(stderr, "cannot read the key file %s\n", argv[3]); return 1; }
+    e = pf_load_key(argv[3], key, sizeof key, &key_len);
+    if (e) {
+        fprintf(stderr, "key file %s refused (%s): %s\n", argv[3], pf_error_name(e),
+                e == PF_E_KEY_MODE ? "others may read it; run chmod 600 on it"
+                : e == PF_E_KEY_ZERO ? "an all-zero key; write a random one with pointfence serve --new-key FILE"
+                : e == PF_E_KEY_FORMAT ? "expected 32 to 128 hex digits and at most one newline (pointfence serve --new-key FILE)"
+                : "cannot open it");
+        return 1;
+    }
     caps.max_force = 3.3;                         /* the device's limits */
     caps.workspace_min[0] = caps.workspace_min[1] = caps.workspace_min[2] = -0.08;
     caps.workspace_max[0] = caps.workspace_max[1] = caps.workspace_max[2] = 0.08;

@@ -34,20 +34,21 @@
 extern "C" {
 #endif
 
-#define PF_PROTOCOL_VERSION 1
+#define PF_PROTOCOL_VERSION 2
 #define PF_HEADER_LEN 24
 #define PF_TAG_LEN 16
 #define PF_NONCE_LEN 16
+#define PF_COOKIE_LEN 24
 #define PF_KEY_MAX 64
 #define PF_MAX_DATAGRAM 2048
 #define PF_WINDOW 64
 #define PF_DEFAULT_TIMEOUT_MS 50
 
 /* message types and their fixed sizes (bytes, tag included) */
-enum pf_type { PF_HELLO = 1, PF_WELCOME = 2, PF_REJECT = 3, PF_STATE = 4, PF_FEEDBACK = 5, PF_BYE = 6 };
+enum pf_type { PF_HELLO = 1, PF_WELCOME = 2, PF_REJECT = 3, PF_STATE = 4, PF_FEEDBACK = 5, PF_BYE = 6, PF_COOKIE = 7 };
 enum pf_size {
-    PF_HELLO_SIZE = 144, PF_WELCOME_SIZE = 104, PF_REJECT_SIZE = 64,
-    PF_STATE_SIZE = 152, PF_FEEDBACK_SIZE = 172, PF_BYE_SIZE = 48
+    PF_HELLO_SIZE = 168, PF_WELCOME_SIZE = 104, PF_REJECT_SIZE = 64,
+    PF_STATE_SIZE = 152, PF_FEEDBACK_SIZE = 172, PF_BYE_SIZE = 48, PF_COOKIE_SIZE = 80
 };
 
 /* error codes (identical to the protocol's; >= 100: local errors of this library) */
@@ -55,11 +56,14 @@ enum pf_error {
     PF_OK = 0, PF_E_MALFORMED = 1, PF_E_VERSION = 2, PF_E_TRUNCATED = 3, PF_E_OVERSIZED = 4,
     PF_E_AUTH = 5, PF_E_REPLAY = 6, PF_E_STALE = 7, PF_E_NO_SESSION = 8, PF_E_NON_FINITE = 9,
     PF_E_WORKSPACE = 10, PF_E_FULL = 11, PF_E_BUSY = 12, PF_E_TIMEOUT = 13, PF_E_CAPABILITY = 14,
-    PF_E_DIRECTION = 15,
+    PF_E_DIRECTION = 15, PF_E_COOKIE = 16,
     PF_E_ARGUMENT = 100,   /* bad argument (NULL, buffer too small, key length) */
     PF_E_SYSTEM = 101,     /* socket or clock error (see errno) */
     PF_E_NOT_CONNECTED = 102,
-    PF_E_LINK_LOST = 103   /* no feedback for longer than the session timeout */
+    PF_E_LINK_LOST = 103,  /* no feedback for longer than the session timeout */
+    PF_E_KEY_MODE = 104,   /* key file readable or writable by group or others: chmod 600 FILE */
+    PF_E_KEY_FORMAT = 105, /* key file is not 32..128 hex digits and at most one newline (PROTOCOL.md 3.1) */
+    PF_E_KEY_ZERO = 106    /* key file holds an all-zero key: write a random one (pointfence serve --new-key) */
 };
 
 /* HELLO capability bits, STATE flags, FEEDBACK fields */
@@ -87,7 +91,10 @@ typedef struct {
     uint16_t timeout_ms;                    /* 0: the service default */
     uint16_t caps;                          /* PF_CAP_* */
     char model[17];                         /* printable ASCII, NUL-terminated */
+    uint8_t cookie[PF_COOKIE_LEN];          /* zeros in the first HELLO; the service's COOKIE in the second */
 } pf_hello;
+
+typedef struct { uint8_t client_nonce[PF_NONCE_LEN], cookie[PF_COOKIE_LEN]; } pf_cookie;
 
 typedef struct {
     uint8_t client_nonce[PF_NONCE_LEN], server_nonce[PF_NONCE_LEN];
@@ -144,6 +151,8 @@ size_t pf_encode_feedback(uint8_t *out, size_t cap, const uint8_t *key, size_t k
                           uint32_t session, uint64_t seq, const pf_feedback *m);
 size_t pf_encode_bye(uint8_t *out, size_t cap, const uint8_t *key, size_t key_len, uint32_t device_id,
                      uint32_t session, uint64_t seq, const pf_bye *m);
+size_t pf_encode_cookie(uint8_t *out, size_t cap, const uint8_t *psk, size_t psk_len, uint32_t device_id,
+                        uint64_t seq, const pf_cookie *m);
 
 /* decoding: size/magic/version/type, then the tag, then the values (in this order) */
 int pf_parse_header(const uint8_t *buf, size_t len, pf_header *h);
@@ -155,8 +164,10 @@ int pf_decode_reject(const uint8_t *buf, size_t len, pf_reject *m);
 int pf_decode_state(const uint8_t *buf, size_t len, const double *ws_min, const double *ws_max, pf_state *m);
 int pf_decode_feedback(const uint8_t *buf, size_t len, pf_feedback *m);
 int pf_decode_bye(const uint8_t *buf, size_t len, pf_bye *m);
+int pf_decode_cookie(const uint8_t *buf, size_t len, pf_cookie *m);
 
-typedef union { pf_hello hello; pf_welcome welcome; pf_reject reject; pf_state state; pf_feedback feedback; pf_bye bye; } pf_message;
+typedef union { pf_hello hello; pf_welcome welcome; pf_reject reject; pf_state state; pf_feedback feedback; pf_bye bye;
+                pf_cookie cookie; } pf_message;
 /* all three steps with one key */
 int pf_decode(const uint8_t *buf, size_t len, const uint8_t *key, size_t key_len, const double *ws_min,
               const double *ws_max, pf_header *h, pf_message *m);
@@ -187,7 +198,11 @@ typedef struct {
 
 uint64_t pf_now_ns(void);                                     /* CLOCK_MONOTONIC, ns */
 const char *pf_error_name(int code);
-int pf_load_key(const char *path, uint8_t *key, size_t cap, size_t *len);   /* hex key file */
+/* Key files (PROTOCOL.md 3.1): 32..128 hex digits, at most one "\n" or "\r\n", nothing else; not all
+ * zero; mode 0600 or stricter. PF_E_SYSTEM (cannot open: see errno), PF_E_KEY_MODE, PF_E_KEY_FORMAT,
+ * PF_E_KEY_ZERO, PF_E_ARGUMENT (cap below the key). pf_parse_key checks the contents alone. */
+int pf_load_key(const char *path, uint8_t *key, size_t cap, size_t *len);
+int pf_parse_key(const uint8_t *text, size_t n, uint8_t *key, size_t cap, size_t *len);
 int pf_client_open(pf_client *c, const char *host, uint16_t port, const uint8_t *psk, size_t psk_len,
                    uint32_t device_id, const pf_hello *caps);
 int pf_client_connect(pf_client *c, int timeout_ms);          /* PF_OK, PF_E_TIMEOUT, a REJECT's code */

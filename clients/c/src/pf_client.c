@@ -9,6 +9,7 @@
 #include <stdio.h>
 #include <string.h>
 #include <sys/socket.h>
+#include <sys/stat.h>
 #include <sys/types.h>
 #include <netinet/in.h>
 #include <time.h>
@@ -39,26 +40,50 @@ static int hexval(int ch) {
     return -1;
 }
 
-int pf_load_key(const char *path, uint8_t *key, size_t cap, size_t *len) {
-    char line[300];
-    size_t n = 0, i = 0;
-    FILE *f;
-    if (!path || !key || !len) return PF_E_ARGUMENT;
-    f = fopen(path, "r");
-    if (!f) return PF_E_SYSTEM;
-    if (!fgets(line, sizeof line, f)) { fclose(f); return PF_E_ARGUMENT; }
-    fclose(f);
-    while (line[i] == ' ' || line[i] == '\t') i++;
-    for (;; i += 2) {
-        int hi = hexval((unsigned char)line[i]), lo;
-        if (hi < 0) break;
-        lo = hexval((unsigned char)line[i + 1]);
-        if (lo < 0 || n >= cap) return PF_E_ARGUMENT;
-        key[n++] = (uint8_t)(hi << 4 | lo);
+int pf_parse_key(const uint8_t *text, size_t n, uint8_t *key, size_t cap, size_t *len) {
+    size_t i, k = 0;
+    unsigned any = 0;
+    if ((!text && n) || !key || !len) return PF_E_ARGUMENT;
+    if (n >= 2 && text[n - 2] == '\r' && text[n - 1] == '\n') n -= 2;
+    else if (n >= 1 && text[n - 1] == '\n') n -= 1;
+    if (n == 0 || n % 2 || n < 32 || n > 2 * PF_KEY_MAX) return PF_E_KEY_FORMAT;
+    for (i = 0; i < n; i++)
+        if (hexval(text[i]) < 0) return PF_E_KEY_FORMAT;
+    if (n / 2 > cap) return PF_E_ARGUMENT;
+    for (i = 0; i < n; i += 2) {
+        key[k] = (uint8_t)(hexval(text[i]) << 4 | hexval(text[i + 1]));
+        any |= key[k++];
     }
-    if (n < 16 || n > PF_KEY_MAX) return PF_E_ARGUMENT;
-    *len = n;
+    if (!any) { memset(key, 0, k); return PF_E_KEY_ZERO; }
+    *len = k;
     return PF_OK;
+}
+
+int pf_load_key(const char *path, uint8_t *key, size_t cap, size_t *len) {
+    uint8_t text[2 * PF_KEY_MAX + 3];
+    struct stat st;
+    ssize_t got;
+    size_t n = 0;
+    int fd, e;
+    if (!path || !key || !len) return PF_E_ARGUMENT;
+    fd = open(path, O_RDONLY);
+    if (fd < 0) return PF_E_SYSTEM;
+    if (fstat(fd, &st) != 0) { close(fd); return PF_E_SYSTEM; }
+    if (!S_ISREG(st.st_mode)) { close(fd); return PF_E_KEY_FORMAT; }
+    if (st.st_mode & 077) { close(fd); return PF_E_KEY_MODE; }
+    for (;;) {   /* read up to one byte more than the longest valid file */
+        got = read(fd, text + n, sizeof text - n);
+        if (got < 0 && errno == EINTR) continue;
+        if (got <= 0) break;
+        n += (size_t)got;
+        if (n == sizeof text) break;
+    }
+    close(fd);
+    if (got < 0) return PF_E_SYSTEM;
+    if (n > 2 * PF_KEY_MAX + 2) return PF_E_KEY_FORMAT;
+    e = pf_parse_key(text, n, key, cap, len);
+    memset(text, 0, sizeof text);
+    return e;
 }
 
 int pf_client_open(pf_client *c, const char *host, uint16_t port, const uint8_t *psk, size_t psk_len,
@@ -106,6 +131,15 @@ static void start_session(pf_client *c, uint32_t session, const pf_welcome *w) {
     c->last_rx_ns = pf_now_ns();
 }
 
+static int send_hello(pf_client *c, uint8_t *buf, size_t cap) {
+    size_t len = pf_encode_hello(buf, cap, c->psk, c->psk_len, c->device_id, ++c->hellos, &c->hello);
+    if (!len) return PF_E_ARGUMENT;
+    (void)send(c->fd, buf, len, 0);
+    return PF_OK;
+}
+
+/* HELLO (fresh nonce, no cookie) -> COOKIE -> HELLO with the cookie -> WELCOME or REJECT; the
+ * handshake restarts with a fresh nonce every 100 ms until timeout_ms. */
 int pf_client_connect(pf_client *c, int timeout_ms) {
     uint8_t buf[PF_MAX_DATAGRAM];
     uint64_t end, next = 0;
@@ -118,12 +152,10 @@ int pf_client_connect(pf_client *c, int timeout_ms) {
         pf_header h;
         int wait_ms;
         if (now >= end) return PF_E_TIMEOUT;
-        if (now >= next) {   /* (re)send HELLO with a fresh nonce every 100 ms */
-            size_t len;
+        if (now >= next) {   /* (re)start the handshake with a fresh nonce every 100 ms */
             if (random_bytes(c->hello.nonce, PF_NONCE_LEN)) return PF_E_SYSTEM;
-            len = pf_encode_hello(buf, sizeof buf, c->psk, c->psk_len, c->device_id, ++c->hellos, &c->hello);
-            if (!len) return PF_E_ARGUMENT;
-            (void)send(c->fd, buf, len, 0);
+            memset(c->hello.cookie, 0, PF_COOKIE_LEN);
+            if (send_hello(c, buf, sizeof buf)) return PF_E_ARGUMENT;
             next = now + 100000000u;
         }
         wait_ms = (int)(((next < end ? next : end) - now) / 1000000u) + 1;
@@ -132,11 +164,20 @@ int pf_client_connect(pf_client *c, int timeout_ms) {
         n = recv(c->fd, buf, sizeof buf, 0);
         if (n <= 0) continue;
         if (pf_parse_header(buf, (size_t)n, &h) || h.device_id != c->device_id ||
-            (h.type != PF_WELCOME && h.type != PF_REJECT) || pf_verify(buf, (size_t)n, c->psk, c->psk_len)) {
+            (h.type != PF_WELCOME && h.type != PF_REJECT && h.type != PF_COOKIE) ||
+            pf_verify(buf, (size_t)n, c->psk, c->psk_len)) {
             c->rejected_in++;
             continue;
         }
-        if (h.type == PF_REJECT) {
+        if (h.type == PF_COOKIE) {
+            pf_cookie k;
+            if (pf_decode_cookie(buf, (size_t)n, &k) == PF_OK && !memcmp(k.client_nonce, c->hello.nonce, 16)) {
+                memcpy(c->hello.cookie, k.cookie, PF_COOKIE_LEN);
+                if (send_hello(c, buf, sizeof buf)) return PF_E_ARGUMENT;
+            } else {
+                c->rejected_in++;
+            }
+        } else if (h.type == PF_REJECT) {
             pf_reject r;
             if (pf_decode_reject(buf, (size_t)n, &r) == PF_OK && !memcmp(r.client_nonce, c->hello.nonce, 16))
                 return r.error ? r.error : PF_E_MALFORMED;

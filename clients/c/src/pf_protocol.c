@@ -1,4 +1,4 @@
-/* pointfence wire protocol v1: encoding, checks and decoding (see clients/PROTOCOL.md). */
+/* pointfence wire protocol v2: encoding, checks and decoding (see clients/PROTOCOL.md). */
 #include <math.h>
 #include <string.h>
 
@@ -29,6 +29,7 @@ static size_t type_size(int t) {
     case PF_STATE: return PF_STATE_SIZE;
     case PF_FEEDBACK: return PF_FEEDBACK_SIZE;
     case PF_BYE: return PF_BYE_SIZE;
+    case PF_COOKIE: return PF_COOKIE_SIZE;
     default: return 0;
     }
 }
@@ -36,13 +37,16 @@ static size_t type_size(int t) {
 const char *pf_error_name(int code) {
     static const char *names[] = {"ok", "malformed", "version", "truncated", "oversized", "auth", "replay",
                                   "stale", "no_session", "non_finite", "workspace", "full", "busy", "timeout",
-                                  "capability", "direction"};
-    if (code >= 0 && code <= PF_E_DIRECTION) return names[code];
+                                  "capability", "direction", "cookie"};
+    if (code >= 0 && code <= PF_E_COOKIE) return names[code];
     switch (code) {
     case PF_E_ARGUMENT: return "argument";
     case PF_E_SYSTEM: return "system";
     case PF_E_NOT_CONNECTED: return "not_connected";
     case PF_E_LINK_LOST: return "link_lost";
+    case PF_E_KEY_MODE: return "key_mode";
+    case PF_E_KEY_FORMAT: return "key_format";
+    case PF_E_KEY_ZERO: return "key_zero";
     default: return "unknown";
     }
 }
@@ -101,6 +105,7 @@ size_t pf_encode_hello(uint8_t *out, size_t cap, const uint8_t *key, size_t key_
     memset(p + 88, 0, 16);
     n = strlen(m->model);
     memcpy(p + 88, m->model, n > 16 ? 16 : n);
+    memcpy(p + 104, m->cookie, PF_COOKIE_LEN);
     return seal(out, PF_HELLO_SIZE, key, key_len);
 }
 
@@ -166,6 +171,16 @@ size_t pf_encode_bye(uint8_t *out, size_t cap, const uint8_t *key, size_t key_le
     return seal(out, PF_BYE_SIZE, key, key_len);
 }
 
+size_t pf_encode_cookie(uint8_t *out, size_t cap, const uint8_t *key, size_t key_len, uint32_t dev, uint64_t seq,
+                        const pf_cookie *m) {
+    uint8_t *p;
+    CHECK_OUT(PF_COOKIE_SIZE);
+    p = head(out, PF_COOKIE, dev, 0, seq);
+    memcpy(p, m->client_nonce, 16);
+    memcpy(p + 16, m->cookie, PF_COOKIE_LEN);
+    return seal(out, PF_COOKIE_SIZE, key, key_len);
+}
+
 /* ---- checks ---- */
 int pf_parse_header(const uint8_t *buf, size_t len, pf_header *h) {
     size_t size;
@@ -227,6 +242,7 @@ int pf_decode_hello(const uint8_t *buf, size_t len, pf_hello *m) {
         if (p[88 + i] < 0x20 || p[88 + i] > 0x7E) return PF_E_MALFORMED;
     memset(m->model, 0, sizeof m->model);
     memcpy(m->model, p + 88, (size_t)(last + 1));
+    memcpy(m->cookie, p + 104, PF_COOKIE_LEN);
     if (!(m->max_force > 0 && m->max_force <= MAX_FORCE_N)) return PF_E_CAPABILITY;
     for (i = 0; i < 3; i++)
         if (!(-MAX_EXTENT_M <= m->workspace_min[i] && m->workspace_min[i] < m->workspace_max[i] &&
@@ -324,6 +340,17 @@ int pf_decode_bye(const uint8_t *buf, size_t len, pf_bye *m) {
     return PF_OK;
 }
 
+int pf_decode_cookie(const uint8_t *buf, size_t len, pf_cookie *m) {
+    const uint8_t *p;
+    int i, any = 0;
+    if (!buf || !m || len != PF_COOKIE_SIZE) return PF_E_ARGUMENT;
+    p = buf + PF_HEADER_LEN;
+    memcpy(m->client_nonce, p, 16);
+    memcpy(m->cookie, p + 16, PF_COOKIE_LEN);
+    for (i = 0; i < PF_COOKIE_LEN; i++) any |= m->cookie[i];
+    return any ? PF_OK : PF_E_MALFORMED;
+}
+
 int pf_decode(const uint8_t *buf, size_t len, const uint8_t *key, size_t key_len, const double *ws_min,
               const double *ws_max, pf_header *h, pf_message *m) {
     pf_header hh;
@@ -339,6 +366,7 @@ int pf_decode(const uint8_t *buf, size_t len, const uint8_t *key, size_t key_len
     case PF_REJECT: return pf_decode_reject(buf, len, &m->reject);
     case PF_STATE: return pf_decode_state(buf, len, ws_min, ws_max, &m->state);
     case PF_FEEDBACK: return pf_decode_feedback(buf, len, &m->feedback);
+    case PF_COOKIE: return pf_decode_cookie(buf, len, &m->cookie);
     default: return pf_decode_bye(buf, len, &m->bye);
     }
 }

@@ -104,7 +104,7 @@ void pf_hmac_sha256(const uint8_t *key, size_t key_len, const void *data, size_t
 
 void pf_session_key(const uint8_t *psk, size_t psk_len, const uint8_t client_nonce[16],
                     const uint8_t server_nonce[16], uint32_t device_id, uint32_t session, uint8_t out[32]) {
-    static const char label[] = "pointfence v1 session";
+    static const char label[] = "pointfence v2 session";
     uint8_t msg[sizeof label - 1 + 16 + 16 + 8];
     size_t n = sizeof label - 1;
     int i;

@@ -1,5 +1,5 @@
 /* The client against a minimal service written with the same codec (a forked process on
- * loopback): handshake, states out, feedback in, stale-link force zeroing, spoofed feedback
+ * loopback): handshake (HELLO, COOKIE, HELLO with the cookie, WELCOME), states out, feedback in, stale-link force zeroing, spoofed feedback
  * rejected, BYE. */
 #ifndef _POSIX_C_SOURCE
 #define _POSIX_C_SOURCE 200809L
@@ -34,8 +34,16 @@ static void serve(int fd) {
         n = recvfrom(fd, buf, sizeof buf, 0, (struct sockaddr *)&peer, &pl);
         if (n <= 0 || pf_parse_header(buf, (size_t)n, &h)) continue;
         if (h.type == PF_HELLO) {
-            pf_welcome w; size_t len;
+            pf_welcome w; pf_cookie ck; size_t len; int i;
             if (pf_decode(buf, (size_t)n, PSK, 32, NULL, NULL, &h, &m)) continue;
+            /* the challenge: a cookie derived from the nonce; only a HELLO repeating it opens the session */
+            memcpy(ck.client_nonce, m.hello.nonce, 16);
+            for (i = 0; i < PF_COOKIE_LEN; i++) ck.cookie[i] = (uint8_t)(m.hello.nonce[i % 16] ^ 0xC5 ^ i);
+            if (memcmp(m.hello.cookie, ck.cookie, PF_COOKIE_LEN)) {
+                len = pf_encode_cookie(out, sizeof out, PSK, 32, h.device_id, 0, &ck);
+                sendto(fd, out, len, 0, (struct sockaddr *)&peer, pl);
+                continue;
+            }
             memcpy(w.client_nonce, m.hello.nonce, 16);
             memset(w.server_nonce, 0xAB, 16);
             w.slot = 0; w.timeout_ms = 50; w.rate_hz = 1000; w.max_force = 3; w.t_service_ns = 0;

@@ -1,5 +1,10 @@
 /* The protocol test vectors (clients/vectors, *.json), byte for byte, through the C SDK. */
+#ifndef _POSIX_C_SOURCE
+#define _POSIX_C_SOURCE 200809L
+#endif
 #include <math.h>
+#include <sys/stat.h>
+#include <unistd.h>
 #include "minijson.h"
 #include "pointfence_client.h"
 
@@ -80,10 +85,18 @@ static void test_messages(void) {
             x.rate_hz = j_num(j_get(f, "rate_hz"));
             x.timeout_ms = (uint16_t)j_u64(j_get(f, "timeout_ms")); x.caps = (uint16_t)j_u64(j_get(f, "caps"));
             j_str(j_get(f, "model"), x.model, sizeof x.model);
+            j_hex(j_get(f, "cookie_hex"), x.cookie, PF_COOKIE_LEN);
             n = pf_encode_hello(out, sizeof out, key, kn, dev, seq, &x);
             e = pf_decode(want, wn, key, kn, NULL, NULL, &h, &m);
             EXPECT(e == PF_OK && !memcmp(&m.hello.nonce, x.nonce, 16) && m.hello.max_force == x.max_force &&
-                   !strcmp(m.hello.model, x.model) && m.hello.caps == x.caps, "%s: decode", name);
+                   !strcmp(m.hello.model, x.model) && m.hello.caps == x.caps &&
+                   !memcmp(m.hello.cookie, x.cookie, PF_COOKIE_LEN), "%s: decode", name);
+        } else if (!strcmp(type, "COOKIE")) {
+            pf_cookie x;
+            j_hex(j_get(f, "client_nonce_hex"), x.client_nonce, 16); j_hex(j_get(f, "cookie_hex"), x.cookie, PF_COOKIE_LEN);
+            n = pf_encode_cookie(out, sizeof out, key, kn, dev, seq, &x);
+            e = pf_decode(want, wn, key, kn, NULL, NULL, &h, &m);
+            EXPECT(e == PF_OK && !memcmp(m.cookie.cookie, x.cookie, PF_COOKIE_LEN), "%s: decode", name);
         } else if (!strcmp(type, "WELCOME")) {
             pf_welcome x; memset(&x, 0, sizeof x);
             j_hex(j_get(f, "client_nonce_hex"), x.client_nonce, 16); j_hex(j_get(f, "server_nonce_hex"), x.server_nonce, 16);
@@ -167,6 +180,40 @@ static void test_replay(void) {
     }
 }
 
+/* keyfiles.json: the same table the Python loader runs (contents + mode -> key or refusal class) */
+static void test_keyfiles(void) {
+    int root = j_load(path("keyfiles.json")), cases = j_get(root, "cases"), i;
+    char tmpl[] = "/tmp/pf-keyfile-XXXXXX";
+    int fd = mkstemp(tmpl);
+    EXPECT(fd >= 0, "mkstemp");
+    if (fd < 0) return;
+    close(fd);
+    for (i = 0; i < j_count(cases); i++) {
+        int c = j_at(cases, i), e, want;
+        uint8_t content[512], key[PF_KEY_MAX], wantkey[PF_KEY_MAX];
+        size_t cn = j_hex(j_get(c, "content_hex"), content, sizeof content), kn = 0, wn;
+        char name[64], result[16];
+        FILE *f;
+        j_str(j_get(c, "name"), name, sizeof name);
+        j_str(j_get(c, "result"), result, sizeof result);
+        want = !strcmp(result, "ok") ? PF_OK : !strcmp(result, "mode") ? PF_E_KEY_MODE
+             : !strcmp(result, "zero") ? PF_E_KEY_ZERO : PF_E_KEY_FORMAT;
+        chmod(tmpl, 0600);
+        f = fopen(tmpl, "wb");
+        if (!f) { EXPECT(0, "keyfile %s: cannot write", name); continue; }
+        if (cn) fwrite(content, 1, cn, f);
+        fclose(f);
+        chmod(tmpl, (mode_t)j_u64(j_get(c, "mode")));
+        e = pf_load_key(tmpl, key, sizeof key, &kn);
+        EXPECT(e == want, "keyfile %s: got %s, want %s", name, pf_error_name(e), pf_error_name(want));
+        if (e == PF_OK && want == PF_OK) {
+            wn = j_hex(j_get(c, "key_hex"), wantkey, sizeof wantkey);
+            EXPECT(kn == wn && !memcmp(key, wantkey, wn), "keyfile %s: key differs", name);
+        }
+    }
+    unlink(tmpl);
+}
+
 int main(int argc, char **argv) {
     snprintf(dir, sizeof dir, "%s", argc > 1 ? argv[1] : "clients/vectors");
     test_sha256();
@@ -175,6 +222,7 @@ int main(int argc, char **argv) {
     test_messages();
     test_rejects();
     test_replay();
+    test_keyfiles();
     free(j_text);
     printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;
