@@ -264,14 +264,16 @@ class Service:
 
     def clear_faults(self) -> None:
         """Forget latched faults and re-enable robots in FAULT (their setpoint re-seats: no
-        motion). Needs every arm decoupled (S3): raises InputError while a pedal is down. Call it
+        motion). Needs every arm decoupled (S3): raises InputError while an arm is coupled or its
+        pedal is down with teleoperation engaged (it would couple at once). Call it
         between ticks (``call_between_ticks``: the control API does), where the pedals read are
         this tick's. An arm that couples again is re-anchored: clearing never moves a robot (S1)."""
         with self._ctl:
-            down = [b for b in range(self.n) if self.pedal[b] or self.coupled[b]]
+            down = [b for b in range(self.n) if self.coupled[b] or (self.pedal[b] and self.teleop_on)]
             if down:
-                raise InputError(f"clear-faults refused: arm(s) {down} coupled (foot pedal down); release the "
-                                 "pedal(s) first, then clear the faults (SAFETY.md S3)")
+                raise InputError(f"clear-faults refused: arm(s) {down} coupled (foot pedal down, teleoperation on); "
+                                 "release the pedal(s) or disengage teleoperation first, then clear the faults "
+                                 "(SAFETY.md S3)")
             for r in self.robots:
                 if r is not None and r.state == RobotMode.FAULT:
                     r.enable()

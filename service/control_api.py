@@ -341,7 +341,7 @@ class Controller:
 
     @staticmethod
     def _refuse_if_coupled(status: dict) -> None:
-        arms = [b for b, (c, p) in enumerate(zip(status["coupled"], status["pedal"])) if c or p]
+        arms = [b for b, (c, p) in enumerate(zip(status["coupled"], status["pedal"])) if c or (p and status["teleop"])]
         if arms:
             raise ControlError(409, f"clear faults: refused: arm(s) {', '.join(map(str, arms))} coupled (pedal down, "
                                     "teleoperation on); clearing faults needs every arm decoupled: release the "
@@ -352,6 +352,9 @@ class Controller:
             raise ControlError(400, f"clear-faults: unknown key(s) {_short(sorted(body))}; expected an empty object")
         with self._lock:
             was = self.loop.error if self.loop is not None else None
+            # first on the last tick's published pedals (safe ticks read them too), so that a
+            # refused request does not take the loop out of its safe mode; then again in the tick
+            self._refuse_if_coupled(self.service.status())
 
             def apply(svc):   # coupled: as published by the last tick (a safe tick decouples every arm)
                 self._refuse_if_coupled(svc.status())

@@ -190,6 +190,10 @@ def test_safe_mode_and_stopped_loop_refuse_with_503(rig):
     rig.wait_ticks(5)                                      # safe ticks: every arm decoupled, holding
     status, reply = rig.raw("POST", "/architecture", {"architecture": "I"})
     assert status == 503 and "safe mode" in reply["error"] and rig.svc.architecture == "III"
+    status, reply = rig.raw("POST", "/clear-faults", {})     # S3: the pedal is still down
+    assert status == 409 and "pedal" in reply["error"] and rig.loop.error is not None
+    rig.svc.masters[0].clutches[:] = False                    # the operator lifts the pedal
+    rig.wait_ticks(5)
     r = rig.client.post("/clear-faults", {})
     assert r["cleared_loop_error"].startswith("tick 7") and rig.loop.error is None
     assert rig.client.set_architecture("I")["architecture"] == "I"
