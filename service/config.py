@@ -174,7 +174,7 @@ def _int(v: Any, where: str, limit: str) -> int:
     """``v`` as an integer within its hard limit ``limits.LIMITS[limit]``."""
     if isinstance(v, bool) or not isinstance(v, int):
         lim = limits.LIMITS[limit]
-        raise InputError(f"{where} = {v!r}; expected an integer {lim.lo:g}..{lim.hi:g}")
+        raise InputError(f"{where} = {v!r}; expected an integer >= {lim.lo:g} (at most {lim.hi:g})")
     return int(limits.check(limit, v, where))
 
 
@@ -389,11 +389,15 @@ def _motion(tbl: Any):
         elif key == "min_points":
             kw[key] = _int(v, "[motion] min_points", "motion.min_points")
         else:
-            kw[key] = _num(v, f"[motion] {key}", minimum=0, limit=f"motion.{key}")
+            kw[key] = _num(v, f"[motion] {key}", minimum=0)
     try:
-        return MotionModel(**kw)
+        model = MotionModel(**kw)
     except InputError as e:
         raise InputError(f"[motion]: {e}") from None
+    for key, v in kw.items():  # after the model's own relations (v_min <= v_max), which say more
+        if f"motion.{key}" in limits.LIMITS:
+            limits.check(f"motion.{key}", v, f"[motion] {key}")
+    return model
 
 
 def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
