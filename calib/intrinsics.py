@@ -160,7 +160,7 @@ def _output_arguments(p) -> None:
     p.add_argument("--name", default="cam0", help="camera name of the [[camera]] entry (default cam0)")
     p.add_argument("--source", help="source spec for a new [[camera]] entry, e.g. openni2:any")
     p.add_argument("--out", help="also write the [[camera]] snippet to this file")
-    p.add_argument("--config", help="merge the result into this scene configuration file (keeps a .bak)")
+    p.add_argument("--config", help="merge the result into this scene configuration file (only the keys calibrated change; earlier versions kept as .bak, .bak.2, ...)")
 
 
 def run(args) -> int:

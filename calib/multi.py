@@ -158,7 +158,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from .common import inv_T, pose_error, perturb
-    from .output import camera_snippet, update_config
+    from .output import camera_snippet, update_config, write_snippet
 
     if args.demo:
         from pathlib import Path
@@ -216,11 +216,9 @@ def run(args) -> int:
                              f"pointfence calib multi: ICP against {ref.camera.name!r}, RMS {res.rms * 1000:.2f} mm")
     print(snippet, end="")
     if args.out:
-        from pathlib import Path
-
-        Path(args.out).write_text(snippet)
-    update_config(args.config, mov.camera.name, {"T_world_cam": T_world})
-    print(f"# updated [[camera]] {mov.camera.name!r} in {args.config} (previous version: {args.config}.bak)")
+        print(f"# {write_snippet(args.out, snippet)}")
+    res = update_config(args.config, mov.camera.name, {"T_world_cam": T_world})
+    print(f"# updated [[camera]] {mov.camera.name!r} in {args.config}; {res.describe(args.config)}")
     return 0
 
 

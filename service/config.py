@@ -2,7 +2,8 @@
 teleoperation, robot and the real-time service's timing.
 
 Every key is checked: a misspelt key is an error that names it and suggests the closest
-known one. Units: metres, seconds; transforms are 16 numbers, row-major, ``T_world_cam``
+known one, and every value that could weaken safety must lie within its hard limit of
+``service/limits.py`` (SAFETY.md S7). Units: metres, seconds; transforms are 16 numbers, row-major, ``T_world_cam``
 mapping camera coordinates to the world (robot base) frame. See README.md for the schema.
 """
 from __future__ import annotations
@@ -24,6 +25,8 @@ import numpy as np
 from pointfence.kernels.camera import Camera, NoiseModel
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.params import PipelineParams, RadiusModel, Selection, Workspace
+
+from . import limits
 
 TOP_KEYS = {"backend", "device", "workspace", "fixture", "hash", "camera", "haptics", "teleop", "robot", "service",
             "motion"}
@@ -155,20 +158,30 @@ def _check_keys(table: dict, known: set, where: str) -> None:
             raise InputError(f"{where}: unknown key {key!r}{hint} Known keys: {', '.join(sorted(known))}")
 
 
-def _num(v: Any, where: str, positive: bool = False, minimum: Optional[float] = None) -> float:
+def _num(v: Any, where: str, positive: bool = False, minimum: Optional[float] = None,
+         limit: Optional[str] = None) -> float:
+    """``v`` as a finite float; ``limit``: the key of its hard limit in ``limits.LIMITS``."""
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
         raise InputError(f"{where} = {v!r}; expected a finite number")
     if positive and v <= 0:
         raise InputError(f"{where} = {v!r}; expected a number > 0")
     if minimum is not None and v < minimum:
         raise InputError(f"{where} = {v!r}; expected >= {minimum}")
-    return float(v)
+    return float(v) if limit is None else float(limits.check(limit, v, where))
 
 
-def _vec(v: Any, n: int, where: str) -> list:
+def _int(v: Any, where: str, limit: str) -> int:
+    """``v`` as an integer within its hard limit ``limits.LIMITS[limit]``."""
+    if isinstance(v, bool) or not isinstance(v, int):
+        lim = limits.LIMITS[limit]
+        raise InputError(f"{where} = {v!r}; expected an integer >= {lim.lo:g} (at most {lim.hi:g})")
+    return int(limits.check(limit, v, where))
+
+
+def _vec(v: Any, n: int, where: str, limit: Optional[str] = None) -> list:
     if not isinstance(v, (list, tuple)) or len(v) != n:
         raise InputError(f"{where} = {v!r}; expected a list of {n} numbers")
-    return [_num(x, f"{where}[{i}]") for i, x in enumerate(v)]
+    return [_num(x, f"{where}[{i}]", limit=limit) for i, x in enumerate(v)]
 
 
 def _selection(sel: Any, where: str) -> Selection:
@@ -210,9 +223,9 @@ def _camera(entry: dict, i: int) -> CameraConfig:
                                    for k, d in (("a", 0.0), ("b", 1.42e-3))))
     for key in ("depth_scale", "z_min", "z_max"):
         if key in entry:
-            kw[key] = _num(entry[key], f"{where}.{key}", minimum=0)
+            kw[key] = _num(entry[key], f"{where}.{key}", minimum=0, limit=f"camera.{key}")
     if "max_code" in entry:
-        kw["max_code"] = int(_num(entry["max_code"], f"{where}.max_code", positive=True))
+        kw["max_code"] = int(_num(entry["max_code"], f"{where}.max_code", positive=True, limit="camera.max_code"))
     if "dist" in entry:
         kw["dist"] = tuple(_vec(entry["dist"], 5, f"{where}.dist"))
     if "T_world_cam" in entry:
@@ -221,7 +234,8 @@ def _camera(entry: dict, i: int) -> CameraConfig:
     given = [k for k in INTRINSIC_KEYS if k in entry]
     scheme = source.split(":", 1)[0]
     if len(given) == len(INTRINSIC_KEYS):
-        intr = {k: _num(entry[k], f"{where}.{k}", positive=True) for k in INTRINSIC_KEYS}
+        intr = {k: _num(entry[k], f"{where}.{k}", positive=True, limit=f"camera.{k}" if k in ("width", "height") else None)
+                for k in INTRINSIC_KEYS}
         intr["width"], intr["height"] = int(intr["width"]), int(intr["height"])
         camera = Camera(name=name, **intr, **kw)
     elif scheme == "recorded" and not given:
@@ -239,7 +253,10 @@ def _camera(entry: dict, i: int) -> CameraConfig:
     elif scheme == "synthetic" and not given:
         from pointfence.service.sources import default_camera
 
-        camera = default_camera(name, **{k: v for k, v in kw.items()})
+        pose = kw.pop("T_world_cam", None)  # default_camera sets its own look-at pose
+        camera = default_camera(name, **kw)
+        if pose is not None:
+            camera = Camera(**{**camera.__dict__, "T_world_cam": pose})
     else:
         missing = [k for k in INTRINSIC_KEYS if k not in entry]
         raise InputError(f"{where}: intrinsics incomplete, missing {', '.join(missing)}; give all of "
@@ -247,7 +264,7 @@ def _camera(entry: dict, i: int) -> CameraConfig:
     options = entry.get("options", {})
     if not isinstance(options, dict):
         raise InputError(f"{where}.options = {options!r}; expected a table of source options")
-    rate = _num(entry.get("rate_hz", 30.0), f"{where}.rate_hz", positive=True)
+    rate = _num(entry.get("rate_hz", 30.0), f"{where}.rate_hz", positive=True, limit="camera.rate_hz")
     return CameraConfig(camera, source, rate, dict(options))
 
 
@@ -258,17 +275,16 @@ def _haptics(tbl: Any, mode: str):
     kw: dict = {"mode": mode}
     for key in ("r1", "r2", "r3", "step", "max_force"):
         if key in tbl:
-            kw[key] = _num(tbl[key], f"[haptics] {key}", positive=True)
+            lim = f"haptics.{key}" if f"haptics.{key}" in limits.LIMITS else None  # r1 < r2 < r3 bounds r1, r2
+            kw[key] = _num(tbl[key], f"[haptics] {key}", positive=True, limit=lim)
     if "damping" in tbl:
-        kw["b"] = _num(tbl["damping"], "[haptics] damping", minimum=0)
+        kw["b"] = _num(tbl["damping"], "[haptics] damping", minimum=0, limit="haptics.damping")
     if "k_spring" in tbl:  # the stiffness of the configured mode: k (rendering) or k_s (fixture)
-        kw["k" if mode == "rendering" else "k_s"] = _num(tbl["k_spring"], "[haptics] k_spring", minimum=0)
+        kw["k" if mode == "rendering" else "k_s"] = _num(tbl["k_spring"], "[haptics] k_spring", minimum=0,
+                                                         limit="haptics.k_spring")
     for key in ("fir_taps", "max_steps"):
         if key in tbl:
-            v = tbl[key]
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise InputError(f"[haptics] {key} = {v!r}; expected an integer >= 1")
-            kw[key] = v
+            kw[key] = _int(tbl[key], f"[haptics] {key}", f"haptics.{key}")
     try:
         return HapticParams(**kw)
     except InputError as e:
@@ -294,8 +310,10 @@ def _teleop(tbl: Any) -> TeleopConfig:
         if not isinstance(v, bool):
             raise InputError(f"[teleop] {key} = {v!r}; expected true or false (engaged at start)")
         flags[key] = v
-    return TeleopConfig(architecture=arch, scale=_num(tbl.get("scale", 0.5), "[teleop] scale", positive=True),
-                        max_robot_speed=_num(tbl.get("max_robot_speed", 0.05), "[teleop] max_robot_speed", positive=True),
+    return TeleopConfig(architecture=arch,
+                        scale=_num(tbl.get("scale", 0.5), "[teleop] scale", positive=True, limit="teleop.scale"),
+                        max_robot_speed=_num(tbl.get("max_robot_speed", 0.05), "[teleop] max_robot_speed", positive=True,
+                                             limit="teleop.max_robot_speed"),
                         T_world_master=T, **flags)
 
 
@@ -313,7 +331,7 @@ def _robot(tbl: Any) -> dict:
 def _service(tbl: Any) -> ServiceConfig:
     _check_keys(tbl, SERVICE_KEYS, "[service]")
     d = ServiceConfig()
-    kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True)
+    kw = {k: _num(tbl.get(k, getattr(d, k)), f"[service] {k}", positive=True, limit=f"service.{k}")
           for k in SERVICE_KEYS - {"proxies", "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority",
                                    "build_nice", "build_idle", "robot_process"}}
     sf = tbl.get("self_filter")
@@ -322,7 +340,7 @@ def _service(tbl: Any) -> ServiceConfig:
                          "is configured)")
     kw["self_filter"] = sf
     kw["self_filter_margin"] = _num(tbl.get("self_filter_margin", d.self_filter_margin), "[service] self_filter_margin",
-                                    minimum=0)
+                                    minimum=0, limit="service.self_filter_margin")
     rt = tbl.get("rt_priority", d.rt_priority)
     if isinstance(rt, bool) or not isinstance(rt, int) or not 0 <= rt <= 99:
         raise InputError(f"[service] rt_priority = {rt!r}; expected an integer 0-99 (SCHED_FIFO priority of the "
@@ -351,9 +369,7 @@ def _service(tbl: Any) -> ServiceConfig:
         raise InputError(f"[service] robot_process = {rp!r}; expected true or false (live runs step simulated robots "
                          "in their own process; false: in the haptic tick)")
     kw["robot_process"] = rp
-    proxies = tbl.get("proxies", 1)
-    if isinstance(proxies, bool) or not isinstance(proxies, int) or proxies < 1:
-        raise InputError(f"[service] proxies = {proxies!r}; expected an integer >= 1")
+    proxies = _int(tbl.get("proxies", 1), "[service] proxies", "service.proxies")
     if kw["max_frame_age_s"] < kw["stale_s"]:
         raise InputError(f"[service] max_frame_age_s = {kw['max_frame_age_s']} s is below stale_s = {kw['stale_s']} s; "
                          "a camera is reported stale first, then the robot holds")
@@ -371,15 +387,17 @@ def _motion(tbl: Any):
                 raise InputError(f"[motion] enabled = {v!r}; expected true or false")
             kw[key] = v
         elif key == "min_points":
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise InputError(f"[motion] min_points = {v!r}; expected an integer >= 1")
-            kw[key] = v
+            kw[key] = _int(v, "[motion] min_points", "motion.min_points")
         else:
             kw[key] = _num(v, f"[motion] {key}", minimum=0)
     try:
-        return MotionModel(**kw)
+        model = MotionModel(**kw)
     except InputError as e:
         raise InputError(f"[motion]: {e}") from None
+    for key, v in kw.items():  # after the model's own relations (v_min <= v_max), which say more
+        if f"motion.{key}" in limits.LIMITS:
+            limits.check(f"motion.{key}", v, f"[motion] {key}")
+    return model
 
 
 def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
@@ -393,29 +411,29 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
 
     ws = doc.get("workspace", {})
     _check_keys(ws, WORKSPACE_KEYS, "[workspace]")
-    workspace = Workspace(tuple(_vec(ws.get("min", [-0.5] * 3), 3, "[workspace] min")),
-                          tuple(_vec(ws.get("max", [0.5] * 3), 3, "[workspace] max")))
+    workspace = Workspace(tuple(_vec(ws.get("min", [-0.5] * 3), 3, "[workspace] min", limit="workspace.min")),
+                          tuple(_vec(ws.get("max", [0.5] * 3), 3, "[workspace] max", limit="workspace.max")))
 
     fx = doc.get("fixture", {})
     _check_keys(fx, FIXTURE_KEYS, "[fixture]")
     mode = fx.get("mode", "fixture")
     if mode not in ("fixture", "rendering"):
         raise InputError(f"[fixture] mode = {mode!r}; expected 'fixture' or 'rendering'")
-    r_base = _num(fx.get("radius", 0.02), "[fixture] radius", minimum=0)
+    r_base = _num(fx.get("radius", 0.02), "[fixture] radius", minimum=0, limit="fixture.radius")
     adaptive = fx.get("adaptive", False)
     if not isinstance(adaptive, bool):
         raise InputError(f"[fixture] adaptive = {adaptive!r}; expected true or false")
     radius = RadiusModel(r_base=r_base, adaptive=adaptive,
-                         k_sigma=_num(fx.get("k_sigma", 3.0), "[fixture] k_sigma", minimum=0),
+                         k_sigma=_num(fx.get("k_sigma", 3.0), "[fixture] k_sigma", minimum=0, limit="fixture.k_sigma"),
                          r_max=_num(fx.get("radius_max", r_base + (ADAPTIVE_MARGIN if adaptive else 0.0)),
-                                    "[fixture] radius_max", minimum=0))
+                                    "[fixture] radius_max", minimum=0, limit="fixture.radius_max"))
     selection = _selection(fx.get("select"), "[fixture] select")
 
     haptics = _haptics(doc.get("haptics", {}), mode)
     hs = doc.get("hash", {})
     _check_keys(hs, HASH_KEYS, "[hash]")
     reach = PipelineParams.reach(max(DEFAULT_R3, haptics.r3), radius if mode == "fixture" else None)
-    cell = _num(hs.get("cell_size", reach), "[hash] cell_size", positive=True)
+    cell = _num(hs.get("cell_size", reach), "[hash] cell_size", positive=True, limit="hash.cell_size")
     if cell < reach:
         raise InputError(f"[hash] cell_size = {cell} m is below the largest query reach {reach} m "
                          f"(R3 {'+ radius_max ' if mode == 'fixture' else ''}); use >= {reach}")

@@ -13,6 +13,7 @@ from PIL import Image, UnidentifiedImageError
 
 from pointfence.kernels.errors import InputError
 
+from .filecaps import MAX_POINTS, MAX_SIDE, check_count, check_data_size, read_capped
 from .lzf import lzf_decompress
 
 _16BIT_MODES = {"I;16", "I;16L", "I;16B", "I;16N", "I"}
@@ -60,12 +61,10 @@ def read_color_image(path) -> np.ndarray:
 def read_pclzf_depth(path) -> np.ndarray:
     """PCL's LZF depth image (pcl::io::LZFDepth16ImageWriter): "PCLZF", uint32 width, height,
     16-byte type ("depth16"), uint32 compressed and uncompressed sizes, then the LZF block of
-    little-endian uint16 pixels, row-major."""
+    little-endian uint16 pixels, row-major. The sizes are checked against the file's size and
+    the caps of ``filecaps`` before the image is allocated."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise InputError(f"{path}: cannot read ({e.strerror}); expected a .pclzf depth file") from None
+    raw = read_capped(path, "a .pclzf depth file")
     if len(raw) < 37 or raw[:5] != b"PCLZF":
         raise InputError(f"{path}: no PCLZF header; expected a file written by PCL's LZFDepth16ImageWriter")
     width, height = struct.unpack_from("<II", raw, 5)
@@ -73,5 +72,9 @@ def read_pclzf_depth(path) -> np.ndarray:
     csize, usize = struct.unpack_from("<II", raw, 29)
     if kind != "depth16" or usize != width * height * 2:
         raise InputError(f"{path}: PCLZF image type {kind!r}, {width}x{height}, {usize} bytes; expected 'depth16' with 2 bytes per pixel")
-    data = lzf_decompress(raw[37:37 + csize], usize, str(path))
+    check_count(path, "width", width, MAX_SIDE)
+    check_count(path, "height", height, MAX_SIDE)
+    check_count(path, "width*height", width * height, MAX_POINTS)
+    check_data_size(path, "compressed size", csize, len(raw) - 37)
+    data = lzf_decompress(raw[37:37 + csize], usize, str(path))  # refuses usize beyond what csize can give
     return np.frombuffer(data, "<u2").reshape(height, width).astype(np.uint16)

@@ -13,9 +13,24 @@ from __future__ import annotations
 
 from pointfence.kernels.errors import InputError
 
+#: most output bytes one input byte of LZF can give: a 3-byte back-reference copies at most
+#: 7 + 255 + 2 = 264 bytes (a 2-byte one 8, a literal run its own length)
+MAX_RATIO = 88
+
+
+def max_output(n_in: int) -> int:
+    """The most bytes a valid LZF stream of ``n_in`` bytes decodes to (``MAX_RATIO * n_in``)."""
+    return MAX_RATIO * max(0, int(n_in))
+
 
 def lzf_decompress(data: bytes, out_len: int, what: str = "LZF data") -> bytes:
-    """Decompress ``data`` to exactly ``out_len`` bytes; InputError naming ``what`` if corrupt."""
+    """Decompress ``data`` to exactly ``out_len`` bytes; InputError naming ``what`` if corrupt.
+
+    ``out_len`` is checked against what ``len(data)`` bytes can decode to (``max_output``) before
+    the output is allocated: a header's uncompressed size cannot make it allocate more."""
+    if not 0 <= out_len <= max_output(len(data)):
+        raise InputError(f"{what}: uncompressed size {out_len} bytes cannot come from {len(data)} compressed bytes "
+                         f"(LZF expands at most {MAX_RATIO}x); the header is corrupt")
     src = memoryview(bytes(data))
     out = bytearray(out_len)
     n = len(src)
