@@ -173,6 +173,8 @@ class Client:
         self._off_ns = None                 # min(recv - sent): clock offset + shortest transit
         self.scheduling = "normal"          # of the thread in control() (see its rt_priority)
         self.last_datagram = b""
+        #: the HELLOs of the latest handshake as sent (a captured handshake, for attack tests)
+        self.hellos_sent: list = []
         self.stats = LinkStats()
 
     # --- session ------------------------------------------------------------------------------------
@@ -192,6 +194,7 @@ class Client:
     def hello_send(self) -> bytes:
         """Start a handshake: send a HELLO with a fresh nonce and no cookie; returns the nonce."""
         self._nonce = os.urandom(16)
+        self.hellos_sent = []
         self.hello.nonce = self._nonce
         self.hello.cookie = bytes(P.COOKIE_LEN)
         self._send_hello()
@@ -199,8 +202,10 @@ class Client:
 
     def _send_hello(self) -> None:
         self._hellos = getattr(self, "_hellos", 0) + 1
+        data = self.hello.encode(self.psk, self.device_id, self._hellos)
+        self.hellos_sent.append(data)
         try:
-            self.sock.send(self.hello.encode(self.psk, self.device_id, self._hellos))
+            self.sock.send(data)
         except OSError:
             pass
 

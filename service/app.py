@@ -289,9 +289,9 @@ class Service:
     def on_stall(self, started: float, now: float) -> None:
         """The tick watchdog (``loop.TickWatchdog``, its own thread): the tick that started at
         ``started`` (loop clock, s) is still running at ``now``. The masters get zero force at
-        once; the stalled tick, when it returns, and the ticks after it hold every arm until the
-        fault is cleared (S9, S3). Robots need nothing here: they get no new command while the
-        tick is stalled."""
+        once; the stalled tick, when it returns, and the ticks after it hold every arm for
+        ``recover_s`` (S9). Robots need nothing here: they get no new command while the tick is
+        stalled."""
         self._stall_at = now
         self.watchdog_trips += 1
         if self._tx_lock.acquire(blocking=False):   # (a tick stuck inside a send keeps its lock)
@@ -429,7 +429,11 @@ class Service:
                 self.kernel_errors += 1
                 self.last_error = f"tick {k}: {e}"
         if self._stall_at is not None:   # the watchdog saw this tick (or the last) stall
-            self._fault_all(WATCHDOG)
+            self._bad_t[index(WATCHDOG)] = t
+            self.hold_mask |= WATCHDOG
+            self.arm_hold |= WATCHDOG
+            self._arm_ok[:] = False
+            self.coupled[:] = False
             self.gain[:] = 0.0
             self.last_error = f"tick {k}: tick watchdog: a tick ran past {self.cfg.service.max_lateness_s * 1e3:g} ms"
             self._stall_at = None

@@ -5,11 +5,11 @@ An arm holds (its force gain ramps to zero within ``force_ramp_s``, its robot ke
 setpoint) while any reason is active. Two kinds:
 
 * conditions clear by themselves: the arm comes back (re-anchored, S1) once the condition has
-  been clear for ``recover_s`` (a late tick, frames too old, snapshots not published, an invalid
-  or silent master);
+  been clear for ``recover_s`` (a late tick, a tick that ran past the watchdog's limit, frames
+  too old, snapshots not published, an invalid or silent master): on a loaded machine a tick
+  can be descheduled for milliseconds, and such a tick must not stop the run for good;
 * faults are latched (S3): they hold until the operator clears them (``Service.clear_faults``,
-  which needs every pedal up): a kernel error, a stalled tick (watchdog), an exception in the
-  tick, a robot fault.
+  which needs every pedal up): a kernel error, an exception in the tick, a robot fault.
 
 Reasons are bits of one mask (``Service.hold_mask`` for all arms, ``Service.arm_hold`` per arm),
 recorded with every tick; ``describe(mask)`` names them with their invariants for the status.
@@ -37,7 +37,7 @@ REASONS = {r.bit: r for r in (
     Reason(ROBOT, "robot fault or rejected command", "S3", True),
     Reason(EXCEPTION, "tick exception", "S9", True),
     Reason(INGEST, "snapshots not published", "S2", False),
-    Reason(WATCHDOG, "tick watchdog", "S9", True),
+    Reason(WATCHDOG, "tick watchdog", "S9", False),
 )}
 #: the reasons that are latched faults (see the module docstring), as a mask
 LATCHED = sum(b for b, r in REASONS.items() if r.latched)
