@@ -83,7 +83,10 @@ class Service:
         if len(robots) != n:
             raise InputError(f"{len(robots)} robots for {n} masters; expected one per master (None: ideal robot)")
         self.robots = list(robots)
-        self._setup_self_filter(cfg, pp)
+        # the robot self-filter, where every robot's tool is known (S5); else self_filter_off says why
+        from .toolpose import self_filter_for
+
+        self.tool_poses, self.frame_filter, self.self_filter_off = self_filter_for(cfg, pp, self.robots)
         #: this tick's time on the frames' clock (nan while unknown); the proxies' prediction time
         self.frame_time = math.nan
         self._predict = bool(pp.motion.enabled)
@@ -160,36 +163,6 @@ class Service:
         self._started = False
 
     # --- construction helpers -----------------------------------------------------------------
-    def _setup_self_filter(self, cfg, pp) -> None:
-        """The robot self-filter (the tool at each frame's capture time, from a ring of joint
-        poses) where every robot's tool is known (S5: ``robot.tool.tool_model_for``); else none,
-        and ``self_filter_off`` says why (an explicit ``self_filter = true`` is then an error)."""
-        from .robot.tool import tool_model_for
-
-        sc = cfg.service
-        self.tool_poses = self.frame_filter = None
-        self.self_filter_off: Optional[str] = "off in the configuration ([service] self_filter = false)"
-        robots = [r for r in self.robots if r is not None]
-        if not cfg.self_filter or not robots:
-            if not robots:
-                self.self_filter_off = "no robot model: nothing to filter"
-            return
-        models = [tool_model_for(r, cfg.robot.get("tool")) for r in robots]
-        unknown = [why for model, why in models if model is None]
-        if unknown:
-            if sc.self_filter:
-                raise InputError(f"[service] self_filter = true, but {unknown[0]}")
-            self.self_filter_off = unknown[0]
-            return
-        from .toolpose import ToolFilter, ToolPoseRing
-
-        self.self_filter_off = None
-        horizon = sc.max_frame_age_s + pp.motion.latency + 0.25
-        self.tool_poses = ToolPoseRing(self.robots, int(math.ceil(horizon * sc.rate_hz)))
-        self.frame_filter = ToolFilter([c.camera for c in cfg.cameras], self.robots, self.tool_poses,
-                                       latency=pp.motion.latency, margin=sc.self_filter_margin,
-                                       model=models[0][0], workspace=(pp.workspace.min, pp.workspace.max))
-
     @staticmethod
     def _make_robot(table: dict):
         if table.get("model", "raven2") == "none":
@@ -470,7 +443,8 @@ class Service:
                     tp.cmd[b] = self._T4[b, :3, 3]
                     self._robot_bad_t[b] = t
             elif self._coupled_prev[b]:
-                r.hold()
+                r.hold()                    # the arm stops where it is, and so does its command
+                tp.cmd[b] = self.xr[b]
             r.step(dt)
         for b, r in enumerate(self.robots):
             if r is None and self.coupled[b]:
@@ -509,8 +483,12 @@ class Service:
         with self._tx_lock:
             for b, m in enumerate(self.masters):
                 m.send_force(self.f_master[b])
-        for r in self.robots:
+        for b, r in enumerate(self.robots):
             if r is not None:
+                if self._coupled_prev[b]:
+                    r.hold()                # the arm stops where it is, and so does its command
+                    r.measured_cp(out=self._T4[b])
+                    self.teleop.cmd[b] = self._T4[b, :3, 3]
                 r.hold()
                 r.step(dt)
         self.coupled[:] = False

@@ -22,6 +22,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from pointfence.kernels.errors import InputError
 from pointfence.kernels.selffilter import Capsule, SelfFilter
 from pointfence.kernels.yielding import checkpoint
 
@@ -116,6 +117,32 @@ def clip_capsule(c: Capsule, lo, hi) -> Optional[Capsule]:
     if s0 == 0.0 and s1 == 1.0:
         return c
     return Capsule(tuple(a + s0 * d), tuple(a + s1 * d), c.radius)
+
+
+def self_filter_for(cfg, pp, robots: Sequence) -> tuple:
+    """(ToolPoseRing, ToolFilter, None) for the service of configuration ``cfg`` (pipeline
+    parameters ``pp``) where every robot's tool is known (S5: ``robot.tool.tool_model_for``);
+    else (None, None, why there is none). An explicit ``self_filter = true`` without a known
+    tool is an InputError."""
+    from .robot.tool import tool_model_for
+
+    sc = cfg.service
+    present = [r for r in robots if r is not None]
+    if not present:
+        return None, None, "no robot model: nothing to filter"
+    if not cfg.self_filter:
+        return None, None, "off in the configuration ([service] self_filter = false)"
+    models = [tool_model_for(r, cfg.robot.get("tool")) for r in present]
+    unknown = [why for model, why in models if model is None]
+    if unknown:
+        if sc.self_filter:
+            raise InputError(f"[service] self_filter = true, but {unknown[0]}")
+        return None, None, unknown[0]
+    horizon = sc.max_frame_age_s + pp.motion.latency + 0.25
+    ring = ToolPoseRing(robots, int(math.ceil(horizon * sc.rate_hz)))
+    flt = ToolFilter([c.camera for c in cfg.cameras], robots, ring, latency=pp.motion.latency,
+                     margin=sc.self_filter_margin, model=models[0][0], workspace=(pp.workspace.min, pp.workspace.max))
+    return ring, flt, None
 
 
 class ToolFilter:

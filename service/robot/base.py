@@ -405,9 +405,14 @@ class Robot(ABC):
 
     # ---------------------------------------------------------------- operating state
     def hold(self) -> None:
-        """Freeze the current setpoint: the robot keeps servoing to it and servo commands are
-        ignored until resume(). Safe to call repeatedly and in any state (FAULT stays FAULT)."""
+        """Stop where the arm is: the setpoint moves onto the measured joints (a stop, not the
+        end of the last command: an arm that lags its setpoint does not go on moving while it is
+        held, SAFETY.md S3), and servo commands are ignored until resume(). Safe to call
+        repeatedly and in any state (FAULT stays FAULT)."""
         if self._mode is RobotMode.ENABLED:
+            self._q_d[:] = self._q
+            self._fk(self._q_d, self._scratch4)
+            np.matmul(self._T_world_base, self._scratch4, out=self._T_d)
             self._mode = RobotMode.HOLDING
 
     def resume(self) -> None:
