@@ -9,9 +9,10 @@ under III. For every run it prints the 6.1 measures against the scenes' exact ge
 (safety: max penetration of the fixture; submittance: closest approach while held off;
 tracking: r.m.s. |X_r - X_r*| with the master outside the region) and the loop's timing
 (compute and lateness p50/p99, deadline misses; a tick later than ``--max-lateness``, 20 ms by
-default here and within ``[service] max_lateness_s``'s hard limit, holds the robot as in the service). ``--offline`` runs the same on the simulated
-clock (deterministic; no loop timing). ``--out DIR`` keeps each run's ticks.csv, summary.json
-and inputs.npz (replayable with ``pointfence replay --recording``).
+default here and held to ``[service] max_lateness_s``'s hard limit, holds the robot as in the
+service). ``--offline`` runs the same on the simulated clock (deterministic; no loop timing).
+``--out DIR`` keeps each run's ticks.csv, summary.json and inputs.npz (replayable with
+``pointfence replay --recording``).
 
 It then runs the chapter-2 surface probes in haptic rendering mode (``probes``: push into a
 plane, concave/convex/corner, the 5 mm ledge, and the rising plane's pop-through speed, figs.
