@@ -43,7 +43,7 @@ ARCHITECTURES = ("I", "II", "III")
 ROBOT_MODELS = ("raven2", "point-mass", "none")
 SERVICE_KEYS = {"rate_hz", "proxies", "stale_s", "max_frame_age_s", "force_ramp_s", "max_lateness_s", "recover_s",
                 "self_filter", "self_filter_margin", "rt_priority", "frames_rt_priority", "build_nice", "build_idle",
-                "robot_process"}
+                "robot_process", "robot_watchdog_s"}
 #: ``[motion]``: kernels.motion.MotionModel's fields (motion estimation and fixture prediction)
 MOTION_KEYS = {"enabled", "latency", "max_age", "capture", "cell", "min_points", "planarity", "count_ratio", "v_min",
                "v_max", "max_gap"}
@@ -105,6 +105,9 @@ class ServiceConfig:
     #: live runs step simulated robots in their own process on their own 1 kHz clock, as a real
     #: arm's controller runs (robot/hosted.py); false: in the haptic tick (offline runs always do)
     robot_process: bool = True
+    #: the hosted robot process's watchdog (``robot_process``): silent or unread for longer, every
+    #: arm reads FAULT (s; at most 0.25, ``limits.LIMITS``; robot/hosted.py ``RobotHost(timeout_s=...)``)
+    robot_watchdog_s: float = 0.05
 
 
 @dataclass

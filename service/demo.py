@@ -9,9 +9,10 @@ under III. For every run it prints the 6.1 measures against the scenes' exact ge
 (safety: max penetration of the fixture; submittance: closest approach while held off;
 tracking: r.m.s. |X_r - X_r*| with the master outside the region) and the loop's timing
 (compute and lateness p50/p99, deadline misses; a tick later than ``--max-lateness``, 20 ms by
-default here, holds the robot as in the service). ``--offline`` runs the same on the simulated
-clock (deterministic; no loop timing). ``--out DIR`` keeps each run's ticks.csv, summary.json
-and inputs.npz (replayable with ``pointfence replay --recording``).
+default here and held to ``[service] max_lateness_s``'s hard limit, holds the robot as in the
+service). ``--offline`` runs the same on the simulated clock (deterministic; no loop timing).
+``--out DIR`` keeps each run's ticks.csv, summary.json and inputs.npz (replayable with
+``pointfence replay --recording``).
 
 It then runs the chapter-2 surface probes in haptic rendering mode (``probes``: push into a
 plane, concave/convex/corner, the 5 mm ledge, and the rising plane's pop-through speed, figs.
@@ -38,7 +39,7 @@ from pathlib import Path
 from pointfence.kernels import get_backend
 from pointfence.service import config as config_mod
 
-from . import replay, report, scenarios, viewer as viewer_mod
+from . import limits, replay, report, scenarios, viewer as viewer_mod
 from .canned import canned_sources
 from .runner import LiveRun
 
@@ -114,9 +115,12 @@ def _one(cfg, scene, arch, args, viewer=None):
 
 
 def run(args) -> int:
-    cfg = config_mod.load(args.config)
+    lateness = None   # checked first, against the configuration's own hard limit (S7): fails before any run
     if args.max_lateness is not None:
-        cfg = replace(cfg, service=replace(cfg.service, max_lateness_s=float(args.max_lateness)))
+        lateness = limits.check("service.max_lateness_s", args.max_lateness, "--max-lateness")
+    cfg = config_mod.load(args.config)
+    if lateness is not None:
+        cfg = replace(cfg, service=replace(cfg.service, max_lateness_s=lateness))
     backend = get_backend(args.backend or cfg.backend, args.device or cfg.device)
     viewer = viewer_mod.from_args(args)   # before the runs: a missing rerun-sdk fails at once
     done = False

@@ -27,18 +27,35 @@ change nothing. An arm whose packets stop for longer than the timeout reports ``
 says ``exposed``.
 Positions are the increments integrated from zero (master frame, m); the adapter sends no force
 back.
+
+Two sides, two threads, as in ``udp_server.UdpHub``:
+
+* **The receiver** (a thread of its own, or ``pump()`` called by the owner outside the tick when
+  built with ``receiver=False``) reads the socket, drops floods per source address before any
+  parsing (``udp_ratelimit.SourceLimiter``, counted as ``rate_limited``), checks every packet
+  (``handle``: source lock, size, checksum, sequence, values; its clock is ``time.monotonic``)
+  and integrates the accepted increments into the latest sample: a few floats per arm written
+  under one short lock.
+* **The haptic tick** (``ItpArmMaster.poll``) copies its arm's part of the newest sample under
+  that lock (no socket, no parsing, no allocation) and decides the arm's timeout in loop time,
+  counted from the tick that first saw the newest sample.
 """
 from __future__ import annotations
 
 import ipaddress
 import logging
 import math
+import select
 import socket
 import struct
+import threading
+import time
+from typing import Optional
 
 import numpy as np
 
 from .masters import Master
+from .udp_ratelimit import SourceLimiter
 
 log = logging.getLogger("pointfence.itp")
 
@@ -79,20 +96,23 @@ class ItpArmMaster(Master):
         self.clutch = False
         self.orientation = np.array([1.0, 0.0, 0.0, 0.0])
         self.grasp = 0.0
-        self.last_t = -math.inf
+        self.seen = 0                    # the receiver's sample count at the last copy
+        self.last_t = -math.inf          # loop time of the tick that first saw the newest sample, s
 
     def poll(self, t: float) -> None:
-        r = self.receiver
-        if t != r.t:
-            r.drain(t)
+        """The tick's read (loop time ``t``, s): copy the newest sample if there is one, decide
+        the arm's timeout. Never reads the socket."""
         hub = self.poll_also
         if hub is not None and t != hub.t:
             hub.tick(t)
-        self.ok = r.seen and t - self.last_t <= r.timeout_s
+        r = self.receiver
+        if r.n != self.seen:
+            r.copy_to(self, t)
+        self.ok = self.seen > 0 and t - self.last_t <= r.timeout_s
 
 
 class ItpReceiver:
-    """The ITP socket and its two arms (see the module docstring).
+    """The ITP socket, its receiver and its two arms (see the module docstring).
 
     Args:
         host, port: where to bind (loopback unless the masters are on another host: then the
@@ -102,32 +122,53 @@ class ItpReceiver:
         max_step_um: largest increment per packet and axis, micrometres.
         max_jump: largest sequence advance accepted from one packet to the next (packets).
         lock_timeout_s: the source lock is released after this long without an accepted packet, s
-            of loop time.
-        budget: packets handled per tick at most.
+            (receiver clock).
+        receiver: run the receiver thread (default); False: the owner calls ``pump()`` itself,
+            outside the tick (deterministic tests).
+        limiter: the per-source rate limiter (default: 4,000 packets/s, bursts of 400; a genuine
+            ITP master sends 1,000 a second).
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 36000, timeout_ms: int = 50, checksum: str = "sum",
-                 max_step_um: int = 10000, max_jump: int = 1000, lock_timeout_s: float = 1.0, budget: int = 64):
+                 max_step_um: int = 10000, max_jump: int = 1000, lock_timeout_s: float = 1.0, receiver: bool = True,
+                 limiter: Optional[SourceLimiter] = None):
         if not 1 <= int(max_jump) < 0x80000000:
             raise ValueError(f"max_jump = {max_jump}; expected 1 .. 2^31 - 1 packets")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind((host, int(port)))
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        except OSError:
+            pass
+        try:
+            self.sock.bind((host, int(port)))
+        except BaseException:
+            self.sock.close()
+            raise
         self.sock.setblocking(False)
         self.timeout_s = timeout_ms / 1000.0
         self.checksum = checksum
         self.max_step_um = int(max_step_um)
         self.max_jump = int(max_jump)
         self.lock_timeout_s = float(lock_timeout_s)
-        self.budget = int(budget)
+        self.limiter = limiter if limiter is not None else SourceLimiter()
         self.arms = [None, None]
-        self.t = None
         self.seq = None
-        self.seen = False
         self.source = None               # the address the link is locked to
-        self.last_accept_t = None        # loop time of the last accepted packet
+        self.last_accept_t = None        # receiver clock at the last accepted packet, s
         self._buf = bytearray(2048)
+        self._view = memoryview(self._buf)
+        self.received = 0                # packets read from the socket
         self.accepted = 0
-        self.counters = {"size": 0, "checksum": 0, "stale": 0, "jump": 0, "source": 0, "non_finite": 0, "range": 0}
+        self.counters = {"rate_limited": 0, "size": 0, "checksum": 0, "stale": 0, "jump": 0, "source": 0,
+                         "non_finite": 0, "range": 0}
+        # the latest sample (receiver: integrated under _lock; tick: copied under it)
+        self._lock = threading.Lock()
+        self.n = 0                       # samples published so far
+        self._pos = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]
+        self._quat = [[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]   # w, x, y, z
+        self._buttons = [0, 0]
+        self._grasp = [0.0, 0.0]
+        self._mode = 0
         self.exposed = not ipaddress.ip_address(self.sock.getsockname()[0]).is_loopback
         self.warning = None
         if self.exposed:
@@ -135,6 +176,11 @@ class ItpReceiver:
                             "not loopback: the ITP link is UNAUTHENTICATED, anyone who can reach this port can move the "
                             "robot; bind to 127.0.0.1 or use the authenticated protocol (clients/PROTOCOL.md)")
             log.warning(self.warning)
+        self._stop = threading.Event()
+        self._thread = None
+        if receiver:
+            self._thread = threading.Thread(target=self._run, name="pointfence-itp-rx", daemon=True)
+            self._thread.start()
 
     @property
     def address(self):
@@ -145,19 +191,65 @@ class ItpReceiver:
         self.arms[arm] = m
         return m
 
-    def drain(self, t: float) -> None:
-        self.t = t
-        for _ in range(self.budget):
+    # --- the tick ---------------------------------------------------------------------------------------
+    def copy_to(self, m: ItpArmMaster, t: float) -> None:
+        """The tick: copy arm ``m.arm`` of the newest sample into ``m`` (loop time ``t``, s)."""
+        a = m.arm
+        with self._lock:
+            n = self.n
+            x, y, z = self._pos[a]
+            qw, qx, qy, qz = self._quat[a]
+            buttons = self._buttons[a]
+            grasp = self._grasp[a]
+            mode = self._mode
+        p = m.position
+        p[0], p[1], p[2] = x, y, z
+        o = m.orientation
+        o[0], o[1], o[2], o[3] = qw, qx, qy, qz
+        m.buttons = buttons
+        m.grasp = grasp
+        m.clutch = mode == 1
+        m.seen = n
+        m.last_t = t
+
+    # --- the receiver (outside the tick) ------------------------------------------------------------------
+    def _run(self) -> None:
+        poller = select.poll()
+        poller.register(self.sock, select.POLLIN)
+        while not self._stop.is_set() and self.sock.fileno() >= 0:
             try:
-                n, addr = self.sock.recvfrom_into(self._buf)
+                ready = poller.poll(50)
+            except OSError:
+                return
+            if ready:
+                self.pump()
+
+    def pump(self, limit: int = 4096) -> int:
+        """Receive and handle the waiting packets (at most ``limit``); returns how many."""
+        sock, buf, view = self.sock, self._buf, self._view
+        allow = self.limiter.allow
+        k = 0
+        while k < limit and not self._stop.is_set():
+            try:
+                n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
                 break
-            except OSError:
+            except OSError:      # e.g. ICMP port unreachable reported on a UDP socket; a closed socket
+                if sock.fileno() < 0:
+                    break
                 continue
-            self.handle(memoryview(self._buf)[:n], t, addr)
+            k += 1
+            self.received += 1
+            now = time.monotonic()
+            if not allow(addr, now):
+                self.counters["rate_limited"] += 1
+                continue
+            self.handle(view[:n], now, addr)
+        return k
 
     def handle(self, data, t: float, addr) -> bool:
-        """Check and apply one packet from ``addr`` at loop time ``t`` (s); False: rejected (counted)."""
+        """Check and apply one packet from ``addr`` received at time ``t`` (receiver clock, s);
+        False: rejected (counted)."""
         if self.source is not None and self.last_accept_t is not None and t - self.last_accept_t > self.lock_timeout_s:
             self.source = None           # the locked master fell silent: the next valid packet may take the link
             self.seq = None
@@ -195,27 +287,36 @@ class ItpReceiver:
             self.counters["range"] += 1
             return False
         self.seq = seq
-        self.seen = True
         self.source = addr
         self.last_accept_t = t
         self.accepted += 1
-        for a, m in enumerate(self.arms):
-            if m is None:
-                continue
-            m.position[0] += dx[a] * 1e-6
-            m.position[1] += dy[a] * 1e-6
-            m.position[2] += dz[a] * 1e-6
-            m.orientation[:] = (qw[a], qx[a], qy[a], qz[a])
-            m.buttons = v[17 + a] & 0xFFFFFFFF
-            m.grasp = v[19 + a] * 1e-3
-            m.clutch = mode == 1
-            m.last_t = t
+        with self._lock:
+            for a in range(2):
+                if self.arms[a] is None:
+                    continue
+                p, q = self._pos[a], self._quat[a]
+                p[0] += dx[a] * 1e-6
+                p[1] += dy[a] * 1e-6
+                p[2] += dz[a] * 1e-6
+                q[0], q[1], q[2], q[3] = qw[a], qx[a], qy[a], qz[a]
+                self._buttons[a] = v[17 + a] & 0xFFFFFFFF
+                self._grasp[a] = v[19 + a] * 1e-3
+            self._mode = mode
+            self.n += 1
         return True
 
     def status(self) -> dict:
-        return {"address": list(self.address), "accepted": self.accepted, "rejected": dict(self.counters),
+        src = self.source
+        return {"address": list(self.address) if self.sock.fileno() >= 0 else None, "received": self.received,
+                "accepted": self.accepted, "rejected": dict(self.counters),
+                "receiver": "thread" if self._thread is not None else "pump",
+                "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
                 "authenticated": False, "exposed": self.exposed, "warning": self.warning,
-                "locked_to": list(self.source) if self.source is not None else None}
+                "locked_to": list(src) if src is not None else None}
 
     def close(self) -> None:
+        """Stop the receiver and close the socket (idempotent)."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(2.0)
         self.sock.close()

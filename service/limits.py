@@ -10,7 +10,8 @@ safeguard off by a huge or tiny number. Other modules that take such values from
 (command line, control API) check them with ``check(key, value)``.
 
 Keys are the configuration's dotted paths: ``service.max_frame_age_s``, ``camera.rate_hz``
-(every ``[[camera]]``), ``workspace.min`` (every coordinate).
+(every ``[[camera]]``), ``workspace.min`` (every coordinate). Command-line values that are no
+configuration key have keys of their own command: ``serve.timeout_ms`` (``CLI_PREFIXES``).
 """
 from __future__ import annotations
 
@@ -54,6 +55,11 @@ LIMITS: dict = {
                                         "the margin is cut around the robot's own tool: more than 1 cm erases "
                                         "protected surface in front of the tool (S5)"),
     "service.proxies": Limit(1, 4096, "", "the most proxies one batch renders (the warp backend's cap)", True),
+    "service.robot_watchdog_s": Limit(0.002, 0.25, "s",
+                                      "how long the hosted robot process may stay silent before every arm reads "
+                                      "FAULT (S9): an arm moving at 2 m/s goes half a metre in 0.25 s "
+                                      "(robot/hosted.py WATCHDOG_MAX_S); below two of its 1 kHz steps any "
+                                      "scheduling hiccup faults every arm"),
     # -- [teleop] ------------------------------------------------------------------------------
     "teleop.scale": Limit(1e-3, 1.0, "",
                           "robot motion per master motion: a surgical robot scales the hand's motion down; "
@@ -108,7 +114,15 @@ LIMITS: dict = {
     "motion.planarity": Limit(0.0, 1.0, "", "a ratio of covariance eigenvalues"),
     "motion.count_ratio": Limit(1.0, 100.0, "", "blocks whose point counts differ 100-fold are not one surface"),
     "motion.min_points": Limit(1, 100000, "", "no block holds more points than a frame", True),
+    # -- command-line values of `pointfence serve` (no configuration key) -----------------------
+    "serve.timeout_ms": Limit(1, 1000, "ms",
+                              "a master silent for longer is dropped and its arm holds: beyond 1 s (the "
+                              "protocol's MAX_TIMEOUT_MS) the arm follows a hand that may have let go; "
+                              "below one 1 kHz tick every client times out", True),
 }
+
+#: key prefixes of ``LIMITS`` entries that bound command-line values, not configuration keys
+CLI_PREFIXES = ("serve.",)
 
 
 def check(key: str, value, where: str = "") -> float:

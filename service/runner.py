@@ -33,7 +33,8 @@ class LiveRun:
 
             # normal priority: a SCHED_FIFO child would preempt the service's normal threads, and
             # one that holds the interpreter lock would keep the loop waiting
-            self.robot_host = RobotHost([cfg.robot] * len(masters))
+            # its watchdog: [service] robot_watchdog_s (checked against its hard limit by config)
+            self.robot_host = RobotHost([cfg.robot] * len(masters), timeout_s=sc.robot_watchdog_s)
             robots = self.robot_host.robots
         try:
             self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,

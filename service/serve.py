@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import stat
 import sys
 import time
 from pathlib import Path
@@ -30,7 +31,9 @@ from pathlib import Path
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
+from . import limits
 from .control_api import DEFAULT_CONTROL_PORT
+from .files import write_atomic
 
 DEFAULT_PORT = 47800
 
@@ -39,12 +42,15 @@ def add_arguments(p):
     p.add_argument("--config", default=None, help="scene configuration (TOML); default: the embedded defaults")
     p.add_argument("--key-file", default=os.environ.get("POINTFENCE_KEY_FILE"),
                    help="pre-shared key file (hex on the first line); default $POINTFENCE_KEY_FILE")
-    p.add_argument("--new-key", metavar="FILE", default=None, help="write a new random 32-byte key to FILE (mode 600) and exit")
+    p.add_argument("--new-key", metavar="FILE", default=None,
+                   help="write a new random 32-byte key to FILE (mode 600, atomically; an existing FILE is never "
+                        "replaced) and exit")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1, loopback only)")
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"UDP port (default {DEFAULT_PORT}; 0: any free port)")
     p.add_argument("--clients", type=int, default=None, help="master slots = proxies (default: [service] proxies)")
     p.add_argument("--timeout-ms", type=int, default=P.DEFAULT_TIMEOUT_MS,
-                   help=f"drop a client silent this long (default {P.DEFAULT_TIMEOUT_MS} ms; clients may ask for less)")
+                   help=f"drop a client (and an ITP arm) silent this long (default {P.DEFAULT_TIMEOUT_MS} ms, at most "
+                        f"{P.MAX_TIMEOUT_MS}: service/limits.py; clients may ask for less)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until Ctrl-C)")
     p.add_argument("--status-every", type=float, default=5.0, help="status line period on stderr, s (0: none)")
     p.add_argument("--stats-file", default=None, help="write the final status JSON here")
@@ -72,12 +78,46 @@ def add_arguments(p):
 
 
 def new_key(path) -> None:
+    """Write a fresh random 32-byte key (64 hex digits and a newline) to ``path``, mode 0600,
+    atomically (``files.write_atomic``: a crash leaves no partial key). An existing file is
+    never replaced: that is refused, and should one appear between the check and the write,
+    write_atomic keeps it as ``<path>.bak`` (S8)."""
     p = Path(path)
-    if p.exists():
-        raise InputError(f"{p} exists; refusing to overwrite a key (delete it first)")
-    fd = os.open(str(p), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(os.urandom(32).hex() + "\n")
+    if p.exists() or p.is_symlink():
+        raise InputError(f"{p} exists; refusing to overwrite a key (delete it first, or choose another FILE)")
+    try:
+        write_atomic(p, os.urandom(32).hex() + "\n", mode=0o600)
+    except OSError as e:
+        raise InputError(f"cannot write the key file {str(p)!r} ({e.strerror or e}); choose a FILE in an existing "
+                         "folder you may write to") from None
+
+
+def check_args(args) -> None:
+    """The command-line values that could weaken safety, against their hard limits
+    (``limits.LIMITS``, S7), before anything starts: an InputError names the option."""
+    limits.check("serve.timeout_ms", args.timeout_ms, "--timeout-ms")
+    if args.clients is not None:
+        limits.check("service.proxies", args.clients, "--clients")
+    if args.prerender < 0:
+        raise InputError(f"--prerender {args.prerender}; expected a number of frames >= 0 (0: render live)")
+
+
+def load_key(path) -> bytes:
+    """The pre-shared key in ``path`` (``clients/keyfile.py``); any failure to read it is an
+    InputError naming the file (the command prints it as one line). Only a regular file is
+    opened: opening a FIFO nobody writes to would wait for ever."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        st = None                        # P.load_key names what is wrong (not found, no access)
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        raise InputError(f"key file {str(path)!r} is not a regular file; pass the key file that "
+                         "`pointfence serve --new-key FILE` wrote")
+    try:
+        return P.load_key(path)
+    except OSError as e:
+        raise InputError(f"key file {str(path)!r} cannot be read ({e.strerror or e}); check the file, or make a "
+                         "new one with `pointfence serve --new-key FILE`") from None
 
 
 def _itp_address(spec: str):
@@ -89,15 +129,14 @@ def _itp_address(spec: str):
 
 
 def run(args) -> int:
+    check_args(args)
     if args.new_key:
         new_key(args.new_key)
         print(f"pointfence serve: wrote a new 32-byte key to {args.new_key}; give the same file to every client")
         return 0
-    if args.prerender < 0:
-        raise InputError(f"--prerender {args.prerender}; expected a number of frames >= 0 (0: render live)")
     if not args.key_file:
         raise InputError("no key: pass --key-file FILE (or set POINTFENCE_KEY_FILE); make one with --new-key FILE")
-    psk = P.load_key(args.key_file)
+    psk = load_key(args.key_file)
     from . import config as config_mod
     from .runner import LiveRun
     from .udp_server import UdpHub
@@ -118,6 +157,7 @@ def run(args) -> int:
         host, port = _itp_address(args.itp)
         idx = [int(s) for s in args.itp_slots.split(",") if s.strip()]
         if not 1 <= len(idx) <= 2 or any(not 0 <= i < slots for i in idx) or len(set(idx)) != len(idx):
+            hub.close()
             raise InputError(f"--itp-slots {args.itp_slots!r}; expected one or two distinct slots in 0..{slots - 1}")
         try:
             itp = ItpReceiver(host, port, timeout_ms=args.timeout_ms, checksum=args.itp_checksum)
@@ -132,8 +172,14 @@ def run(args) -> int:
         from .canned import live_sources
 
         sources = live_sources(cfg, args.prerender)
-    run_ = LiveRun(cfg, masters, architecture=args.architecture, backend=args.backend, device=args.device,
-                   sources=sources)
+    try:
+        run_ = LiveRun(cfg, masters, architecture=args.architecture, backend=args.backend, device=args.device,
+                       sources=sources)
+    except BaseException:
+        if itp is not None:
+            itp.close()
+        hub.close()
+        raise
     hub.attach(run_.service)
     stop = {"now": False}
 
@@ -141,9 +187,11 @@ def run(args) -> int:
         stop["now"] = True
 
     old = signal.signal(signal.SIGTERM, on_signal)
+    itp_warning = itp.status()["warning"] if itp is not None else None   # bound beyond loopback: said at start-up
     print(f"pointfence serve: {slots} master slot(s) on udp://{hub.address[0]}:{hub.address[1]} "
           f"(timeout {args.timeout_ms} ms), backend {run_.service.backend.name} on {run_.service.backend.device_name}"
-          + (f"; ITP (unauthenticated) on udp://{itp.address[0]}:{itp.address[1]}" if itp else ""), file=sys.stderr)
+          + (f"; ITP (unauthenticated) on udp://{itp.address[0]}:{itp.address[1]}" if itp else "")
+          + (f"; WARNING: {itp_warning}" if itp_warning else ""), file=sys.stderr)
     t_start = time.monotonic()
     control = None
     try:

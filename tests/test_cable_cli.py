@@ -53,3 +53,31 @@ def test_calib_tension_entry_point_matches_cable_calib_tension(tmp_path):
     out = tmp_path / "cal.json"
     assert calib_tension.run(p.parse_args(["--points", str(pts), "--out", str(out)])) == 0
     assert TensionCurve.load(out).b > 0
+
+
+def test_calib_tension_writes_atomically_and_keeps_the_earlier_calibration(tmp_path, monkeypatch):
+    from pointfence.service import files
+
+    pts = tmp_path / "pts.csv"
+    pts.write_text("450,14000\n900,20500\n1400,25000\n")
+    out = tmp_path / "cal.json"
+    out.write_text('{"a": 1.0, "b": 2.0}\n')                     # an earlier calibration
+    assert cli.run(_parse("calib-tension", "--points", str(pts), "--out", str(out))) == 0
+    [bak] = files.backups_of(out)
+    assert bak.name == "cal.json.bak" and bak.read_text() == '{"a": 1.0, "b": 2.0}\n'
+    first = out.read_text()
+    assert TensionCurve.load(out).b > 0
+    # a write that fails half-way (disk full) leaves the calibration whole and no temporary file
+    real = files._write_temp
+
+    def full_disk(directory, name, data, mode):
+        if name == "cal.json" and data != first.encode():
+            raise OSError(28, "No space left on device")
+        return real(directory, name, data, mode)
+
+    monkeypatch.setattr(files, "_write_temp", full_disk)
+    pts.write_text("450,15000\n900,21500\n1400,26000\n")
+    with pytest.raises(InputError, match="cal.json: cannot write it .No space left on device"):
+        cli.run(_parse("calib-tension", "--points", str(pts), "--out", str(out)))
+    assert out.read_text() == first
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal.json", "cal.json.bak", "cal.json.bak.2", "pts.csv"]

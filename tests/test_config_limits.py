@@ -8,7 +8,10 @@ import pytest
 
 from pointfence.kernels.errors import InputError
 from pointfence.service import config
-from pointfence.service.limits import LIMITS, check
+from pointfence.service.limits import CLI_PREFIXES, LIMITS, check
+
+#: the limits of configuration keys (the others bound command-line values: test_serve_args.py)
+CONFIG_LIMITS = sorted(k for k in LIMITS if not k.startswith(CLI_PREFIXES))
 
 BASE = {
     "backend": "numpy",
@@ -62,7 +65,7 @@ def test_the_embedded_defaults_and_the_base_document_load():
     config.parse(copy.deepcopy(BASE))
 
 
-@pytest.mark.parametrize("key", sorted(LIMITS))
+@pytest.mark.parametrize("key", CONFIG_LIMITS)
 def test_each_limit_refuses_beyond_and_nan_and_accepts_at_it(key):
     lim = LIMITS[key]
     label = key.split(".")[1]
@@ -104,3 +107,25 @@ def test_a_synthetic_camera_with_a_pose_and_no_intrinsics_loads():
     cam["T_world_cam"] = [1, 0, 0, 0.1, 0, -1, 0, 0, 0, 0, -1, 0.5, 0, 0, 0, 1]
     c = config.parse(doc).cameras[0].camera
     assert c.width == 640 and c.T_world_cam[0, 3] == 0.1 and c.T_world_cam[2, 3] == 0.5
+
+
+def test_every_limit_bounds_a_configuration_key_or_a_command_line_value():
+    known = {"service": config.SERVICE_KEYS, "teleop": config.TELEOP_KEYS, "haptics": config.HAPTICS_KEYS,
+             "fixture": config.FIXTURE_KEYS, "hash": config.HASH_KEYS, "workspace": config.WORKSPACE_KEYS,
+             "camera": config.CAMERA_KEYS, "motion": config.MOTION_KEYS}
+    for key in CONFIG_LIMITS:
+        table, name = key.split(".")
+        assert name in known[table], key
+    assert set(LIMITS) - set(CONFIG_LIMITS) == {"serve.timeout_ms"}
+
+
+def test_the_robot_watchdog_is_configured_within_the_robot_process_ceiling():
+    from pointfence.service.robot.hosted import WATCHDOG_MAX_S, WATCHDOG_S
+
+    assert LIMITS["service.robot_watchdog_s"].hi == WATCHDOG_MAX_S
+    assert config.load().service.robot_watchdog_s == WATCHDOG_S == config.ServiceConfig().robot_watchdog_s
+    assert config.parse(with_value("service.robot_watchdog_s", 0.1)).service.robot_watchdog_s == 0.1
+    with pytest.raises(InputError, match=r"\[service\] robot_watchdog_s = 0.3 s is above its hard limit of 0.25 s"):
+        config.parse(with_value("service.robot_watchdog_s", 0.3))
+    with pytest.raises(InputError, match=r"\[service\] robot_watchdog_s = 0.001 s is below its hard limit of 0.002 s"):
+        config.parse(with_value("service.robot_watchdog_s", 0.001))

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from pointfence.kernels.errors import InputError
 from pointfence.service import demo, probes, report
 
 from service_cases import balloon_config, needs_opencl
@@ -85,3 +86,37 @@ def test_demo_report_can_be_turned_off(tmp_path, capsys, monkeypatch):
                          "--no-probes"])
     assert demo.run(args) == 0
     assert "report:" not in capsys.readouterr().out and not (tmp_path / "out").exists()
+
+
+def _demo_args(*argv):
+    p = argparse.ArgumentParser()
+    demo.add_arguments(p)
+    return p.parse_args(["--backend", "numpy", "--offline", "--no-probes", "--no-dynamic", "--report", "", *argv])
+
+
+@pytest.mark.parametrize("value, message", [
+    ("5", r"--max-lateness = 5 s is above its hard limit of 1 s .*use a value <= 1"),
+    ("1e9", r"--max-lateness = 1e\+09 s is above its hard limit of 1 s"),
+    ("0", r"--max-lateness = 0 s is below its hard limit of 0.0005 s"),
+    ("-1", r"--max-lateness = -1 s is below its hard limit"),
+    ("nan", r"--max-lateness = nan; expected a finite number"),
+    ("inf", r"--max-lateness = inf; expected a finite number"),
+])
+def test_demo_max_lateness_is_held_to_the_configurations_hard_limit(value, message, monkeypatch):
+    """--max-lateness overrides [service] max_lateness_s: a value that would switch the lateness
+    hold off (a huge, infinite or NaN lateness) is refused before any run starts (S7)."""
+    monkeypatch.setattr(demo, "_run", lambda *a: pytest.fail(f"the demo ran with --max-lateness {value}"))
+    with pytest.raises(InputError, match=message):
+        demo.run(_demo_args("--max-lateness", value))
+
+
+def test_demo_max_lateness_within_the_limit_reaches_the_runs(monkeypatch):
+    seen = {}
+
+    def fake_run(args, cfg, backend, viewer):
+        seen["max_lateness_s"] = cfg.service.max_lateness_s
+        return 0
+
+    monkeypatch.setattr(demo, "_run", fake_run)
+    assert demo.run(_demo_args("--max-lateness", "0.5")) == 0
+    assert seen["max_lateness_s"] == 0.5

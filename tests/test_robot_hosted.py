@@ -159,3 +159,17 @@ def test_live_run_hosts_the_arms_and_architecture_iii_keeps_them_out(tmp_path):
     assert xr[0, 2] - xr[:, 2].min() > 0.005           # and it did move down towards it
     assert run.robot_host._proc is None               # stop() ended the robot process
     assert run.service.status()["robots"][0]["process"] == "own"
+
+
+@needs_opencl
+def test_the_configured_robot_watchdog_reaches_the_robot_process(tmp_path):
+    """[service] robot_watchdog_s is the hosted robot process's watchdog in a live run."""
+    cfg = balloon_config(tmp_path, arch="III", robot=RAVEN, extra="robot_watchdog_s = 0.07\n")
+    assert cfg.service.robot_watchdog_s == 0.07
+    run = LiveRun(cfg, [push()])
+    try:
+        assert run.robot_host is not None and run.robot_host.timeout_s == 0.07
+    finally:
+        run.stop()
+    with pytest.raises(InputError, match=r"robot_watchdog_s = 0.5 s is above its hard limit of 0.25 s"):
+        balloon_config(tmp_path, robot=RAVEN, extra="robot_watchdog_s = 0.5\n")

@@ -12,7 +12,7 @@ import pytest
 from pointfence.kernels.errors import InputError
 from pointfence.service import replay
 from pointfence.service.robot import RobotMode
-from pointfence.service.robot.hosted import WATCHDOG_MAX_S, RobotHost
+from pointfence.service.robot.hosted import WATCHDOG_MAX_S, WATCHDOG_S, RobotHost
 from pointfence.service.robot.hosted_block import Block
 
 from service_cases import balloon_config, push
@@ -150,7 +150,7 @@ def test_watchdog_time_has_a_ceiling_and_faults_are_named():
         RobotHost([TABLE], timeout_s=math.nan)
     h = RobotHost([TABLE])
     try:
-        assert h.timeout_s == 0.02
+        assert h.timeout_s == WATCHDOG_S == 0.05
         with pytest.raises(InputError, match="expected one of nan, stall, kill, none"):
             h.inject("explode")
         with pytest.raises(InputError, match="arm 3"):

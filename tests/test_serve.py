@@ -208,7 +208,7 @@ def test_two_clients_drive_two_proxies_independently(tmp_path):
 def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
     from pointfence.service.itp import ITP_SIZE, ItpReceiver, pack_itp
 
-    r = ItpReceiver("127.0.0.1", 0, timeout_ms=50)
+    r = ItpReceiver("127.0.0.1", 0, timeout_ms=50, receiver=False)
     try:
         arm0, arm1 = r.arm_master(0), r.arm_master(1)
         q = [[0, 0, 0, 1], [0, 0, 0, 1]]
@@ -217,6 +217,7 @@ def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
         src = ("127.0.0.1", 40000)
         for g in good:
             assert r.handle(g, 0.001, src)
+        arm0.poll(0.001), arm1.poll(0.001)                                  # the tick copies the newest sample
         np.testing.assert_allclose(arm0.position, [300e-6, 0, -150e-6])
         np.testing.assert_allclose(arm1.position, [0, 60e-6, 0])
         assert arm0.clutch and arm1.clutch
@@ -230,12 +231,11 @@ def test_itp_adapter_integrates_increments_and_refuses_bad_packets(tmp_path):
                pack_itp(12, [[1, 0, 0], [0, 0, 0]], q, surgeon_mode=5)]
         for d in bad:
             assert not r.handle(d, 0.002, src)
+        arm0.poll(0.002)
         np.testing.assert_array_equal(arm0.position, before)
         assert sum(r.counters.values()) == len(bad) and r.status()["authenticated"] is False
-        arm0.poll(0.002)
         assert arm0.ok
-        r.t = 0.1
-        arm0.poll(0.1)                                                      # silent for 98 ms
+        arm0.poll(0.1)                                                      # silent for 99 ms
         assert not arm0.ok
     finally:
         r.close()

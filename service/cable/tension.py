@@ -15,6 +15,8 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
+from ..files import write_atomic
+
 
 @dataclasses.dataclass(frozen=True)
 class TensionCurve:
@@ -35,7 +37,13 @@ class TensionCurve:
                 "k_e_points": list(self.k_e_points), "tension_points_g": list(self.tension_points)}
 
     def save(self, path) -> None:
-        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        """Write the curve as JSON to ``path`` atomically; an existing file is kept as a backup
+        (``path.bak``, ``.bak.2``, ...: ``service/files.write_atomic``, S8)."""
+        try:
+            write_atomic(path, json.dumps(self.to_json(), indent=2) + "\n")
+        except OSError as e:
+            raise InputError(f"tension calibration {path}: cannot write it ({e.strerror or e}); choose a file in a "
+                             "folder you may write to") from None
 
     @classmethod
     def load(cls, path) -> "TensionCurve":

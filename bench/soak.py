@@ -1,0 +1,168 @@
+"""`pointfence bench soak`: the live service under injected faults, judged against
+``../shared/SAFETY.md``.
+
+    pointfence bench soak --json [--minutes M] [--faults all|LIST] [--out DIR]
+
+The service runs as ``pointfence serve`` runs it, at 1 kHz on the real clock, with two
+simulated devices over authenticated UDP pushing two hosted Raven II arms into the fixture
+around the default scene's balloon under architecture III (``bench/soak_rig.py``). Every fault
+kind of ``bench/soak_faults.py`` is injected in turn, again and again for ``--minutes`` (0: every
+fault once, the CI version): camera stall, ingest exception, ingest thread death, kernel
+exception, kernel hang, client silence, NaN master, forged and replayed datagram floods,
+robot process kill, stall and NaN state, haptics off and architecture switches while pushing,
+unauthenticated control requests, and a fault cleared while coupled. Between faults the run
+must be steady: every arm coupled and nothing holding. After each fault its cause is removed
+and, where the fault is latched (or a hold remains), the operator clears it as SAFETY.md S3
+wants: pedals up, clear-faults, pedals down.
+
+The recording streams to ``soak.pfrec`` (in ``--out``, or a temporary folder), and each event is
+judged on it afterwards (``bench/soak_check.py``). The JSON has ``faults_injected``,
+``faults_handled`` (contract kept), ``faults_failed`` (each failure with its invariant),
+``max_hold_latency_ms`` (fault detectable -> arms holding; for a hung kernel call, the tick
+watchdog's sight of it), ``max_robot_motion_during_hold_mm``, ``max_penetration_mm`` (both
+arms, against the scene's true surface), ``ticks_recorded``, ``ticks_lost``,
+``loop_miss_ratio``, and per fault kind its count, failures and worst figures.
+"""
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+from pointfence.kernels.errors import InputError
+
+from .soak_check import MAX_HOLD_MOTION, MAX_PENETRATION, Recording, judge, penetration
+from .soak_faults import FAULTS, Event
+
+
+def add_arguments(p):
+    p.add_argument("--minutes", type=float, default=0.0,
+                   help="keep injecting faults in turn for this long (default 0: every fault once)")
+    p.add_argument("--faults", default="all", help=f"'all' or a comma-separated list of: {', '.join(FAULTS)}")
+    p.add_argument("--config", default=None, help="scene configuration (TOML); default: the embedded defaults")
+    p.add_argument("--out", default=None, help="keep the recording (soak.pfrec) and the events (events.json) here")
+    p.add_argument("--prerender", type=int, default=30, help="pre-rendered synthetic frames (default 30)")
+
+
+def _selected(spec: str) -> list:
+    if spec == "all":
+        return list(FAULTS.values())
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    unknown = [n for n in names if n not in FAULTS]
+    if unknown or not names:
+        raise InputError(f"--faults {spec!r}: unknown {unknown or 'empty list'}; known: all, {', '.join(FAULTS)}")
+    return [FAULTS[n] for n in names]
+
+
+def _recover(rig, fault, ev, clear: bool = False) -> None:
+    """Conditions clear by themselves; latched faults (or a hold that stays) are cleared by the
+    operator: pedals up, clear-faults, pedals down (S3)."""
+    if clear or fault.latched or not rig.steady(1.5):
+        rig.devices("pedal", False)
+        rig.sleep(0.15)
+        ev.clear = rig.tick()       # the clear happens at this tick or a little later
+        try:
+            rig.ctl.post("/clear-faults", {})
+        except Exception as e:  # noqa: BLE001 -- judged: a refused clear with the pedals up is a failure
+            ev.clear = None
+            ev.failures.append(("S3", f"{fault.name}: clear-faults with the pedals up refused: {e}"))
+        rig.sleep(0.1)
+        rig.devices("pedal", True)
+    if rig.steady(5.0):
+        ev.recovered = rig.tick()
+
+
+def run(args) -> dict:
+    from pointfence.service import config as config_mod
+
+    faults = _selected(args.faults)
+    cfg = config_mod.load(args.config)
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="pf-soak-"))
+    out.mkdir(parents=True, exist_ok=True)
+    from .soak_rig import SoakRig
+
+    rig = SoakRig(cfg, out, backend=args.backend, device=args.device, prerender=args.prerender)
+    events, unexpected, t_end = [], [], None
+    rig.start()
+    try:
+        if not rig.steady(60.0):
+            raise RuntimeError(f"bench soak: the arms never coupled: {rig.svc.status()}; clients {rig.hub.status()}")
+        rig.sleep(1.0)       # the devices' approach: both arms pushing into the fixture
+        t_end = time.monotonic() + 60.0 * float(args.minutes)
+        while True:
+            for fault in faults:
+                if not rig.steady(5.0):     # a hold nobody injected: a failure of its own; cleared
+                    st = rig.svc.status()
+                    unexpected.append({"fault": None, "invariant": "S9",
+                                       "what": f"not steady before {fault.name} (tick {rig.tick()}): holding "
+                                               f"{st['arms_holding']}, coupled {st['coupled']}, robots "
+                                               f"{[r and r['fault'] for r in st['robots']]}, last error {st['last_error']}"})
+                    _recover(rig, fault, Event("unexpected"), clear=True)
+                    if not rig.steady(10.0):
+                        raise RuntimeError(f"bench soak: stuck before {fault.name}: {unexpected[-1]['what']}")
+                rig.sleep(0.3)
+                ev = Event(fault.name)
+                fault.inject(rig, ev)
+                _recover(rig, fault, ev)
+                events.append((fault, ev))
+            if time.monotonic() >= t_end:
+                break
+        rig.sleep(0.3)
+    finally:
+        timing = rig.run.timing()
+        region = _region(rig)
+        link = rig.stop()
+    from pointfence.service.record import load_recording
+
+    data = load_recording(rig.record_path)
+    rec = Recording(data, cfg.service.rate_hz)
+    verdicts = [judge(f, ev, rec, cfg.service.max_frame_age_s, cfg.service.force_ramp_s) for f, ev in events]
+    failed = unexpected + [{"fault": v["fault"], "invariant": inv, "what": what} for v in verdicts
+                           for inv, what in v["failures"]]
+    pen = penetration(rec, region) if region is not None else None
+    if pen is not None and pen > MAX_PENETRATION:
+        failed.append({"fault": None, "invariant": "S1", "what": f"a robot entered the fixture by {pen * 1e3:.2f} mm"})
+    per = {}
+    for v in verdicts:
+        p = per.setdefault(v["fault"], {"injected": 0, "failed": 0, "max_hold_latency_ms": None,
+                                        "max_robot_motion_mm": None})
+        p["injected"] += 1
+        p["failed"] += bool(v["failures"])
+        for key, src in (("max_hold_latency_ms", "hold_latency_ms"), ("max_robot_motion_mm", "robot_motion_during_hold_mm"),
+                         ("max_robot_motion_mm", "robot_motion_mm")):
+            if v.get(src) is not None:
+                p[key] = max(p[key] or 0.0, v[src])
+    lat = [v["hold_latency_ms"] for v in verdicts if v.get("hold_latency_ms") is not None]
+    mot = [v.get("robot_motion_during_hold_mm") for v in verdicts if v.get("robot_motion_during_hold_mm") is not None]
+    meta = data["meta"]
+    (out / "events.json").write_text(__import__("json").dumps(verdicts, indent=1, default=str) + "\n")
+    return {
+        "minutes": round((rec.k[-1] - rec.k[0]) / cfg.service.rate_hz / 60.0, 2) if len(rec.k) else 0.0,
+        "faults_injected": len(events),
+        "faults_handled": sum(1 for v in verdicts if not v["failures"]),
+        "faults_failed": failed,
+        "max_hold_latency_ms": max(lat) if lat else None,
+        "max_robot_motion_during_hold_mm": max(mot) if mot else None,
+        "max_penetration_mm": None if pen is None else round(pen * 1e3, 3),
+        "ticks_recorded": int(meta.get("ticks_recorded", len(rec.k))),
+        "ticks_lost": int(meta.get("ticks_lost", 0)),
+        "torn_bytes": int(data.get("torn_bytes", 0)),
+        "loop_miss_ratio": round(timing.miss_ratio, 6),
+        "loop": timing.as_dict(),
+        "targets": {"robot_motion_during_hold_mm": MAX_HOLD_MOTION * 1e3, "penetration_mm": MAX_PENETRATION * 1e3,
+                    "loop_miss_ratio": 0.001},
+        "per_fault": per,
+        "devices": link.get("devices"),
+        "recording": str(rig.record_path),
+        "backend": rig.svc.backend.name, "device": rig.svc.backend.device_name,
+    }
+
+
+def _region(rig):
+    """The scene's true forbidden region (synthetic scenes; None for others)."""
+    from pointfence.service import measures
+
+    try:
+        return measures.region_for(rig.cfg, rig.sources)
+    except ValueError:
+        return None

@@ -1,0 +1,134 @@
+"""Judging a soak run's recording against the contract of each injected fault
+(``soak_faults``; ``../shared/SAFETY.md``). Everything here reads the streamed recording
+(``service/record.load_recording``): per tick its number, frame age, every master's validity,
+every arm's X_r and X_r*, arm 0's force and every arm's hold mask.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from pointfence.service.holds import MASTER
+
+#: robot motion allowed while an arm holds, and by an operator action alone (m)
+MAX_HOLD_MOTION = 1e-4
+#: penetration of the forbidden region allowed anywhere in the run (m)
+MAX_PENETRATION = 1e-3
+#: a fault must hold its arms within this many ticks of becoming detectable
+HOLD_TICKS = 1
+
+
+class Recording:
+    """The recorded arrays, indexed by tick number."""
+
+    def __init__(self, data: dict, rate_hz: float):
+        self.k = data["inputs"][:, 0].astype(np.int64)
+        self.age = data["inputs"][:, 3]
+        self.ok = data["masters"][:, :, 4] > 0.5
+        self.xr = data["robots"][:, :, :3]
+        self.cmd = data["robots"][:, :, 3:]
+        self.force0 = np.linalg.norm(data["rows"][:, 16:19], axis=1)
+        self.arm_hold = data["holds"][:, 1:].astype(np.int64)
+        self.t = data["rows"][:, 0]
+        self.ms = 1e3 / rate_hz
+
+    def at(self, tick) -> int:
+        """Row of the first recorded tick >= ``tick`` (len when none)."""
+        return int(np.searchsorted(self.k, tick, side="left")) if tick is not None else len(self.k)
+
+
+def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float) -> dict:
+    """Failures ``[(invariant, what)]`` of one event, with its figures."""
+    fails = list(ev.failures)
+    out = {"fault": fault.name, "kind": fault.kind, "invariant": fault.invariant}
+    i0 = rec.at(ev.inject)
+    if ev.inject is None or i0 >= len(rec.k):
+        fails.append((fault.invariant, "the injection is not in the recording"))
+        return {**out, "failures": fails}
+    if fault.kind == "fault":
+        fails += _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out)
+    else:
+        i1 = rec.at(ev.restore)
+        if fault.kind == "attack":
+            i1 = rec.at(ev.restore + 200)
+        held = np.flatnonzero(rec.arm_hold[i0:i1].any(axis=1))
+        if len(held):
+            fails.append((fault.invariant, f"{fault.kind} {fault.name}: an arm held at tick {rec.k[i0 + held[0]]} "
+                                           f"(mask {int(rec.arm_hold[i0 + held[0]].max())})"))
+        lost = np.flatnonzero(~rec.ok[i0:i1].all(axis=1))
+        if len(lost):
+            fails.append((fault.invariant, f"{fault.name}: a device's input was lost at tick {rec.k[i0 + lost[0]]}"))
+        if fault.kind == "action":
+            moved = max(float(np.linalg.norm(rec.xr[i0:i1, b] - rec.xr[i0, b], axis=1).max()) for b in (0, 1))
+            out["robot_motion_mm"] = round(moved * 1e3, 4)
+            if moved > MAX_HOLD_MOTION:
+                fails.append(("S1", f"{fault.name} moved a robot {moved * 1e3:.3f} mm while the operator held still"))
+    if ev.recovered is None:
+        fails.append((fault.invariant, f"{fault.name}: the run did not recover after the fault was removed"))
+    return {**out, "failures": fails, **{k: v for k, v in ev.notes.items() if k != "ingest_status"}}
+
+
+def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out) -> list:
+    fails = []
+    bit, ms = fault.bit, rec.ms
+    # when the fault became detectable: frames older than max_age, a master's input invalid, or
+    # the injection itself (plus the detector's own bound: a robot process's watchdog)
+    end = rec.at(ev.clear if ev.clear is not None else ev.restore)
+    if fault.name in ("camera_stall", "ingest_exception", "ingest_thread_death"):
+        late = np.flatnonzero(rec.age[i0:] > max_age)
+        onset = i0 + int(late[0]) if len(late) else None
+        bound = HOLD_TICKS
+    elif bit == MASTER:
+        bad = np.flatnonzero(~rec.ok[i0:, fault.arms[0]])
+        onset = i0 + int(bad[0]) if len(bad) else None
+        bound = HOLD_TICKS
+    else:
+        onset = i0
+        bound = HOLD_TICKS + int(round(fault.detect_s * 1e3 / ms))
+    if onset is None:
+        return [(fault.invariant, f"{fault.name}: never became detectable in the recording")]
+    latency, motion = 0.0, 0.0
+    for b in fault.arms:
+        has = np.flatnonzero(rec.arm_hold[onset:, b] & bit)
+        if not len(has):
+            fails.append((fault.invariant, f"{fault.name}: arm {b} never held for it"))
+            continue
+        h = onset + int(has[0])
+        lat = float(rec.k[h] - rec.k[onset]) * ms
+        latency = max(latency, lat)
+        if rec.k[h] - rec.k[onset] > bound:
+            fails.append(("S3", f"{fault.name}: arm {b} held {lat:.0f} ms after the fault was detectable "
+                                f"(bound {bound * ms:.0f} ms)"))
+        rel = np.flatnonzero(rec.arm_hold[h:, b] == 0)
+        release = h + int(rel[0]) if len(rel) else len(rec.k)
+        moved = float(np.linalg.norm(rec.xr[h:release, b] - rec.xr[h, b], axis=1).max())
+        motion = max(motion, moved)
+        if moved > MAX_HOLD_MOTION:
+            fails.append(("S3", f"{fault.name}: arm {b} moved {moved * 1e3:.3f} mm while held"))
+        if fault.latched:
+            if ev.clear is None:
+                fails.append(("S3", f"{fault.name}: never cleared"))
+            elif not (rec.arm_hold[h:end, b] & bit).all():
+                fails.append(("S3", f"{fault.name}: arm {b} came back before the fault was cleared (not latched)"))
+        if b == 0:
+            zero = np.flatnonzero(rec.force0[h:] == 0.0)
+            ramp = (rec.k[h + int(zero[0])] - rec.k[h]) * ms if len(zero) else None
+            out["force_zero_after_ms"] = ramp
+            if ramp is None or ramp > force_ramp_s * 1e3 + ms:
+                fails.append(("S3", f"{fault.name}: force not zero within force_ramp_s ({ramp} ms)"))
+    out["hold_latency_ms"] = latency
+    out["robot_motion_during_hold_mm"] = round(motion * 1e3, 4)
+    if "watchdog_seen_after_ms" in ev.notes:
+        out["hold_latency_ms"] = max(latency, ev.notes["watchdog_seen_after_ms"] or 0.0)
+    return fails
+
+
+def penetration(rec: Recording, region, every: int = 5) -> float:
+    """The deepest any arm's robot went into the forbidden region (m, >= 0)."""
+    worst = 0.0
+    for b in range(rec.xr.shape[1]):
+        x = rec.xr[::every, b]
+        ok = np.isfinite(x).all(axis=1)
+        if ok.any():
+            d = region(x[ok], rec.t[::every][ok])
+            worst = max(worst, float(-d.min()))
+    return max(0.0, worst)

@@ -1,0 +1,179 @@
+"""The live rig of ``pointfence bench soak``: the service as ``pointfence serve`` runs it (UDP
+hub with two device slots, hosted Raven II arms in their own process, pre-rendered synthetic
+camera, haptic loop thread, authenticated control API), the simulated devices and the
+attackers in processes of their own (``soak_devices``), and the handles the fault injections
+use (``soak_faults``). Its recording streams to a ``.pfrec`` file (S8), which the judgement
+reads afterwards.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+from pointfence.service.sources.base import DepthSource
+
+from .soak_devices import devices_main, flood_main
+
+
+class StallableSource(DepthSource):
+    """A camera source whose ``read`` blocks while ``stalled`` is set (a stalled camera driver);
+    otherwise it is the wrapped source (its frames, pace and scene)."""
+
+    def __init__(self, inner: DepthSource):
+        super().__init__(inner.camera, inner.rate_hz, inner.realtime)
+        self._inner = inner
+        self.scene = getattr(inner, "scene", None)
+        self.stalled = threading.Event()
+
+    def read(self, timeout=None):
+        while self.stalled.is_set():
+            time.sleep(0.005)
+        return self._inner.read(timeout)
+
+    def _frame(self, seq: int):   # not used: read() is the wrapped source's own
+        raise NotImplementedError("StallableSource reads through its wrapped source")
+
+    def _close(self) -> None:
+        self._inner.close()
+
+
+class SoakRig:
+    """Everything running (``start``), handles for the injections, ``stop`` -> the recording."""
+
+    def __init__(self, cfg, workdir: Path, backend=None, device=None, prerender: int = 30):
+        from pointfence.service.canned import live_sources
+        from pointfence.service.control_api import Controller, ControlServer
+        from pointfence.service.ctl import ControlClient
+        from pointfence.service.runner import LiveRun
+        from pointfence.service.udp_server import UdpHub
+
+        self.cfg = cfg
+        self.workdir = Path(workdir)
+        self.record_path = self.workdir / "soak.pfrec"
+        self.psk = os.urandom(32)
+        max_force = cfg.haptics.max_force if cfg.haptics is not None else 10.0
+        self.hub = UdpHub(self.psk, 2, "127.0.0.1", 0, 50, cfg.service.rate_hz, max_force)
+        self.sources = [StallableSource(s) for s in live_sources(cfg, prerender)]
+        self.run = LiveRun(cfg, list(self.hub.masters), backend=backend, device=device, sources=self.sources,
+                           record_path=self.record_path)
+        self.svc = self.run.service
+        self.hub.attach(self.svc)
+        self.max_age = cfg.service.max_frame_age_s
+        self.radius = cfg.pipeline.radius.r_base
+        self.controller = Controller(self.svc, self.run.loop, extras={"clients": self.hub.status})
+        self.control = ControlServer(self.controller, "127.0.0.1", 0, token_file=self.workdir / "control.token")
+        self.ctl = None
+        self._ControlClient = ControlClient
+        ctx = multiprocessing.get_context("spawn")
+        self._ctx = ctx
+        self._conn, child = ctx.Pipe()
+        self._devices = ctx.Process(target=devices_main, args=(child, "127.0.0.1", self.hub.address[1], self.psk, 2),
+                                    name="soak-devices", daemon=True)
+        self._lock = threading.Lock()
+
+    # --- running -------------------------------------------------------------------------------------
+    def start(self) -> None:
+        self.control.start()
+        self.ctl = self._ControlClient("127.0.0.1", self.control.address[1], timeout=30, token=self.control.token)
+        self.run.start()
+        self.run.wait_ticks(10)
+        self._devices.start()
+        if not self._conn.poll(60) or self._conn.recv()[0] != "started":
+            raise RuntimeError("bench soak: the device process did not start")
+        self.run.mark()
+
+    def stop(self) -> dict:
+        """Stop the devices and the service; returns the devices' link statistics."""
+        out = {}
+        try:
+            with self._lock:
+                self._conn.send(("stop",))
+                if self._conn.poll(15):
+                    out = {"devices": self._conn.recv()[1]}
+        finally:
+            self._devices.join(timeout=10)
+            if self._devices.is_alive():
+                self._devices.kill()
+            self.control.close()
+            self.run.stop()
+            self.hub.close()
+        return out
+
+    # --- handles for the injections ------------------------------------------------------------------
+    def tick(self) -> int:
+        """The loop's current tick number."""
+        return int(self.run.loop.k)
+
+    def now(self) -> float:
+        return self.run.clock.now()
+
+    @staticmethod
+    def sleep(seconds: float) -> None:
+        time.sleep(seconds)
+
+    def in_tick(self, fn) -> int:
+        """Run ``fn(service)`` between two ticks; returns the number of the tick it ran before."""
+        done, out = threading.Event(), {}
+
+        def call(svc):
+            out["k"] = int(self.run.loop.k)
+            fn(svc)
+            done.set()
+
+        self.svc.call_between_ticks(call)
+        if not done.wait(5.0):
+            raise RuntimeError("bench soak: the haptic loop ran no tick within 5 s")
+        return out["k"]
+
+    def devices(self, *cmd):
+        with self._lock:
+            self._conn.send(tuple(cmd))
+            return self._conn.recv()
+
+    def stall_cameras(self, on: bool) -> None:
+        for s in self.sources:
+            (s.stalled.set if on else s.stalled.clear)()
+
+    def flood(self, kind: str, seconds: float, rate_hz: float = 20000.0) -> int:
+        """A flood from a process of its own: ``"forged"`` STATE-shaped forgeries or ``"replay"``
+        of device 0's captured datagrams and handshake; returns the number sent."""
+        sent, hellos = self.devices("capture", 0)
+        pool = (sent + hellos * 50) if kind == "replay" else sent[-1:]
+        conn, child = self._ctx.Pipe()
+        p = self._ctx.Process(target=flood_main, args=(child, "127.0.0.1", self.hub.address[1], kind, seconds, rate_hz,
+                                                       pool), daemon=True)
+        p.start()
+        n = conn.recv() if conn.poll(seconds + 60) else 0
+        p.join(timeout=5)
+        return int(n)
+
+    def raw_control(self, method: str, path: str, body, auth) -> int:
+        """HTTP status of a control request; ``auth``: True (the run's token), False (none) or a
+        header value."""
+        req = urllib.request.Request(self.control.url + path, method=method, data=json.dumps(body).encode())
+        req.add_header("Content-Type", "application/json")
+        if auth is True:
+            req.add_header("Authorization", f"Bearer {self.control.token}")
+        elif auth:
+            req.add_header("Authorization", auth)
+        try:
+            with urllib.request.urlopen(req, timeout=30) as r:
+                return r.status
+        except urllib.error.HTTPError as e:
+            return e.code
+
+    def steady(self, timeout: float) -> bool:
+        """Wait until every arm is coupled and nothing holds (True), or ``timeout`` s."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            st = self.svc.status()
+            if not st["hold"] and all(st["coupled"]) and not st["latched_faults"]:
+                return True
+            time.sleep(0.01)
+        return False
