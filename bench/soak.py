@@ -35,11 +35,45 @@ from .soak_check import MAX_HOLD_MOTION, MAX_PENETRATION, Recording, judge, pene
 from .soak_faults import FAULTS, Event
 
 
+#: the embedded defaults with the camera at 320x240 (2 mm between points on the balloon): the
+#: soak judges safety, and a 640x480 build every 33 ms would take a core of the two
+SOAK_SCENE = """
+backend = "opencl"
+[workspace]
+min = [-0.25, -0.25, -0.02]
+max = [0.25, 0.25, 0.25]
+[fixture]
+mode = "fixture"
+radius = 0.02
+select = { kind = "color", lo = [150, 0, 0], hi = [255, 90, 90] }
+[[camera]]
+name = "overhead"
+source = "synthetic:sphere"
+fx = 287.9
+fy = 287.9
+cx = 159.5
+cy = 119.5
+width = 320
+height = 240
+T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,  0, 0, -1, 0.6,  0, 0, 0, 1]
+options = { color = true }
+[teleop]
+architecture = "III"
+scale = 0.5
+[robot]
+model = "raven2"
+mount_tool_down = [0.0, 0.0, 0.25]
+[service]
+proxies = 2
+"""
+
+
 def add_arguments(p):
     p.add_argument("--minutes", type=float, default=0.0,
                    help="keep injecting faults in turn for this long (default 0: every fault once)")
     p.add_argument("--faults", default="all", help=f"'all' or a comma-separated list of: {', '.join(FAULTS)}")
-    p.add_argument("--config", default=None, help="scene configuration (TOML); default: the embedded defaults")
+    p.add_argument("--config", default=None,
+                   help="scene configuration (TOML); default: the embedded defaults with a 320x240 camera")
     p.add_argument("--out", default=None, help="keep the recording (soak.pfrec) and the events (events.json) here")
     p.add_argument("--prerender", type=int, default=30, help="pre-rendered synthetic frames (default 30)")
 
@@ -76,7 +110,7 @@ def run(args) -> dict:
     from pointfence.service import config as config_mod
 
     faults = _selected(args.faults)
-    cfg = config_mod.load(args.config)
+    cfg = config_mod.load(args.config) if args.config else config_mod.parse(_toml(SOAK_SCENE), "bench soak scene")
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="pf-soak-"))
     out.mkdir(parents=True, exist_ok=True)
     from .soak_rig import SoakRig
@@ -156,6 +190,14 @@ def run(args) -> dict:
         "recording": str(rig.record_path),
         "backend": rig.svc.backend.name, "device": rig.svc.backend.device_name,
     }
+
+
+def _toml(text: str) -> dict:
+    try:
+        import tomllib
+    except ModuleNotFoundError:          # Python 3.10
+        import tomli as tomllib
+    return tomllib.loads(text)
 
 
 def _region(rig):

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pointfence.service.holds import MASTER
+from pointfence.service.holds import MASTER, OVERRUN, WATCHDOG
 
 #: robot motion allowed while an arm holds, and by an operator action alone (m)
 MAX_HOLD_MOTION = 1e-4
@@ -15,6 +15,9 @@ MAX_HOLD_MOTION = 1e-4
 MAX_PENETRATION = 1e-3
 #: a fault must hold its arms within this many ticks of becoming detectable
 HOLD_TICKS = 1
+#: holds that the machine's load causes (a late or long tick), whatever is injected: during an
+#: attack or an operator action they are counted (``timing_holds``), not held against it
+TIMING = OVERRUN | WATCHDOG
 
 
 class Recording:
@@ -50,14 +53,17 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float) -> dic
         i1 = rec.at(ev.restore)
         if fault.kind == "attack":
             i1 = rec.at(ev.restore + 200)
-        held = np.flatnonzero(rec.arm_hold[i0:i1].any(axis=1))
+        masks = rec.arm_hold[i0:i1]
+        out["timing_holds"] = int((masks & TIMING).any(axis=1).sum())
+        held = np.flatnonzero((masks & ~TIMING).any(axis=1))
         if len(held):
             fails.append((fault.invariant, f"{fault.kind} {fault.name}: an arm held at tick {rec.k[i0 + held[0]]} "
-                                           f"(mask {int(rec.arm_hold[i0 + held[0]].max())})"))
+                                           f"(mask {int(masks[held[0]].max())})"))
         lost = np.flatnonzero(~rec.ok[i0:i1].all(axis=1))
-        if len(lost):
+        out["input_lost_ticks"] = int(len(lost))
+        if len(lost) and fault.kind == "attack":
             fails.append((fault.invariant, f"{fault.name}: a device's input was lost at tick {rec.k[i0 + lost[0]]}"))
-        if fault.kind == "action":
+        if fault.still:
             moved = max(float(np.linalg.norm(rec.xr[i0:i1, b] - rec.xr[i0, b], axis=1).max()) for b in (0, 1))
             out["robot_motion_mm"] = round(moved * 1e3, 4)
             if moved > MAX_HOLD_MOTION:

@@ -29,9 +29,9 @@ from collections import deque
 
 import numpy as np
 
-#: master-frame push (m): 11 cm down moves a Raven II tip 5.5 cm (scale 0.5), 2.8 cm into the
+#: master-frame push (m): 7.4 cm down moves a Raven II tip 3.7 cm (scale 0.5), 1 cm into the
 #: default scene's 2 cm fixture around the balloon
-PUSH = 0.11
+PUSH = 0.074
 CIRCLE_R, CIRCLE_HZ = 0.004, 0.25          # the probing circle while pushing (master frame)
 APPROACH_S = 1.5
 
@@ -126,10 +126,6 @@ def _devices_loop(host, port, key, devs, shared: dict, stop: threading.Event) ->
 
 def devices_main(conn, host: str, port: int, key: bytes, n: int = 2) -> None:
     """The devices' process (see the module docstring); ``conn``: its end of a Pipe."""
-    try:
-        os.nice(0)
-    except OSError:
-        pass
     shared = {"t0": time.monotonic(), "frozen_at": None, "pedal": True}
     devs = [_Device(b) for b in range(n)]
     stop = threading.Event()

@@ -49,6 +49,7 @@ class Fault:
     arms: tuple = (0, 1)       # the arms it affects
     latched: bool = False      # holds until clear-faults (pedals up)
     detect_s: float = 0.0      # a fault becomes detectable this long after the injection (at most)
+    still: bool = False        # an action done while the operator holds still: nothing may move
 
 
 class FaultyBatch:
@@ -230,8 +231,8 @@ FAULTS = {f.name: f for f in (
     Fault("robot_process_kill", "fault", "S9", _robot("kill"), bit=ROBOT, latched=True, detect_s=0.05),
     Fault("robot_process_stall", "fault", "S9", _robot("stall"), bit=ROBOT, latched=True, detect_s=0.05),
     Fault("robot_state_nan", "fault", "S3", _robot("nan"), bit=ROBOT, arms=(0,), latched=True, detect_s=0.01),
-    Fault("haptics_off_while_pushing", "action", "S1", _haptics_off),
-    Fault("architecture_switch_while_pushing", "action", "S1", _arch_switch),
+    Fault("haptics_off_while_pushing", "action", "S1", _haptics_off, still=True),
+    Fault("architecture_switch_while_pushing", "action", "S1", _arch_switch, still=True),
     Fault("unauthenticated_control_request", "action", "S4", _unauthenticated),
     Fault("fault_cleared_while_coupled", "fault", "S3", _clear_while_coupled, bit=KERNEL, latched=True),
 )}

@@ -175,5 +175,5 @@ class SoakRig:
             st = self.svc.status()
             if not st["hold"] and all(st["coupled"]) and not st["latched_faults"]:
                 return True
-            time.sleep(0.01)
+            time.sleep(0.05)         # (status() takes the interpreter lock the loop wants)
         return False

@@ -112,6 +112,7 @@ class Service:
         self._newly = np.zeros(n, bool)
         self._reseat = np.zeros(n, bool)        # arms re-anchored this tick
         self._reseat_pos = np.zeros((n, 3))
+        self._phip = np.zeros((n, 3))
         self._arm_ok = np.zeros(n, bool)
         self._rowok = np.zeros(n, bool)
         self._notb = np.zeros(n, bool)
@@ -350,7 +351,8 @@ class Service:
         np.bitwise_or(arm, self._ti, out=arm)
         np.equal(arm, 0, out=self._arm_ok)
         # 3. teleoperation
-        tp.map_masters(self.dev, self.pedal, self.m_ok)
+        # a held arm's X_m does not follow the master (re-coupling must not replay its motion)
+        tp.map_masters(self.dev, self.pedal, self._arm_ok)
         np.logical_and(self._arm_ok, self.pedal, out=self.coupled)
         if not teleop_on:
             self.coupled[:] = False
@@ -362,7 +364,9 @@ class Service:
             self._reseat[:] = True
         else:
             np.copyto(self._reseat, self._newly)
-        if law_change or self._newly.any():
+        if law_change:
+            tp.reanchor_all()
+        elif self._newly.any():
             tp.reanchor(self._reseat)
         for b, r in enumerate(self.robots):
             if r is None:
@@ -374,6 +378,12 @@ class Service:
                 self.xr[b] = tp.cmd[b]
         hip = tp.update_hip(self.xr)
         phip = tp.proxy_hip()
+        np.logical_and(self._arm_ok, self.pedal, out=self._want)
+        if not self._want.all():     # the proxy of an arm held or unclutched (no force) stays where
+            np.copyto(self._phip, phip)           # it is: in III it must not creep off the command
+            np.logical_not(self._want, out=self._notb)
+            np.copyto(self._phip, self.batch.positions, where=self._notb[:, None])
+            phip = self._phip
         # 4. proxies and forces
         if haptics_on and (not self._haptics_running or (tp.arch == 3 and self._reseat.any())):
             # re-anchored arms' proxies start on the command in III (the proxy is the goal there:

@@ -15,8 +15,10 @@ All quantities are world-frame positions (m) in (B, 3) arrays updated in place e
   III: HIP = X_m, X_r* = X_proxy. With haptic rendering disengaged there is no proxy and
   III's goal becomes X_m (the fixture is off).
 * Changes of control law (architecture switch, haptics or teleoperation engaged or disengaged,
-  new fixture parameters) re-anchor every arm (``reanchor``) as re-engaging does: X_m moves
-  onto the command, so no such change moves a robot by itself (SAFETY.md S1).
+  new fixture parameters) re-anchor every arm (``reanchor_all``): X_m moves onto the command,
+  so no such change moves a robot by itself (SAFETY.md S1). After any re-anchoring an arm's
+  command stays where it is until its master has moved ``ANCHOR_RELEASE`` (0.1 mm): what
+  moves the arm then is the operator, not the fixture settling on a noisy cloud.
 * No jumps: whenever the HIP's source changes (architecture switch, re-anchoring), the HIP keeps
   its value and an offset e_hip = HIP - target takes up the difference; e_hip then shrinks by at
   most ``max_robot_speed * dt`` per tick, so the spring force changes by at most
@@ -34,6 +36,8 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 ARCHITECTURES = ("I", "II", "III")
+#: master motion (world frame, m, after scaling) that ends an arm's anchoring after a re-anchor
+ANCHOR_RELEASE = 1e-4
 ARCH_CODE = {"I": 1, "II": 2, "III": 3}
 _TINY = 1e-12
 
@@ -84,9 +88,13 @@ class Teleop:
         self._nrm = np.zeros(self.n)
         self._fac = np.zeros(self.n)
         self.live = np.zeros(self.n, bool)      # master sample valid and pedal down, last tick
+        #: re-anchored arms whose command stays put until their master has moved ANCHOR_RELEASE
+        self.anchored = np.zeros(self.n, bool)
+        self._moved = np.zeros(self.n)
         self._act = np.zeros(self.n, bool)
         self._inact = np.zeros(self.n, bool)
         self.rebase = True                       # next HIP update keeps the HIP continuous
+        self._anchoring = False
 
     # --- set-up ---------------------------------------------------------------------------------
     def register(self, dev, out) -> np.ndarray:
@@ -111,6 +119,8 @@ class Teleop:
         self.e_hip[:] = 0.0
         self._blending = False
         self.live[:] = False
+        self.anchored[:] = False
+        self._anchoring = False
         self.rebase = False
 
     def set_architecture(self, architecture) -> None:
@@ -137,6 +147,11 @@ class Teleop:
         np.copyto(d, 0.0, where=inact[:, None])      # also clears NaN from invalid samples
         np.matmul(d, self.RT, out=self._t3b)
         self._t3b *= self.scale
+        if self._anchoring:      # an anchored arm's X_m stays on its command; the motion only counts
+            self._moved += self._norms(self._t3b)
+            np.logical_and(self.anchored, self._moved < ANCHOR_RELEASE, out=self.anchored)
+            np.copyto(self._t3b, 0.0, where=self.anchored[:, None])
+            self._anchoring = bool(self.anchored.any())
         self.X_m += self._t3b
         np.copyto(self.dev_prev, dev, where=ok[:, None])
 
@@ -175,22 +190,46 @@ class Teleop:
         return self.goal
 
     def reanchor(self, mask: np.ndarray) -> None:
-        """Indexing for arms in ``mask`` (re-engagement, a change of control law): X_m moves onto
-        the current command, so that the goal is the command and the robot does not move (S1).
-        The HIP stays continuous (it decays onto X_m), so the force does not jump. In III the
-        goal is the proxy: the caller places it on the command (``Service.tick``) and it moves
-        towards ``proxy_hip()``, which is X_m itself, not the decaying HIP."""
+        """Indexing for arms in ``mask`` that (re)couple (pedal down, recovery from a hold): X_m
+        shifts by (command - goal), so that the goal equals the current command and the robot
+        does not move (S1), while the operator's push into a fixture (X_m beyond the proxy) is
+        kept. In III the goal is the proxy: the caller places it on the command (``Service.tick``;
+        it was frozen while the arm held). The HIP stays continuous."""
         m = np.asarray(mask, bool)[:, None]
-        np.copyto(self.X_m, self.cmd, where=m)
+        d = self._t3b
+        np.subtract(self.cmd, self.goal, out=d)
+        np.copyto(d, 0.0, where=~m)
+        self.X_m += d
         np.copyto(self.goal, self.cmd, where=m)
+        self._anchor(m[:, 0])
+        self.rebase = True
+
+    def _anchor(self, mask) -> None:
+        """Arms in ``mask`` keep their command (and X_m) until their master has moved
+        ``ANCHOR_RELEASE`` (S1: after a re-anchor the arm follows only new master motion, not the
+        fixture's response to depth noise); motion before the releasing tick's is not mapped."""
+        self.anchored |= mask
+        np.copyto(self._moved, 0.0, where=mask)
+        self._anchoring = bool(self.anchored.any())
+
+    def reanchor_all(self) -> None:
+        """A change of control law (architecture, haptics or teleoperation engaged or not, new
+        fixture parameters): every arm's X_m moves onto its command, so that under any law the
+        goal is the command and no robot moves by itself (S1); in III the caller places the
+        proxies on the commands, which then move towards ``proxy_hip()``: X_m itself, not the
+        decaying HIP. The HIP stays continuous, so the force does not jump."""
+        self.X_m[:] = self.cmd
+        self.goal[:] = self.cmd
+        self._anchor(True)
         self.rebase = True
 
     def limit_command(self, coupled: np.ndarray) -> np.ndarray:
         """Move the command of coupled arms towards the goal by at most ``max_robot_speed * dt``."""
         d = self._t3
         np.subtract(self.goal, self.cmd, out=d)
-        if not coupled.all():
+        if self._anchoring or not coupled.all():
             np.logical_not(coupled, out=self._inact)
+            np.logical_or(self._inact, self.anchored, out=self._inact)
             np.copyto(d, 0.0, where=self._inact[:, None])
         self._clamp(d, self.vmax * self.dt)
         self.cmd += d

@@ -4,7 +4,7 @@ outside the tick within a bounded time, and the target is told while the stall g
 
 ``TickWatchdog`` runs in its own thread beside a threaded ``loop.HapticLoop``. The loop marks
 each tick's start (``HapticLoop.tick_started``, the loop clock's reading; None between ticks).
-Every ``poll_s`` the watchdog looks: a tick that started more than ``limit_s`` ago and has not
+Every ``poll_s`` (default ``limit_s``) the watchdog looks: a tick that started more than ``limit_s`` ago and has not
 ended is a stall; the target's ``on_stall(started, now)`` is called once per stalled tick (the
 service zeroes the masters' forces at once and latches a fault that holds every arm when the
 tick returns). A stall is therefore seen at most ``limit_s + poll_s`` after the tick started.
@@ -27,10 +27,12 @@ class TickWatchdog:
         loop: the loop whose ``tick_started`` and ``clock`` are read.
         target: has ``on_stall(started, now)`` (loop clock, s).
         limit_s: a tick running longer than this is a stall (s).
-        poll_s: how often the watchdog looks (s).
+        poll_s: how often the watchdog looks (s; default ``limit_s``: every wake-up takes the
+            interpreter lock the loop wants, so the watchdog looks no more often than it must).
     """
 
-    def __init__(self, loop, target, limit_s: float, poll_s: float = 0.001):
+    def __init__(self, loop, target, limit_s: float, poll_s: Optional[float] = None):
+        poll_s = limit_s if poll_s is None else poll_s
         if not (limit_s > 0 and poll_s > 0):
             raise ValueError(f"watchdog limit_s = {limit_s!r}, poll_s = {poll_s!r}; expected both > 0 s")
         self.loop = loop
