@@ -65,6 +65,9 @@ model = "raven2"
 mount_tool_down = [0.0, 0.0, 0.25]
 [service]
 proxies = 2
+# the simulated arms' process shares the two cores with the service, the devices and the
+# attackers: starved beyond 50 ms now and then, it would read as a robot fault of its own
+robot_watchdog_s = 0.1
 """
 
 
@@ -93,7 +96,7 @@ def _recover(rig, fault, ev, clear: bool = False) -> None:
     operator: pedals up, clear-faults, pedals down (S3)."""
     if clear or fault.latched or not rig.steady(1.5):
         rig.devices("pedal", False)
-        rig.sleep(0.15)
+        rig.pedals_seen(False, 3.0)
         ev.clear = rig.tick()       # the clear happens at this tick or a little later
         try:
             rig.ctl.post("/clear-faults", {})
@@ -150,7 +153,8 @@ def run(args) -> dict:
 
     data = load_recording(rig.record_path)
     rec = Recording(data, cfg.service.rate_hz)
-    verdicts = [judge(f, ev, rec, cfg.service.max_frame_age_s, cfg.service.force_ramp_s) for f, ev in events]
+    sc = cfg.service
+    verdicts = [judge(f, ev, rec, sc.max_frame_age_s, sc.force_ramp_s, sc.robot_watchdog_s) for f, ev in events]
     failed = unexpected + [{"fault": v["fault"], "invariant": inv, "what": what} for v in verdicts
                            for inv, what in v["failures"]]
     pen = penetration(rec, region) if region is not None else None
@@ -167,7 +171,9 @@ def run(args) -> dict:
             if v.get(src) is not None:
                 p[key] = max(p[key] or 0.0, v[src])
     lat = [v["hold_latency_ms"] for v in verdicts if v.get("hold_latency_ms") is not None]
+    det = [v["detection_ms"] for v in verdicts if v.get("detection_ms") is not None]
     mot = [v.get("robot_motion_during_hold_mm") for v in verdicts if v.get("robot_motion_during_hold_mm") is not None]
+    stops = [v["stopping_distance_mm"] for v in verdicts if v.get("stopping_distance_mm") is not None]
     meta = data["meta"]
     (out / "events.json").write_text(__import__("json").dumps(verdicts, indent=1, default=str) + "\n")
     return {
@@ -176,7 +182,10 @@ def run(args) -> dict:
         "faults_handled": sum(1 for v in verdicts if not v["failures"]),
         "faults_failed": failed,
         "max_hold_latency_ms": max(lat) if lat else None,
+        "max_detection_ms": max(det) if det else None,
         "max_robot_motion_during_hold_mm": max(mot) if mot else None,
+        "max_stopping_distance_mm": max(stops) if stops else None,
+        "timing_holds_during_attacks_and_actions": sum(v.get("timing_holds", 0) for v in verdicts),
         "max_penetration_mm": None if pen is None else round(pen * 1e3, 3),
         "ticks_recorded": int(meta.get("ticks_recorded", len(rec.k))),
         "ticks_lost": int(meta.get("ticks_lost", 0)),

@@ -11,6 +11,10 @@ from pointfence.service.holds import MASTER, OVERRUN, WATCHDOG
 
 #: robot motion allowed while an arm holds, and by an operator action alone (m)
 MAX_HOLD_MOTION = 1e-4
+#: a held arm's motion is judged once it has stopped: this long after the hold (s). Its stop
+#: from the speed it had (a Raven II sliding along the fixture at up to max_robot_speed) is
+#: reported as the stopping distance
+STOP_S = 0.02
 #: penetration of the forbidden region allowed anywhere in the run (m)
 MAX_PENETRATION = 1e-3
 #: a fault must hold its arms within this many ticks of becoming detectable
@@ -26,6 +30,7 @@ class Recording:
     def __init__(self, data: dict, rate_hz: float):
         self.k = data["inputs"][:, 0].astype(np.int64)
         self.age = data["inputs"][:, 3]
+        self.law = data["inputs"][:, 4:7]          # architecture, haptics on, teleoperation on
         self.ok = data["masters"][:, :, 4] > 0.5
         self.xr = data["robots"][:, :, :3]
         self.cmd = data["robots"][:, :, 3:]
@@ -39,16 +44,17 @@ class Recording:
         return int(np.searchsorted(self.k, tick, side="left")) if tick is not None else len(self.k)
 
 
-def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float) -> dict:
+def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float, robot_watchdog_s: float = 0.05) -> dict:
     """Failures ``[(invariant, what)]`` of one event, with its figures."""
     fails = list(ev.failures)
-    out = {"fault": fault.name, "kind": fault.kind, "invariant": fault.invariant}
+    out = {"fault": fault.name, "kind": fault.kind, "invariant": fault.invariant,
+           "ticks": {"inject": ev.inject, "restore": ev.restore, "clear": ev.clear, "recovered": ev.recovered}}
     i0 = rec.at(ev.inject)
     if ev.inject is None or i0 >= len(rec.k):
         fails.append((fault.invariant, "the injection is not in the recording"))
         return {**out, "failures": fails}
     if fault.kind == "fault":
-        fails += _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out)
+        fails += _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, robot_watchdog_s, out)
     else:
         i1 = rec.at(ev.restore)
         if fault.kind == "attack":
@@ -63,7 +69,9 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float) -> dic
         out["input_lost_ticks"] = int(len(lost))
         if len(lost) and fault.kind == "attack":
             fails.append((fault.invariant, f"{fault.name}: a device's input was lost at tick {rec.k[i0 + lost[0]]}"))
-        if fault.still:
+        if fault.still:     # from the tick the action took effect (its request is applied between ticks)
+            changed = np.flatnonzero((rec.law[i0:i1] != rec.law[i0]).any(axis=1))
+            i0 = i0 + int(changed[0]) - 1 if len(changed) else i0
             moved = max(float(np.linalg.norm(rec.xr[i0:i1, b] - rec.xr[i0, b], axis=1).max()) for b in (0, 1))
             out["robot_motion_mm"] = round(moved * 1e3, 4)
             if moved > MAX_HOLD_MOTION:
@@ -73,7 +81,7 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float) -> dic
     return {**out, "failures": fails, **{k: v for k, v in ev.notes.items() if k != "ingest_status"}}
 
 
-def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out) -> list:
+def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, robot_watchdog_s, out) -> list:
     fails = []
     bit, ms = fault.bit, rec.ms
     # when the fault became detectable: frames older than max_age, a master's input invalid, or
@@ -87,12 +95,17 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out) -> list:
         bad = np.flatnonzero(~rec.ok[i0:, fault.arms[0]])
         onset = i0 + int(bad[0]) if len(bad) else None
         bound = HOLD_TICKS
-    else:
+    else:          # the injection; a robot process's own watchdog takes up to its timeout to see it
         onset = i0
-        bound = HOLD_TICKS + int(round(fault.detect_s * 1e3 / ms))
+        detect = robot_watchdog_s + 0.01 if fault.detect_s == "robot_watchdog" else fault.detect_s
+        bound = HOLD_TICKS + int(round(detect * 1e3 / ms))
+    # the service sees a robot's fault in the tick it holds the arm: its latency is the robot's
+    # own detection (reported as detection_ms); every other fault is seen by the service itself
+    seen_by_robot = fault.detect_s == "robot_watchdog" or fault.name == "robot_state_nan"
     if onset is None:
         return [(fault.invariant, f"{fault.name}: never became detectable in the recording")]
-    latency, motion = 0.0, 0.0
+    latency, motion, stop = 0.0, 0.0, 0.0
+    settle = int(round(STOP_S * 1e3 / ms))
     for b in fault.arms:
         has = np.flatnonzero(rec.arm_hold[onset:, b] & bit)
         if not len(has):
@@ -100,16 +113,19 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out) -> list:
             continue
         h = onset + int(has[0])
         lat = float(rec.k[h] - rec.k[onset]) * ms
-        latency = max(latency, lat)
+        out["detection_ms"] = max(out.get("detection_ms", 0.0), lat)
+        latency = max(latency, 0.0 if seen_by_robot else lat)
         if rec.k[h] - rec.k[onset] > bound:
             fails.append(("S3", f"{fault.name}: arm {b} held {lat:.0f} ms after the fault was detectable "
                                 f"(bound {bound * ms:.0f} ms)"))
         rel = np.flatnonzero(rec.arm_hold[h:, b] == 0)
         release = h + int(rel[0]) if len(rel) else len(rec.k)
-        moved = float(np.linalg.norm(rec.xr[h:release, b] - rec.xr[h, b], axis=1).max())
+        s = min(h + settle, max(release - 1, h))
+        stop = max(stop, float(np.linalg.norm(rec.xr[h:s + 1, b] - rec.xr[h, b], axis=1).max()))
+        moved = float(np.linalg.norm(rec.xr[s:release, b] - rec.xr[s, b], axis=1).max()) if release > s else 0.0
         motion = max(motion, moved)
         if moved > MAX_HOLD_MOTION:
-            fails.append(("S3", f"{fault.name}: arm {b} moved {moved * 1e3:.3f} mm while held"))
+            fails.append(("S3", f"{fault.name}: arm {b} moved {moved * 1e3:.3f} mm while held (after its stop)"))
         if fault.latched:
             if ev.clear is None:
                 fails.append(("S3", f"{fault.name}: never cleared"))
@@ -123,6 +139,7 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, out) -> list:
                 fails.append(("S3", f"{fault.name}: force not zero within force_ramp_s ({ramp} ms)"))
     out["hold_latency_ms"] = latency
     out["robot_motion_during_hold_mm"] = round(motion * 1e3, 4)
+    out["stopping_distance_mm"] = round(stop * 1e3, 4)
     if "watchdog_seen_after_ms" in ev.notes:
         out["hold_latency_ms"] = max(latency, ev.notes["watchdog_seen_after_ms"] or 0.0)
     return fails

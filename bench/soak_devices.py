@@ -45,6 +45,7 @@ class _Device:
         self.silent_until = 0.0
         self.nan_until = 0.0
         self.sent = deque(maxlen=200)
+        self.hellos: list = []
         self.reconnects = 0
         self.errors = 0
 
@@ -73,20 +74,32 @@ class _Link:
         self.c = Client(host, port, key, device_id=100 + dev.arm, timeout_ms=50,
                         workspace=((-0.2, -0.2, -0.2), (0.2, 0.2, 0.2)))
         self.last_rx = self.retry_at = 0.0
+        self.connecting = False
 
     def step(self, now: float, shared: dict) -> None:
         dev, c = self.dev, self.c
         if now < dev.silent_until:
             return
-        if not c.fresh and now - self.last_rx > 0.1 and now >= self.retry_at:
-            self.retry_at = now + 0.1    # the service dropped the session (silence, a restart)
+        if self.connecting:             # a handshake under way: never block the other devices
             try:
-                c.connect(timeout=5.0)
-                dev.reconnects += 1
-                self.last_rx = time.monotonic()
-            except Exception:           # noqa: BLE001 -- counted; tried again in 0.1 s
+                w = c.hello_wait(0.0)
+            except Exception:           # noqa: BLE001 -- refused: counted, a new handshake below
                 dev.errors += 1
+                w, self.connecting = None, False
+            if w is None:
+                if now >= self.retry_at:
+                    self.retry_at = now + 0.1
+                    c.hello_send()
                 return
+            self.connecting = False
+            dev.hellos = list(c.hellos_sent)
+            dev.reconnects += 1
+            self.last_rx = now
+        elif not c.fresh and now - self.last_rx > 0.1:
+            self.connecting = True       # the service dropped the session (silence, a restart)
+            self.retry_at = now + 0.1
+            c.hello_send()
+            return
         fz = shared["frozen_at"]
         pos = _position(dev, now - shared["t0"], None if fz is None else fz - shared["t0"])
         if now < dev.nan_until:
@@ -105,6 +118,7 @@ def _devices_loop(host, port, key, devs, shared: dict, stop: threading.Event) ->
         for ln in links:
             ln.c.connect(timeout=30.0)
             ln.last_rx = time.monotonic()
+            ln.dev.hellos = list(ln.c.hellos_sent)
         t0 = time.monotonic()
         k = 0
         while not stop.is_set():
@@ -120,7 +134,6 @@ def _devices_loop(host, port, key, devs, shared: dict, stop: threading.Event) ->
     finally:
         for ln in links:
             ln.dev.stats = ln.c.stats
-            ln.dev.hellos = list(ln.c.hellos_sent)
             ln.c.close()
 
 
@@ -147,7 +160,7 @@ def devices_main(conn, host: str, port: int, key: bytes, n: int = 2) -> None:
             devs[msg[1]].nan_until = time.monotonic() + float(msg[2])
         elif cmd == "capture":
             d = devs[msg[1]]
-            conn.send((list(d.sent), list(getattr(d, "hellos", []))))
+            conn.send((list(d.sent), list(d.hellos)))
             continue
         elif cmd == "stop":
             stop.set()
@@ -163,6 +176,10 @@ def flood_main(conn, host: str, port: int, kind: str, seconds: float, rate_hz: f
     """A flood (see the module docstring) from its own socket; sends back the count sent."""
     from pointfence.clients import protocol as P
 
+    try:   # the attacker's own CPU is not what is measured: it yields to everything else here
+        os.nice(19)
+    except OSError:
+        pass
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rng = np.random.default_rng(int.from_bytes(os.urandom(4), "little"))
     pool = list(datagrams)

@@ -48,7 +48,7 @@ class Fault:
     bit: int = 0               # the hold reason a fault must show
     arms: tuple = (0, 1)       # the arms it affects
     latched: bool = False      # holds until clear-faults (pedals up)
-    detect_s: float = 0.0      # a fault becomes detectable this long after the injection (at most)
+    detect_s: object = 0.0     # detectable this long after the injection (s; "robot_watchdog": its timeout)
     still: bool = False        # an action done while the operator holds still: nothing may move
 
 
@@ -228,8 +228,8 @@ FAULTS = {f.name: f for f in (
     Fault("nan_master", "fault", "S6", _device("nan", 0.2), bit=MASTER, arms=(0,), detect_s=0.06),
     Fault("forged_flood", "attack", "S6", _flood("forged")),
     Fault("replayed_flood", "attack", "S6", _flood("replay")),
-    Fault("robot_process_kill", "fault", "S9", _robot("kill"), bit=ROBOT, latched=True, detect_s=0.05),
-    Fault("robot_process_stall", "fault", "S9", _robot("stall"), bit=ROBOT, latched=True, detect_s=0.05),
+    Fault("robot_process_kill", "fault", "S9", _robot("kill"), bit=ROBOT, latched=True, detect_s="robot_watchdog"),
+    Fault("robot_process_stall", "fault", "S9", _robot("stall"), bit=ROBOT, latched=True, detect_s="robot_watchdog"),
     Fault("robot_state_nan", "fault", "S3", _robot("nan"), bit=ROBOT, arms=(0,), latched=True, detect_s=0.01),
     Fault("haptics_off_while_pushing", "action", "S1", _haptics_off, still=True),
     Fault("architecture_switch_while_pushing", "action", "S1", _arch_switch, still=True),

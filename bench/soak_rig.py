@@ -140,7 +140,7 @@ class SoakRig:
         for s in self.sources:
             (s.stalled.set if on else s.stalled.clear)()
 
-    def flood(self, kind: str, seconds: float, rate_hz: float = 20000.0) -> int:
+    def flood(self, kind: str, seconds: float, rate_hz: float = 10000.0) -> int:
         """A flood from a process of its own: ``"forged"`` STATE-shaped forgeries or ``"replay"``
         of device 0's captured datagrams and handshake; returns the number sent."""
         sent, hellos = self.devices("capture", 0)
@@ -167,6 +167,15 @@ class SoakRig:
                 return r.status
         except urllib.error.HTTPError as e:
             return e.code
+
+    def pedals_seen(self, down: bool, timeout: float) -> bool:
+        """Wait until the service's last tick read every pedal ``down`` (True) or up."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if all(p == down for p in self.svc.status()["pedal"]):
+                return True
+            time.sleep(0.02)
+        return False
 
     def steady(self, timeout: float) -> bool:
         """Wait until every arm is coupled and nothing holds (True), or ``timeout`` s."""

@@ -104,6 +104,10 @@ class Session:
 
 #: drains per window of the deadline-grid estimate (UdpHub.tick)
 BASE_WINDOW = 1000
+#: handshakes a source may start per second, and at once: a device needs a few, and each costs
+#: the service two MACs and an answer (a flood of replayed HELLOs is dropped before them)
+HELLO_RATE, HELLO_BURST = 20.0, 10.0
+_TYPE_AT = 3       # offset of the message type in the header (magic 2 bytes, version 1 byte)
 
 
 class UdpMaster(Master):
@@ -201,7 +205,9 @@ class UdpHub:
         self.max_force = float(max_force)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+            # room for a flood while the receiver waits for the interpreter lock: datagrams the
+            # kernel drops for want of buffer would be genuine ones too (Linux caps it at rmem_max)
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         except OSError:
             pass
         self.sock.bind((host, int(port)))
@@ -211,6 +217,8 @@ class UdpHub:
         self.by_device: dict = {}         # device id -> Session
         self.cookies = CookieJar()
         self.limiter = limiter if limiter is not None else SourceLimiter()
+        #: handshakes per source (a device needs a few; each costs two MACs and an answer)
+        self.hello_limiter = SourceLimiter(rate=HELLO_RATE, burst=HELLO_BURST)
         self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
         self._view = memoryview(self._buf)
@@ -271,7 +279,7 @@ class UdpHub:
     def pump(self, limit: int = 4096) -> int:
         """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
         sock, buf, view = self.sock, self._buf, self._view
-        allow = self.limiter.allow
+        allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
         k = 0
         while k < limit and not self._stop.is_set():
             try:
@@ -284,7 +292,8 @@ class UdpHub:
                 continue
             k += 1
             self.received += 1
-            if not allow(addr, time.monotonic()):
+            now = time.monotonic()
+            if not allow(addr, now) or (n > _TYPE_AT and buf[_TYPE_AT] == P.HELLO and not hello_allow(addr, now)):
                 self.counters["rate_limited"] += 1
                 continue
             self.handle(view[:n], addr)
@@ -301,8 +310,10 @@ class UdpHub:
                 if session is None or session.device_id != h.device_id:
                     session = None
                     raise P.ProtocolError(P.E_NO_SESSION)
-                P.verify(data, session.key)
+                # the anti-replay window first (RFC 4303 3.4.3): a replayed or stale datagram costs
+                # no MAC; the window only moves once the MAC has been verified (commit below)
                 session.window.check(h.seq)
+                P.verify(data, session.key)
                 st = P.State.decode(data, session.workspace)
                 if not session.window.commit(h.seq):
                     raise P.ProtocolError(P.E_STALE, "older than the newest sample")

@@ -366,3 +366,47 @@ def test_a_cookie_is_bound_to_its_address():
         assert hub.handle(h.encode(KEY, DEV, 2), ("127.0.0.1", 5000)) == P.E_OK and len(hub.sessions) == 1
     finally:
         hub.close()
+
+
+def test_replayed_states_cost_no_mac_and_handshake_floods_are_cut_per_source(monkeypatch):
+    """A replay flood of a live session's own STATEs is rejected on the anti-replay window before
+    any MAC (RFC 4303 3.4.3), and a flood of HELLOs from one source is cut to HELLO_RATE before
+    their MACs; the genuine device keeps its session throughout. (Before: every replayed STATE
+    cost a MAC, every HELLO two and an answer, and such a flood dropped the live sessions.)"""
+    from pointfence.service import udp_server
+
+    hub = UdpHub(KEY, 1, "127.0.0.1", 0, receiver=False)
+    dev, attacker = Device(hub), Device(hub)
+    try:
+        sid, skey = genuine_connects_and_drives(hub, dev)
+        for seq in range(2, 12):
+            dev.prove(sid, skey, seq)
+        macs = {"n": 0}
+        real = P.verify
+
+        def counting(buf, key):
+            macs["n"] += 1
+            return real(buf, key)
+
+        monkeypatch.setattr(P, "verify", counting)
+        captured = list(dev.sent)
+        before = dict(hub.counters)
+        for _ in range(20):
+            for data in captured[-10:]:                 # this session's STATEs, replayed
+                attacker.send(data)
+        assert macs["n"] == 0
+        assert hub.counters["stale"] + hub.counters["replay"] - before["stale"] - before["replay"] == 200
+        hellos = [d for d in captured if P.parse_header(d).type == P.HELLO]
+        for _ in range(100):                            # the captured handshake, again and again
+            for data in hellos:
+                attacker.send(data)
+        assert macs["n"] <= udp_server.HELLO_BURST + 2   # the rest cut before their MAC
+        assert hub.counters["rate_limited"] - before["rate_limited"] >= 180
+        dev.prove(sid, skey, 12)                         # the genuine session is untouched
+        m = hub.masters[hub.sessions[sid].slot]
+        m.poll(2.0)
+        assert m.ok and hub.sessions[sid].accepted == 12
+    finally:
+        dev.close()
+        attacker.close()
+        hub.close()
