@@ -301,7 +301,8 @@ class Service:
                 tp.set_architecture(self._pending_arch)
                 self._pending_arch = None
             haptics_on, teleop_on = self.haptics_on, self.teleop_on
-        law_change |= haptics_on != self._haptics_running or teleop_on != self._teleop_prev
+        law_change |= tp.law_changed or haptics_on != self._haptics_running or teleop_on != self._teleop_prev
+        tp.law_changed = False
         self._teleop_prev = teleop_on
         # 1. masters
         for b in range(n):

@@ -95,6 +95,7 @@ class Teleop:
         self._inact = np.zeros(self.n, bool)
         self.rebase = True                       # next HIP update keeps the HIP continuous
         self._anchoring = False
+        self.law_changed = False                 # set by set_architecture, taken by the service
 
     # --- set-up ---------------------------------------------------------------------------------
     def register(self, dev, out) -> np.ndarray:
@@ -124,10 +125,13 @@ class Teleop:
         self.rebase = False
 
     def set_architecture(self, architecture) -> None:
+        """A new architecture (applied between ticks); ``law_changed`` tells the service to
+        re-anchor every arm on its next tick (S1), whoever made the switch."""
         code = arch_code(architecture)
         if code != self.arch:
             self.arch = code
             self.rebase = True
+            self.law_changed = True
 
     @property
     def architecture(self) -> str:

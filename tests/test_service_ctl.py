@@ -51,6 +51,34 @@ def test_status_and_metrics(rig):
     assert rig.client.get("/config")["fixture"]["cell_size_fixed"] is False
 
 
+def test_switching_through_the_api_while_pushing_moves_no_robot(tmp_path):
+    """S1 through the control API (issue 18, failure 2): the master has pushed the robot onto
+    the fixture and holds still; switching III -> I -> II -> III and haptics off and on, each
+    applied between two ticks by the API, leave the command where it is (before the fix, the
+    API's switch bypassed the re-anchoring: III -> I walked the command into the region)."""
+    r = Running(tmp_path / "rig")
+    try:
+        r.wait_ticks(2100)                          # the push ends at 2 s: the master holds still
+        first = r.client.set_architecture("I")["applied_before_tick"]
+        for a in ("II", "III"):
+            r.wait_ticks(r.loop.ticks + 100)
+            r.client.set_architecture(a)
+        for on in (False, True):
+            r.wait_ticks(r.loop.ticks + 100)
+            r.client.engage("haptics", on)
+        r.wait_ticks(r.loop.ticks + 100)
+        st = r.client.status()
+        rec = r.svc.recorder
+        cmd = rec.robots[: rec.count, 0, 3:]
+        arch = rec.inputs[: rec.count, 4]
+        assert set(arch[first:]) == {1, 2, 3}
+        assert np.linalg.norm(cmd[first:] - cmd[first - 1], axis=1).max() < 1e-4 and st["hold"] == []
+        xm = rec.masters_world[rec.count - 1, 0]
+        assert np.linalg.norm(xm - cmd[first - 1]) < 1e-4      # re-anchored: the push is not replayed
+    finally:
+        r.close()
+
+
 def test_set_architecture_engage_disengage(rig):
     rig.wait_ticks(20)
     r = rig.client.set_architecture("I")
