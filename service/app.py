@@ -4,14 +4,14 @@ the per-tick work the haptic loop runs (``Service.tick``).
 One tick, for B master-robot pairs (one proxy each):
 
 1. poll every master (position, pedal, validity); a non-finite sample is a device fault;
-2. the tick's time on the frames' clock (``frame_time``: the feeder relates loop time and frame
-   timestamps), the robots' joints into the tool pose ring at that time (the self-filter's
-   look-up, ``toolpose``); health: loop overrun, oldest camera frame older than
-   ``max_frame_age_s``, kernel failure, robot fault, master fault. Any of them puts the affected arms on hold: the force gain ramps
-   to zero within ``force_ramp_s`` and the robot holds its setpoint. A condition must be clear
-   for ``recover_s`` before the arm comes back (re-anchored: the robot does not move);
-3. teleoperation (``teleop.Teleop``): master motion -> X_m, re-anchoring of arms that (re)couple,
-   the HIP by architecture (continuous across switches);
+2. the tick's time on the frames' clock (``frame_time``), the robots' joints into the tool pose
+   ring (the self-filter's look-up, ``toolpose``); health (``holds.py``: each reason with its
+   SAFETY.md invariant): a late or stalled tick, a published snapshot older than
+   ``max_frame_age_s``, a kernel failure, a robot or master fault. A held arm's force gain
+   ramps to zero within ``force_ramp_s`` and its robot stops where it is; a condition must be
+   clear for ``recover_s``, a latched fault cleared (``clear_faults``), before it comes back;
+3. teleoperation (``teleop.Teleop``): master motion -> X_m, re-anchoring of arms that (re)couple
+   and of every arm at a change of control law (S1), the HIP by architecture (continuous);
 4. ONE proxy launch for all B proxies against the current snapshot (through the publish gate, so
    the snapshot number is exact; with ``[motion] enabled`` the points are predicted to the
    tick's frame time plus the camera latency, ``kernels/motion.py``), then forces
@@ -28,7 +28,6 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from dataclasses import replace
 from typing import Optional, Sequence
 
 import numpy as np
@@ -44,7 +43,7 @@ from .holds import (EXCEPTION, INGEST, KERNEL, LATCHED, MASTER, N_BITS, OVERRUN,
                     WATCHDOG, describe, index, reason_names)
 from .record import C, Recorder
 from .robot.base import RobotMode
-from .teleop import ARCHITECTURES, Teleop, arch_code
+from .teleop import Teleop, arch_code
 
 
 class Service:
@@ -297,8 +296,7 @@ class Service:
             law_change = self._reanchor
             self._reanchor = False
             if self._pending_arch is not None:
-                law_change |= self._pending_arch != tp.arch
-                tp.set_architecture(self._pending_arch)
+                tp.set_architecture(self._pending_arch)   # (a switch sets tp.law_changed)
                 self._pending_arch = None
             haptics_on, teleop_on = self.haptics_on, self.teleop_on
         law_change |= tp.law_changed or haptics_on != self._haptics_running or teleop_on != self._teleop_prev
@@ -363,12 +361,11 @@ class Service:
         # where its robot is commanded
         if law_change:
             self._reseat[:] = True
+            tp.reanchor_all()
         else:
             np.copyto(self._reseat, self._newly)
-        if law_change:
-            tp.reanchor_all()
-        elif self._newly.any():
-            tp.reanchor(self._reseat)
+            if self._newly.any():
+                tp.reanchor(self._newly)
         for b, r in enumerate(self.robots):
             if r is None:
                 continue
@@ -409,15 +406,13 @@ class Service:
                     self.snapshot_first_tick.setdefault(seq, k)
                 self.renderer.update(self.batch.positions, hip, self.batch.states)
             except KernelError as e:
-                self._fault_all(KERNEL)
+                self._hold_all(KERNEL)
+                self.latched |= KERNEL
                 self.kernel_errors += 1
                 self.last_error = f"tick {k}: {e}"
         if self._stall_at is not None:   # the watchdog saw this tick (or the last) stall
+            self._hold_all(WATCHDOG)
             self._bad_t[index(WATCHDOG)] = t
-            self.hold_mask |= WATCHDOG
-            self.arm_hold |= WATCHDOG
-            self._arm_ok[:] = False
-            self.coupled[:] = False
             self.gain[:] = 0.0
             self.last_error = f"tick {k}: tick watchdog: a tick ran past {self.cfg.service.max_lateness_s * 1e3:g} ms"
             self._stall_at = None
@@ -465,9 +460,8 @@ class Service:
         self._publish(k, t, proxies)
         self._record(k, t, dt, overrun, age, proxies, haptics_on, teleop_on)
 
-    def _fault_all(self, bit: int) -> None:
-        """A latched fault of every arm, from this tick on: hold, decouple (S3)."""
-        self.latched |= bit
+    def _hold_all(self, bit: int) -> None:
+        """Every arm holds for reason ``bit`` from this tick on: hold, decouple (S3)."""
         self.hold_mask |= bit
         self.arm_hold |= bit
         self._arm_ok[:] = False
@@ -593,8 +587,4 @@ class Service:
             self.feeder.close()
 
 
-def architectures() -> tuple:
-    return ARCHITECTURES
-
-
-__all__ = ["Service", "reason_names", "REASONS", "replace"]
+__all__ = ["Service", "reason_names", "REASONS"]

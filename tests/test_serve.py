@@ -319,3 +319,40 @@ def test_bench_e2e_accounts_for_every_datagram():
     assert r["feedback_sent_by_service"] > 2000 and r["feedback_received"] > 2000
     assert r["rejected_total"] >= r["attacks_sent"] > 100
     assert 0 < r["rtt_us_p50"] < 100000
+
+
+def test_serve_streams_its_recording_and_a_kill_9_keeps_it(tmp_path):
+    """S8: `serve --record` writes the run while it goes on; killed with SIGKILL, the file reads
+    back every tick up to (at most) the last flush, in order, naming each tick's hold reasons."""
+    import signal
+
+    from pointfence.bench.e2e import LIGHT_SCENE
+    from pointfence.service.record import load_recording
+
+    key = tmp_path / "pf.key"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    assert subprocess.run([sys.executable, "-m", "pointfence.service.serve", "--new-key", str(key)], env=env,
+                          capture_output=True).returncode == 0
+    scene = tmp_path / "scene.toml"
+    scene.write_text(LIGHT_SCENE)
+    ready, run = tmp_path / "ready.json", tmp_path / "run.pfrec"
+    proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key), "--port", "0",
+                             "--control-port", "0", "--config", str(scene), "--ready-file", str(ready), "--duration",
+                             "120", "--status-every", "0", "--prerender", "5", "--record", str(run)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        end = time.monotonic() + 120
+        while not ready.exists() and proc.poll() is None and time.monotonic() < end:
+            time.sleep(0.05)
+        assert ready.exists(), proc.stderr.read().decode()[-2000:] if proc.poll() is not None else "no ready file"
+        time.sleep(2.0)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    rec = load_recording(run)
+    k = rec["inputs"][:, 0]
+    assert len(k) > 1000 and (np.diff(k) > 0).all()            # about 2 s of ticks, in order
+    assert rec["holds"].shape[1] == 2                          # the hold mask, then the one arm's
+    assert rec["meta"]["hold_reasons"]["4"]["invariant"] == "S3"

@@ -1,0 +1,107 @@
+"""The soak's judge (bench/soak_check.py) on made-up recordings: it must pass a fault handled as
+its contract says and name the invariant of every way to break it (no hold, a late hold, a
+robot moving while held, a latched fault that comes back by itself, an attack that holds an arm,
+an operator action that moves a robot, a penetration of the region)."""
+import numpy as np
+
+from pointfence.bench.soak_check import Recording, judge, penetration
+from pointfence.bench.soak_faults import FAULTS, Event
+from pointfence.service.holds import INGEST, KERNEL, OVERRUN
+
+N = 600
+
+
+def recording(**parts) -> Recording:
+    """Two arms at rest, no hold, master input valid, arm 0 pushing with 2 N; ``parts`` replace."""
+    data = {"inputs": np.zeros((N, 8)), "masters": np.ones((N, 2, 5)), "robots": np.zeros((N, 2, 6)),
+            "rows": np.zeros((N, 22)), "holds": np.zeros((N, 3))}
+    data["inputs"][:, 0] = np.arange(N)
+    data["inputs"][:, 4:7] = (3, 1, 1)
+    data["rows"][:, 0] = np.arange(N) * 1e-3
+    data["rows"][:, 18] = 2.0
+    for key, value in parts.items():
+        data[key] = value
+    return Recording(data, 1000.0)
+
+
+def kernel_fault(hold_from=100, clear=400, ramp=20, robot_moves=0.0, release=None):
+    holds = np.zeros((N, 3))
+    holds[hold_from:release or clear, 1:] = KERNEL
+    rows = np.zeros((N, 22))
+    rows[:, 0] = np.arange(N) * 1e-3
+    rows[:hold_from, 18] = 2.0
+    rows[hold_from:hold_from + ramp, 18] = np.linspace(2.0, 0.0, ramp, endpoint=False)
+    robots = np.zeros((N, 2, 6))
+    robots[hold_from + 50:, :, 0] = robot_moves
+    rec = recording(holds=holds, rows=rows, robots=robots)
+    ev = Event("kernel_exception", inject=100, restore=300, clear=clear, recovered=clear + 10)
+    return judge(FAULTS["kernel_exception"], ev, rec, 0.5, 0.05)
+
+
+def test_a_fault_handled_as_its_contract_says_passes():
+    v = kernel_fault()
+    assert v["failures"] == [] and v["hold_latency_ms"] == 0.0 and v["force_zero_after_ms"] == 20.0
+
+
+def test_every_way_to_break_a_fault_contract_is_named():
+    late = kernel_fault(hold_from=105)
+    assert any(inv == "S3" and "held 5 ms" in what for inv, what in late["failures"])
+    slow = kernel_fault(ramp=80)
+    assert any("force not zero" in what for _, what in slow["failures"])
+    moving = kernel_fault(robot_moves=0.0003)
+    assert any("moved 0.300 mm while held" in what for _, what in moving["failures"])
+    unlatched = kernel_fault(release=250)
+    assert any("not latched" in what for _, what in unlatched["failures"])
+    never = recording()
+    v = judge(FAULTS["kernel_exception"], Event("kernel_exception", 100, 300, 400, 410), never, 0.5, 0.05)
+    assert any("never held" in what for _, what in v["failures"])
+    v = judge(FAULTS["kernel_exception"], Event("kernel_exception", 100, 300, 400, None), never, 0.5, 0.05)
+    assert any("did not recover" in what for _, what in v["failures"])
+
+
+def test_a_frame_fault_is_timed_from_the_tick_the_frames_became_too_old():
+    inputs = np.zeros((N, 8))
+    inputs[:, 0] = np.arange(N)
+    inputs[:, 4:7] = (3, 1, 1)
+    inputs[:, 3] = np.clip((np.arange(N) - 100) * 1e-3, 0, 0.3)          # ageing from the injection...
+    inputs[250:, 3] = 0.6                                                  # ... too old from tick 250
+    holds = np.zeros((N, 3))
+    holds[250:450, 1:] = INGEST
+    rows = np.zeros((N, 22))
+    rows[:250, 18] = 2.0
+    rec = recording(inputs=inputs, holds=holds, rows=rows)
+    v = judge(FAULTS["ingest_exception"], Event("ingest_exception", 100, 300, None, 460), rec, 0.5, 0.05)
+    assert v["failures"] == [] and v["hold_latency_ms"] == 0.0
+    holds[250:252, 1:] = 0                                                 # two ticks late
+    v = judge(FAULTS["ingest_exception"], Event("ingest_exception", 100, 300, None, 460),
+              recording(inputs=inputs, holds=holds, rows=rows), 0.5, 0.05)
+    assert any(inv == "S3" and "held 2 ms" in what for inv, what in v["failures"])
+
+
+def test_attacks_and_actions_change_nothing():
+    holds = np.zeros((N, 3))
+    holds[150:160, 1] = KERNEL
+    v = judge(FAULTS["forged_flood"], Event("forged_flood", 100, 300, None, 310), recording(holds=holds), 0.5, 0.05)
+    assert any(inv == "S6" and "held at tick 150" in what for inv, what in v["failures"])
+    holds[:] = 0
+    holds[150:160, 1] = OVERRUN                # a late tick: counted, not held against the attack
+    v = judge(FAULTS["forged_flood"], Event("forged_flood", 100, 300, None, 310), recording(holds=holds), 0.5, 0.05)
+    assert v["failures"] == [] and v["timing_holds"] == 10
+    inputs = np.zeros((N, 8))
+    inputs[:, 0] = np.arange(N)
+    inputs[:, 4:7] = (3, 1, 1)
+    inputs[120:, 4] = 1                         # the switch applied at tick 120
+    robots = np.zeros((N, 2, 6))
+    robots[110:, 0, 0] = 0.0002                 # moved before the switch applied: not the switch
+    a = FAULTS["architecture_switch_while_pushing"]
+    assert judge(a, Event(a.name, 100, 300, None, 310), recording(inputs=inputs, robots=robots), 0.5, 0.05)["failures"] == []
+    robots[200:, 1, 2] = 0.0002                 # moved after it: the switch moved a robot
+    v = judge(a, Event(a.name, 100, 300, None, 310), recording(inputs=inputs, robots=robots), 0.5, 0.05)
+    assert any(inv == "S1" and "moved a robot 0.200 mm" in what for inv, what in v["failures"])
+
+
+def test_penetration_is_the_deepest_any_arm_went():
+    robots = np.zeros((N, 2, 6))
+    robots[:, 1, 2] = np.linspace(0.0, -0.004, N)
+    region = lambda x, t: x[:, 2] + 0.001      # noqa: E731 -- the region below z = -1 mm
+    assert abs(penetration(recording(robots=robots), region, every=1) - 0.003) < 1e-9
