@@ -95,16 +95,16 @@ def _recover(rig, fault, ev, clear: bool = False) -> None:
     """Conditions clear by themselves; latched faults (or a hold that stays) are cleared by the
     operator: pedals up, clear-faults, pedals down (S3)."""
     if clear or fault.latched or not rig.steady(1.5):
-        rig.devices("pedal", False)
-        rig.pedals_seen(False, 3.0)
+        ev.notes["pedal_up_s"] = round(rig.pedals(False), 3)
         ev.clear = rig.tick()       # the clear happens at this tick or a little later
         try:
             rig.ctl.post("/clear-faults", {})
         except Exception as e:  # noqa: BLE001 -- judged: a refused clear with the pedals up is a failure
             ev.clear = None
-            ev.failures.append(("S3", f"{fault.name}: clear-faults with the pedals up refused: {e}"))
+            ev.failures.append(("S3", f"{fault.name}: clear-faults with the pedals up refused: {e}; "
+                                      f"pedals {rig.svc.status()['pedal']}"))
         rig.sleep(0.1)
-        rig.devices("pedal", True)
+        rig.pedals(True)
     if rig.steady(5.0):
         ev.recovered = rig.tick()
 
@@ -126,23 +126,29 @@ def run(args) -> dict:
             raise RuntimeError(f"bench soak: the arms never coupled: {rig.svc.status()}; clients {rig.hub.status()}")
         rig.sleep(1.0)       # the devices' approach: both arms pushing into the fixture
         t_end = time.monotonic() + 60.0 * float(args.minutes)
-        while True:
+        stuck = False
+        while not stuck:
             for fault in faults:
                 if not rig.steady(5.0):     # a hold nobody injected: a failure of its own; cleared
                     st = rig.svc.status()
                     unexpected.append({"fault": None, "invariant": "S9",
                                        "what": f"not steady before {fault.name} (tick {rig.tick()}): holding "
-                                               f"{st['arms_holding']}, coupled {st['coupled']}, robots "
-                                               f"{[r and r['fault'] for r in st['robots']]}, last error {st['last_error']}"})
-                    _recover(rig, fault, Event("unexpected"), clear=True)
-                    if not rig.steady(10.0):
-                        raise RuntimeError(f"bench soak: stuck before {fault.name}: {unexpected[-1]['what']}")
+                                               f"{st['arms_holding']}, coupled {st['coupled']}, pedals {st['pedal']}, "
+                                               f"robots {[r and r['fault'] for r in st['robots']]}, {rig.robot_notes()}, "
+                                               f"last error {st['last_error']}"})
+                    cleared = Event("unexpected")
+                    _recover(rig, fault, cleared, clear=True)
+                    if not rig.steady(10.0):      # the run cannot go on: judged as far as it went
+                        unexpected.append({"fault": None, "invariant": "S3", "what": f"the run stayed stuck: "
+                                           f"{[w for _, w in cleared.failures]}; {rig.robot_notes()}"})
+                        stuck = True
+                        break
                 rig.sleep(0.3)
                 ev = Event(fault.name)
                 fault.inject(rig, ev)
                 _recover(rig, fault, ev)
                 events.append((fault, ev))
-            if time.monotonic() >= t_end:
+            if stuck or time.monotonic() >= t_end:
                 break
         rig.sleep(0.3)
     finally:

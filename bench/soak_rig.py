@@ -168,14 +168,25 @@ class SoakRig:
         except urllib.error.HTTPError as e:
             return e.code
 
-    def pedals_seen(self, down: bool, timeout: float) -> bool:
-        """Wait until the service's last tick read every pedal ``down`` (True) or up."""
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if all(p == down for p in self.svc.status()["pedal"]):
-                return True
-            time.sleep(0.02)
-        return False
+    def robot_notes(self) -> str:
+        """Why each hosted arm cannot be enabled now, if it cannot (for a failure's message)."""
+        host = self.run.robot_host
+        if host is None:
+            return "robots in the loop"
+        return "robot host: " + "; ".join(f"arm {b}: {host.ready(b) or 'ready'}" for b in range(host.n))
+
+    def pedals(self, down: bool, timeout: float = 10.0) -> float:
+        """Every device's pedal ``down`` (True) or up, and wait until the service's tick read it
+        (the command is repeated every second); returns the seconds it took (inf: never)."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            self.devices("pedal", down)
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end:
+                if all(p == down for p in self.svc.status()["pedal"]):
+                    return time.monotonic() - t0
+                time.sleep(0.02)
+        return float("inf")
 
     def steady(self, timeout: float) -> bool:
         """Wait until every arm is coupled and nothing holds (True), or ``timeout`` s."""
