@@ -30,6 +30,7 @@ from __future__ import annotations
 import os
 import select
 import socket
+import struct
 import threading
 import time
 from typing import Optional
@@ -108,6 +109,16 @@ BASE_WINDOW = 1000
 #: the service two MACs and an answer (a flood of replayed HELLOs is dropped before them)
 HELLO_RATE, HELLO_BURST = 20.0, 10.0
 _TYPE_AT = 3       # offset of the message type in the header (magic 2 bytes, version 1 byte)
+_SEQ = struct.Struct("<Q")
+_SEQ_AT = 12       # offset of the sequence number (after type, device id and session id)
+
+
+def _newest_state_first(item) -> tuple:
+    """Sort key of a received (datagram, address): STATEs first, newest sequence first."""
+    data = item[0]
+    if len(data) >= _SEQ_AT + 8 and data[_TYPE_AT] == P.STATE:
+        return (0, -_SEQ.unpack_from(data, _SEQ_AT)[0])
+    return (1, 0)
 
 
 class UdpMaster(Master):
@@ -221,7 +232,6 @@ class UdpHub:
         self.hello_limiter = SourceLimiter(rate=HELLO_RATE, burst=HELLO_BURST)
         self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
-        self._view = memoryview(self._buf)
         self.t = None                     # loop time of the last tick
         self._base_ns = None              # perf_counter_ns at loop time 0 (tick deadlines): see tick
         self._base_win = [None, None]     # minima of the current and the previous window of ticks
@@ -277,9 +287,13 @@ class UdpHub:
                 self.pump()
 
     def pump(self, limit: int = 4096) -> int:
-        """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
-        sock, buf, view = self.sock, self._buf, self._view
+        """Receive the waiting datagrams (at most ``limit``), then handle them, each session's
+        newest STATE first; returns how many were received. Newest first: when the receiver fell
+        behind (the service busy, a flood), a sample older than its session's newest is refused
+        on the replay window before any MAC, and a tick never uses a sample from the backlog."""
+        sock, buf = self.sock, self._buf
         allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
+        batch = []
         k = 0
         while k < limit and not self._stop.is_set():
             try:
@@ -296,7 +310,10 @@ class UdpHub:
             if not allow(addr, now) or (n > _TYPE_AT and buf[_TYPE_AT] == P.HELLO and not hello_allow(addr, now)):
                 self.counters["rate_limited"] += 1
                 continue
-            self.handle(view[:n], addr)
+            batch.append((bytes(buf[:n]), addr))
+        batch.sort(key=_newest_state_first)      # (stable: everything else keeps its order)
+        for data, addr in batch:
+            self.handle(data, addr)
         return k
 
     def handle(self, data, addr) -> int:

@@ -1,0 +1,30 @@
+"""`pointfence bench soak` in its short version (every fault kind once, about two minutes): the
+live service at 1 kHz with two devices over UDP, two hosted Raven II arms and the control API,
+each injected fault judged against SAFETY.md on the streamed recording (bench/soak_check.py;
+its judgement itself is tested in test_soak_judge.py). Timing figures (loop misses, latencies in
+ms) are the benchmark's to report, not asserted here; what is asserted is the contract: every
+fault handled, nothing lost from the recording, no robot in the fixture."""
+import json
+import subprocess
+import sys
+
+from pointfence.bench.soak_faults import FAULTS
+
+from service_cases import needs_opencl
+
+pytestmark = needs_opencl
+
+
+def test_every_fault_once_keeps_the_safety_contract(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "pointfence.cli", "bench", "soak", "--json", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["faults_injected"] == len(FAULTS) == 16
+    assert r["faults_failed"] == [], json.dumps(r["faults_failed"], indent=1)
+    assert r["faults_handled"] == r["faults_injected"]
+    assert r["ticks_lost"] == 0 and r["ticks_recorded"] > 30000
+    assert r["max_penetration_mm"] is not None and r["max_penetration_mm"] <= 1.0
+    assert r["max_robot_motion_during_hold_mm"] <= 0.1
+    verdicts = json.loads((tmp_path / "events.json").read_text())
+    assert {v["fault"] for v in verdicts} == set(FAULTS)
