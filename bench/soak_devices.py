@@ -34,6 +34,9 @@ import numpy as np
 PUSH = 0.074
 CIRCLE_R, CIRCLE_HZ = 0.004, 0.25          # the probing circle while pushing (master frame)
 APPROACH_S = 1.5
+#: a device starts a new handshake after this long without feedback (s): a late feedback from a
+#: busy service is not a lost session, and a new handshake would end a live one
+RECONNECT_S = 0.5
 
 
 class _Device:
@@ -95,7 +98,7 @@ class _Link:
             dev.hellos = list(c.hellos_sent)
             dev.reconnects += 1
             self.last_rx = now
-        elif not c.fresh and now - self.last_rx > 0.1:
+        elif not c.fresh and now - self.last_rx > RECONNECT_S:
             self.connecting = True       # the service dropped the session (silence, a restart)
             self.retry_at = now + 0.1
             c.hello_send()

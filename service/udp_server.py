@@ -286,16 +286,26 @@ class UdpHub:
             if ready:
                 self.pump()
 
-    def pump(self, limit: int = 4096) -> int:
-        """Receive the waiting datagrams (at most ``limit``), then handle them, each session's
-        newest STATE first; returns how many were received. Newest first: when the receiver fell
-        behind (the service busy, a flood), a sample older than its session's newest is refused
-        on the replay window before any MAC, and a tick never uses a sample from the backlog."""
+    def pump(self, limit: int = 4096, batch_size: int = 64) -> int:
+        """Receive and handle the waiting datagrams (at most ``limit``), ``batch_size`` at a time,
+        each batch's STATEs newest first; returns how many were received. Newest first: when the
+        receiver fell behind (the service busy, a flood), a sample older than its session's
+        newest is refused on the replay window before any MAC; small batches: a sample is
+        handled within a batch's time of being read, whatever waits behind it."""
+        k = 0
+        while k < limit and not self._stop.is_set():
+            n = self._pump_batch(min(batch_size, limit - k))
+            k += n
+            if n < batch_size:
+                break
+        return k
+
+    def _pump_batch(self, size: int) -> int:
         sock, buf = self.sock, self._buf
         allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
         batch = []
         k = 0
-        while k < limit and not self._stop.is_set():
+        while k < size and not self._stop.is_set():
             try:
                 n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
@@ -328,8 +338,11 @@ class UdpHub:
                     session = None
                     raise P.ProtocolError(P.E_NO_SESSION)
                 # the anti-replay window first (RFC 4303 3.4.3): a replayed or stale datagram costs
-                # no MAC; the window only moves once the MAC has been verified (commit below)
+                # no MAC, nor does one older than the newest sample (it could never be used); the
+                # window only moves once the MAC has been verified (commit below)
                 session.window.check(h.seq)
+                if h.seq <= session.window.top:
+                    raise P.ProtocolError(P.E_STALE, "older than the newest sample")
                 P.verify(data, session.key)
                 st = P.State.decode(data, session.workspace)
                 if not session.window.commit(h.seq):

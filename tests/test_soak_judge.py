@@ -4,9 +4,9 @@ robot moving while held, a latched fault that comes back by itself, an attack th
 an operator action that moves a robot, a penetration of the region)."""
 import numpy as np
 
-from pointfence.bench.soak_check import Recording, judge, penetration
+from pointfence.bench.soak_check import AVAILABILITY, Recording, judge, penetration
 from pointfence.bench.soak_faults import FAULTS, Event
-from pointfence.service.holds import INGEST, KERNEL, OVERRUN
+from pointfence.service.holds import INGEST, KERNEL, MASTER, OVERRUN
 
 N = 600
 
@@ -87,6 +87,13 @@ def test_attacks_and_actions_change_nothing():
     holds[150:160, 1] = OVERRUN                # a late tick: counted, not held against the attack
     v = judge(FAULTS["forged_flood"], Event("forged_flood", 100, 300, None, 310), recording(holds=holds), 0.5, 0.05)
     assert v["failures"] == [] and v["timing_holds"] == 10
+    masters = np.ones((N, 2, 5))
+    masters[200:260, 1, 4] = 0                  # a device's session lost: availability, not the contract
+    holds[:] = 0
+    holds[200:300, 2] = MASTER
+    v = judge(FAULTS["replayed_flood"], Event("replayed_flood", 100, 300, None, 310),
+              recording(holds=holds, masters=masters), 0.5, 0.05)
+    assert v["failures"] == [(AVAILABILITY, "replayed_flood: a device's input was lost at tick 200 (60 ticks)")]
     inputs = np.zeros((N, 8))
     inputs[:, 0] = np.arange(N)
     inputs[:, 4:7] = (3, 1, 1)
