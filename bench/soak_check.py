@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pointfence.service.holds import MASTER, OVERRUN, WATCHDOG
+from pointfence.service.holds import INGEST, MASTER, OVERRUN, STALE, WATCHDOG
 
 #: robot motion allowed while an arm holds, and by an operator action alone (m)
 MAX_HOLD_MOTION = 1e-4
@@ -22,6 +22,10 @@ HOLD_TICKS = 1
 #: holds that the machine's load causes (a late or long tick), whatever is injected: during an
 #: attack or an operator action they are counted (``timing_holds``), not held against it
 TIMING = OVERRUN | WATCHDOG
+#: holds that an overloaded machine causes by itself, each as its invariant wants: late ticks, a
+#: device session dropped, snapshots not built in time (S2). During an attack or an operator
+#: action they are the service's availability, reported apart; any other hold breaks the contract
+LOAD = TIMING | MASTER | INGEST | STALE
 #: the invariant named for a device session lost during an attack or an operator action: the
 #: arm held for it, as S9 wants, but the link was not available (on an overloaded machine the
 #: receiver falls behind the 50 ms session timeout); reported apart from the safety contract
@@ -65,12 +69,15 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float, robot_
             i1 = rec.at(ev.restore + 200)
         masks = rec.arm_hold[i0:i1]
         out["timing_holds"] = int((masks & TIMING).any(axis=1).sum())
+        out["load_holds"] = int((masks & LOAD).any(axis=1).sum())
+        if (masks & (INGEST | STALE)).any():
+            fails.append((AVAILABILITY, f"{fault.name}: snapshots too old during it (held, S2)"))
         lost = np.flatnonzero(~rec.ok[i0:i1].all(axis=1))
         out["input_lost_ticks"] = int(len(lost))
         if len(lost):       # a device's session dropped (held for it, S9): the link's availability
             fails.append((AVAILABILITY, f"{fault.name}: a device's input was lost at tick {rec.k[i0 + lost[0]]} "
                                         f"({len(lost)} ticks)"))
-        held = np.flatnonzero((masks & ~(TIMING | MASTER)).any(axis=1))
+        held = np.flatnonzero((masks & ~LOAD).any(axis=1))
         if len(held):
             fails.append((fault.invariant, f"{fault.kind} {fault.name}: an arm held at tick {rec.k[i0 + held[0]]} "
                                            f"(mask {int(masks[held[0]].max())})"))

@@ -121,6 +121,9 @@ def test_messages_name_the_value(robot):
 def test_hold_freezes_and_resume_continues(robot):
     T = robot.setpoint_cp()
     robot.hold()
+    held = robot.setpoint_cp()                       # where the arm is (at rest: on its setpoint)
+    np.testing.assert_allclose(held[:3, 3], robot.measured_cp()[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(held[:3, 3], T[:3, 3], atol=2e-5)
     robot.hold()                                     # idempotent
     assert robot.state is RobotMode.HOLDING
     assert robot.servo_cp(T[:3, 3] + [0.001, 0, 0]) is False
@@ -128,7 +131,7 @@ def test_hold_freezes_and_resume_continues(robot):
     assert robot.ignored_commands == 2
     for _ in range(100):
         robot.step(DT)
-    np.testing.assert_array_equal(robot.setpoint_cp(), T)
+    np.testing.assert_array_equal(robot.setpoint_cp(), held)
     np.testing.assert_allclose(robot.measured_cp()[:3, 3], T[:3, 3], atol=2e-5)
     # a bad command while holding still raises (and still changes nothing)
     with pytest.raises(InputError):

@@ -66,9 +66,14 @@ def test_hold_freezes_the_setpoint_while_moving(raven):
     for k in range(1, 101):
         raven.servo_cp(p0 + [0.05 * k * DT, 0, 0])
         raven.step(DT)
-    held = raven.setpoint_cp()
+    lagging = raven.setpoint_cp()[:3, 3].copy()
+    at_hold = raven.measured_cp()[:3, 3].copy()
+    assert np.linalg.norm(lagging - at_hold) > 1e-5           # moving at 5 cm/s: behind its command
     raven.hold()
+    held = raven.setpoint_cp()
     assert raven.state is RobotMode.HOLDING
+    # a stop where the arm is (SAFETY.md S3), not the end of the last command
+    np.testing.assert_allclose(held[:3, 3], at_hold, atol=1e-9)
     for k in range(101, 301):                 # the loop keeps streaming: ignored
         assert raven.servo_cp(p0 + [0.05 * k * DT, 0, 0]) is False
         raven.step(DT)
