@@ -38,6 +38,9 @@ import numpy as np
 
 from pointfence.clients import Client, Command, LinkLost, TimingError
 from pointfence.clients import protocol as P
+# imported here, not where the counters are read: between two runs of the client loop, an
+# import that takes longer than the session timeout would drop the session
+from pointfence.service.ctl import ControlClient
 
 
 #: the embedded defaults with a 160x120 camera: the link is measured, not the 30 Hz ingest
@@ -115,8 +118,6 @@ def _hub_counters(host: str, control_port, token_file=None) -> tuple:
     API with the run's token; (None, None) without a control API."""
     if not control_port:
         return None, None
-    from pointfence.service.ctl import ControlClient
-
     c = ControlClient(host, control_port, 10.0, token_file=token_file).status()["clients"]
     return int(c["accepted"]), int(c["feedback_sent"])
 

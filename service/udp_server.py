@@ -30,7 +30,6 @@ from __future__ import annotations
 import os
 import select
 import socket
-import struct
 import threading
 import time
 from typing import Optional
@@ -109,16 +108,6 @@ BASE_WINDOW = 1000
 #: the service two MACs and an answer (a flood of replayed HELLOs is dropped before them)
 HELLO_RATE, HELLO_BURST = 20.0, 10.0
 _TYPE_AT = 3       # offset of the message type in the header (magic 2 bytes, version 1 byte)
-_SEQ = struct.Struct("<Q")
-_SEQ_AT = 12       # offset of the sequence number (after type, device id and session id)
-
-
-def _newest_state_first(item) -> tuple:
-    """Sort key of a received (datagram, address): STATEs first, newest sequence first."""
-    data = item[0]
-    if len(data) >= _SEQ_AT + 8 and data[_TYPE_AT] == P.STATE:
-        return (0, -_SEQ.unpack_from(data, _SEQ_AT)[0])
-    return (1, 0)
 
 
 class UdpMaster(Master):
@@ -286,26 +275,12 @@ class UdpHub:
             if ready:
                 self.pump()
 
-    def pump(self, limit: int = 4096, batch_size: int = 64) -> int:
-        """Receive and handle the waiting datagrams (at most ``limit``), ``batch_size`` at a time,
-        each batch's STATEs newest first; returns how many were received. Newest first: when the
-        receiver fell behind (the service busy, a flood), a sample older than its session's
-        newest is refused on the replay window before any MAC; small batches: a sample is
-        handled within a batch's time of being read, whatever waits behind it."""
+    def pump(self, limit: int = 4096) -> int:
+        """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
+        sock, buf, view = self.sock, self._buf, memoryview(self._buf)
+        allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
         k = 0
         while k < limit and not self._stop.is_set():
-            n = self._pump_batch(min(batch_size, limit - k))
-            k += n
-            if n < batch_size:
-                break
-        return k
-
-    def _pump_batch(self, size: int) -> int:
-        sock, buf = self.sock, self._buf
-        allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
-        batch = []
-        k = 0
-        while k < size and not self._stop.is_set():
             try:
                 n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
@@ -320,10 +295,7 @@ class UdpHub:
             if not allow(addr, now) or (n > _TYPE_AT and buf[_TYPE_AT] == P.HELLO and not hello_allow(addr, now)):
                 self.counters["rate_limited"] += 1
                 continue
-            batch.append((bytes(buf[:n]), addr))
-        batch.sort(key=_newest_state_first)      # (stable: everything else keeps its order)
-        for data, addr in batch:
-            self.handle(data, addr)
+            self.handle(view[:n], addr)
         return k
 
     def handle(self, data, addr) -> int:
