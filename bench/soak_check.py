@@ -84,10 +84,15 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float, robot_
         if fault.still:     # from the tick the action took effect (its request is applied between ticks)
             changed = np.flatnonzero((rec.law[i0:i1] != rec.law[i0]).any(axis=1))
             i0 = i0 + int(changed[0]) - 1 if len(changed) else i0
-            moved = max(float(np.linalg.norm(rec.xr[i0:i1, b] - rec.xr[i0, b], axis=1).max()) for b in (0, 1))
+            # S1 is about the command: the arm itself may still settle onto a command that did
+            # not move (a Raven II lags its command by up to a tenth of a millimetre)
+            moved = max(float(np.linalg.norm(rec.cmd[i0:i1, b] - rec.cmd[i0, b], axis=1).max()) for b in (0, 1))
+            settle = max(float(np.linalg.norm(rec.xr[i0:i1, b] - rec.xr[i0, b], axis=1).max()) for b in (0, 1))
             out["robot_motion_mm"] = round(moved * 1e3, 4)
+            out["robot_settling_mm"] = round(settle * 1e3, 4)
             if moved > MAX_HOLD_MOTION:
-                fails.append(("S1", f"{fault.name} moved a robot {moved * 1e3:.3f} mm while the operator held still"))
+                fails.append(("S1", f"{fault.name} moved a robot's command {moved * 1e3:.3f} mm while the "
+                                    "operator held still"))
     if ev.recovered is None:
         fails.append((fault.invariant, f"{fault.name}: the run did not recover after the fault was removed"))
     return {**out, "failures": fails, **{k: v for k, v in ev.notes.items() if k != "ingest_status"}}

@@ -99,12 +99,13 @@ def test_attacks_and_actions_change_nothing():
     inputs[:, 4:7] = (3, 1, 1)
     inputs[120:, 4] = 1                         # the switch applied at tick 120
     robots = np.zeros((N, 2, 6))
-    robots[110:, 0, 0] = 0.0002                 # moved before the switch applied: not the switch
+    robots[110:, 0, 3] = 0.0002                 # moved before the switch applied: not the switch
+    robots[150:, 0, 0] = 0.0003                 # the arm settling onto an unmoved command: not either
     a = FAULTS["architecture_switch_while_pushing"]
     assert judge(a, Event(a.name, 100, 300, None, 310), recording(inputs=inputs, robots=robots), 0.5, 0.05)["failures"] == []
-    robots[200:, 1, 2] = 0.0002                 # moved after it: the switch moved a robot
+    robots[200:, 1, 5] = 0.0002                 # the command moved after it: the switch moved a robot
     v = judge(a, Event(a.name, 100, 300, None, 310), recording(inputs=inputs, robots=robots), 0.5, 0.05)
-    assert any(inv == "S1" and "moved a robot 0.200 mm" in what for inv, what in v["failures"])
+    assert any(inv == "S1" and "command 0.200 mm" in what for inv, what in v["failures"])
 
 
 def test_penetration_is_the_deepest_any_arm_went():
