@@ -27,11 +27,12 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 from pointfence.kernels.errors import InputError
 
-from .soak_check import AVAILABILITY, MAX_HOLD_MOTION, MAX_PENETRATION, Recording, judge, penetration
+from .soak_check import MAX_HOLD_MOTION, MAX_PENETRATION, Recording, failure_class, judge, penetration
 from .soak_faults import FAULTS, Event
 
 
@@ -163,7 +164,9 @@ def run(args) -> dict:
     verdicts = [judge(f, ev, rec, sc.max_frame_age_s, sc.force_ramp_s, sc.robot_watchdog_s) for f, ev in events]
     failed = unexpected + [{"fault": v["fault"], "invariant": inv, "what": what} for v in verdicts
                            for inv, what in v["failures"]]
-    contract = [f for f in failed if f["invariant"] != AVAILABILITY]
+    for f in failed:
+        f["class"] = failure_class(f["invariant"], f["what"])
+    classes = Counter(f["class"] for f in failed)
     pen = penetration(rec, region) if region is not None else None
     if pen is not None and pen > MAX_PENETRATION:
         failed.append({"fault": None, "invariant": "S1", "what": f"a robot entered the fixture by {pen * 1e3:.2f} mm"})
@@ -188,8 +191,9 @@ def run(args) -> dict:
         "faults_injected": len(events),
         "faults_handled": sum(1 for v in verdicts if not v["failures"]),
         "faults_failed": failed,
-        "contract_failures": len(contract),
-        "availability_failures": len(failed) - len(contract),
+        "contract_failures": classes["contract"],
+        "bound_failures": classes["bound"],
+        "availability_failures": classes["availability"],
         "max_hold_latency_ms": max(lat) if lat else None,
         "max_detection_ms": max(det) if det else None,
         "max_robot_motion_during_hold_mm": max(mot) if mot else None,

@@ -32,6 +32,21 @@ LOAD = TIMING | MASTER | INGEST | STALE
 AVAILABILITY = "S9 (availability)"
 
 
+#: failures that are a measured bound (latency, motion, ramp time) exceeded: the contract kept
+#: in kind, missed in degree; on a loaded machine they come and go with its load
+_BOUND_MARKS = (" ms after the fault was detectable", " mm while held", "force not zero within",
+                "while the operator held still")
+
+
+def failure_class(invariant: str, what: str) -> str:
+    """``"availability"`` (a session or the frames' freshness lost under load, held for as the
+    invariant wants), ``"bound"`` (a measured bound exceeded) or ``"contract"`` (a fault not
+    held, not latched, not cleared, not recovered from; an attack or request not refused)."""
+    if invariant == AVAILABILITY:
+        return "availability"
+    return "bound" if any(m in what for m in _BOUND_MARKS) else "contract"
+
+
 class Recording:
     """The recorded arrays, indexed by tick number."""
 

@@ -113,3 +113,14 @@ def test_penetration_is_the_deepest_any_arm_went():
     robots[:, 1, 2] = np.linspace(0.0, -0.004, N)
     region = lambda x, t: x[:, 2] + 0.001      # noqa: E731 -- the region below z = -1 mm
     assert abs(penetration(recording(robots=robots), region, every=1) - 0.003) < 1e-9
+
+
+def test_failures_are_classed():
+    from pointfence.bench.soak_check import failure_class
+
+    assert failure_class("S3", "kernel_exception: arm 0 never held for it") == "contract"
+    assert failure_class("S3", "kernel_exception: arm 0 came back before the fault was cleared (not latched)") == "contract"
+    assert failure_class("S4", "unauthenticated POST /haptics answered 200, not 401/403") == "contract"
+    assert failure_class("S3", "kernel_exception: arm 0 moved 0.300 mm while held (after its stop)") == "bound"
+    assert failure_class("S3", "x: arm 1 held 5 ms after the fault was detectable (bound 1 ms)") == "bound"
+    assert failure_class(AVAILABILITY, "forged_flood: a device's input was lost at tick 3 (4 ticks)") == "availability"
