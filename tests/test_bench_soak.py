@@ -27,7 +27,7 @@ def test_every_fault_once_keeps_the_safety_contract(tmp_path):
     # 2-core machine's load: the benchmark reports them (bench/RESULTS.md), they are not asserted
     contract = [f for f in r["faults_failed"] if f["class"] == "contract"]
     assert contract == [] and r["contract_failures"] == 0, json.dumps(contract, indent=1)
-    assert r["ticks_lost"] == 0 and r["ticks_recorded"] > 30000
+    assert r["ticks_lost"] == 0 and r["ticks_recorded"] > 15000          # about 20 s at 1 kHz
     assert r["max_penetration_mm"] is not None and r["max_penetration_mm"] <= 1.0
     assert r["torn_bytes"] == 0
     verdicts = json.loads((tmp_path / "events.json").read_text())
