@@ -32,44 +32,18 @@ from pathlib import Path
 
 from pointfence.kernels.errors import InputError
 
+from .e2e import LIGHT_SCENE
 from .soak_check import MAX_HOLD_MOTION, MAX_PENETRATION, Recording, failure_class, judge, penetration
 from .soak_faults import FAULTS, Event
 
 
 #: the embedded defaults with the camera at 320x240 (2 mm between points on the balloon): the
 #: soak judges safety, and a 640x480 build every 33 ms would take a core of the two
-SOAK_SCENE = """
-backend = "opencl"
-[workspace]
-min = [-0.25, -0.25, -0.02]
-max = [0.25, 0.25, 0.25]
-[fixture]
-mode = "fixture"
-radius = 0.02
-select = { kind = "color", lo = [150, 0, 0], hi = [255, 90, 90] }
-[[camera]]
-name = "overhead"
-source = "synthetic:sphere"
-fx = 287.9
-fy = 287.9
-cx = 159.5
-cy = 119.5
-width = 320
-height = 240
-T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,  0, 0, -1, 0.6,  0, 0, 0, 1]
-options = { color = true }
-[teleop]
-architecture = "III"
-scale = 0.5
-[robot]
-model = "raven2"
-mount_tool_down = [0.0, 0.0, 0.25]
-[service]
-proxies = 2
-# the simulated arms' process shares the two cores with the service, the devices and the
-# attackers: starved beyond 50 ms now and then, it would read as a robot fault of its own
-robot_watchdog_s = 0.1
-"""
+SOAK_SCENE = (LIGHT_SCENE.replace("fx = 143.95\nfy = 143.95\ncx = 79.5\ncy = 59.5\nwidth = 160\nheight = 120",
+                                  "fx = 287.9\nfy = 287.9\ncx = 159.5\ncy = 119.5\nwidth = 320\nheight = 240")
+              # the simulated arms' process shares the two cores with the service, the devices and
+              # the attackers: starved beyond 50 ms now and then, it would read as a robot fault
+              + "[service]\nproxies = 2\nrobot_watchdog_s = 0.1\n")
 
 
 def add_arguments(p):
