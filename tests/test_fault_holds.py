@@ -139,14 +139,14 @@ def test_watchdog_sees_a_stall_once_per_tick():
 
 
 def test_a_hung_tick_is_seen_while_it_hangs():
-    """A threaded loop whose tick 20 blocks for 40 ms: the watchdog calls on_stall during the
+    """A threaded loop whose tick 300 blocks for 60 ms: the watchdog calls on_stall during the
     hang (not after it), within a few milliseconds."""
     state = {"stall_at": None, "hang_end": None}
 
     class Target:
         def tick(self, k, t, dt, overrun, now):
-            if k == 20:
-                time.sleep(0.04)
+            if k == 300:
+                time.sleep(0.06)
                 state["hang_end"] = time.perf_counter()
 
         def safe_tick(self, *a):
@@ -165,7 +165,7 @@ def test_a_hung_tick_is_seen_while_it_hangs():
     finally:
         loop.stop()
     assert state["stall_at"] is not None and state["stall_at"] < state["hang_end"]
-    assert 0.003 < state["after"] < 0.03
+    assert 0.003 < state["after"] < 0.05
 
 
 def test_a_stalled_tick_zeroes_the_force_at_once_and_holds(tmp_path):
