@@ -45,7 +45,6 @@ from __future__ import annotations
 import ipaddress
 import logging
 import math
-import select
 import socket
 import struct
 import threading
@@ -55,7 +54,7 @@ from typing import Optional
 import numpy as np
 
 from .masters import Master
-from .udp_ratelimit import SourceLimiter
+from .udp_ratelimit import SourceLimiter, poll_loop
 
 log = logging.getLogger("pointfence.itp")
 
@@ -214,15 +213,7 @@ class ItpReceiver:
 
     # --- the receiver (outside the tick) ------------------------------------------------------------------
     def _run(self) -> None:
-        poller = select.poll()
-        poller.register(self.sock, select.POLLIN)
-        while not self._stop.is_set() and self.sock.fileno() >= 0:
-            try:
-                ready = poller.poll(50)
-            except OSError:
-                return
-            if ready:
-                self.pump()
+        poll_loop(self.sock, self._stop, self.pump)
 
     def pump(self, limit: int = 4096) -> int:
         """Receive and handle the waiting packets (at most ``limit``); returns how many."""

@@ -6,10 +6,13 @@ costs one dictionary look-up a datagram and does not starve the other sources. T
 bounded (``max_sources``): a new source takes the place of one idle for ``idle_s``, and beyond
 that every further new source shares one overflow bucket (a flood from many spoofed addresses
 then competes only with itself, never with the sources already known).
+
+``poll_loop`` is the receiver thread's body that the UDP hub and the ITP adapter share.
 """
 from __future__ import annotations
 
 import collections
+import select
 
 
 class SourceLimiter:
@@ -60,3 +63,17 @@ class SourceLimiter:
 
     def __len__(self) -> int:
         return len(self._buckets)
+
+
+def poll_loop(sock, stop, pump, timeout_ms: int = 50) -> None:
+    """A receiver thread's body (UDP hub, ITP adapter): wait for ``sock`` to be readable and call
+    ``pump()`` until ``stop`` (a threading.Event) is set or the socket is closed."""
+    poller = select.poll()
+    poller.register(sock, select.POLLIN)
+    while not stop.is_set() and sock.fileno() >= 0:
+        try:
+            ready = poller.poll(timeout_ms)
+        except OSError:
+            return
+        if ready:
+            pump()

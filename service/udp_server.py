@@ -28,7 +28,6 @@ that arm's robot and ramps its force to zero (``service.app``, hold reason "mast
 from __future__ import annotations
 
 import os
-import select
 import socket
 import threading
 import time
@@ -41,7 +40,7 @@ from pointfence.kernels.errors import InputError
 
 from .masters import Master
 from .udp_cookies import CookieJar
-from .udp_ratelimit import SourceLimiter
+from .udp_ratelimit import SourceLimiter, poll_loop
 
 
 class Session:
@@ -265,15 +264,7 @@ class UdpHub:
 
     # --- receiver (outside the tick) ------------------------------------------------------------------
     def _run(self) -> None:
-        poller = select.poll()
-        poller.register(self.sock, select.POLLIN)
-        while not self._stop.is_set() and self.sock.fileno() >= 0:
-            try:
-                ready = poller.poll(50)
-            except OSError:
-                return
-            if ready:
-                self.pump()
+        poll_loop(self.sock, self._stop, self.pump)
 
     def pump(self, limit: int = 4096) -> int:
         """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
