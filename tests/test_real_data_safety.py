@@ -24,15 +24,12 @@ pytestmark = needs_opencl
 FRAME = "frame_20121214T142255.814212"
 
 
-@pytest.fixture(scope="module")
-def kinect(tmp_path_factory, request):
+@pytest.fixture
+def kinect(shared_data, tmp_path):
     """A folder with the sequence's first depth frame (and its camera xml): one static frame."""
-    from conftest import SHARED_DATA
-
-    seq = SHARED_DATA / "pcl_kinect_grabber_seq"
-    if not seq.is_dir():
-        pytest.skip("../shared/data not found: real-data tests need the shared folder beside the project")
-    d = tmp_path_factory.mktemp("kinect1")
+    seq = shared_data / "pcl_kinect_grabber_seq"
+    d = tmp_path / "kinect1"
+    d.mkdir()
     (d / f"{FRAME}_depth.tiff").symlink_to(seq / "tiff" / f"{FRAME}_depth.tiff")
     (d / f"{FRAME}.xml").symlink_to(seq / "pclzf" / f"{FRAME}.xml")
     return d
