@@ -238,8 +238,11 @@ def _request(srv, body: bytes, auth=True, length=None) -> bytes:
 def _talk(srv, data: bytes, timeout=30.0) -> tuple:
     """(HTTP status or None if the server closed without a reply, reply text)."""
     with socket.create_connection(srv.address, timeout=timeout) as s:
-        s.sendall(data)
-        s.shutdown(socket.SHUT_WR)
+        try:
+            s.sendall(data)
+            s.shutdown(socket.SHUT_WR)
+        except OSError:             # the server may answer (503 busy) and close before the request is all sent
+            pass
         out = b""
         while True:
             try:

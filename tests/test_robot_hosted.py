@@ -38,7 +38,7 @@ def test_hosted_arm_follows_a_setpoint_stream_like_the_arm_in_the_tick(host):
     local = robot_from_config(TABLE)            # the same model stepped in this process
     a, b = host.robots
     x0 = a.measured_cp()[:3, 3].copy()
-    np.testing.assert_allclose(x0, local.measured_cp()[:3, 3], atol=1e-5)   # (the child has stepped: gravity sag)
+    np.testing.assert_allclose(x0, local.measured_cp()[:3, 3], atol=5e-5)   # (the child has stepped for as long as it has run: up to ~20 um of gravity sag)
     for r in host.robots:
         r.resume()
     target = x0 + [0.01, -0.005, -0.01]
