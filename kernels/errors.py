@@ -15,3 +15,8 @@ class BackendUnavailable(PointfenceError, RuntimeError):
 
 class KernelError(PointfenceError, RuntimeError):
     """A compute kernel failed; the caller must treat its outputs as invalid."""
+
+
+class ConflictError(PointfenceError, RuntimeError):
+    """A request is valid but the current state refuses it (nothing changed); the message says why
+    and what to do first."""

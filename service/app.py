@@ -1,31 +1,34 @@
-"""The service: configuration -> backend, frame pipeline, proxies, forces, robots, masters, and
-the per-tick work the haptic loop runs (``Service.tick``).
+"""The service: the haptic tick over B master-robot pairs (one proxy each), composed of four
+components, each owning one concern:
 
-One tick, for B master-robot pairs (one proxy each):
+* ``devices.Devices``: the masters (position and pedal in, force out) and the robots (measured
+  pose in, command out);
+* ``haptic_scene.HapticScene``: depth frames -> snapshots -> proxies -> forces (ONE kernel
+  launch per tick for every proxy), the robot self-filter, runtime reconfiguration;
+* ``teleop.Teleop``: registration, clutch and indexing, the architectures I-III, re-anchoring
+  at every change of control law (S1), the command's speed limit;
+* ``health.Health``: why each arm holds (``holds.HoldReason``: each with its SAFETY.md
+  invariant), conditions that clear by themselves and latched faults.
 
-1. poll every master (position, pedal, validity); a non-finite sample is a device fault;
-2. the tick's time on the frames' clock (``frame_time``), the robots' joints into the tool pose
-   ring (the self-filter's look-up, ``toolpose``); health (``holds.py``: each reason with its
-   SAFETY.md invariant): a late or stalled tick, a published snapshot older than
-   ``max_frame_age_s``, a kernel failure, a robot or master fault. A held arm's force gain
-   ramps to zero within ``force_ramp_s`` and its robot stops where it is; a condition must be
-   clear for ``recover_s``, a latched fault cleared (``clear_faults``), before it comes back;
-3. teleoperation (``teleop.Teleop``): master motion -> X_m, re-anchoring of arms that (re)couple
-   and of every arm at a change of control law (S1), the HIP by architecture (continuous);
-4. ONE proxy launch for all B proxies against the current snapshot (through the publish gate, so
-   the snapshot number is exact; with ``[motion] enabled`` the points are predicted to the
-   tick's frame time plus the camera latency, ``kernels/motion.py``), then forces
-   (``kernels.forces.ForceRenderer``: dead band, contact damping, FIR, saturation) times the
-   per-arm gain, sent to the masters;
-5. robot commands by architecture, rate-limited, ``servo_cp`` for coupled arms; robots step;
-6. publish (a small lock-protected copy for ``status()``) and record.
+One tick (``Service.tick``, called by ``loop.HapticLoop`` at 1 kHz) reads as four calls::
 
-Nothing in a tick allocates arrays except the robot model's own ``servo_cp`` and the proxy's
-input check; there is no logging I/O and no per-point Python loop.
+    self.read(inp, k, t, dt, overrun, now)   # devices, frames, control state -> TickInput
+    out = self.step(inp)                     # TickInput -> TickOutput (no device touched)
+    self.write(out, inp.dt)                  # forces to the masters, commands to the robots
+    self.publish(inp, out)                   # status copy, recording
+
+``step`` is the tick as a function of plain data (``tick_io``): master samples, robot states,
+frame time and control state in; forces, proxies, commands and holds with named reasons out.
+A held arm's force gain ramps to zero within ``force_ramp_s`` and its robot stops where it is;
+a condition must be clear for ``recover_s``, a latched fault cleared (``clear_faults``), before
+it comes back. Nothing in a tick allocates arrays except the robot model's own ``servo_cp``
+and the proxy's input check; there is no logging I/O and no per-point Python loop.
+
+Other threads (the control API, the UDP hub, the watchdog) change the control state through
+the methods under "control"; it is applied at the start of the next tick.
 """
 from __future__ import annotations
 
-import math
 import threading
 from collections import deque
 from typing import Optional, Sequence
@@ -34,20 +37,21 @@ import numpy as np
 
 from pointfence.kernels import get_backend
 from pointfence.kernels.errors import InputError, KernelError
-from pointfence.kernels.forces import ForceRenderer
-from pointfence.kernels.haptics import haptic_pipeline_params
 from pointfence.kernels.params_haptics import HapticParams
 
-from .frames import PublishGate
-from .holds import (EXCEPTION, INGEST, KERNEL, LATCHED, MASTER, N_BITS, OVERRUN, REASONS, ROBOT, STALE,  # noqa: F401
-                    WATCHDOG, describe, index, reason_names)
-from .record import C, Recorder
-from .robot.base import RobotMode
+from .devices import Devices
+from .haptic_scene import HapticScene
+from .health import Health
+from .holds import EXCEPTION, KERNEL, REASONS, WATCHDOG, HoldReason, describe, reason_names
+from .record import Recorder
 from .teleop import Teleop, arch_code
+from .tick_io import TickInput, TickOutput
+
+RING = 1 << 16
 
 
 class Service:
-    """Everything one haptic tick touches; see the module docstring.
+    """The haptic service; see the module docstring.
 
     Args:
         cfg: a parsed ``config.SceneConfig``.
@@ -67,99 +71,47 @@ class Service:
         sc = cfg.service
         self.rate_hz = sc.rate_hz
         self.dt = 1.0 / sc.rate_hz
-        self.masters = list(masters)
-        n = self.n = len(self.masters)
+        n = self.n = len(masters)
         if n < 1:
             raise InputError("the service needs at least one master (one per proxy)")
         hp: HapticParams = cfg.haptics if cfg.haptics is not None else HapticParams(mode=cfg.mode)
         self.params = hp.replace(rate_hz=sc.rate_hz) if hp.rate_hz != sc.rate_hz else hp
-        pp = cfg.pipeline if cfg.cell_size_given else haptic_pipeline_params(self.params, cfg.pipeline)
-        self.backend = get_backend(backend or cfg.backend, device or cfg.device)
-        self.pipeline = self.backend.pipeline([c.camera for c in cfg.cameras], pp)
-        self.gate = PublishGate(self.pipeline)
         if robots is None:
             robots = [self._make_robot(cfg.robot) for _ in range(n)]
-        if len(robots) != n:
-            raise InputError(f"{len(robots)} robots for {n} masters; expected one per master (None: ideal robot)")
-        self.robots = list(robots)
-        # the robot self-filter, where every robot's tool is known (S5); else self_filter_off says why
-        from .toolpose import self_filter_for
-
-        self.tool_poses, self.frame_filter, self.self_filter_off = self_filter_for(cfg, pp, self.robots)
-        #: this tick's time on the frames' clock (nan while unknown); the proxies' prediction time
-        self.frame_time = math.nan
-        self._predict = bool(pp.motion.enabled)
-        self._frame_time = None
+        self.devices = Devices(masters, robots)
+        self.scene = HapticScene(cfg, self.params, get_backend(backend or cfg.backend, device or cfg.device),
+                                 self.devices.robots, n)
         tc = cfg.teleop
         self.teleop = Teleop(n, tc.T_world_master, tc.scale, tc.max_robot_speed, self.dt,
                              architecture or tc.architecture)
-        self.R = self.teleop.R
-        # per-arm arrays
-        z3 = lambda: np.zeros((n, 3))  # noqa: E731
-        self.dev = z3()
-        self.xr = z3()
-        self.f_out = z3()
-        self.f_master = z3()
-        self._fin = np.zeros((n, 3), bool)
-        self.pedal = np.zeros(n, bool)
-        self.m_ok = np.zeros(n, bool)
-        self.gain = np.zeros(n)
-        self._gtarget = np.zeros(n)
-        self._gstep = np.zeros(n)
-        self.coupled = np.zeros(n, bool)
+        self.health = Health(n, sc.recover_s)
+        self.inp = TickInput.zeros(n)
+        self.out = TickOutput.zeros(n)
+        self.gain = np.zeros(n)                 # force gain per arm, in [0, 1]
         self._coupled_prev = np.zeros(n, bool)
-        self._newly = np.zeros(n, bool)
-        self._reseat = np.zeros(n, bool)        # arms re-anchored this tick
-        self._reseat_pos = np.zeros((n, 3))
-        self._phip = np.zeros((n, 3))
-        self._arm_ok = np.zeros(n, bool)
-        self._rowok = np.zeros(n, bool)
-        self._notb = np.zeros(n, bool)
-        self._flag = np.zeros(n, bool)
+        self._reseat = np.zeros(n, bool)
         self._want = np.zeros(n, bool)
-        self._tn = np.zeros(n)
-        self._ti = np.zeros(n, np.int64)
-        self._master_bad_t = np.full(n, -math.inf)
-        self._robot_bad_t = np.full(n, -math.inf)
-        self._bad_t = np.full(N_BITS, -math.inf)  # last time of each condition, by reason bit index
-        self._T4 = np.zeros((n, 4, 4))
-        self.hold_mask = 0
-        #: latched faults (holds.LATCHED bits) until ``clear_faults``
-        self.latched = 0
-        self.arm_hold = np.zeros(n, np.int64)
-        self._zero3 = np.zeros(3)
-        #: set by the tick watchdog's thread (``on_stall``): the loop time the stall was seen at
-        self._stall_at: Optional[float] = None
-        self.watchdog_trips = 0
-        self._tx_lock = threading.Lock()   # the masters' force sends: the tick's and the watchdog's
+        self._notb = np.zeros(n, bool)
+        self._ideal = ~self.devices.present
+        self._phip = np.zeros((n, 3))
+        self._gstep = np.zeros(n)
+        self._teleop_prev = bool(tc.teleop)
         # control state (set from other threads through the methods below; applied at tick start)
-        self.haptics_on = bool(cfg.teleop.haptics)
-        self.teleop_on = bool(cfg.teleop.teleop)
-        self._haptics_running = False
-        self._teleop_prev = self.teleop_on
+        self.haptics_on = bool(tc.haptics)
+        self.teleop_on = bool(tc.teleop)
         self._pending_arch: Optional[int] = None
         self._reanchor = False   # a change of control law asked for a re-anchoring (S1)
         self._ctl = threading.Lock()
         self._between: deque = deque()   # callables run by the tick thread before the next tick
-        # results and counters
         self.kernel_errors = 0
-        self.robot_errors = 0
         self.last_error: Optional[str] = None
-        self.frame_seq = 0
-        self.snapshot_first_tick: dict = {}
-        self.feeder = None
         self.scene_time_offset = 0.0   # scene (camera) time at loop time 0
-        self._poll_tick = self._poll = False
         self.recorder = (Recorder(n=n, path=record_path) if record_path is not None
                          else Recorder(record, n) if record else None)
         self._pub_lock = threading.Lock()
-        self._pub = {k: np.zeros((n, 3)) for k in ("xm", "hip", "proxy", "cmd", "xr", "force")}
-        self._pub_state = np.zeros(n, np.int32)
-        self._pub_t = 0.0
-        self._pub_k = 0
-        # initial state
-        self.batch = None
-        self.renderer = ForceRenderer(n, self.params)
+        self._published = TickOutput.zeros(n)
+        self.kernel_us = np.zeros(RING)         # the kernel's wall-clock time per tick (us), a ring
+        self.ticks = 0
         self._started = False
 
     # --- construction helpers -----------------------------------------------------------------
@@ -172,49 +124,28 @@ class Service:
         return robot_from_config(table)
 
     def attach_frames(self, feeder) -> None:
-        """The frame feeder (``frames.LiveFrames``/``SimFrames``/``ScheduledFrames``) whose
-        ``max_age(now)`` the ticks check (offline feeders are polled inside the tick)."""
-        self.feeder = feeder
-        if self.frame_filter is not None:
-            feeder.frame_filter = self.frame_filter
-        self._frame_time = getattr(feeder, "frame_time", None)
-        self._poll_tick = hasattr(feeder, "poll_tick")
-        self._poll = hasattr(feeder, "poll")
+        """The frame feeder the ticks read (``HapticScene.attach_frames``)."""
+        self.scene.attach_frames(feeder)
 
     def start(self) -> None:
         """Place everything at its initial state (call after the first snapshot exists)."""
-        for b, m in enumerate(self.masters):
-            m.poll(0.0)
-            self.dev[b] = m.position
+        inp, tp = self.inp, self.teleop
+        self.devices.read_masters(inp)
+        dev = inp.master_pos.copy()
         xr = None
-        if any(r is not None for r in self.robots):
-            xr = np.zeros((self.n, 3))
-            for b, r in enumerate(self.robots):
-                xr[b] = r.measured_cp()[:3, 3] if r is not None else 0.0
-            if any(r is None for r in self.robots):
-                reg = self.teleop.register(np.nan_to_num(self.dev), np.zeros((self.n, 3)))
-                for b, r in enumerate(self.robots):
-                    if r is None:
-                        xr[b] = reg[b]
-        self.teleop.start(self.dev, xr)
-        self.xr[:] = self.teleop.cmd
-        if self.batch is not None:
-            self.batch.close()
-        self.batch = self.pipeline.proxies(self.teleop.hip, self.params)
-        self.renderer.reset()
-        self._haptics_running = self.haptics_on
-        for r in self.robots:
-            if r is not None:
-                r.hold()   # until the arm couples (pedal down, teleoperation engaged, healthy)
+        if self.devices.present.any():
+            reg = tp.register(np.nan_to_num(dev), np.zeros((self.n, 3)))
+            self.devices.read_robots(inp, reg)
+            xr = inp.robot_pos.copy()
+        tp.start(dev, xr)
+        np.copyto(self.out.robot_pos, tp.cmd)
+        self.scene.start(tp.hip, self.haptics_on)
+        self.devices.hold_all_robots()   # until the arm couples (pedal down, teleoperation engaged, healthy)
         self._started = True
 
     def warm_up(self) -> None:
-        """Launch the proxy kernel once on a throw-away batch (same program and batch size), so
-        that a just-in-time compiling runtime (PoCL) compiles it before the loop's first tick."""
-        probe = self.pipeline.proxies(self.teleop.hip, self.params)
-        with self.gate.lock:
-            probe.step(self.teleop.hip)
-        probe.close()
+        """Compile and launch the proxy kernel once before the loop's first tick."""
+        self.scene.warm_up(self.teleop.hip)
 
     # --- control (any thread; applied at the start of the next tick) ----------------------------
     def set_architecture(self, architecture) -> None:
@@ -235,6 +166,19 @@ class Service:
         with self._ctl:
             self._reanchor = True
 
+    def prepare_reconfiguration(self, radius=None, selection=None):
+        """A new radius and/or selection for the snapshots, prepared outside the tick
+        (``HapticScene.prepare_reconfiguration``); its ``commit()`` runs between two ticks
+        (``call_between_ticks``) and re-anchors every arm (S1). None: nothing changes."""
+        change = self.scene.prepare_reconfiguration(self.teleop.hip.copy(), radius, selection)
+        if change is not None:
+            change.on_commit = self._reconfigured
+        return change
+
+    def _reconfigured(self, cfg) -> None:
+        self.cfg = cfg
+        self.request_reanchor()      # S1: new fixture parameters move no robot by themselves
+
     def clear_faults(self) -> None:
         """Forget latched faults and re-enable robots in FAULT (their setpoint re-seats: no
         motion). Needs every arm decoupled (S3): raises InputError while an arm is coupled or its
@@ -242,38 +186,26 @@ class Service:
         between ticks (``call_between_ticks``: the control API does), where the pedals read are
         this tick's. An arm that couples again is re-anchored: clearing never moves a robot (S1)."""
         with self._ctl:
-            down = [b for b in range(self.n) if self.coupled[b] or (self.pedal[b] and self.teleop_on)]
+            down = [b for b in range(self.n) if self.out.coupled[b] or (self.inp.pedal[b] and self.teleop_on)]
             if down:
                 raise InputError(f"clear-faults refused: arm(s) {down} coupled (foot pedal down, teleoperation on); "
                                  "release the pedal(s) or disengage teleoperation first, then clear the faults "
                                  "(SAFETY.md S3)")
-            for r in self.robots:
-                if r is not None and r.state == RobotMode.FAULT:
-                    r.enable()
-                    r.hold()
-            self._bad_t[:] = -math.inf
-            self._robot_bad_t[:] = -math.inf
-            self.latched = 0
+            self.devices.clear_robot_faults()
+            self.health.clear()
             self.last_error = None
-            restart = getattr(self.feeder, "restart_ingest", None)
+            restart = getattr(self.scene.feeder, "restart_ingest", None)
             if restart is not None:
                 restart()
 
     def on_stall(self, started: float, now: float) -> None:
-        """The tick watchdog (``loop.TickWatchdog``, its own thread): the tick that started at
+        """The tick watchdog (``watchdog.TickWatchdog``, its own thread): the tick that started at
         ``started`` (loop clock, s) is still running at ``now``. The masters get zero force at
         once; the stalled tick, when it returns, and the ticks after it hold every arm for
         ``recover_s`` (S9). Robots need nothing here: they get no new command while the tick is
         stalled."""
-        self._stall_at = now
-        self.watchdog_trips += 1
-        if self._tx_lock.acquire(blocking=False):   # (a tick stuck inside a send keeps its lock)
-            try:
-                self.gain[:] = 0.0
-                for m in self.masters:
-                    m.send_force(self._zero3)
-            finally:
-                self._tx_lock.release()
+        self.health.note_stall(now)
+        self.devices.send_zero_forces()
 
     def call_between_ticks(self, fn) -> None:
         """Run ``fn(service)`` in the tick thread at the start of the next tick, before anything
@@ -281,310 +213,279 @@ class Service:
         must be short: it runs inside the tick's deadline)."""
         self._between.append(fn)
 
-    @property
-    def architecture(self) -> str:
-        return self.teleop.architecture
-
     # --- the tick --------------------------------------------------------------------------------
     def tick(self, k: int, t: float, dt: float, overrun: bool, now: float) -> None:
+        """One haptic tick (``loop.HapticLoop``'s target): see the module docstring."""
         if not self._started:
             self.start()
         while self._between:
             self._between.popleft()(self)
-        n, tp = self.n, self.teleop
+        inp = self.inp
+        self.read(inp, k, t, dt, overrun, now)
+        out = self.step(inp)
+        self.write(out, dt)
+        self.publish(inp, out)
+
+    def read(self, inp: TickInput, k: int, t: float, dt: float, overrun: bool, now: float) -> None:
+        """Fill ``inp``: the loop's timing, the control state, the masters, the robots, the frames."""
+        inp.k, inp.t, inp.dt, inp.overrun, inp.now = k, t, dt, overrun, now
         with self._ctl:
-            law_change = self._reanchor
+            inp.law_change = self._reanchor
             self._reanchor = False
-            if self._pending_arch is not None:
-                tp.set_architecture(self._pending_arch)   # (a switch sets tp.law_changed)
-                self._pending_arch = None
-            haptics_on, teleop_on = self.haptics_on, self.teleop_on
-        law_change |= tp.law_changed or haptics_on != self._haptics_running or teleop_on != self._teleop_prev
+            inp.architecture = self._pending_arch if self._pending_arch is not None else self.teleop.arch
+            self._pending_arch = None
+            inp.haptics, inp.teleop = self.haptics_on, self.teleop_on
+        self.devices.read_masters(inp)
+        self.devices.read_robots(inp, self.teleop.cmd)
+        self.scene.sense(inp)
+
+    def step(self, inp: TickInput) -> TickOutput:
+        """The tick's decisions from its input: holds, teleoperation, proxies and forces, robot
+        commands (see the module docstring). Touches no device; returns ``self.out``."""
+        out, tp, health, scene = self.out, self.teleop, self.health, self.scene
+        out.k, out.t = inp.k, inp.t
+        # control law: a change re-anchors every arm (S1)
+        if inp.architecture != tp.arch:
+            tp.set_architecture(inp.architecture)     # (sets tp.law_changed)
+        law_change = (inp.law_change or tp.law_changed or inp.haptics != scene.running
+                      or inp.teleop != self._teleop_prev)
         tp.law_changed = False
-        self._teleop_prev = teleop_on
-        # 1. masters
-        for b in range(n):
-            m = self.masters[b]
-            m.poll(t)
-            self.dev[b] = m.position
-            self.pedal[b] = m.clutch
-            self.m_ok[b] = m.ok
-        np.isfinite(self.dev, out=self._fin)
-        np.logical_and.reduce(self._fin, axis=1, out=self._rowok)
-        np.logical_and(self.m_ok, self._rowok, out=self.m_ok)
-        # 2. frame time, tool poses, health
-        feeder = self.feeder
-        tf = self._frame_time(t, now) if feeder is not None and self._frame_time is not None else None
-        self.frame_time = math.nan if tf is None else tf
-        if tf is not None and self.tool_poses is not None:
-            self.tool_poses.record(tf)
-        if feeder is not None:
-            if self._poll_tick:
-                feeder.poll_tick(k, t)
-            elif self._poll:
-                feeder.poll(t)
-        age = feeder.max_age(now) if feeder is not None else 0.0
-        rec = self.cfg.service.recover_s
-        if overrun:
-            self._bad_t[index(OVERRUN)] = t
-        if age > self.cfg.service.max_frame_age_s:   # S2: the newest published snapshot is too old
-            self._bad_t[index(STALE if feeder.frames_too_old(now) else INGEST)] = t
-        np.logical_not(self.m_ok, out=self._notb)
-        np.copyto(self._master_bad_t, t, where=self._notb)
-        for b, r in enumerate(self.robots):
-            if r is not None and r.state == RobotMode.FAULT:
-                self._robot_bad_t[b] = t
-        hold = self.latched
-        for i in range(N_BITS):
-            if t - self._bad_t[i] < rec:
-                hold |= 1 << i
-        self.hold_mask = hold
-        arm = self.arm_hold
-        np.subtract(t, self._master_bad_t, out=self._tn)
-        np.less(self._tn, rec, out=self._flag)
-        np.multiply(self._flag, MASTER, out=arm)
-        np.bitwise_or(arm, hold, out=arm)
-        np.subtract(t, self._robot_bad_t, out=self._tn)
-        np.less(self._tn, rec, out=self._flag)
-        np.multiply(self._flag, ROBOT, out=self._ti)
-        np.bitwise_or(arm, self._ti, out=arm)
-        np.equal(arm, 0, out=self._arm_ok)
-        # 3. teleoperation
-        # a held arm's X_m does not follow the master (re-coupling must not replay its motion)
-        tp.map_masters(self.dev, self.pedal, self._arm_ok)
-        np.logical_and(self._arm_ok, self.pedal, out=self.coupled)
-        if not teleop_on:
-            self.coupled[:] = False
+        self._teleop_prev = inp.teleop
+        # health
+        health.assess(inp, self.cfg.service.max_frame_age_s)
+        ok = health.arm_ok
+        # teleoperation: a held arm's X_m does not follow the master (re-coupling must not replay its motion)
+        tp.map_masters(inp.master_pos, inp.pedal, ok)
+        coupled = out.coupled
+        np.logical_and(ok, inp.pedal, out=coupled)
+        if not inp.teleop:
+            coupled[:] = False
         np.logical_not(self._coupled_prev, out=self._notb)
-        np.logical_and(self.coupled, self._notb, out=self._newly)
+        np.logical_and(coupled, self._notb, out=out.engage)
         # S1: an arm that (re)couples, and every arm at a change of control law, starts from
         # where its robot is commanded
         if law_change:
             self._reseat[:] = True
             tp.reanchor_all()
         else:
-            np.copyto(self._reseat, self._newly)
-            if self._newly.any():
-                tp.reanchor(self._newly)
-        for b, r in enumerate(self.robots):
-            if r is None:
-                continue
-            r.measured_cp(out=self._T4[b])
-            self.xr[b] = self._T4[b, :3, 3]
-        for b, r in enumerate(self.robots):
-            if r is None:
-                self.xr[b] = tp.cmd[b]
-        hip = tp.update_hip(self.xr)
-        phip = tp.proxy_hip()
-        np.logical_and(self._arm_ok, self.pedal, out=self._want)
-        if not self._want.all():     # the proxy of an arm held or unclutched (no force) stays where
-            np.copyto(self._phip, phip)           # it is: in III it must not creep off the command
-            np.logical_not(self._want, out=self._notb)
-            np.copyto(self._phip, self.batch.positions, where=self._notb[:, None])
-            phip = self._phip
-        # 4. proxies and forces
-        if haptics_on and (not self._haptics_running or (tp.arch == 3 and self._reseat.any())):
+            np.copyto(self._reseat, out.engage)
+            if out.engage.any():
+                tp.reanchor(out.engage)
+        xr = out.robot_pos
+        np.copyto(xr, inp.robot_pos)
+        np.copyto(xr, tp.cmd, where=self._ideal[:, None])      # an ideal robot is where it is commanded
+        hip = tp.update_hip(xr)
+        phip = self._proxy_targets(tp.proxy_hip(), ok, inp.pedal)
+        # proxies and forces
+        if inp.haptics and (not scene.running or (tp.arch == 3 and self._reseat.any())):
             # re-anchored arms' proxies start on the command in III (the proxy is the goal there:
             # a proxy that crept along the surface while the arm held must not pull the robot)
             # and on the HIP otherwise; the other arms' proxies stay where they are
-            np.copyto(self._reseat_pos, self.batch.positions)
-            np.copyto(self._reseat_pos, tp.cmd if tp.arch == 3 else hip, where=self._reseat[:, None])
-            self.batch.reset(self._reseat_pos)
-            if not self._haptics_running:
-                self.renderer.reset()
-        self._haptics_running = haptics_on
-        if haptics_on:
+            scene.reseat(self._reseat, tp.cmd if tp.arch == 3 else hip)
+            if not scene.running:
+                scene.renderer.reset()
+        scene.running = inp.haptics
+        out.kernel_us = 0.0
+        if inp.haptics:
             try:
-                with self.gate.lock:
-                    seq = self.gate.front_seq()
-                    if self._predict and tf is not None:
-                        self.batch.step(phip, now=tf)
-                    else:
-                        self.batch.step(phip)
-                if seq != self.frame_seq:
-                    self.frame_seq = seq
-                    self.snapshot_first_tick.setdefault(seq, k)
-                self.renderer.update(self.batch.positions, hip, self.batch.states)
+                scene.render(inp, out, phip, hip)
             except KernelError as e:
-                self._hold_all(KERNEL)
-                self.latched |= KERNEL
+                health.latch(KERNEL)
+                coupled[:] = False
                 self.kernel_errors += 1
-                self.last_error = f"tick {k}: {e}"
-        if self._stall_at is not None:   # the watchdog saw this tick (or the last) stall
-            self._hold_all(WATCHDOG)
-            self._bad_t[index(WATCHDOG)] = t
+                self.last_error = f"tick {inp.k}: {e}"
+        if health.take_stall():          # the watchdog saw this tick (or the last) stall
+            health.hold_all(WATCHDOG)
+            health.seen(WATCHDOG, inp.t)
+            coupled[:] = False
             self.gain[:] = 0.0
-            self.last_error = f"tick {k}: tick watchdog: a tick ran past {self.cfg.service.max_lateness_s * 1e3:g} ms"
-            self._stall_at = None
-        F = self.renderer.forces
-        np.logical_and(self._arm_ok, self.pedal, out=self._want)
-        if not haptics_on:
-            self._want[:] = False
-        np.subtract(self._want, self.gain, out=self._gstep)
-        ramp = dt / self.cfg.service.force_ramp_s
-        np.minimum(self._gstep, ramp, out=self._gstep)
-        np.maximum(self._gstep, -ramp, out=self._gstep)
-        self.gain += self._gstep
-        np.multiply(F, self.gain[:, None], out=self.f_out)
-        np.matmul(self.f_out, self.R, out=self.f_master)          # world -> master frame: R^T f
-        with self._tx_lock:
-            for b in range(n):
-                self.masters[b].send_force(self.f_master[b])
-        # 5. robot commands
-        proxies = self.batch.positions
-        tp.command_goal(proxies, haptics_on)
-        tp.limit_command(self.coupled)
-        for b, r in enumerate(self.robots):
-            if r is None:
-                continue
-            if self.coupled[b]:
-                if not self._coupled_prev[b]:
-                    r.resume()
-                try:
-                    r.servo_cp(tp.cmd[b])
-                except InputError as e:   # unreachable: the robot keeps its setpoint; so does X_r*
-                    self.robot_errors += 1
-                    self.last_error = f"tick {k}: robot {b}: {e}"
-                    r.setpoint_cp(out=self._T4[b])
-                    tp.cmd[b] = self._T4[b, :3, 3]
-                    self._robot_bad_t[b] = t
-            elif self._coupled_prev[b]:
-                r.hold()                    # the arm stops where it is, and so does its command
-                tp.cmd[b] = self.xr[b]
-            r.step(dt)
-        for b, r in enumerate(self.robots):
-            if r is None and self.coupled[b]:
-                self.xr[b] = tp.cmd[b]
-        self._coupled_prev[:] = self.coupled
-        # 6. publish and record
-        self._publish(k, t, proxies)
-        self._record(k, t, dt, overrun, age, proxies, haptics_on, teleop_on)
+            self.last_error = (f"tick {inp.k}: tick watchdog: a tick ran past "
+                               f"{self.cfg.service.max_lateness_s * 1e3:g} ms")
+        self._forces(inp, out, ok)
+        # robot commands: the goal by architecture, rate-limited, for coupled arms
+        batch = scene.batch
+        tp.command_goal(batch.positions, inp.haptics)
+        tp.limit_command(coupled)
+        np.logical_not(coupled, out=self._notb)
+        np.logical_and(self._coupled_prev, self._notb, out=out.release)
+        np.logical_and(out.release, self.devices.present, out=self._want)
+        np.copyto(tp.cmd, xr, where=self._want[:, None])        # a robot that decouples stops where it is
+        np.logical_and(coupled, self._ideal, out=self._want)
+        np.copyto(xr, tp.cmd, where=self._want[:, None])
+        np.logical_not(self._coupled_prev, out=self._notb)
+        np.logical_and(coupled, self._notb, out=out.engage)
+        np.copyto(self._coupled_prev, coupled)
+        # the output's views of the components' state
+        np.copyto(out.xm, tp.X_m)
+        np.copyto(out.hip, hip)
+        np.copyto(out.proxy, batch.positions)
+        np.copyto(out.state, batch.states)
+        np.copyto(out.command, tp.cmd)
+        out.hold = health.mask
+        np.copyto(out.arm_hold, health.arm)
+        out.frame_seq = scene.frame_seq
+        return out
 
-    def _hold_all(self, bit: int) -> None:
-        """Every arm holds for reason ``bit`` from this tick on: hold, decouple (S3)."""
-        self.hold_mask |= bit
-        self.arm_hold |= bit
-        self._arm_ok[:] = False
-        self.coupled[:] = False
+    def _proxy_targets(self, phip: np.ndarray, ok: np.ndarray, pedal: np.ndarray) -> np.ndarray:
+        """Where the proxies move this tick: ``phip``, except that the proxy of an arm held or
+        unclutched (no force) stays where it is: in III it must not creep off the command."""
+        np.logical_and(ok, pedal, out=self._want)
+        if self._want.all():
+            return phip
+        np.copyto(self._phip, phip)
+        np.logical_not(self._want, out=self._notb)
+        np.copyto(self._phip, self.scene.batch.positions, where=self._notb[:, None])
+        return self._phip
+
+    def _forces(self, inp: TickInput, out: TickOutput, ok: np.ndarray) -> None:
+        """Rendered forces times each arm's gain, which ramps (``force_ramp_s``) toward 1 for a
+        coupled arm with haptics engaged and toward 0 otherwise; world and master frames."""
+        want = self._want
+        np.logical_and(ok, inp.pedal, out=want)
+        if not inp.haptics:
+            want[:] = False
+        ramp = inp.dt / self.cfg.service.force_ramp_s
+        np.subtract(want, self.gain, out=self._gstep)
+        np.clip(self._gstep, -ramp, ramp, out=self._gstep)
+        self.gain += self._gstep
+        np.copyto(out.gain, self.gain)
+        np.multiply(self.scene.forces, self.gain[:, None], out=out.force)
+        np.matmul(out.force, self.teleop.R, out=out.force_master)      # world -> master frame: R^T f
+
+    def write(self, out: TickOutput, dt: float) -> None:
+        """Forces to the masters, commands to the robots (which step by ``dt``, s). A robot that
+        refuses its command keeps its setpoint, and so does the command; the arm holds (S3)."""
+        dev = self.devices
+        dev.send_forces(out.force_master)
+        dev.command_robots(out, dt)
+        if dev.refused.any():
+            for b in np.flatnonzero(dev.refused):
+                self.teleop.cmd[b] = dev.kept[b]
+                out.command[b] = dev.kept[b]
+                self.health.robot_seen(int(b), out.t)
+            self.last_error = f"tick {out.k}: {dev.last_refusal}"
+
+    def publish(self, inp: TickInput, out: TickOutput) -> None:
+        """A copy of the tick's output for other threads (``snapshot``, ``status``); the recording."""
+        self.kernel_us[self.ticks & (RING - 1)] = out.kernel_us
+        self.ticks += 1
+        p = self._published
+        with self._pub_lock:
+            np.copyto(p.xm, out.xm)
+            np.copyto(p.hip, out.hip)
+            np.copyto(p.proxy, out.proxy)
+            np.copyto(p.command, out.command)
+            np.copyto(p.robot_pos, out.robot_pos)
+            np.copyto(p.force, out.force)
+            np.copyto(p.state, out.state)
+            p.t, p.k = out.t, out.k
+        if self.recorder is not None:
+            self.recorder.write(inp, out)
 
     def safe_tick(self, k: int, t: float, dt: float, now: float) -> None:
         """The loop's fallback after an exception: ramp forces down, hold robots, keep stepping.
         The pedals are still read (clearing the fault needs them up, S3); a master that cannot
         be read counts as pedal down."""
-        for b, m in enumerate(self.masters):
-            try:
-                m.poll(t)
-                self.pedal[b] = m.clutch
-            except Exception:   # noqa: BLE001 -- unknown pedal: clearing stays refused
-                self.pedal[b] = True
-        self.latched |= EXCEPTION
-        self.hold_mask |= EXCEPTION
-        self.arm_hold |= EXCEPTION
-        step = dt / self.cfg.service.force_ramp_s
-        np.subtract(self.gain, step, out=self.gain)
+        out = self.out
+        self.devices.read_pedals(t, self.inp.pedal)
+        self.health.latch(EXCEPTION)
+        self.gain -= dt / self.cfg.service.force_ramp_s
         np.maximum(self.gain, 0.0, out=self.gain)
-        np.multiply(self.renderer.forces, self.gain[:, None], out=self.f_out)
-        np.matmul(self.f_out, self.R, out=self.f_master)
-        with self._tx_lock:
-            for b, m in enumerate(self.masters):
-                m.send_force(self.f_master[b])
-        for b, r in enumerate(self.robots):
-            if r is not None:
-                if self._coupled_prev[b]:
-                    r.hold()                # the arm stops where it is, and so does its command
-                    r.measured_cp(out=self._T4[b])
-                    self.teleop.cmd[b] = self._T4[b, :3, 3]
-                r.hold()
-                r.step(dt)
-        self.coupled[:] = False
+        np.copyto(out.gain, self.gain)
+        np.multiply(self.scene.forces, self.gain[:, None], out=out.force)
+        np.matmul(out.force, self.teleop.R, out=out.force_master)
+        self.devices.send_forces(out.force_master)
+        self.devices.hold_robots(dt, self._coupled_prev, self.teleop.cmd)
+        out.coupled[:] = False
         self._coupled_prev[:] = False
-
-    # --- publishing ------------------------------------------------------------------------------
-    def _publish(self, k, t, proxies) -> None:
-        p, tp = self._pub, self.teleop
-        with self._pub_lock:
-            p["xm"][:] = tp.X_m
-            p["hip"][:] = tp.hip
-            p["proxy"][:] = proxies
-            p["cmd"][:] = tp.cmd
-            p["xr"][:] = self.xr
-            p["force"][:] = self.f_out
-            self._pub_state[:] = self.batch.states
-            self._pub_t, self._pub_k = t, k
-
-    def snapshot(self) -> dict:
-        """The last tick's published values (copies), for the control API and the demo."""
-        with self._pub_lock:
-            out = {k: v.copy() for k, v in self._pub.items()}
-            out["state"] = self._pub_state.copy()
-            out["t"], out["tick"] = self._pub_t, self._pub_k
-        return out
-
-    def status(self, now: Optional[float] = None) -> dict:
-        st = {
-            "architecture": self.architecture, "haptics": self.haptics_on, "teleop": self.teleop_on,
-            "hold": reason_names(self.hold_mask), "arms_holding": [reason_names(int(m)) for m in self.arm_hold],
-            "hold_causes": describe(self.hold_mask), "latched_faults": reason_names(self.latched),
-            "watchdog_trips": self.watchdog_trips,
-            "coupled": self.coupled.tolist(), "pedal": self.pedal.tolist(), "force_gain": self.gain.round(3).tolist(),
-            "kernel_errors": self.kernel_errors, "robot_errors": self.robot_errors, "last_error": self.last_error,
-            "frame_seq": self.frame_seq, "backend": self.backend.name, "device": self.backend.device_name,
-            "proxy_device": getattr(self.batch, "device_kind", None) if self.batch is not None else None,
-            "robots": [None if r is None else {"model": r.model, "mode": r.state.name, "fault": r.fault_reason,
-                                               "process": "own" if getattr(r, "hosted", False) else "loop"}
-                       for r in self.robots],
-        }
-        if self.feeder is not None and now is not None:
-            st["frames"] = self.feeder.status(now)
-        st["self_filter"] = ({"on": False, "why": self.self_filter_off} if self.frame_filter is None
-                             else {"on": True, **self.frame_filter.status()})
-        return st
-
-    def _record(self, k, t, dt, overrun, age, proxies, haptics_on, teleop_on) -> None:
-        rec = self.recorder
-        if rec is None:
-            return
-        i = rec.next_row()
-        if i < 0:
-            return
-        tp, row = self.teleop, rec.rows[i]
-        row[0] = t
-        row[1:4] = tp.X_m[0]
-        row[4:7] = tp.hip[0]
-        row[7:10] = proxies[0]
-        row[10:13] = tp.cmd[0]
-        row[13:16] = self.xr[0]
-        row[16:19] = self.f_out[0]
-        row[19] = self.batch.states[0]
-        row[20] = self.frame_seq
-        inp = rec.inputs[i]
-        inp[0], inp[1], inp[2], inp[3] = k, dt, overrun, min(age, 1e9)
-        inp[4], inp[5], inp[6], inp[7] = tp.arch, haptics_on, teleop_on, self.frame_time
-        m = rec.masters[i]
-        m[:, :3] = self.dev
-        m[:, 3] = self.pedal
-        m[:, 4] = self.m_ok
-        rec.robots[i, :, :3] = self.xr
-        rec.robots[i, :, 3:] = tp.cmd
-        rec.masters_world[i] = tp.X_m
-        rec.holds[i, 0] = self.hold_mask
-        rec.holds[i, 1:] = self.arm_hold
+        out.hold = self.health.mask
+        np.copyto(out.arm_hold, self.health.arm)
 
     def note_tick_us(self, us: float) -> None:
         """The loop's wall-clock compute time of the tick just recorded."""
         if self.recorder is not None:
             self.recorder.note_tick_us(us)
 
+    # --- reading the service (any thread) ---------------------------------------------------------
+    @property
+    def architecture(self) -> str:
+        return self.teleop.architecture
+
+    @property
+    def fixture_params(self):
+        """The snapshots' parameters in use (``kernels.params.PipelineParams``: radius, selection,
+        workspace, cell size)."""
+        return self.scene.pipeline.params
+
+    @property
+    def last_tick(self) -> int:
+        """The number (k) of the last tick published."""
+        return self._published.k
+
+    def snapshot(self) -> dict:
+        """The last tick's published values (copies), for the control API and the demo."""
+        with self._pub_lock:
+            p = self._published
+            out = {"xm": p.xm.copy(), "hip": p.hip.copy(), "proxy": p.proxy.copy(), "cmd": p.command.copy(),
+                   "xr": p.robot_pos.copy(), "force": p.force.copy(), "state": p.state.copy(), "t": p.t,
+                   "tick": p.k}
+        return out
+
+    def kernel_timing(self, since: int = 0) -> dict:
+        """The kernel's share of the ticks since tick number ``since``: p50 and p99 (us) of the
+        ticks that launched it."""
+        lo = max(since, self.ticks - RING)
+        us = self.kernel_us[np.arange(lo, self.ticks) & (RING - 1)]
+        us = us[us > 0]
+        if us.size == 0:
+            return {"kernel_us_p50": 0.0, "kernel_us_p99": 0.0}
+        return {"kernel_us_p50": float(np.percentile(us, 50)), "kernel_us_p99": float(np.percentile(us, 99))}
+
+    def status(self, now: Optional[float] = None) -> dict:
+        out, h = self.out, self.health
+        st = {
+            "architecture": self.architecture, "haptics": self.haptics_on, "teleop": self.teleop_on,
+            "hold": reason_names(out.hold), "arms_holding": [reason_names(int(m)) for m in out.arm_hold],
+            "hold_causes": describe(out.hold), "latched_faults": reason_names(h.latched),
+            "watchdog_trips": h.watchdog_trips,
+            "coupled": out.coupled.tolist(), "pedal": self.inp.pedal.tolist(), "force_gain": self.gain.round(3).tolist(),
+            "kernel_errors": self.kernel_errors, "robot_errors": self.devices.refusals, "last_error": self.last_error,
+        }
+        st.update(self.scene.status(now))
+        st["robots"] = self.devices.robot_status()
+        return st
+
     def close(self) -> None:
         if self.recorder is not None:
             self.recorder.close()   # (streamed: the last rows reach the file)
-        if self.batch is not None:
-            self.batch.close()   # (Warp: lets a resident proxy kernel go)
-        if self.feeder is not None:
-            stop = getattr(self.feeder, "stop", None)
-            if stop is not None:
-                stop()
-            self.feeder.close()
+        self.scene.close()
+
+    # --- the components' parts, by their old names (tools and tests read them) ---------------------
+    masters = property(lambda self: self.devices.masters)
+    robots = property(lambda self: self.devices.robots)
+    pipeline = property(lambda self: self.scene.pipeline)
+    gate = property(lambda self: self.scene.gate)
+    batch = property(lambda self: self.scene.batch)
+    renderer = property(lambda self: self.scene.renderer)
+    backend = property(lambda self: self.scene.backend)
+    feeder = property(lambda self: self.scene.feeder)
+    frame_filter = property(lambda self: self.scene.frame_filter)
+    tool_poses = property(lambda self: self.scene.tool_poses)
+    self_filter_off = property(lambda self: self.scene.self_filter_off)
+    frame_seq = property(lambda self: self.scene.frame_seq)
+    snapshot_first_tick = property(lambda self: self.scene.snapshot_first_tick)
+    frame_time = property(lambda self: self.inp.frame_time)
+    hold_mask = property(lambda self: self.out.hold)
+    arm_hold = property(lambda self: self.out.arm_hold)
+    coupled = property(lambda self: self.out.coupled)
+    pedal = property(lambda self: self.inp.pedal)
+    xr = property(lambda self: self.out.robot_pos)
+    f_out = property(lambda self: self.out.force)
+    f_master = property(lambda self: self.out.force_master)
+    latched = property(lambda self: self.health.latched)
+    watchdog_trips = property(lambda self: self.health.watchdog_trips)
+    robot_errors = property(lambda self: self.devices.refusals)
+    R = property(lambda self: self.teleop.R)
 
 
-__all__ = ["Service", "reason_names", "REASONS"]
+__all__ = ["Service", "reason_names", "REASONS", "HoldReason"]

@@ -51,13 +51,11 @@ from __future__ import annotations
 import json
 import math
 import threading
-from dataclasses import replace
 from typing import Callable, Optional
 
-import numpy as np
 
-from pointfence.kernels.errors import InputError, PointfenceError
-from pointfence.kernels.params import PipelineParams, RadiusModel, Selection
+from pointfence.kernels.errors import ConflictError, InputError, PointfenceError
+from pointfence.kernels.params import RadiusModel, Selection
 
 from .control_http import DEFAULT_CONTROL_PORT, ControlServer  # noqa: F401 - the API's server, importable here
 from .teleop import ARCHITECTURES, arch_code
@@ -66,8 +64,6 @@ from .teleop import ARCHITECTURES, arch_code
 MAX_RUNTIME_RADIUS = 0.1
 #: largest |coordinate| (m) of a selection box the API accepts
 MAX_BOX_COORD = 10.0
-#: the proxy's outer band used for the hash cell size (as in config.py)
-_DEFAULT_R3 = 0.010
 
 
 #: why the HTTP layer refused a request before any route saw it (``Controller.count_rejected``)
@@ -211,7 +207,7 @@ class Controller:
 
     def _collect(self, svc) -> dict:
         """In the tick thread: status, the last tick's published values, extras."""
-        out = {"status": svc.status(self._now()), "snapshot": svc.snapshot(), "tick": svc._pub_k}
+        out = {"status": svc.status(self._now()), "snapshot": svc.snapshot(), "tick": svc.last_tick}
         for name, fn in self.extras.items():
             try:
                 out[name] = fn()
@@ -300,7 +296,7 @@ class Controller:
 
     def fixture_config(self) -> dict:
         svc = self.service
-        pp = svc.pipeline.params
+        pp = svc.fixture_params
         r = pp.radius
         return {"mode": svc.cfg.mode, "radius": r.r_base, "radius_max": r.r_max, "adaptive": r.adaptive,
                 "k_sigma": r.k_sigma, "selection": selection_dict(pp.selection), "cell_size": pp.cell_size,
@@ -314,9 +310,9 @@ class Controller:
         code = arch_code(a)
 
         def apply(svc):
-            prev = svc.teleop.architecture
-            svc.teleop.set_architecture(code)   # the HIP and command stay continuous (teleop.py)
-            return {"architecture": svc.teleop.architecture, "previous": prev, "applied_before_tick": svc._pub_k + 1}
+            prev = svc.architecture
+            svc.set_architecture(code)   # applied by the next tick: HIP and command stay continuous, arms re-anchor (S1)
+            return {"architecture": ARCHITECTURES[code - 1], "previous": prev, "applied_before_tick": svc.last_tick + 1}
 
         with self._lock:
             return self._in_tick(apply, "set architecture")
@@ -329,7 +325,7 @@ class Controller:
         def apply(svc):
             prev = svc.haptics_on if what == "haptics" else svc.teleop_on
             (svc.engage_haptics if what == "haptics" else svc.engage_teleop)(on)
-            return {what: on, "previous": prev, "applied_before_tick": svc._pub_k + 1}
+            return {what: on, "previous": prev, "applied_before_tick": svc.last_tick + 1}
 
         with self._lock:
             return self._in_tick(apply, f"{'engage' if on else 'disengage'} {what}")
@@ -372,7 +368,7 @@ class Controller:
             raise ControlError(400, "radius: missing; expected {\"radius\": metres}, e.g. 0.015")
         lim = "(the control API's limit; set larger radii in the configuration and restart)"
         r = _number("radius", body["radius"], 0.0, MAX_RUNTIME_RADIUS, lo_open=True, hint=lim)
-        cur = self.service.pipeline.params.radius
+        cur = self.service.fixture_params.radius
         margin = cur.r_max - cur.r_base
         rmax = body.get("radius_max")
         if rmax is None:
@@ -400,7 +396,7 @@ class Controller:
                 if not all(a < b for a, b in zip(lo, hi)):
                     raise ControlError(400, f"selection box min {list(lo)} / max {list(hi)}: expected min < max on "
                                             "every axis (an empty or flat box protects nothing)")
-                ws = self.service.pipeline.params.workspace
+                ws = self.service.fixture_params.workspace
                 if any(b <= wa or a >= wb for a, b, wa, wb in zip(lo, hi, ws.min, ws.max)):
                     raise ControlError(400, f"selection box min {list(lo)} / max {list(hi)} lies outside the workspace "
                                             f"{list(ws.min)}..{list(ws.max)} (m): it would protect nothing")
@@ -431,92 +427,31 @@ class Controller:
         return v
 
     # --- runtime reconfiguration of the snapshots' parameters -----------------------------------
-    def _new_params(self, radius=None, selection=None) -> PipelineParams:
-        svc = self.service
-        cur = svc.pipeline.params
-        pp = replace(cur, radius=radius if radius is not None else cur.radius,
-                     selection=selection if selection is not None else cur.selection)
-        if svc.cfg.cell_size_given:
-            reach = PipelineParams.reach(max(_DEFAULT_R3, svc.params.r3), pp.radius)
-            if reach > cur.cell_size + 1e-12:
-                raise ControlError(409, f"radius_max {pp.radius.r_max} m cannot be applied at runtime: the configuration "
-                                        f"fixes [hash] cell_size = {cur.cell_size} m, below the reach it needs "
-                                        f"({reach:.4f} m = R3 + radius_max); restart with a larger [hash] cell_size "
-                                        "(or none: it then follows the radius)")
-            return pp
-        from pointfence.kernels.haptics import haptic_pipeline_params
-
-        try:
-            return haptic_pipeline_params(svc.params, pp)
-        except InputError as e:
-            raise ControlError(400, f"{e}") from None
-
     def _reconfigure(self, what: str, radius=None, selection=None) -> dict:
-        svc = self.service
-        if svc.cfg.mode != "fixture":
-            raise ControlError(409, f"{what}: has no effect in rendering mode ([fixture] mode = "
-                                    f"{svc.cfg.mode!r}: every point is rendered, none carries a fixture radius)")
-        feeder = svc.feeder
-        if feeder is None or not hasattr(feeder, "swap_pipeline"):
-            raise ControlError(409, f"{what}: cannot be changed at runtime here: the service has no frame feeder "
-                                    "that can move to a rebuilt pipeline")
-        from .frames import PublishGate
-
+        """Prepared outside the tick (``Service.prepare_reconfiguration``), committed between two
+        ticks; if the tick does not take it, it is undone (nothing changed)."""
         with self._lock:
-            pp = self._new_params(radius, selection)
-            old = svc.pipeline
-            if pp == old.params:
-                return {"changed": False, "fixture": self.fixture_config()}
             try:
-                new = svc.backend.pipeline(list(old.rig.cameras), pp)
-            except PointfenceError as e:
+                change = self.service.prepare_reconfiguration(radius=radius, selection=selection)
+            except InputError as e:
                 raise ControlError(400, f"{what}: {e}") from None
-            gate = PublishGate(new)
-            # A first snapshot in the new pipeline (feeder paused for that one build) so the batch
-            # can be compiled and launched once off the tick thread.
-            with feeder.ingest_lock:
-                latest = list(feeder.latest)
-                if any(f is None for f in latest):
-                    raise ControlError(409, f"{what}: not applied: not every camera has delivered a frame yet")
-                try:
-                    new.ingest(latest)
-                except PointfenceError as e:
-                    raise ControlError(409, f"{what}: not applied: the frames do not build with the new "
-                                            f"parameters: {e}") from None
-                protected_new = int(np.count_nonzero(new.host_snapshot().protected))
-                protected_old = int(np.count_nonzero(old.host_snapshot().protected))
-            if protected_new == 0 and protected_old > 0:
-                raise ControlError(409, f"{what}: not applied: with the new parameters no point of the current frames "
-                                        f"is protected (now {protected_old}): the fixture would vanish; choose a "
-                                        "selection that covers the protected anatomy (nothing changed)")
-            hip = svc.teleop.hip.copy()
-            batch = new.proxies(hip, svc.params)
-            with gate.lock:
-                batch.step(hip)           # compiles / warms the kernels now, not in a tick
-            if not feeder.swap_pipeline(new):
-                raise ControlError(409, f"{what}: not applied: the latest frames did not build a snapshot "
-                                        f"with the new parameters ({feeder.last_error})")
-            cfg_new = replace(svc.cfg, pipeline=replace(svc.cfg.pipeline, radius=pp.radius, selection=pp.selection,
-                                                        cell_size=pp.cell_size))
+            except ConflictError as e:
+                raise ControlError(409, f"{what}: {e}") from None
+            if change is None:
+                return {"changed": False, "fixture": self.fixture_config()}
 
-            def commit(s):
-                prev = (s.pipeline, s.gate, s.batch)
-                batch.reset(s.batch.positions)     # the proxies carry on from where they are
-                s.pipeline, s.gate, s.batch = new, gate, batch
-                s.cfg = cfg_new
-                s.request_reanchor()               # S1: new fixture parameters move no robot by themselves
-                return {"old": prev, "tick": s._pub_k + 1}
+            def commit(svc):
+                change.commit()
+                return svc.last_tick + 1
 
             try:
-                res = self._in_tick(commit, what)
+                tick = self._in_tick(commit, what)
             except ControlError:
-                feeder.swap_pipeline(old)       # back to the pipeline the ticks still query
+                change.abort()                  # the feeder goes back to the pipeline the ticks still query
                 raise
-            if res["old"][2] is not None:
-                res["old"][2].close()           # (Warp: the old batch's resident kernel goes)
-            del res["old"]                      # the old pipeline is released here, not in a tick
+            change.release()                    # the old pipeline is released here, not in a tick
             self.reconfigurations += 1
-            return {"changed": True, "applied_before_tick": res["tick"], "fixture": self.fixture_config()}
+            return {"changed": True, "applied_before_tick": tick, "fixture": self.fixture_config()}
 
     ROUTES = {
         ("GET", "/status"): get_status,

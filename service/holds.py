@@ -11,19 +11,34 @@ setpoint) while any reason is active. Two kinds:
 * faults are latched (S3): they hold until the operator clears them (``Service.clear_faults``,
   which needs every pedal up): a kernel error, an exception in the tick, a robot fault.
 
-Reasons are bits of one mask (``Service.hold_mask`` for all arms, ``Service.arm_hold`` per arm),
-recorded with every tick; ``describe(mask)`` names them with their invariants for the status.
+Reasons are the bits of ``HoldReason`` (an ``IntFlag``), one mask for all arms and one per arm
+(``TickOutput.hold``, ``TickOutput.arm_hold``), recorded with every tick; ``describe(mask)`` names them with their invariants for the status.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import IntFlag
 
-OVERRUN, STALE, KERNEL, MASTER, ROBOT, EXCEPTION, INGEST, WATCHDOG = 1, 2, 4, 8, 16, 32, 64, 128
+
+class HoldReason(IntFlag):
+    """Why an arm holds: one bit per reason (``REASONS`` gives each its invariant and kind)."""
+
+    OVERRUN = 1       #: a tick started later than ``max_lateness_s`` (S9)
+    STALE = 2         #: the newest published snapshot is older than ``max_frame_age_s`` (S2)
+    KERNEL = 4        #: the proxy kernel failed (S3, latched)
+    MASTER = 8        #: a master's sample is invalid or missing (S6)
+    ROBOT = 16        #: a robot fault or a rejected command (S3, latched)
+    EXCEPTION = 32    #: an exception escaped the tick (S9, latched)
+    INGEST = 64       #: frames arrive but no snapshot is published (S2)
+    WATCHDOG = 128    #: a tick ran past the watchdog's limit (S9)
+
+
+OVERRUN, STALE, KERNEL, MASTER, ROBOT, EXCEPTION, INGEST, WATCHDOG = HoldReason   # (short names)
 
 
 @dataclass(frozen=True)
 class Reason:
-    bit: int
+    bit: HoldReason
     name: str
     invariant: str   #: the SAFETY.md invariant this hold keeps
     latched: bool    #: a fault that holds until cleared (else a condition that clears by itself)
@@ -40,14 +55,7 @@ REASONS = {r.bit: r for r in (
     Reason(WATCHDOG, "tick watchdog", "S9", False),
 )}
 #: the reasons that are latched faults (see the module docstring), as a mask
-LATCHED = sum(b for b, r in REASONS.items() if r.latched)
-#: the global (all-arm) reasons, in bit order: index i of ``Service``'s time table is bit 1 << i
-N_BITS = max(REASONS).bit_length()
-
-
-def index(bit: int) -> int:
-    """Position of reason ``bit`` in the mask (its row in a per-reason table)."""
-    return bit.bit_length() - 1
+LATCHED = HoldReason(sum(b for b, r in REASONS.items() if r.latched))
 
 
 def reason_names(mask: int) -> list:

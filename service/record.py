@@ -65,9 +65,10 @@ def _views(data: np.ndarray, n: int) -> dict:
 
 
 class Recorder:
-    """Per-tick recording: the tick writes its row into preallocated arrays (``next_row()``, then
-    ``rows[i]``, ``inputs[i]``, ``masters[i]``, ``robots[i]``, ``masters_world[i]``, ``holds[i]``);
-    nothing is allocated and no I/O happens in the tick.
+    """Per-tick recording: each tick's ``TickInput`` and ``TickOutput`` go into a row of
+    preallocated arrays (``write``; its parts: ``rows[i]``, ``inputs[i]``, ``masters[i]``,
+    ``robots[i]``, ``masters_world[i]``, ``holds[i]``); nothing is allocated and no I/O happens
+    in the tick.
 
     In memory (``path`` None): room for ``capacity`` ticks of ``n`` arms; ``full`` once it is
     exhausted (recording stops, the loop does not; later ticks count in ``ticks_lost``).
@@ -141,6 +142,35 @@ class Recorder:
         self.count = i + 1
         self.ticks_recorded += 1
         return i
+
+    def write(self, inp, out) -> None:
+        """Record one tick: its ``tick_io.TickInput`` and ``TickOutput`` (arm 0's outputs in the
+        tick columns; every arm's master sample, robot position and command, hold masks)."""
+        i = self.next_row()
+        if i < 0:
+            return
+        row = self.rows[i]
+        row[0] = out.t
+        row[1:4] = out.xm[0]
+        row[4:7] = out.hip[0]
+        row[7:10] = out.proxy[0]
+        row[10:13] = out.command[0]
+        row[13:16] = out.robot_pos[0]
+        row[16:19] = out.force[0]
+        row[19] = out.state[0]
+        row[20] = out.frame_seq
+        v = self.inputs[i]
+        v[0], v[1], v[2], v[3] = inp.k, inp.dt, inp.overrun, min(inp.frame_age, 1e9)
+        v[4], v[5], v[6], v[7] = inp.architecture, inp.haptics, inp.teleop, inp.frame_time
+        m = self.masters[i]
+        m[:, :3] = inp.master_pos
+        m[:, 3] = inp.pedal
+        m[:, 4] = inp.master_ok
+        self.robots[i, :, :3] = out.robot_pos
+        self.robots[i, :, 3:] = out.command
+        self.masters_world[i] = out.xm
+        self.holds[i, 0] = out.hold
+        self.holds[i, 1:] = out.arm_hold
 
     def note_tick_us(self, us: float) -> None:
         """The loop's compute time of the tick just recorded (nothing if it was not recorded)."""

@@ -53,8 +53,8 @@ class LiveRun:
 
             rec.describe({"architecture": self.service.architecture, "backend": self.service.backend.name,
                           "device_spec": cfg.device, "rate_hz": self.service.rate_hz, "cameras": self.frames.names,
-                          "hold_reasons": {str(b): {"name": r.name, "invariant": r.invariant, "latched": r.latched}
-                                           for b, r in REASONS.items()}},
+                          "hold_reasons": {str(int(b)): {"name": r.name, "invariant": r.invariant, "latched": r.latched}
+                                           for b, r in REASONS.items()}},  # (int: str(IntFlag) differs across Pythons)
                          self.frames.snapshot_frames)
         self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
                                rt_priority=cfg.service.rt_priority if rt_priority is None else rt_priority)

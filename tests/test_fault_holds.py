@@ -196,7 +196,7 @@ def test_threads_reach_on_stall_without_the_tick(tmp_path):
     svc, loop, sources = simulate(cfg, [push(0.10, t_end=0.2, hold=0.1)], 0.3)
     for s in sources:
         s.close()
-    with svc._tx_lock:                    # the tick stuck inside its send
+    with svc.devices.tx_lock:             # the tick stuck inside its send
         th = threading.Thread(target=svc.on_stall, args=(0.0, 0.01))
         th.start()
         th.join(timeout=2.0)

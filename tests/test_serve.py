@@ -15,7 +15,8 @@ import pytest
 
 from pointfence.clients import Client, Command
 from pointfence.clients import protocol as P
-from pointfence.service.app import MASTER, Service
+from pointfence.service.app import Service
+from pointfence.service.holds import MASTER
 from pointfence.service.clock import FakeClock
 from pointfence.service.frames import SimFrames
 from pointfence.service.loop import HapticLoop

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from pointfence.kernels.errors import InputError, KernelError
-from pointfence.service.app import KERNEL, MASTER, OVERRUN, STALE
+from pointfence.service.holds import KERNEL, MASTER, OVERRUN, STALE
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.replay import simulate
 from pointfence.service.robot import RobotMode
