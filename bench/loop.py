@@ -5,7 +5,9 @@ synthetic cameras at their rate, the ingest thread builds snapshots, and the hap
 runs the ticks (masters, one proxy launch for all proxies, forces, teleoperation, one simulated
 robot per proxy) on absolute deadlines. Each master circles slowly over the protected object,
 pressing into its fixture, so the proxies work in contact. After a warm-up, the loop's own
-ring buffers give tick compute time and lateness percentiles and the deadline misses.
+ring buffers give tick compute time and lateness percentiles and the deadline misses, and the
+service's own ring the proxy kernel's share of the same ticks (``kernel_us_p50``, the launch with
+its host copies, and ``tick_per_kernel`` = tick p50 / kernel p50).
 
 ``--floor SECONDS`` first measures the machine's own floor in the same run: the same loop on a
 tick that only spins as long as the service's median tick, beside one busy process per core.
@@ -106,8 +108,10 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
     try:
         run.wait(warmup)
         run.mark()
+        first = run.service.ticks
         run.wait(seconds)
         tm = run.timing()
+        kt = run.service.kernel_timing(since=first)
         gate = run.loop.gate
         yields = (gate.waits, gate.waited_s) if gate is not None else (0, 0.0)
         st = run.service.status()
@@ -120,6 +124,9 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         "proxies": n, "ticks": tm.ticks, "periods": tm.periods,
         "tick_us_p50": round(tm.compute_us_p50, 1), "tick_us_p99": round(tm.compute_us_p99, 1),
         "tick_us_max": round(tm.compute_us_max, 1),
+        # the proxy launch inside the same ticks (host copies included) and the tick's multiple of it
+        "kernel_us_p50": round(kt["kernel_us_p50"], 1), "kernel_us_p99": round(kt["kernel_us_p99"], 1),
+        "tick_per_kernel": round(tm.compute_us_p50 / kt["kernel_us_p50"], 2) if kt["kernel_us_p50"] else None,
         "loop_late_us_p50": round(tm.late_us_p50, 1), "loop_late_us_p99": round(tm.late_us_p99, 1),
         "loop_late_us_max": round(tm.late_us_max, 1),
         "loop_misses": tm.misses, "loop_miss_ratio": round(tm.miss_ratio, 5), "overruns": tm.overruns,
@@ -154,6 +161,7 @@ def run(args) -> dict:
     if floor is not None:
         out["machine_floor"] = floor
     last = runs[-1]
-    for key in ("loop_late_us_p50", "loop_late_us_p99", "loop_miss_ratio", "tick_us_p50", "tick_us_p99"):
+    for key in ("loop_late_us_p50", "loop_late_us_p99", "loop_miss_ratio", "tick_us_p50", "tick_us_p99",
+                "kernel_us_p50", "tick_per_kernel"):
         out[key] = last[key]     # the largest proxy count, at top level
     return out

@@ -118,12 +118,12 @@ def _ingest(die: bool):
 
 def _kernel(mode: str):
     def run(rig, ev):
-        ev.inject = rig.in_tick(lambda s: setattr(s, "batch", FaultyBatch(s.batch, mode)))
+        ev.inject = rig.in_tick(lambda s: setattr(s.scene, "batch", FaultyBatch(s.scene.batch, mode)))
         rig.sleep(0.3)
         if mode == "hang":
             wd = rig.run.loop.watchdog
             ev.notes["watchdog_seen_after_ms"] = round(1e3 * wd.last_stall_s, 3) if wd is not None else None
-        ev.restore = rig.in_tick(lambda s: setattr(s, "batch", s.batch.original))
+        ev.restore = rig.in_tick(lambda s: setattr(s.scene, "batch", s.scene.batch.original))
     return run
 
 
@@ -206,9 +206,9 @@ def _unauthenticated(rig, ev):
 
 
 def _clear_while_coupled(rig, ev):
-    ev.inject = rig.in_tick(lambda s: setattr(s, "batch", FaultyBatch(s.batch, "raise")))
+    ev.inject = rig.in_tick(lambda s: setattr(s.scene, "batch", FaultyBatch(s.scene.batch, "raise")))
     rig.sleep(0.2)
-    rig.in_tick(lambda s: setattr(s, "batch", s.batch.original))
+    rig.in_tick(lambda s: setattr(s.scene, "batch", s.scene.batch.original))
     code = rig.raw_control("POST", "/clear-faults", {}, True)     # the pedals are down
     rig.sleep(0.1)
     if code != 409:
