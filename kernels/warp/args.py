@@ -25,7 +25,7 @@ class ProxyArgs:
     gather_r: float  # reach + skin: the working set's radius
     skin_min: float  # the same for a set that does not fit with ``skin`` (HapticParams.skin)
     gather_r_min: float
-    rclip: float  # no step can be shortened by a point with clearance >= rclip (see the kernel)
+    rclip: float  # no step can be shortened by a point with clearance >= rclip (kernels/warp/steps.py)
     fixture: int
     max_steps: int
     span: int  # cells searched on each side (reach, without motion)

@@ -62,11 +62,11 @@ class WorkingSet(NamedTuple):
     """The working-set device functions for one (cap, bd), and the near lists' layout: ``wl``
     threads a warp (32 on CUDA, the block's one thread on the CPU), ``nj`` entries a warp."""
 
-    ws: object
-    ws_eval: object
-    ws_clip: object
-    ws_away: object
-    gather: object
+    ws: object        # ws(op, i, q): point i of the set in shared memory; op 1 writes q
+    ws_eval: object   # step 1 over the set: normal sum, smallest clearance, the warp's near list
+    ws_clip: object   # step 3 over the warp's near list: this thread's step limit
+    ws_away: object   # the push away from the points at the limit, over the set
+    gather: object    # gather the set around X0: (points or -1, next par, skin used)
     wl: int
     nj: int
 
@@ -144,7 +144,7 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
     @wp.func
     def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, cnt: int, lane: int, wbase: int) -> float:
         """This thread's share of the step limit, over the warp's near list (the other points
-        cannot shorten any step, see the kernel)."""
+        cannot shorten any step: kernels/warp/steps.py)."""
         tm = float(wp.inf)
         for i in range(lane % WL, cnt, WL):
             tm = clip_point(X, u, ws(0, near(0, wbase, i, 0, 0), wp.vec4(0.0)), a, off, tm)
