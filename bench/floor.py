@@ -93,10 +93,10 @@ def _resident_round_trip(dev, n):
     spins until the kernel has written it back and marked the tick done."""
     import warp as wp
 
-    from pointfence.kernels.warp import proxy as wproxy
-    from pointfence.kernels.warp.proxy import (IN_HEAD, MB_ALIVE, MB_DONE, MB_STOP, bits_vec3, block_sync,
-                                               mailbox_set, tick_done, tick_in)
-    from pointfence.kernels.warp.resident import Inbox, pinned_words
+    from pointfence.kernels.warp.primitives import block_sync
+    from pointfence.kernels.warp.resident_protocol import (IN_HEAD, MB_ALIVE, MB_DONE, MB_STOP, MB_WORDS, Inbox,
+                                                           bits_vec3, mailbox_set, pinned_words, tick_done, tick_in)
+    from pointfence.kernels.warp.tuning import WarpTuning
 
     @wp.kernel(enable_backward=False)
     def relay(inbox: wp.array(dtype=wp.int32), mb: wp.array(dtype=wp.int32), stage: wp.array(dtype=wp.vec4i),
@@ -120,12 +120,12 @@ def _resident_round_trip(dev, n):
             mailbox_set(mb, MB_ALIVE, 0)
 
     inbox = Inbox(1, dev)
-    mb, mbn, mb_dev = pinned_words(wproxy.MB_WORDS, dev)
+    mb, mbn, mb_dev = pinned_words(MB_WORDS, dev)
     res = wp.zeros(1, dtype=wp.vec3, device="cpu", pinned=True)
     resn = res.numpy()
     mbn[MB_ALIVE] = 1
     stream = wp.Stream(dev)
-    wp.launch_tiled(relay, dim=[1], block_dim=wproxy.block_dim_for(1), device=dev, stream=stream,
+    wp.launch_tiled(relay, dim=[1], block_dim=WarpTuning().block_dim_for(1), device=dev, stream=stream,
                     inputs=[inbox.dev, mb_dev, wp.zeros(IN_HEAD + 2, dtype=wp.vec4i, device=dev),
                             wp.zeros(1, dtype=wp.int32, device=dev),
                             wp.array(ptr=res.ptr, dtype=wp.vec3, shape=1, device=dev), int(1e9)])

@@ -9,7 +9,6 @@ from typing import Sequence
 import numpy as np
 
 from .camera import Camera
-from .grid import Grid
 from .motion import MotionEstimator
 from .neighbors import Neighbors, check_queries
 from .params import PipelineParams
@@ -42,7 +41,7 @@ class FramePipeline(ABC):
     def __init__(self, cameras: Sequence[Camera], params: PipelineParams):
         self.rig = Rig(cameras)
         self.params = params
-        self.grid = Grid.from_params(params)
+        self.grid = params.grid()
         self.motion = MotionEstimator(params.motion, self.grid)
         self.seq = 0
 

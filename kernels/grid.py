@@ -1,11 +1,10 @@
 """Uniform grid geometry of the spatial hash (world frame, metres)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-
-from .params import PipelineParams
 
 
 @dataclass(frozen=True)
@@ -20,8 +19,11 @@ class Grid:
     dims: tuple
 
     @classmethod
-    def from_params(cls, params: PipelineParams) -> "Grid":
-        return cls(tuple(params.workspace.min), float(params.cell_size), params.grid_dims())
+    def covering(cls, lo, hi, h: float) -> "Grid":
+        """The grid of cells of edge ``h`` (m) from corner ``lo`` that covers the box up to ``hi``
+        (world frame, m): at least one cell on every axis."""
+        ext = (np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)) / h - 1e-9
+        return cls(tuple(float(x) for x in lo), float(h), tuple(int(max(1, math.ceil(x))) for x in ext))
 
     @property
     def n_cells(self) -> int:

@@ -42,12 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from typing import TYPE_CHECKING
-
 from .errors import InputError
-
-if TYPE_CHECKING:  # grid.py imports params.py, which imports this module
-    from .grid import Grid
+from .grid import Grid
 
 
 @dataclass(frozen=True)
@@ -130,7 +126,7 @@ N_MOMENTS = 10
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-def cell_corners(grid: "Grid") -> np.ndarray:
+def cell_corners(grid: Grid) -> np.ndarray:
     """Lower corner of every cell (n_cells, 3), float64, in linear cell order."""
     nx, ny, nz = grid.dims
     c = np.arange(nx * ny * nz)
@@ -138,7 +134,7 @@ def cell_corners(grid: "Grid") -> np.ndarray:
     return np.asarray(grid.origin) + ijk * grid.h
 
 
-def cell_moments(points_sorted: np.ndarray, cell_start: np.ndarray, grid: "Grid") -> np.ndarray:
+def cell_moments(points_sorted: np.ndarray, cell_start: np.ndarray, grid: Grid) -> np.ndarray:
     """Per cell moments (n_cells, N_MOMENTS) float64 from cell-sorted points (see N_MOMENTS)."""
     counts = np.diff(cell_start).astype(np.int64)
     cell = np.repeat(np.arange(counts.size), counts)
@@ -152,7 +148,7 @@ def cell_moments(points_sorted: np.ndarray, cell_start: np.ndarray, grid: "Grid"
     return out
 
 
-def world_moments(local: np.ndarray, grid: "Grid") -> np.ndarray:
+def world_moments(local: np.ndarray, grid: Grid) -> np.ndarray:
     """Cell moments about the world origin from moments about each cell's corner (float64)."""
     return _to_world(np.asarray(local, np.float64), cell_corners(grid))
 
@@ -186,7 +182,7 @@ class MotionEstimator:
     longer displacement). Every hash cell takes its motion cell's velocity.
     """
 
-    def __init__(self, model: MotionModel, grid: "Grid"):
+    def __init__(self, model: MotionModel, grid: Grid):
         self.model = model
         self.grid = grid
         self.k = max(1, int(round(model.cell / grid.h)))

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
+from .grid import Grid
 from .motion import MotionModel
 
 SELECT_KINDS = ("all", "box", "color", "mask")
@@ -132,9 +133,13 @@ class PipelineParams:
                 "shrink the workspace or enlarge the cells"
             )
 
+    def grid(self) -> Grid:
+        """The spatial hash's grid: cells of ``cell_size`` covering the workspace."""
+        return Grid.covering(self.workspace.min, self.workspace.max, self.cell_size)
+
     def grid_dims(self) -> tuple:
-        lo, hi = np.array(self.workspace.min), np.array(self.workspace.max)
-        return tuple(int(max(1, math.ceil(x))) for x in (hi - lo) / self.cell_size - 1e-9)
+        """(nx, ny, nz) cells of the spatial hash's grid."""
+        return self.grid().dims
 
     @staticmethod
     def reach(r3: float = 0.010, radius: RadiusModel | None = None) -> float:

@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import inspect
 
 from .backend import Backend
-from .errors import BackendUnavailable
+from .errors import BackendUnavailable, InputError
 
 #: name -> (module, class, what it needs, how to get it)
 BACKENDS = {
@@ -19,8 +20,10 @@ BACKENDS = {
 DEFAULT_BACKEND = "opencl"
 
 
-def get_backend(name: str | None = None, device: str | None = None) -> Backend:
-    """The backend called ``name`` on ``device`` (backend-specific device spec, None = default)."""
+def get_backend(name: str | None = None, device: str | None = None, **options) -> Backend:
+    """The backend called ``name`` on ``device`` (backend-specific device spec, None = default);
+    ``options`` go to the backend's constructor (``warp``: ``tuning``, a ``WarpTuning``;
+    ``opencl``: ``inline``)."""
     name = (name or DEFAULT_BACKEND).strip().lower()
     if name not in BACKENDS:
         raise BackendUnavailable(f"unknown backend {name!r}; available: {', '.join(available())}; known: {', '.join(BACKENDS)}")
@@ -36,7 +39,13 @@ def get_backend(name: str | None = None, device: str | None = None) -> Backend:
             f"backend {name!r} is not available here ({e}); it needs {needs}: {how}. "
             f"Available now: {', '.join(available()) or 'none'}"
         ) from None
-    return getattr(mod, cls)(device)
+    backend_cls = getattr(mod, cls)
+    unknown = sorted(set(options) - set(inspect.signature(backend_cls).parameters) - {"device"})
+    if unknown:
+        takes = [p for p in inspect.signature(backend_cls).parameters if p != "device"]
+        raise InputError(f"backend {name!r} has no option {', '.join(unknown)}; "
+                         f"its options: {', '.join(takes) or 'none'}")
+    return backend_cls(device, **options)
 
 
 def available() -> list:

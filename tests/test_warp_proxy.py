@@ -33,34 +33,29 @@ PATHS = ["working-set", "launched", "hash", "copies", "params-skin", "skin-fallb
 
 
 @pytest.fixture(params=PATHS)
-def kernel_path(request, monkeypatch):
-    """Which way the kernel runs: working sets in shared memory (the default; on CUDA a batch
-    this small runs on the resident kernel), on CUDA the same launched each tick as a graph
-    ("launched"), the hash scanned
-    from global memory (working sets that do not fit: capacity 16 points), on CUDA the graph
-    with copies instead of zero-copy host memory (large batches), working sets gathered with
-    HapticParams.skin instead of the wider GPU skin, and sets too large with a 10 mm skin for a
-    24-point buffer (most of this sparse rig's), gathered again with HapticParams.skin."""
-    from pointfence.kernels.warp import proxy as wproxy
-    from pointfence.kernels.warp import resident
+def kernel_path(request):
+    """Which way the kernel runs, and the ``WarpTuning`` that makes it: working sets in shared
+    memory (the default; on CUDA a batch this small runs on the resident kernel), on CUDA the
+    same launched each tick as a graph ("launched"), the hash scanned from global memory
+    (working sets that do not fit: capacity 16 points), on CUDA the graph with copies instead
+    of zero-copy host memory (large batches), working sets gathered with HapticParams.skin
+    instead of the wider GPU skin, and sets too large with a 10 mm skin for a 24-point buffer
+    (most of this sparse rig's), gathered again with HapticParams.skin."""
+    from pointfence.kernels.warp.tuning import ANY, WarpTuning
 
-    if request.param == "hash":
-        monkeypatch.setattr(wproxy, "WS_CAPS", ((1 << 62, 16),))
-    elif request.param == "params-skin":
-        monkeypatch.setattr(wproxy, "GATHER_SKIN", 0.0)
-    elif request.param == "skin-fallback":
-        monkeypatch.setattr(wproxy, "GATHER_SKIN", 0.01)
-        monkeypatch.setattr(wproxy, "WS_CAPS", ((1 << 62, 24),))
-    elif request.param == "copies":
-        if not get_backend("warp").device.is_cuda:
-            pytest.skip("the copying path exists on CUDA only")
-        monkeypatch.setattr(wproxy, "ZERO_COPY_MAX", 0)
-        monkeypatch.setattr(resident, "RESIDENT_MAX", 0)
-    elif request.param == "launched":
-        if not get_backend("warp").device.is_cuda:
-            pytest.skip("the resident kernel exists on CUDA only: every tick is launched on the CPU device")
-        monkeypatch.setattr(resident, "RESIDENT_MAX", 0)
-    return request.param
+    tuning = {
+        "working-set": WarpTuning(),
+        "hash": WarpTuning(ws_caps=((ANY, 16),)),
+        "params-skin": WarpTuning(gather_skin=0.0),
+        "skin-fallback": WarpTuning(gather_skin=0.01, ws_caps=((ANY, 24),)),
+        "copies": WarpTuning(zero_copy_max=0, resident_max=0),
+        "launched": WarpTuning(resident_max=0),
+    }[request.param]
+    if request.param == "copies" and not get_backend("warp").device.is_cuda:
+        pytest.skip("the copying path exists on CUDA only")
+    if request.param == "launched" and not get_backend("warp").device.is_cuda:
+        pytest.skip("the resident kernel exists on CUDA only: every tick is launched on the CPU device")
+    return request.param, tuning
 
 
 @pytest.mark.parametrize("mode", ["rendering", "fixture"])
@@ -69,6 +64,7 @@ def test_warp_proxies_agree_with_reference(mode, kernel_path):
     1e-5 m. The block reduction sums in another order than the reference, and the algorithm is
     discontinuous (a point entering the normal band turns the normal), so two long trajectories
     may part; each tick therefore starts the reference from the Warp proxies' positions."""
+    kernel_path, tuning = kernel_path
     rng = np.random.default_rng(17 if mode == "rendering" else 23)
     cams, frames = random_rig(rng, n_cams=2)
     pipe = get_backend("warp").pipeline(cams, params_for("mask", adaptive=True, cell=0.02))
@@ -78,7 +74,7 @@ def test_warp_proxies_agree_with_reference(mode, kernel_path):
     B = 16
     surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
     start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
-    dev = pipe.proxies(start, p)
+    dev = pipe.proxies(start, p, tuning=tuning)
     if kernel_path == "copies":
         assert not dev.zero_copy()
     assert dev.resident() == (kernel_path in ("working-set", "hash", "params-skin", "skin-fallback")
@@ -156,6 +152,7 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
     import time
 
     from pointfence.kernels.warp import resident
+    from pointfence.kernels.warp.resident_protocol import MB_ALIVE
 
     rng = np.random.default_rng(5)
     pipe, frames, snap, start, p, dev = _cuda_pipe_and_batch(rng)
@@ -168,11 +165,11 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
     r = dev._resident[pipe.buffers.front_index]   # one resident kernel per snapshot slot
     assert r.launches == 1 and r.running
     time.sleep(3 * resident.IDLE_S)
-    assert r.mb_np[resident.wproxy.MB_ALIVE] == 0   # left by itself
+    assert r.mb_np[MB_ALIVE] == 0   # left by itself
     _agree(dev, ref, h + 0.001)
     assert r.launches == 2
     dev.close()
-    assert r.mb_np[resident.wproxy.MB_ALIVE] == 0 and not r.running
+    assert r.mb_np[MB_ALIVE] == 0 and not r.running
     _agree(dev, ref, h)
     assert r.launches == 3
     # another batch size: another kernel (the old one stopped)
@@ -180,7 +177,7 @@ def test_resident_kernel_leaves_when_idle_stopped_or_resized_and_comes_back():
     ref = NumpyProxies(pipe, start[:3], p, snapshot=snap)
     _agree(dev, ref, h[:3])
     r3 = dev._resident[pipe.buffers.front_index]
-    assert r3 is not r and r.mb_np[resident.wproxy.MB_ALIVE] == 0 and r3.n == 3
+    assert r3 is not r and r.mb_np[MB_ALIVE] == 0 and r3.n == 3
     # a new snapshot (the other slot, then the first again): the working sets are gathered again
     for k in range(2):
         shifted = [type(f)(**{**f.__dict__, "depth": (f.depth.astype(np.int32) - 40 * (k + 1)).clip(0).astype(f.depth.dtype)})
@@ -216,13 +213,14 @@ def test_resident_ticks_take_reset_positions_for_one_and_several_proxies():
 def test_resident_ticks_only_where_the_host_keeps_store_order(monkeypatch):
     """The inbox's tags rely on x86's store order: on another host (an Arm CPU such as Grace)
     no batch ticks resident, and a small CUDA batch ticks on the launched kernel instead."""
-    from pointfence.kernels.warp import proxy as wproxy
     from pointfence.kernels.warp import resident
+    from pointfence.kernels.warp.tuning import WarpTuning
 
+    tuning = WarpTuning(resident_max=7)
     monkeypatch.setattr(resident, "HOST_STORE_ORDER", True)
-    assert wproxy.resident_max() == resident.RESIDENT_MAX
+    assert resident.resident_max(tuning) == 7
     monkeypatch.setattr(resident, "HOST_STORE_ORDER", False)
-    assert wproxy.resident_max() == 0
+    assert resident.resident_max(tuning) == 0
     if get_backend("warp").device.is_cuda:
         rng = np.random.default_rng(3)
         pipe, frames, snap, surf, start = _rig(rng, 4)
@@ -255,32 +253,31 @@ def test_resident_mailbox_and_inbox_layout_matches_the_native_code():
     """The resident kernel's native code uses the mailbox's word numbers (STOP, DONE) and the
     inbox's header size as literals, and polls at most two inbox chunks a lane of one warp: the
     layout must stay this."""
-    from pointfence.kernels.warp import proxy as wproxy
-    from pointfence.kernels.warp import resident
+    from pointfence.kernels.warp import resident_protocol as rp
+    from pointfence.kernels.warp.tuning import WarpTuning
 
-    assert (wproxy.MB_STOP, wproxy.MB_DONE, wproxy.MB_ALIVE) == (0, 1, 2) and wproxy.MB_WORDS >= 3
-    assert wproxy.IN_HEAD == 2 and wproxy.IN_HEAD + wproxy.RESIDENT_CAP <= 64
-    assert 0 <= resident.RESIDENT_MAX <= wproxy.RESIDENT_CAP
+    assert (rp.MB_STOP, rp.MB_DONE, rp.MB_ALIVE) == (0, 1, 2) and rp.MB_WORDS >= 3
+    assert rp.IN_HEAD == 2 and rp.IN_HEAD + rp.RESIDENT_CAP <= 64
+    assert 0 <= WarpTuning().resident_max <= rp.RESIDENT_CAP
 
 
-def test_launched_working_set_cache_moves_proxies_exactly_as_gathering_every_tick(monkeypatch):
+def test_launched_working_set_cache_moves_proxies_exactly_as_gathering_every_tick():
     """The launched tick keeps each proxy's working set in device memory from tick to tick
     (WS_CACHE_MAX). Each tick, from the same positions, a cached batch moves its proxies as one
     that gathers every tick, through sliding (sets kept, and gathered again past the skin), a
     position reset far away and a new snapshot (sets gathered again); every proxy's cache key
     names the snapshot it last ran on. A kept set, gathered around an older position, holds
     more points in another order, so sums may differ in the last bits."""
-    from pointfence.kernels.warp import proxy as wproxy
-    from pointfence.kernels.warp import resident
+    from pointfence.kernels.warp.tuning import WarpTuning
 
-    monkeypatch.setattr(resident, "RESIDENT_MAX", 0)   # on CUDA too: the launched path
+    tuning = WarpTuning(resident_max=0)   # on CUDA too: the launched path
     rng = np.random.default_rng(31)
     B = 12
     pipe, frames, snap, surf, start = _rig(rng, B)
     p = HapticParams(max_steps=40)
-    cached = pipe.proxies(start, p)
-    fresh = pipe.proxies(start, p, ws_cache=False)
-    cap = wproxy.ws_capacity_for(B)
+    cached = pipe.proxies(start, p, tuning=tuning)
+    fresh = pipe.proxies(start, p, ws_cache=False, tuning=tuning)
+    cap = tuning.ws_capacity_for(B)
 
     parted = 0
 

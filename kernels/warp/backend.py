@@ -4,15 +4,26 @@ from __future__ import annotations
 import warp as wp
 
 from ..backend import Backend
-from ..errors import BackendUnavailable
+from ..errors import BackendUnavailable, InputError
+from .tuning import WarpTuning
 
 
 class WarpBackend(Backend):
-    """NVIDIA Warp on ``device`` ("cuda", "cuda:1", "cpu"; default: the first CUDA GPU, else the CPU)."""
+    """NVIDIA Warp on ``device`` ("cuda", "cuda:1", "cpu"; default: the first CUDA GPU, else the CPU).
+
+    ``tuning``: how its kernels use the device (``WarpTuning``), passed on to every pipeline and
+    proxy batch it makes; default: ``WarpTuning.from_environment()``, the defaults with the
+    overrides that README.md documents (``POINTFENCE_WARP_RESIDENT_MAX``,
+    ``POINTFENCE_WARP_WS_CACHE_MAX``), read here and nowhere else."""
 
     name = "warp"
 
-    def __init__(self, device: str | None = None):
+    def __init__(self, device: str | None = None, tuning: WarpTuning | None = None):
+        if tuning is None:
+            tuning = WarpTuning.from_environment()
+        elif not isinstance(tuning, WarpTuning):
+            raise InputError(f"tuning = {tuning!r}; expected a WarpTuning (pointfence.kernels.warp.tuning)")
+        self.tuning = tuning
         wp.config.quiet = True
         wp.init()
         names = [d.alias for d in wp.get_devices()]

@@ -10,8 +10,6 @@ memory) spares the ingest its one host copy.
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import warp as wp
 
@@ -24,9 +22,6 @@ from ..snapshot import HostSnapshot
 from . import frames as k
 
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
-#: pixels per counting thread: one atomic per run of same-cell pixels instead of one per pixel
-#: (32 adjacent pixels of a warp hitting one counter serialise on the GPU)
-RUN_PIXELS = int(os.environ.get("POINTFENCE_WARP_RUN_PIXELS", "16"))
 
 
 class _Slot:
@@ -173,7 +168,9 @@ class WarpPipeline(FramePipeline):
                       inputs=[self.depth, self.rays, self._cams, i, self.grid_args, self.select_args,
                               self.color, self.mask, self.pix_cell, self.pix_prot, slot.pts, slot.sigma])
         if self.npix:
-            per = RUN_PIXELS
+            # one atomic per run of same-cell pixels instead of one per pixel (32 adjacent pixels
+            # of a warp hitting one counter serialise on the GPU)
+            per = self.backend.tuning.run_pixels
             wp.launch(k.count_runs, dim=(self.npix + per - 1) // per, device=dev,
                       inputs=[self.pix_cell, self.cam_of, self.npix, per, self.counts, self.pix_rank, self.cam_counts])
         wp.launch(k.scan_chunks, dim=self.nchunks, device=dev, inputs=[self.counts, C, self.chunk, slot.start, self.partial])

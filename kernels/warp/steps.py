@@ -1,0 +1,166 @@
+"""One tick's steps of a proxy (dissertation 2.2.4), as a block of threads runs them on Warp.
+
+The same algorithm as kernels/proxy.py (the NumPy reference) and kernels/opencl/proxy.cl. Each
+step evaluates the clearances (normal sum and smallest clearance: a block-wide reduction),
+chooses the direction and length by the contact rules, clips the step against the swept
+spheres (a block-wide minimum; up to three tries with one clip pass in the code: the push-out
+along the normal, the contact rule's direction, away from the deepest points) and moves. Every
+thread takes the same decision from the reduced values, so the step loop stays uniform across
+the block. A proxy reads its working set in shared memory (kernels/warp/working_set.py) or,
+where none fits, the hash in global memory (kernels/warp/points.py), and gathers again when it
+has wandered further than its skin.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+from .args import ProxyArgs
+from .frames import GridArgs
+from .points import cell_box, hash_away, hash_clip, hash_eval, unit_len
+from .primitives import block_min, block_reduce4
+
+
+def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
+    """``run_steps`` for blocks of ``bd`` threads over one working set's functions
+    (``make_working_set(cap, bd)``)."""
+    BD = bd
+
+    @wp.func
+    def run_steps(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
+                  start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, H: wp.vec3, span: int,
+                  grad: float, lane: int, wbase: int, X0: wp.vec3, n_ws: int, par: int, skin: float):
+        """One tick's steps of a proxy at X towards H over its working set (gathered around X0:
+        ``n_ws`` points, -1 for the hash path); returns (X, normal, nearest, state, steps,
+        converged, and the working set's X0, n_ws, par, skin for the next tick)."""
+        # A step's limit F is at most band / 2 (slack >= 0) and its length at most a.step, so a
+        # point with clearance e >= band / 2 + margin + step cannot shorten it: the step reaches
+        # that point's swept sphere (radius rho + F + margin) no sooner than e - F - margin >= step
+        # >= L. ProxyArgs.rclip adds 1e-4 step and 1 um, which keep float32 rounding of e and of
+        # the hit time out of the decision (as kernels/opencl/proxy.cl): the clip scans only each
+        # warp's list of the points below rclip (ws_eval) and gets the very same step length.
+        steps = int(0)
+        conv = int(0)
+        st = int(0)
+        nrm = wp.vec3(0.0)
+        min_e = float(wp.inf)
+        uprev = wp.vec3(0.0)  # direction of the last sliding or free step
+        for it in range(a.max_steps + 1):
+            if it > 0:
+                dx = X[0] - X0[0]
+                dy = X[1] - X0[1]
+                dz = X[2] - X0[2]
+                if dx * dx + dy * dy + dz * dz > skin * skin:  # wandered off its working set
+                    X0 = X
+                    n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
+            c = wp.vec3i(0)
+            if n_ws < 0:
+                c = cell_box(X, g, span)
+
+            # 1. clearances, normal sum, smallest clearance within the normal band
+            ns = wp.vec3(0.0)
+            me = float(wp.inf)
+            nnear = int(0)
+            if n_ws >= 0:
+                ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
+            else:
+                ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, BD)
+            rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, BD)
+            par = 1 - par
+            nsum = wp.vec3(rd[0], rd[1], rd[2])
+            min_e = rd[3]
+            st = 0
+            if min_e < 0.0:
+                st = 2
+            elif min_e < a.band:
+                st = 1
+            nrm, nn = unit_len(nsum)
+            if it == a.max_steps:
+                break
+
+            # 2. direction and length (dissertation 2.2.4)
+            v = H - X
+            vn = wp.dot(v, nrm)
+            vp = v - vn * nrm
+            has_n = nn > 0.0
+            # contact rules (3/4): along v with the HIP outside or no normal, else along vp
+            u2 = wp.vec3(0.0)
+            L2 = float(0.0)
+            if st == 0 or vn > 0.0 or not has_n:
+                u2, L2 = unit_len(v)
+            else:
+                u2, L2 = unit_len(vp)
+            L2 = wp.min(L2, a.step)
+            u = u2
+            Lp = wp.min(0.5 * a.band - min_e, a.step)
+            # limit F: mid-band for a free step, -slack otherwise, min e where buried (the deepest
+            # penetration never grows); off = F + margin
+            buried = st == 2 and min_e < -a.slack - a.margin
+            lim = -a.slack
+            if st == 0:
+                lim = 0.5 * a.band
+            elif buried:
+                lim = min_e
+            off = lim + a.margin
+
+            # 3. clipping (block-wide minimum). Up to three tries, one clip pass in the code for
+            # all of them (a smaller kernel: fewer instruction-cache misses): the push-out along n,
+            # then (blocked) the contact rule's direction, then (buried and blocked again) away
+            # from the deepest points.
+            push = st == 2 and has_n
+            along_n = push
+            Lc = L2
+            if push:
+                u = nrm
+                Lc = Lp
+            s = float(0.0)
+            attempt = int(0)
+            while attempt < 3:
+                tm = float(wp.inf)
+                if n_ws >= 0:
+                    tm = ws_clip(X, u, a, off, nnear, lane, wbase)
+                else:
+                    tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
+                t = block_min(tm, par, BD)
+                par = 1 - par
+                s = wp.max(wp.min(Lc, t), 0.0)
+                if s >= a.tol:
+                    break
+                if attempt == 0:
+                    if not push:
+                        break
+                    along_n = False  # push-out blocked: the contact rule's direction instead
+                    u = u2
+                    Lc = L2
+                elif attempt == 1:
+                    if not buried:
+                        break
+                    along_n = True  # both blocked: away from the deepest points
+                    av = wp.vec3(0.0)
+                    if n_ws >= 0:
+                        av = ws_away(X, a, off, n_ws, lane, BD)
+                    else:
+                        av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, BD)
+                    ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, BD)
+                    par = 1 - par
+                    asum = wp.vec3(ra[0], ra[1], ra[2])
+                    au, al = unit_len(asum)
+                    s = 0.0
+                    if not (al > 0.0):
+                        break
+                    u = au
+                    Lc = Lp
+                attempt += 1
+            if s < a.tol:
+                conv = 1
+                break
+            if not along_n:  # a slide turning back against the previous one: rocking in a crease
+                if u[0] * uprev[0] + u[1] * uprev[1] + u[2] * uprev[2] < a.turn_back:
+                    conv = 1
+                    break
+                uprev = u
+            X = X + s * u
+            steps += 1
+
+        return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
+
+    return run_steps
