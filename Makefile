@@ -2,7 +2,8 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-PIP    := $(VENV)/bin/pip
+# -q and no "A new release of pip is available" notice: `make` prints only what a user can act on.
+PIP    := $(VENV)/bin/pip --disable-pip-version-check
 
 .PHONY: demo test install dev ctest clean
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from pointfence.kernels.errors import PointfenceError
@@ -28,6 +29,9 @@ COMMANDS = {
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pointfence", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=_version())
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="show the OpenCL compiler's log of every program build (sets PYOPENCL_COMPILER_OUTPUT=1); "
+                             "a failed build always shows it")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module, help_) in COMMANDS.items():
         p = sub.add_parser(name, help=help_, description=help_)
@@ -56,6 +60,8 @@ def main(argv=None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    if args.verbose:
+        os.environ["PYOPENCL_COMPILER_OUTPUT"] = "1"   # read by kernels/opencl/context.py at each build
     try:
         return int(importlib.import_module(args._module).run(args) or 0)
     except PointfenceError as e:

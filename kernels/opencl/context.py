@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import os
 import threading
+import warnings
 from importlib import resources
 
-from ..errors import BackendUnavailable
+from ..errors import BackendUnavailable, KernelError
 
 # IEEE-correct division and sqrt, no FMA contraction (see the pragma in every .cl file):
 # the reference backend reproduces the device's float32 arithmetic to the last bit.
@@ -173,8 +174,57 @@ def inline_device(device):
     return None
 
 
-def build(ctx, *names: str):
-    """Compile the named .cl files of this package into one program."""
-    cl = _cl()
+def compiler_output_wanted() -> bool:
+    """Whether successful builds show the compiler's log: ``PYOPENCL_COMPILER_OUTPUT`` set to a
+    true value (pyopencl's own switch; ``pointfence --verbose`` sets it)."""
+    return os.environ.get("PYOPENCL_COMPILER_OUTPUT", "").strip().lower() in ("1", "true", "yes", "on", "y", "t")
+
+
+# ``warnings.catch_warnings`` swaps the process-wide filter list: builds in two threads at once
+# would restore each other's lists, so one build at a time changes it.
+_BUILD_LOCK = threading.Lock()
+
+
+def build(ctx, *names: str, verbose: bool | None = None):
+    """Compile the named .cl files of this package into one program (see ``build_source``)."""
     src = "\n".join(resources.files(__package__).joinpath(n).read_text() for n in names)
-    return cl.Program(ctx, src).build(options=BUILD_OPTIONS)
+    return build_source(ctx, src, "+".join(names), BUILD_OPTIONS, verbose=verbose)
+
+
+def build_source(ctx, src: str, label: str, options=(), verbose: bool | None = None):
+    """Compile OpenCL C ``src`` (called ``label`` in messages) for the devices of ``ctx``.
+
+    A successful build is quiet: the compiler's notes (PoCL logs ABI remarks on every build) stay
+    in the program, ``build_log(program)``, and are shown as a ``pyopencl.CompilerWarning`` only
+    when ``verbose`` (None: ``compiler_output_wanted()``). A failed build raises ``KernelError``
+    whose message holds the compiler's log."""
+    cl = _cl()
+    if verbose is None:
+        verbose = compiler_output_wanted()
+    with _BUILD_LOCK, warnings.catch_warnings():
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        try:
+            prg = cl.Program(ctx, src).build(options=list(options))
+        except cl.Error as e:
+            devices = ", ".join(d.name.strip() for d in ctx.devices)
+            raise KernelError(
+                f"building the OpenCL program {label} for {devices} failed (options {' '.join(options) or 'none'}); "
+                f"the compiler said:\n{e}\nThe device's OpenCL compiler rejected pointfence's kernels: choose another "
+                "device (POINTFENCE_OPENCL_DEVICE, `pointfence backends` lists them) and report this message"
+            ) from None
+    if verbose:
+        log = build_log(prg)
+        if log:
+            warnings.warn(f"OpenCL program {label} built; the compiler said:\n{log}", cl.CompilerWarning, stacklevel=3)
+    return prg
+
+
+def build_log(program) -> str:
+    """The compiler's log of every device ``program`` was built for ("" when all were silent)."""
+    cl = _cl()
+    logs = []
+    for d in program.devices:
+        log = (program.get_build_info(d, cl.program_build_info.LOG) or "").strip()
+        if log:
+            logs.append(f"{d.name.strip()}:\n{log}")
+    return "\n".join(logs)
