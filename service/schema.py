@@ -244,11 +244,11 @@ def toml_value(v) -> str:
         return "[" + ", ".join(toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
         return "{" + ", ".join(f"{k} = {toml_value(x)}" for k, x in v.items()) + "}"
-    if dataclasses.is_dataclass(v):
-        return "{" + ", ".join(f"{k} = {toml_value(getattr(v, k))}" for k in keys(v)) + "}"
     raise TypeError(f"no TOML form for {v!r}")
 
 
-def rows(cls) -> list:
-    """(key, type, default, doc) of every key of table ``cls``, in field order."""
-    return [(name, describe(tp, md), format_default(f, md), md["doc"]) for name, tp, md, f in fields(cls)]
+def rows(cls, only=None) -> list:
+    """(key, type, default, doc) of every key of table ``cls`` (or of the keys ``only``), in
+    field order."""
+    return [(name, describe(tp, md), format_default(f, md), md["doc"]) for name, tp, md, f in fields(cls)
+            if only is None or name in only]

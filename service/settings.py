@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass
-from typing import Literal, Optional, Tuple
+from typing import Literal, Optional, Tuple, Union
 
 import numpy as np
 
@@ -27,7 +27,6 @@ from pointfence.kernels.params import RadiusModel, Workspace
 from pointfence.kernels.params_haptics import HapticParams
 
 from .robot.settings import RobotConfig, parse_robot, robot_rows
-from .robot.tool import ToolModel
 from .schema import parse_table, rows, setting
 
 Vec3 = Tuple[float, float, float]
@@ -103,7 +102,7 @@ class FixtureTable:
     radius_max: Optional[float] = setting(None, lo=0, doc="ceiling of the adaptive radius (m)",
                                           default_doc=f"radius (+ {ADAPTIVE_MARGIN:g} with adaptive)")
     select: Optional[SelectTable] = setting(
-        None, parse=_select, doc='protected points: "all" | "mask" | {kind="box", min, max} | {kind="color", lo, hi}',
+        None, parse=_select, toml=Union[Literal["all", "mask"], SelectTable], doc='protected points: "all" | "mask" | {kind="box", min, max} | {kind="color", lo, hi}',
         default_doc='"all"')
 
 
@@ -321,16 +320,15 @@ class SceneTable:
 TABLES = (("top level", SceneTable), ("[workspace]", WorkspaceTable), ("[fixture]", FixtureTable),
           ("[fixture] select", SelectTable), ("[hash]", HashTable), ("[[camera]]", CameraTable),
           ("[[camera]] noise", NoiseTable), ("[haptics]", HapticsTable), ("[teleop]", TeleopConfig),
-          ("[service]", ServiceConfig), ("[motion]", MotionTable), ("[robot.tool]", ToolModel))
+          ("[service]", ServiceConfig), ("[motion]", MotionTable))
 
 
 def table_rows() -> list:
-    """(table, key, type, default, doc) of every key of every table (the README's settings table)."""
+    """(table, key, type, default, doc) of every key of every table (the README's settings table);
+    ``[robot]``, its models' options and ``[robot.tool]`` follow ``[teleop]``."""
     out = []
     for label, cls in TABLES:
-        for key, tp, default, doc in rows(cls):
-            if label == "top level" and key not in ("backend", "device"):
-                continue
+        for key, tp, default, doc in rows(cls, ("backend", "device") if cls is SceneTable else None):
             out.append((label, key, tp, default, doc))
             if label == "[teleop]" and key == "teleop":
                 out += robot_rows()      # [robot] after [teleop], as in the file

@@ -167,10 +167,10 @@ def parse_robot(table) -> RobotConfig:
 
 
 def robot_rows() -> list:
-    """The README rows of ``[robot]``: model, then each model's options."""
+    """The README rows of ``[robot]``: model, each model's options, then ``[robot.tool]``."""
     out = [("[robot]", k, t, d, doc) for k, t, d, doc in rows(RobotConfig) if k == "model"]
     for model, cls in OPTIONS.items():
         out += [(f"[robot] {model}", k, t, d, doc) for k, t, d, doc in rows(cls)]
-    return out
+    return out + [("[robot.tool]", k, t, d, doc) for k, t, d, doc in rows(ToolModel)]
 
 
