@@ -16,7 +16,9 @@ instance. Everything it checks is derived from the fields:
 * ranges: ``lo`` / ``hi`` / ``positive`` of the field, and the hard limit
   ``limits.LIMITS["<table>.<key>"]`` (SAFETY.md S7) where one exists for the key;
 * defaults: the dataclass's own (a key not given is not passed: the dataclass fills it in);
-  relations between keys are the dataclass's ``__post_init__``.
+  relations between keys are the dataclass's ``__post_init__``; a table whose relations say more
+  than its limits (``[motion]``: v_min > v_max) sets ``RELATIONS_FIRST = True`` and has its
+  limits checked after them.
 
 ``rows(cls)`` lists (key, type, default, doc) for the README's settings table.
 """
@@ -194,7 +196,8 @@ def parse_table(cls, table: Any, where: str, sep: str = " ", limit_prefix: Optio
     ``limits.LIMITS[limit_prefix + "." + key]`` (default prefix: ``cls.TABLE``)."""
     check_keys(table, keys(cls), where)
     prefix = limit_prefix if limit_prefix is not None else getattr(cls, "TABLE", "")
-    kw = {}
+    later = getattr(cls, "RELATIONS_FIRST", False)
+    kw, deferred = {}, []
     for name, tp, md, f in fields(cls):
         label = f"{where}{sep}{name}"
         if name not in table:
@@ -208,10 +211,22 @@ def parse_table(cls, table: Any, where: str, sep: str = " ", limit_prefix: Optio
         v = check_value(tp, v, label, md)
         lim = f"{prefix}.{name}"
         if lim in limits.LIMITS and v is not None:
-            v = (tuple(limits.check(lim, x, f"{label}[{i}]") for i, x in enumerate(v))
-                 if isinstance(v, tuple) else limits.check(lim, v, label))
+            if later:
+                deferred.append((lim, v, label))
+            else:
+                v = _limit(lim, v, label)
         kw[name] = md["convert"](v, label) if md.get("convert") is not None else v
-    return cls(**kw)
+    obj = cls(**kw)
+    for lim, v, label in deferred:
+        _limit(lim, v, label)
+    return obj
+
+
+def _limit(lim: str, v, label: str):
+    """``v`` (a number or a tuple of numbers) within its hard limit ``limits.LIMITS[lim]``."""
+    if isinstance(v, tuple):
+        return tuple(limits.check(lim, x, f"{label}[{i}]") for i, x in enumerate(v))
+    return limits.check(lim, v, label)
 
 
 def default_of(f: dataclasses.Field):

@@ -271,17 +271,21 @@ class MotionTable:
     """``[motion]``: motion estimation and fixture prediction (chapter 6; kernels.motion.MotionModel)."""
 
     TABLE = "motion"
+    RELATIONS_FIRST = True     # the model's own relations (v_min <= v_max) say more than the limits
     enabled: bool = setting(MotionModel.enabled, doc="estimate velocities and predict the fixtures")
     latency: float = setting(MotionModel.latency, lo=0, doc="camera latency not in the frame timestamps (s)")
     max_age: float = setting(MotionModel.max_age, lo=0, doc="how far past its timestamp a snapshot is extrapolated (s)")
     capture: float = setting(MotionModel.capture, lo=0, doc="longest displacement measured between two snapshots (m)")
     cell: float = setting(MotionModel.cell, lo=0, doc="motion grid cell (m)")
-    min_points: int = setting(MotionModel.min_points, doc="fewest points per block for an estimate")
+    min_points: int = setting(MotionModel.min_points, lo=1, doc="fewest points per block for an estimate")
     planarity: float = setting(MotionModel.planarity, lo=0, doc="eigenvalue ratio below which a block is a surface patch")
     count_ratio: float = setting(MotionModel.count_ratio, lo=0, doc="largest ratio of a block's point counts")
     v_min: float = setting(MotionModel.v_min, lo=0, doc="slower is depth noise: 0 (m/s)")
     v_max: float = setting(MotionModel.v_max, lo=0, doc="faster estimates are discarded (m/s)")
     max_gap: float = setting(MotionModel.max_gap, lo=0, doc="snapshots further apart give no estimate (s)")
+
+    def __post_init__(self):
+        self.model()
 
     def model(self) -> MotionModel:
         """The kernel's MotionModel."""
