@@ -116,8 +116,8 @@ class Service:
 
     # --- construction helpers -----------------------------------------------------------------
     @staticmethod
-    def _make_robot(table: dict):
-        if table.get("model", "raven2") == "none":
+    def _make_robot(table):
+        if table.model == "none":
             return None
         from .robot import robot_from_config
 

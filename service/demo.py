@@ -137,7 +137,7 @@ def run(args) -> int:
 
 def _run(args, cfg, backend, viewer) -> int:
     print(f"pointfence demo: {cfg.path}, backend {backend.name} on {backend.device_name}, robot "
-          f"{cfg.robot.get('model')}, fixture {cfg.pipeline.radius.r_base * 1000:.0f} mm, k_s "
+          f"{cfg.robot.model}, fixture {cfg.pipeline.radius.r_base * 1000:.0f} mm, k_s "
           f"{cfg.haptics.k_s:.0f} N/m, scale {cfg.teleop.scale}, max robot speed {cfg.teleop.max_robot_speed} m/s, "
           f"{'simulated clock' if args.offline else 'live 1 kHz loop'}")
     only = set(args.only.split(",")) if args.only else None
@@ -180,7 +180,7 @@ def _run(args, cfg, backend, viewer) -> int:
         print(f"recordings and summaries in {args.out}")
     if args.report:
         meta = {"configuration": cfg.path, "backend": f"{backend.name} on {backend.device_name}",
-                "robot": cfg.robot.get("model"), "fixture radius (mm)": cfg.pipeline.radius.r_base * 1000,
+                "robot": cfg.robot.model, "fixture radius (mm)": cfg.pipeline.radius.r_base * 1000,
                 "clock": "simulated" if args.offline else "live 1 kHz loop"}
         files = report.write(args.report, rows, probe_results, experiments, meta, dynamic=dynamic)
         print(f"report: {len([f for f in files if f.suffix == '.png'])} plots, table.md and table.json in {args.report}")

@@ -28,13 +28,13 @@ class LiveRun:
         # before the robot process starts (it inherits the switch): see service/memory.py
         self.memory = small_pages()
         self.robot_host = None
-        if robots is None and sc.robot_process and cfg.robot.get("model", "raven2") != "none":
+        if robots is None and sc.robot_process and cfg.robot.model != "none":
             from .robot.hosted import RobotHost
 
             # normal priority: a SCHED_FIFO child would preempt the service's normal threads, and
             # one that holds the interpreter lock would keep the loop waiting
             # its watchdog: [service] robot_watchdog_s (checked against its hard limit by config)
-            self.robot_host = RobotHost([cfg.robot] * len(masters), timeout_s=sc.robot_watchdog_s)
+            self.robot_host = RobotHost([cfg.robot.table()] * len(masters), timeout_s=sc.robot_watchdog_s)
             robots = self.robot_host.robots
         try:
             self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,

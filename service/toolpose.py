@@ -132,7 +132,7 @@ def self_filter_for(cfg, pp, robots: Sequence) -> tuple:
         return None, None, "no robot model: nothing to filter"
     if not cfg.self_filter:
         return None, None, "off in the configuration ([service] self_filter = false)"
-    models = [tool_model_for(r, cfg.robot.get("tool")) for r in present]
+    models = [tool_model_for(r, cfg.robot.tool) for r in present]
     unknown = [why for model, why in models if model is None]
     if unknown:
         if sc.self_filter:

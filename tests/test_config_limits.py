@@ -110,9 +110,12 @@ def test_a_synthetic_camera_with_a_pose_and_no_intrinsics_loads():
 
 
 def test_every_limit_bounds_a_configuration_key_or_a_command_line_value():
-    known = {"service": config.SERVICE_KEYS, "teleop": config.TELEOP_KEYS, "haptics": config.HAPTICS_KEYS,
-             "fixture": config.FIXTURE_KEYS, "hash": config.HASH_KEYS, "workspace": config.WORKSPACE_KEYS,
-             "camera": config.CAMERA_KEYS, "motion": config.MOTION_KEYS}
+    from pointfence.service import settings
+    from pointfence.service.schema import keys
+
+    known = {cls.TABLE: set(keys(cls)) for cls in (settings.ServiceConfig, settings.TeleopConfig, settings.HapticsTable,
+                                                   settings.FixtureTable, settings.HashTable, settings.WorkspaceTable,
+                                                   settings.CameraTable, settings.MotionTable)}
     for key in CONFIG_LIMITS:
         table, name = key.split(".")
         assert name in known[table], key

@@ -161,7 +161,7 @@ def test_watchdog_time_has_a_ceiling_and_faults_are_named():
 
 def test_the_service_holds_and_reports_a_robot_whose_state_turns_nan(tmp_path):
     cfg = balloon_config(tmp_path, arch="III")
-    h = RobotHost([cfg.robot], timeout_s=WATCHDOG_MAX_S)   # offline ticks run faster than real time
+    h = RobotHost([cfg.robot.table()], timeout_s=WATCHDOG_MAX_S)   # offline ticks run faster than real time
     try:
         def nan(svc):
             h.inject("nan")

@@ -103,7 +103,7 @@ def test_motion_table_and_self_filter_keys(tmp_path):
             plane_config(tmp_path, bad)
         assert msg in str(e.value), (bad, str(e.value))
     defaults = config.load()
-    assert defaults.self_filter and defaults.robot["model"] == "raven2"     # on with a robot model
+    assert defaults.self_filter and defaults.robot.model == "raven2"     # on with a robot model
     assert not defaults.motion.enabled
 
 

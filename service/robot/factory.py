@@ -51,7 +51,6 @@ name the key and suggest the closest known one)::
 from __future__ import annotations
 
 import difflib
-import inspect
 
 import numpy as np
 
@@ -60,17 +59,15 @@ from pointfence.kernels.errors import InputError
 from .base import Robot, as_vector
 from .point_mass import PointMass
 from .raven2 import Raven2
+from .settings import OPTIONS, RobotConfig, option_error, parse_robot
 
 MODELS = {"raven2": Raven2, "point-mass": PointMass}
-#: options handled here rather than by a model's constructor
-_EXTRA = {"raven2": {"mount_tool_down"}, "point-mass": set()}
 
 
 def model_options(model: str) -> set:
-    """The option names a model accepts (its constructor's keyword arguments)."""
-    cls = _model(model)
-    params = inspect.signature(cls.__init__).parameters
-    return {n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY} | _EXTRA[model]
+    """The option names a model accepts (the fields of its options dataclass, robot/settings.py)."""
+    _model(model)
+    return set(OPTIONS[model].__dataclass_fields__)
 
 
 def _model(model) -> type:
@@ -81,29 +78,21 @@ def _model(model) -> type:
     return MODELS[model]
 
 
-def _suggest(key: str, known: set, where: str) -> InputError:
-    near = difflib.get_close_matches(key, sorted(known), n=1, cutoff=0.5)
-    hint = f"; did you mean {near[0]!r}?" if near else ""
-    others = [m for m, c in MODELS.items() if key in model_options(m)]
-    other = f" ({key!r} is an option of model {others[0]!r})" if others else ""
-    return InputError(f"{where}: unknown key {key!r}{hint}{other} Known keys: {', '.join(sorted(known))}")
-
-
 def make_robot(model: str = "raven2", **options) -> Robot:
     """A simulated robot: ``model`` is 'raven2' (the default robot) or 'point-mass'; ``options``
     are that model's keyword options (see the module docstring). Raises InputError on an
     unknown model or option (naming it and suggesting the closest) or a bad value."""
     cls = _model(model)
-    known = model_options(model)
     for key in options:
-        if key not in known:
-            raise _suggest(key, known, f"robot model {model!r}")
-    if "mount_tool_down" in options:
+        if key not in OPTIONS[model].__dataclass_fields__:
+            raise option_error(key, model, f"robot model {model!r}")
+    if options.get("mount_tool_down") is not None:
         rcm = options.pop("mount_tool_down")
         if options.get("T_world_base") is not None:
             raise InputError("robot: give T_world_base or mount_tool_down, not both")
         options["T_world_base"] = Raven2.mount_tool_down(as_vector(rcm, 3, "mount_tool_down"),
                                                          arm=options.get("arm", "right"), q=options.get("q0"))
+    options.pop("mount_tool_down", None)
     if options.get("T_world_base") is not None:
         T = np.asarray(options["T_world_base"], dtype=object)
         if T.size != 16:
@@ -112,24 +101,15 @@ def make_robot(model: str = "raven2", **options) -> Robot:
     return cls(**options)
 
 
-def robot_from_config(table: dict) -> Robot:
-    """Build the robot described by a parsed ``[robot]`` TOML table (see the module docstring).
-    ``model`` defaults to 'raven2'; every other key is an option of that model."""
-    if table is None:
-        table = {}
-    if not isinstance(table, dict):
-        raise InputError(f"[robot]: expected a table, got {type(table).__name__}")
-    opts = dict(table)
-    model = opts.pop("model", "raven2")
-    opts.pop("tool", None)   # the tool model (robot/tool.py), not an option of the robot itself
-    if not isinstance(model, str):
-        raise InputError(f"[robot] model = {model!r}; expected 'raven2' or 'point-mass'")
-    _model(model)
-    known = model_options(model)
-    for key in opts:
-        if key not in known:
-            raise _suggest(key, known | {"model"}, "[robot]")
+def robot_from_config(table) -> Robot:
+    """Build the robot of a ``[robot]`` configuration: a ``RobotConfig`` (robot/settings.py) or
+    a plain TOML table (see the module docstring; checked by ``parse_robot``). The model
+    defaults to 'raven2'; "none" (the ideal robot) has no robot to build."""
+    cfg = parse_robot(table) if not isinstance(table, RobotConfig) else table
+    if cfg.model not in MODELS:
+        raise InputError(f"[robot] model = {cfg.model!r} has no robot to build (the ideal robot); "
+                         f"expected one of {', '.join(repr(m) for m in MODELS)}")
     try:
-        return make_robot(model, **opts)
+        return make_robot(cfg.model, **cfg.kwargs())
     except InputError as e:
         raise InputError(f"[robot] {e}") from None

@@ -20,18 +20,26 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.selffilter import Capsule
 
+from ..schema import parse_table, setting
+
 #: the largest capsule radius and length accepted for a tool part (m): a "tool" larger than this
 #: would hide a whole scene from the fixtures (S5, S7)
 MAX_PART_RADIUS = 0.05
 MAX_PART_LENGTH = 0.6
-TOOL_KEYS = ("shaft_radius", "shaft_length", "wrist_radius", "parts")
+#: one ``parts`` entry in TOML: [ax, ay, az, bx, by, bz, radius] (m, tip frame)
+Part = Tuple[(float,) * 7]
+
+
+def _parts(v: tuple, label: str) -> tuple:
+    """TOML parts (7 numbers each) -> ((a), (b), radius) capsules in the tip frame."""
+    return tuple((tuple(p[:3]), tuple(p[3:6]), p[6]) for p in v)
 
 
 @dataclass(frozen=True)
@@ -47,10 +55,12 @@ class ToolModel:
     (Raven II); for any other robot the tool is ``parts`` alone.
     """
 
-    shaft_radius: float = 0.0042
-    shaft_length: float = 0.35
-    wrist_radius: float = 0.005
-    parts: tuple = ()
+    TABLE = "robot.tool"
+    shaft_radius: float = setting(0.0042, doc="the instrument's shaft through the RCM: radius (m; RCM robots)")
+    shaft_length: float = setting(0.35, doc="modelled shaft length, from the wrist out through the RCM (m; RCM robots)")
+    wrist_radius: float = setting(0.005, doc="the wrist-to-tip link and closed jaws: radius (m; RCM robots)")
+    parts: tuple = setting((), toml=Tuple[Part, ...], convert=_parts, default_doc="[]",
+                           doc="capsules [ax, ay, az, bx, by, bz, radius] in the tip frame (m)")
 
     def __post_init__(self):
         limits = {"shaft_radius": MAX_PART_RADIUS, "shaft_length": MAX_PART_LENGTH, "wrist_radius": MAX_PART_RADIUS}
@@ -69,6 +79,11 @@ class ToolModel:
             if np.linalg.norm(b - a) > MAX_PART_LENGTH:
                 raise InputError(f"tool part {p!r}: longer than {MAX_PART_LENGTH} m")
 
+    def table(self) -> dict:
+        """This model as a plain ``[robot.tool]`` table (JSON-able)."""
+        return {"shaft_radius": self.shaft_radius, "shaft_length": self.shaft_length, "wrist_radius": self.wrist_radius,
+                "parts": [[*map(float, a), *map(float, b), float(r)] for a, b, r in self.parts]}
+
 
 def has_rcm(robot) -> bool:
     """Whether ``robot``'s kinematics give the instrument's axis (an RCM and a wrist point)."""
@@ -77,29 +92,18 @@ def has_rcm(robot) -> bool:
 
 
 def parse_tool(table) -> ToolModel:
-    """``[robot.tool]`` (see the module docstring) -> ToolModel; InputError naming the bad key."""
-    if not isinstance(table, dict):
-        raise InputError(f"[robot.tool]: expected a table, got {type(table).__name__}")
-    unknown = sorted(set(table) - set(TOOL_KEYS))
-    if unknown:
-        raise InputError(f"[robot.tool]: unknown key(s) {unknown}; known keys: {', '.join(TOOL_KEYS)}")
-    kw = {k: table[k] for k in ("shaft_radius", "shaft_length", "wrist_radius") if k in table}
-    parts = []
-    for i, p in enumerate(table.get("parts", [])):
-        if not isinstance(p, (list, tuple)) or len(p) != 7 or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in p):
-            raise InputError(f"[robot.tool] parts[{i}] = {p!r}; expected [ax, ay, az, bx, by, bz, radius] "
-                             "(m, tip frame)")
-        parts.append((tuple(float(v) for v in p[:3]), tuple(float(v) for v in p[3:6]), float(p[6])))
-    return ToolModel(**kw, parts=tuple(parts))
+    """``[robot.tool]`` (see the module docstring) -> ToolModel; InputError naming the bad key
+    (keys and types from ToolModel's fields, schema.parse_table)."""
+    return parse_table(ToolModel, table, "[robot.tool]")
 
 
-def tool_model_for(robot, table=None) -> tuple:
-    """(ToolModel or None, reason): the tool of ``robot`` as configured by ``table``
-    (``[robot.tool]``, or None). None where the tool is not known (see the module docstring)."""
+def tool_model_for(robot, tool=None) -> tuple:
+    """(ToolModel or None, reason): the tool of ``robot`` as configured by ``tool`` (a
+    ToolModel, a ``[robot.tool]`` table, or None: not configured). None where the tool is not
+    known (see the module docstring)."""
     if robot is None:
         return None, "no robot (ideal robot: nothing to filter)"
-    model = parse_tool(table) if table is not None else None
+    model = parse_tool(tool) if isinstance(tool, dict) else tool
     if has_rcm(robot):
         return (model if model is not None else ToolModel()), "RCM instrument (shaft, wrist) from the kinematics"
     if model is None or not model.parts:
