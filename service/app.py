@@ -226,6 +226,19 @@ class Service:
         self.write(out, dt)
         self.publish(inp, out)
 
+    def replay_tick(self, inp: TickInput) -> TickOutput:
+        """One tick of a recorded run (``pointfence replay --recording``): ``inp`` holds the
+        recorded master samples, timing, frame time and age and control state; the robots and
+        the snapshots are this process's (``HapticScene.sense_recorded``)."""
+        if not self._started:
+            self.start()
+        self.devices.read_robots(inp, self.teleop.cmd)
+        self.scene.sense_recorded(inp)
+        out = self.step(inp)
+        self.write(out, inp.dt)
+        self.publish(inp, out)
+        return out
+
     def read(self, inp: TickInput, k: int, t: float, dt: float, overrun: bool, now: float) -> None:
         """Fill ``inp``: the loop's timing, the control state, the masters, the robots, the frames."""
         inp.k, inp.t, inp.dt, inp.overrun, inp.now = k, t, dt, overrun, now

@@ -114,6 +114,19 @@ class HapticScene:
         inp.frame_age = age = feeder.max_age(inp.now)
         inp.frames_too_old = age > self.cfg.service.max_frame_age_s and feeder.frames_too_old(inp.now)
 
+    def sense_recorded(self, inp: TickInput) -> None:
+        """A replayed tick (``inp`` holds the recorded frame time and age): the self-filter's
+        pose ring at the recorded frame time, the offline feeder's due snapshots, and whether an
+        old snapshot is a camera problem (STALE) or an ingest one, as ``sense`` decides it."""
+        feeder = self.feeder
+        if self.tool_poses is not None and inp.frame_time == inp.frame_time:
+            self.tool_poses.record(inp.frame_time)
+        if self._poll_tick:
+            feeder.poll_tick(inp.k, inp.t)
+        elif self._poll:
+            feeder.poll(inp.t)
+        inp.frames_too_old = inp.frame_age > self.cfg.service.max_frame_age_s and feeder.frames_too_old(inp.now)
+
     def reseat(self, mask: np.ndarray, at: np.ndarray) -> None:
         """Proxies of arms in ``mask`` (B,) start again from ``at`` (B, 3); the others stay."""
         np.copyto(self._reseat_pos, self.batch.positions)

@@ -309,6 +309,21 @@ def load_inputs(path) -> dict:
     return {"inputs": z["inputs"], "masters": z["masters"], "schedule": schedule, "meta": json.loads(str(z["meta"]))}
 
 
+def tick_input(data: dict, i: int, inp) -> None:
+    """Recorded tick ``i`` of ``data`` (``load_inputs`` / ``recording_inputs``) into the
+    ``tick_io.TickInput`` ``inp`` (the inverse of ``Recorder.write`` for the input; the loop
+    time is ``k * period``, set by the caller). Older recordings have no frame time: NaN."""
+    v, m = data["inputs"][i], data["masters"][i]
+    inp.k, inp.dt, inp.overrun, inp.frame_age = int(v[0]), float(v[1]), bool(v[2]), float(v[3])
+    inp.architecture, inp.haptics, inp.teleop = int(v[4]), bool(v[5]), bool(v[6])
+    inp.frame_time = float(v[7]) if len(v) > 7 else float("nan")
+    inp.frames_too_old = False           # (not recorded: the replay asks its own feeder)
+    inp.law_change = False
+    inp.master_pos[:] = m[:, :3]
+    inp.pedal[:] = m[:, 3] != 0
+    inp.master_ok[:] = m[:, 4] != 0
+
+
 def read_ticks_csv(path) -> np.ndarray:
     """ticks.csv as an array (header checked)."""
     with Path(path).open() as fh:

@@ -21,6 +21,7 @@ period, backend, device) and ``DIR/inputs.npz``.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -33,7 +34,8 @@ from .clock import FakeClock
 from .frames import ScheduledFrames, SimFrames
 from .loop import HapticLoop
 from .masters import Master, ScriptedMaster
-from .record import load_inputs, recording_inputs
+from .record import load_inputs, recording_inputs, tick_input
+from .tick_io import TickInput
 
 
 def add_arguments(p):
@@ -64,25 +66,6 @@ class PlaybackMaster(Master):
         self.position[:] = s[:3]
         self.clutch = bool(s[3])
         self.ok = bool(s[4])
-
-
-class _RecordedAges(ScheduledFrames):
-    """Recorded snapshots whose ages are the recorded ones (the service's staleness decisions)."""
-
-    def __init__(self, *a, ages, frame_times=None, **kw):
-        super().__init__(*a, **kw)
-        self.ages_by_tick = ages
-        self.frame_times = frame_times   # the recorded tick times on the frames' clock (older recordings: none)
-        self.row = 0
-
-    def max_age(self, now: float) -> float:
-        return float(self.ages_by_tick[min(self.row, len(self.ages_by_tick) - 1)])
-
-    def frame_time(self, t: float, now: float):
-        if self.frame_times is None:
-            return super().frame_time(t, now)
-        v = float(self.frame_times[min(self.row, len(self.frame_times) - 1)])
-        return v if np.isfinite(v) else None
 
 
 def simulate(cfg, masters, duration: float, *, architecture: Optional[str] = None, backend: Optional[str] = None,
@@ -124,7 +107,7 @@ def replay_recording(cfg, rec_dir, *, backend=None, device=None):
     data = load_run(rec_dir)
     inputs, samples = data["inputs"], data["masters"]
     n_ticks, n_arms = samples.shape[0], samples.shape[1]
-    masters = [PlaybackMaster(samples[:, b]) for b in range(n_arms)]
+    masters = [PlaybackMaster(samples[:, b]) for b in range(n_arms)]   # (the first sample places them at start)
     meta = data["meta"]
     svc = Service(cfg, masters, backend=backend or meta.get("backend"), device=device or meta.get("device_spec"),
                   record=n_ticks, architecture=meta.get("architecture"))
@@ -134,23 +117,21 @@ def replay_recording(cfg, rec_dir, *, backend=None, device=None):
         frames = data["schedule"].get(int(seq))
         if frames is not None:
             schedule[int(tick)] = frames
-    feeder = _RecordedAges(svc.pipeline, sources, schedule, cfg.service.stale_s, cfg.service.max_frame_age_s,
-                           ages=inputs[:, 3], frame_times=inputs[:, 7] if inputs.shape[1] > 7 else None)
+    feeder = ScheduledFrames(svc.pipeline, sources, schedule, cfg.service.stale_s, cfg.service.max_frame_age_s)
     svc.attach_frames(feeder)
-    names = {1: "I", 2: "II", 3: "III"}
+    if n_ticks:                  # the control state the run started in (start() takes it)
+        svc.engage_haptics(bool(inputs[0, 5]))
+        svc.engage_teleop(bool(inputs[0, 6]))
     P = 1.0 / cfg.service.rate_hz
-    import time
-
+    has_frame_time = inputs.shape[1] > 7
+    inp = TickInput.zeros(n_arms)
     for i in range(n_ticks):
-        k, dt, overrun, _, arch, hap, tel = inputs[i][:7]
-        for m in masters:
-            m.row = i
-        feeder.row = i
-        if names[int(arch)] != svc.architecture:
-            svc.set_architecture(names[int(arch)])
-        svc.haptics_on, svc.teleop_on = bool(hap), bool(tel)
+        tick_input(data, i, inp)
+        inp.t = inp.now = inp.k * P
+        if not has_frame_time:   # (older recordings: the schedule's clock)
+            inp.frame_time = feeder.frame_time(inp.t, inp.now)
         w0 = time.perf_counter()
-        svc.tick(int(k), int(k) * P, float(dt), bool(overrun), int(k) * P)
+        svc.replay_tick(inp)
         svc.note_tick_us((time.perf_counter() - w0) * 1e6)
     return svc, sources
 
