@@ -158,9 +158,9 @@ def test_every_periodic_loop_of_the_product_is_this_one():
 
     from pointfence.service import loop as haptic
     from pointfence.service.cable import controller
-    from pointfence.service.robot import hosted
+    from pointfence.service.robot import hosted_child
 
-    for mod in (haptic, controller, hosted):
+    for mod in (haptic, controller, hosted_child):
         src = inspect.getsource(mod)
         assert "PeriodicLoop(" in src, mod.__name__
         assert "sleep_until(" not in src and "time.sleep(delay" not in src, mod.__name__
