@@ -22,8 +22,8 @@ the tick and is deterministic):
   an in-process rejection);
   malformed or non-finite setpoints and workspace violations are refused at once, before they
   reach the child;
-* a watchdog runs in every ``sync`` (each tick), whatever the state record holds: a child that
-  stops stepping, or whose record does not read, for ``timeout_s`` (default 20 ms, at most
+* a watchdog runs at every read of the child's record (each tick), whatever the record holds:
+  a child that stops stepping, or whose record does not read, for ``timeout_s`` (default 50 ms, at most
   0.25 s: it died, hangs or starves) puts every arm in FAULT ("robot process not answering:
   ..."); an arm whose published state holds a NaN or an infinity is in FAULT ("robot state
   non-finite: q, T_meas (arm 0)") and its state is not taken. Either FAULT is latched in the
