@@ -16,7 +16,7 @@ the machine:
 """
 from __future__ import annotations
 
-from . import dynamic_scenes as ds
+from pointfence.service import dynamic_scenes as ds
 
 
 def add_arguments(p):

@@ -6,7 +6,9 @@ sleeps with ``time.sleep`` until ``spin_s`` before the deadline and spins on
 interpreter lock, every other thread of the service (frame ingest, camera readers, UDP) forces
 it to hand the lock over, and the loop then waits to get it back at its deadline (measured:
 lateness p99 4.7 ms spinning 0.4 ms, 0.4 ms not spinning, with a frame build running; a
-SCHED_FIFO loop thread wakes within tens of microseconds from ``time.sleep``). ``FakeClock``
+SCHED_FIFO loop thread wakes within tens of microseconds from ``time.sleep``); with
+``spin_yield`` the spin calls ``time.sleep(0)`` each turn, handing the lock to any thread that
+wants it (the cable controller's choice, ``cable/controller.py``). ``FakeClock``
 never sleeps: ``sleep_until`` jumps to the deadline and ``advance(dt)`` lets a test (or a
 simulated slow component) make time pass inside a tick, so deadline accounting can be checked
 exactly.
@@ -17,12 +19,14 @@ import time
 
 
 class RealClock:
-    """``time.perf_counter``; ``sleep_until`` sleeps, then spins for the last ``spin_s`` seconds."""
+    """``time.perf_counter``; ``sleep_until`` sleeps, then spins for the last ``spin_s`` seconds
+    (yielding the interpreter lock each turn with ``spin_yield``)."""
 
     simulated = False
 
-    def __init__(self, spin_s: float = 0.00006):
+    def __init__(self, spin_s: float = 0.00006, spin_yield: bool = False):
         self.spin_s = float(spin_s)
+        self.spin_yield = bool(spin_yield)
 
     @staticmethod
     def now() -> float:
@@ -33,8 +37,12 @@ class RealClock:
         rest = t - pc() - self.spin_s
         if rest > 0:
             time.sleep(rest)
-        while pc() < t:
-            pass
+        if self.spin_yield:
+            while pc() < t:
+                time.sleep(0)
+        else:
+            while pc() < t:
+                pass
 
 
 class FakeClock:

@@ -1,5 +1,5 @@
 """The chapter-6 part of ``pointfence demo``: moving surfaces, the tool's shadow, the self-filter
-(simulated clock: 30 Hz synthetic frames, 1 kHz ticks; the scenarios of bench/dynamic_scenes.py).
+(simulated clock: 30 Hz synthetic frames, 1 kHz ticks; the scenarios of service/dynamic_scenes.py).
 
 ``pointfence demo`` runs it after the chapter-2 probes (``--no-dynamic`` skips it); its figures
 go into the report's table.md / table.json (``report.dynamic_rows``). Besides the kernel-level
@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pointfence.bench import dynamic_scenes as ds
+from . import dynamic_scenes as ds
 
 #: the service-level run: a plane rising at ``speed`` through z = -0.1 m at t = 0 under a 160x120
 #: camera 0.5 m above it, all protected by a 2 cm fixture; architecture III with an ideal robot

@@ -1,13 +1,16 @@
 """The 1 kHz haptic loop: absolute-deadline scheduling, per-tick timing, deadline misses.
 
-Tick k is due at ``t0 + k * period`` (absolute deadlines: no drift however long the ticks
-take). The loop sleeps until the deadline (``clock.sleep_until``), runs ``target.tick`` and
-measures, into preallocated ring buffers, the tick's lateness (start - deadline) and compute
-time (end - start). A tick that ends after its period is a deadline miss; if the loop falls
-whole periods behind, those periods are skipped (not run in a burst), counted as misses, and
-the next tick advances the simulation by the elapsed time (``dt`` = periods x period). A tick
-that starts more than ``max_lateness_s`` late is an overrun: the target is told, and goes into
-its degraded mode (force ramps to zero, robot holds).
+The schedule is a ``periodic.PeriodicLoop`` (its docstring has the one policy every loop of
+pointfence follows): tick k is due at ``t0 + k * period`` (absolute deadlines: no drift however
+long the ticks take); the loop sleeps until the deadline (``clock.sleep_until``), runs
+``target.tick`` and measures, into preallocated ring buffers, the tick's lateness (start -
+deadline) and compute time (end - start). A tick that ends after its period is a deadline miss;
+if the loop falls whole periods behind, those periods are skipped (not run in a burst), counted
+as misses, and the next tick advances the simulation by the elapsed time (``dt`` = periods x
+period). A tick that starts more than ``max_lateness_s`` late is an overrun: the target is told,
+and goes into its degraded mode (force ramps to zero, robot holds). This module adds what is the
+haptic loop's own: the target's error handling, the tick watchdog, the interpreter lock's switch
+interval, the frame threads' gate and the loop thread's scheduling.
 
 A tick that stalls (a hung kernel call) is seen from outside: running in its own thread, the
 loop starts a ``watchdog.TickWatchdog`` (limit ``watchdog_s``, default ``max_lateness_s``) that
@@ -52,8 +55,7 @@ from pointfence.kernels import yielding
 
 from .clock import RealClock
 from .osthread import name_this_thread
-
-RING = 1 << 16
+from .periodic import RING, PeriodicLoop
 
 
 @dataclass(frozen=True)
@@ -82,33 +84,31 @@ class LoopTiming:
 
 
 class HapticLoop:
-    """Runs ``target``'s ticks at ``rate_hz`` on ``clock`` (see the module docstring)."""
+    """Runs ``target``'s ticks at ``rate_hz`` on ``clock`` (see the module docstring).
+
+    The schedule and its accounting are ``periodic`` (a ``PeriodicLoop``); ``period``, ``t0``,
+    ``k`` (the next period), ``ticks``, ``misses``, ``overruns`` and the ``late`` and ``compute``
+    rings (s) are its. ``tick_us`` (a ring, us) is each tick's wall-clock time
+    (``time.perf_counter``, whatever the clock: on a ``FakeClock`` the rings hold simulated time).
+    """
 
     def __init__(self, target, clock=None, rate_hz: float = 1000.0, max_lateness_s: float = 0.003,
                  switch_interval_s: Optional[float] = 0.0001, rt_priority: int = 0,
                  tick_switch_s: float = 0.005, cooperate: bool = True, watchdog_s: Optional[float] = None):
         self.target = target
         self.clock = clock if clock is not None else RealClock()
-        self.period = 1.0 / float(rate_hz)
         self.max_lateness = float(max_lateness_s)
+        self.periodic = PeriodicLoop(1.0 / float(rate_hz), self.clock, max_lateness_s=self.max_lateness)
+        self.period = self.periodic.period
         self.switch_interval_s = switch_interval_s
         self.tick_switch_s = float(tick_switch_s)
         self.cooperate = bool(cooperate)
         #: the frame threads' gate while the loop runs in its own thread (None otherwise)
         self.gate: Optional[yielding.Gate] = None
         self._threaded = False
-        self.compute = np.zeros(RING)
-        self.late = np.zeros(RING)
         self.tick_us = np.zeros(RING)   # wall-clock compute (perf_counter), whatever the clock
-        self.ticks = 0                  # ticks run
-        self.k = 0                      # next period index
-        self._k_prev = -1
-        self.misses = 0
-        self.overruns = 0
-        self.t0: Optional[float] = None
         self.error: Optional[str] = None
         self.errors = 0
-        self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._saved_switch = None
         self._note = getattr(target, "note_tick_us", None)
@@ -119,6 +119,36 @@ class HapticLoop:
         self.watchdog_s = self.max_lateness if watchdog_s is None else float(watchdog_s)
         self.watchdog = None
 
+    # --- the schedule's accounting (PeriodicLoop's) ---------------------------------------------
+    @property
+    def t0(self) -> Optional[float]:
+        return self.periodic.t0
+
+    @property
+    def k(self) -> int:
+        """Index of the next period."""
+        return self.periodic.k
+
+    @property
+    def ticks(self) -> int:
+        return self.periodic.ticks
+
+    @property
+    def misses(self) -> int:
+        return self.periodic.misses
+
+    @property
+    def overruns(self) -> int:
+        return self.periodic.overruns
+
+    @property
+    def compute(self) -> np.ndarray:
+        return self.periodic.compute
+
+    @property
+    def late(self) -> np.ndarray:
+        return self.periodic.late
+
     # --- one tick ---------------------------------------------------------------------------------
     def run_ticks(self, n: int) -> None:
         """Run ``n`` ticks in the calling thread (tests, replays on a simulated clock)."""
@@ -126,32 +156,19 @@ class HapticLoop:
             self._one()
 
     def _one(self) -> None:
-        clock, P = self.clock, self.period
-        if self.t0 is None:
-            self.t0 = clock.now()
-        due = self.t0 + self.k * P
-        clock.sleep_until(due)
+        sched = self.periodic
+        k = sched.begin()
         gate = self.gate
         if gate is not None:
             gate.busy = True
         if self._threaded:
             sys.setswitchinterval(self.tick_switch_s)
-        start = clock.now()
         w0 = time.perf_counter()
-        late = start - due
-        if late >= P:                     # whole periods lost: skip them, they are misses
-            skip = int(late // P)
-            self.misses += skip
-            self.k += skip
-        k = self.k
-        dt = P if self._k_prev < 0 else (k - self._k_prev) * P
-        overrun = late > self.max_lateness
-        if overrun:
-            self.overruns += 1
+        start, dt, P = sched.started, sched.dt, self.period
         self.tick_started = start
         try:
             if self.error is None:
-                self.target.tick(k, k * P, dt, overrun, start)
+                self.target.tick(k, k * P, dt, sched.overrun, start)
             else:
                 self.target.safe_tick(k, k * P, dt, start)
         except Exception as e:  # surfaced in status(); the next ticks run safe_tick
@@ -163,23 +180,16 @@ class HapticLoop:
             except Exception as e2:
                 self.error += f"; safe_tick failed too: {type(e2).__name__}: {e2}"
         self.tick_started = None
-        end = clock.now()
+        i = sched.ticks & (RING - 1)
+        sched.end()
         if self._threaded:
             sys.setswitchinterval(self.switch_interval_s)
-        i = self.ticks & (RING - 1)
-        self.compute[i] = end - start
-        self.late[i] = late
         us = (time.perf_counter() - w0) * 1e6
         self.tick_us[i] = us
         if self._note is not None:
             self._note(us)
-        if end > self.t0 + (k + 1) * P:
-            self.misses += 1
-        self.ticks += 1
-        self._k_prev = k
-        self.k = k + 1
         if gate is not None:
-            gate.next_due = self.t0 + self.k * P
+            gate.next_due = sched.deadline(sched.k)
             gate.busy = False
 
     def clear_error(self) -> None:
@@ -190,7 +200,7 @@ class HapticLoop:
         """Run the loop in its own thread until ``stop()``."""
         if self._thread is not None:
             return
-        self._stop.clear()
+        self.periodic.rearm()
         if self.switch_interval_s:
             self._saved_switch = sys.getswitchinterval()
             sys.setswitchinterval(self.switch_interval_s)  # the loop waits less for the GIL
@@ -216,14 +226,14 @@ class HapticLoop:
                 self.scheduling = f"SCHED_FIFO {self.rt_priority}"
             except (AttributeError, OSError) as e:
                 self.scheduling = f"normal (SCHED_FIFO refused: {e})"
-        while not self._stop.is_set():
+        while not self.periodic.stopping:
             self._one()
 
     def stop(self) -> None:
         if self.watchdog is not None:
             self.watchdog.stop()
             self.watchdog = None
-        self._stop.set()
+        self.periodic.stop()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
@@ -247,13 +257,11 @@ class HapticLoop:
 
     def timing(self, since: tuple = (0, 0, 0, 0)) -> LoopTiming:
         t0, k0, m0, o0 = since
-        lo = max(t0, self.ticks - RING)
-        n = self.ticks - lo
-        if n <= 0:
+        late, comp = self.periodic.recent(t0)
+        if late.size == 0:
             return LoopTiming(0, 0, 0, 0, *([0.0] * 6))
-        idx = np.arange(lo, self.ticks) & (RING - 1)
-        c = self.compute[idx] * 1e6
-        lt = self.late[idx] * 1e6
+        c = comp * 1e6
+        lt = late * 1e6
         p = np.percentile
         return LoopTiming(self.ticks - t0, self.k - k0, self.misses - m0, self.overruns - o0,
                           float(p(c, 50)), float(p(c, 99)), float(c.max()),

@@ -30,10 +30,12 @@ from .robot.tool import ToolModel, tool_capsules
 
 
 def _joints_into(robot, out: np.ndarray) -> None:
-    q = getattr(robot, "_q", None)   # the robot's measured joints, a list of floats (robot/base.py)
-    if q is None:
+    fill = getattr(robot, "measured_jp_into", None)   # the robot's measured joints (robot/base.py)
+    if fill is not None:
+        fill(out)
+    else:
         q = robot.measured_js().position
-    out[: len(q)] = q
+        out[: len(q)] = q
 
 
 class ToolPoseRing:

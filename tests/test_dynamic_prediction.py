@@ -3,7 +3,7 @@ between snapshots, fixtures placed where the surface is at the tick, the same in
 import numpy as np
 import pytest
 
-from pointfence.bench.dynamic_scenes import plane_scene, popthrough_speed, run_plane
+from pointfence.service.dynamic_scenes import plane_scene, popthrough_speed, run_plane
 from pointfence.kernels import DepthFrame, InputError
 from pointfence.kernels.haptics import HapticParams
 from pointfence.kernels.motion import MotionModel

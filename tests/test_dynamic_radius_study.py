@@ -1,5 +1,5 @@
 """Adaptive vs fixed fixture radius (dissertation 6.3): the safety / submittance trade-off."""
-from pointfence.bench.dynamic_scenes import radius_run, write_radius_study
+from pointfence.service.dynamic_scenes import radius_run, write_radius_study
 
 
 def test_adaptive_radius_trades_submittance_for_safety(tmp_path):

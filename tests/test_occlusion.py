@@ -1,6 +1,6 @@
 """Occlusion by the robot's own tool (dissertation 6.4, fig. 3.8's shadow): one camera above
 loses the protected surface under the tool; a second camera fills the shadow."""
-from pointfence.bench.dynamic_scenes import occlusion_run
+from pointfence.service.dynamic_scenes import occlusion_run
 
 
 def test_second_camera_keeps_architecture_III_within_1mm_and_one_camera_fails():

@@ -27,14 +27,17 @@ def host():
     h.close()
 
 
-def tick(host, n=1, period=1e-3):
+def tick(host, n=1, period=1e-3, order=None):
+    """``n`` ticks of the service: every arm steps once a tick (in index order, or ``order``)."""
     for _ in range(n):
-        for r in host.robots:
-            r.step(period)
+        for i in (order if order is not None else range(len(host.robots))):
+            host.robots[i].step(period)
         time.sleep(period)
 
 
-def test_hosted_arm_follows_a_setpoint_stream_like_the_arm_in_the_tick(host):
+@pytest.mark.parametrize("order", [None, [1, 0]], ids=["index-order", "reverse-order"])
+def test_hosted_arm_follows_a_setpoint_stream_like_the_arm_in_the_tick(host, order):
+    """The same in any order of the arms' steps within a tick."""
     local = robot_from_config(TABLE)            # the same model stepped in this process
     a, b = host.robots
     x0 = a.measured_cp()[:3, 3].copy()
@@ -47,15 +50,16 @@ def test_hosted_arm_follows_a_setpoint_stream_like_the_arm_in_the_tick(host):
         a.servo_cp(x)
         local.servo_cp(x)
         local.step(1e-3)
-        tick(host)
-    tick(host, 300)
+        tick(host, order=order)
+    tick(host, 300, order=order)
     local.step(0.3)
     got = a.measured_cp()[:3, 3]
     assert np.linalg.norm(got - target) < 2e-4 and np.linalg.norm(local.measured_cp()[:3, 3] - target) < 2e-4
     np.testing.assert_allclose(a.setpoint_cp()[:3, 3], target, atol=1e-12)
     assert np.linalg.norm(b.measured_cp()[:3, 3] - x0) < 1e-4      # the other arm was never commanded
     assert a.state is RobotMode.ENABLED and a.rejected_commands == 0
-    q = np.array(a._q)                            # the joints the self-filter reads: the child's
+    q = np.zeros(6)
+    a.measured_jp_into(q)                         # the joints the self-filter reads: the child's
     np.testing.assert_allclose(a.forward_kinematics(q)[:3, 3], got, atol=1e-9)
     assert a.measured_js().position.shape == (6,)
 
@@ -83,10 +87,10 @@ def test_bad_setpoints_are_refused_here_and_never_reach_the_robot(host, bad, mes
     a = host.robots[0]
     a.resume()
     x0, s0 = a.measured_cp()[:3, 3].copy(), a.setpoint_cp()[:3, 3].copy()
-    sent = a._host._cmd[0, 0]
+    sent = host.sent(0)[0]
     with pytest.raises(InputError, match=message):
         a.servo_cp(bad)
-    assert a._host._cmd[0, 0] == sent and a.rejected_commands == 1
+    assert host.sent(0)[0] == sent and a.rejected_commands == 1
     tick(host, 50)
     np.testing.assert_allclose(a.setpoint_cp()[:3, 3], s0, atol=1e-12)
     assert np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4 and a.rejected_commands == 1
@@ -128,7 +132,7 @@ def test_a_dead_robot_process_reads_as_fault_and_cannot_be_enabled(host):
 
 def test_close_ends_the_process_and_frees_the_shared_memory():
     h = RobotHost([TABLE])
-    pid, name = h._proc.pid, h._shm.name
+    pid, name = h.pid, h._shm.name
     h.close()
     h.close()
     assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
@@ -157,7 +161,7 @@ def test_live_run_hosts_the_arms_and_architecture_iii_keeps_them_out(tmp_path):
     xr = rec.robots[: rec.count, 0, :3]
     assert xr[:, 2].min() > REGION_TOP - 0.001       # held out of the fixture (1 mm)
     assert xr[0, 2] - xr[:, 2].min() > 0.005           # and it did move down towards it
-    assert run.robot_host._proc is None               # stop() ended the robot process
+    assert run.robot_host.pid is None                 # stop() ended the robot process
     assert run.service.status()["robots"][0]["process"] == "own"
 
 

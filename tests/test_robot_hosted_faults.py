@@ -80,8 +80,8 @@ def test_nan_state_faults_the_arm_and_a_faulted_arm_never_moves(host):
     assert b.state is RobotMode.ENABLED and b.fault_reason is None    # the other arm is healthy
     assert np.isfinite(a.measured_cp()).all() and np.isfinite(a.measured_js().position).all()
     # faulted: a setpoint is not sent, the child was told to brake
-    sent = host._cmd[0, 0]
-    assert a.servo_cp(x0 + [0.01, 0.0, 0.0]) is False and host._cmd[0, 0] == sent
+    sent = host.sent(0)[0]
+    assert a.servo_cp(x0 + [0.01, 0.0, 0.0]) is False and host.sent(0)[0] == sent
     np.testing.assert_allclose(a.setpoint_cp()[:3, 3], s0, atol=1e-12)
     a.enable()                                          # still NaN: refused, says why
     assert a.state is RobotMode.FAULT and "non-finite" in a.last_error

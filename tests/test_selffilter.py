@@ -3,7 +3,7 @@ the rest of the scene stays."""
 import numpy as np
 import pytest
 
-from pointfence.bench.dynamic_scenes import self_filter_ratio
+from pointfence.service.dynamic_scenes import self_filter_ratio
 from pointfence.kernels import DepthFrame, InputError
 from pointfence.kernels.selffilter import Capsule, SelfFilter, segment_distance
 from pointfence.service.robot import make_robot

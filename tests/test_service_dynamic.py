@@ -152,6 +152,9 @@ class _Joints:
     def __init__(self):
         self._q = [0.0, 0.0]
 
+    def measured_jp_into(self, out):      # what the ring reads (robot/base.py)
+        out[: self.dof] = self._q
+
 
 def test_tool_pose_ring_interpolates_and_wraps():
     r = _Joints()

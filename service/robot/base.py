@@ -275,6 +275,11 @@ class Robot(ABC):
         """The tool-tip position (3,) of :meth:`measured_cp`."""
         return self.measured_cp()[:3, 3].copy()
 
+    def measured_jp_into(self, out: np.ndarray) -> None:
+        """Write the measured joint positions (rad or m) into ``out[:dof]`` (allocates nothing:
+        the self-filter's tool pose ring reads them every tick)."""
+        out[: self.dof] = self._q
+
     def measured_js(self) -> JointState:
         return JointState(self.joint_names, np.array(self._q), np.array(self._dq), np.array(self._tau))
 
@@ -337,8 +342,9 @@ class Robot(ABC):
             self._reject(f"{what}: joint {self.joint_names[i]!r} = {q[i]:.6g} is outside its limits "
                          f"[{self._lower[i]:.6g}, {self._upper[i]:.6g}] (q = {_fmt(q)})")
 
-    def _setpoint_pose(self, T, out: Optional[np.ndarray] = None) -> np.ndarray:
-        """The world pose a ``servo_cp`` argument asks for: ``T`` itself (4x4), or the setpoint
+    def checked_setpoint(self, T, out: Optional[np.ndarray] = None) -> np.ndarray:
+        """The world pose a ``servo_cp`` argument asks for (what a robot in another process checks
+        before it sends a setpoint, robot/hosted.py): ``T`` itself (4x4), or the setpoint
         pose moved to the position ``T`` (3,), written into ``out`` (4x4) when given. Raises
         InputError, counted as a rejected command, on a malformed or non-finite value or a
         position outside the workspace."""
@@ -368,7 +374,7 @@ class Robot(ABC):
         """Stream a Cartesian setpoint: a 4x4 world pose, or a position (3,) keeping the current
         setpoint orientation. Returns True when applied, False when ignored (HOLDING or FAULT).
         Raises InputError (and changes nothing) on a bad or unreachable pose."""
-        pose = self._setpoint_pose(T)
+        pose = self.checked_setpoint(T)
         try:
             q = self._ik(pose if self._identity_mount else self._T_base_world @ pose, self._q_d)
         except InputError as e:

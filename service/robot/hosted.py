@@ -5,9 +5,10 @@ its own rate while the haptic service streams setpoints and reads the measured s
 ``RobotHost`` does the same for the simulated models of live runs: a child process builds the
 arms from the ``[robot]`` table and steps them on absolute 1 kHz deadlines; shared memory
 carries the service's commands one way and the measured state the other. In the service each
-arm is a ``HostedRobot``: a local instance of the same model (kinematics, limits, workspace,
-tool geometry) whose state is copied from the child once per tick (``step``), and whose
-commands go to the child. A haptic tick then spends about 15 us per arm instead of the
+arm is a ``HostedRobot``: the robot interface the service and the self-filter use, spelt out
+(nothing is forwarded implicitly), over a local instance of the same model (kinematics, limits,
+workspace, tool geometry) whose state the arm's ``step`` takes from the child, and whose commands
+go to the child. A haptic tick then spends about 15 us per arm instead of the
 simulation's 70 us (closed-form IK, joint PID, forward kinematics, all in Python), and the
 simulation runs on another core, without the interpreter lock of the service's process.
 
@@ -21,8 +22,8 @@ the tick and is deterministic):
   an in-process rejection);
   malformed or non-finite setpoints and workspace violations are refused at once, before they
   reach the child;
-* a watchdog runs in every ``sync`` (each tick), whatever the state record holds: a child that
-  stops stepping, or whose record does not read, for ``timeout_s`` (default 20 ms, at most
+* a watchdog runs at every read of the child's record (each tick), whatever the record holds:
+  a child that stops stepping, or whose record does not read, for ``timeout_s`` (default 50 ms, at most
   0.25 s: it died, hangs or starves) puts every arm in FAULT ("robot process not answering:
   ..."); an arm whose published state holds a NaN or an infinity is in FAULT ("robot state
   non-finite: q, T_meas (arm 0)") and its state is not taken. Either FAULT is latched in the
@@ -34,12 +35,21 @@ the tick and is deterministic):
   (NaN off, SIGCONT); ``RobotHost.restart()`` starts a new process after a death, at the
   arms' last joints; ``close`` ends the child.
 
+Each arm's ``step(dt)`` is its own and right in any call order: it sends every setpoint queued so
+far (this arm's among them) and takes this arm's state from the newest read of the child's
+record; the record is read again (with the watchdog) whenever an arm steps that has already
+taken the last read, so a tick that steps every arm once, in any order, reads it once, and an arm
+stepped alone still reads it every time.
+
+The child ticks on a ``periodic.PeriodicLoop`` (absolute 1 kHz deadlines; periods lost are
+skipped and the next step covers them: ``dt`` = elapsed periods; its heartbeat counts periods).
 State and commands cross through one shared-memory block (robot/hosted_block.py: the layout,
-defined once for both sides), each direction a double-buffered channel (sequence counters and
-a CRC-32 of the bytes per slot): neither side ever waits for
-the other, so the haptic tick never waits for a preempted robot process, nor the robot for the
-service. The child is started as ``python -m pointfence.service.robot.hosted`` (nothing of the
-parent's program is imported again) and ends when its parent does.
+declared once as NumPy dtypes from which both sides take every region and field), each direction
+a double-buffered channel (sequence counters and a CRC-32 of the bytes per slot): neither side
+ever waits for the other, so the haptic tick never waits for a preempted robot process, nor the
+robot for the service. The child is robot/hosted_child.py, started as ``python -m
+pointfence.service.robot.hosted_child`` (nothing of the parent's program is imported again); it
+ends when its parent does.
 """
 from __future__ import annotations
 
@@ -57,10 +67,9 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
-from .base import RobotMode
+from .base import JointState, RobotMode, RobotState
 from .factory import robot_from_config
-from .hosted_block import (CTL_PID, CTL_READY, CTL_STOP, CTL_TICKS, ENABLE, FAULT, HOLD, INJECT_NAN, INJECT_NONE,
-                           POISONED, RESUME, RING, TEXT, Block, command_views, get_text, put_text)
+from .hosted_block import ENABLE, FAULT, HOLD, INJECT_NAN, INJECT_NONE, RESUME, RING, Block, Commands, get_text
 
 LOST = "robot process not answering"
 NONFINITE = "robot state non-finite"
@@ -83,103 +92,6 @@ def _plain(o):
     raise TypeError(f"[robot] value {o!r} ({type(o).__name__}) cannot be sent to the robot process")
 
 
-def _write_state(L, row: np.ndarray, text: np.ndarray, r, applied: tuple, texts: list, poison: bool) -> None:
-    """Arm ``r``'s state into its state ``row`` (layout ``L``; and ``text``, where a message
-    changed); ``poison``: the fields ``POISONED`` as NaN (fault injection)."""
-    row[L.t], row[L.mode], row[L.rejected], row[L.ignored] = r.t, int(r.state), r.rejected_commands, r.ignored_commands
-    row[L.servo_seq], row[L.mode_seq] = applied
-    fault, err = r.fault_reason, r.last_error
-    if fault != texts[0]:
-        texts[0] = fault
-        put_text(text[0], fault)
-        row[L.fault_ver] += 1
-    if err != texts[1]:
-        texts[1] = err
-        put_text(text[1], err)
-        row[L.error_ver] += 1
-    r.copy_state(row[L.q], row[L.dq], row[L.tau], row[L.q_d], row[L.T_meas], row[L.T_d])
-    if poison:
-        for name in POISONED:
-            row[getattr(L, name)] = math.nan
-
-
-def _child(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: int, parent: int,
-           start_q: Optional[list] = None) -> None:
-    """The child process: build the arms (placed at ``start_q``, one joint list or None per arm,
-    after a restart), then step them on absolute deadlines until told to stop (or until the
-    parent is gone)."""
-    shm = shared_memory.SharedMemory(name=shm_name)
-    try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:
-        pass
-    try:
-        blk = Block(shm.buf, len(tables), dof)
-        L = blk.layout
-        robots = [robot_from_config(t) for t in tables]
-        for r, q in zip(robots, start_q or []):
-            if q is not None:                # (within the limits: a joint read at a limit may lie past it by rounding)
-                r.reset(np.clip(q, *r.joint_limits))
-        if rt_priority > 0:
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(rt_priority)))
-            except (AttributeError, OSError):
-                pass
-        seen = [[0, 0] for _ in robots]        # servo seq and mode commands applied
-        texts = [[None, None] for _ in robots]
-        period = 1.0 / rate_hz
-        n = len(robots)
-        state = np.zeros((n, blk.S))
-        rec = np.zeros(blk.C)
-        cmds, poses, ring = command_views(rec, n)
-
-        def publish():
-            for b, r in enumerate(robots):
-                _write_state(L, state[b], blk.text[b], r, tuple(seen[b]), texts[b], blk.inject[b] == INJECT_NAN)
-            blk.state.write(state.reshape(-1))
-
-        publish()
-        blk.ctl[CTL_PID] = os.getpid()
-        blk.ctl[CTL_READY] = 1
-        t0 = time.monotonic()
-        k = 0
-        while blk.ctl[CTL_STOP] == 0 and os.getppid() == parent:
-            due = t0 + k * period
-            delay = due - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            late = time.monotonic() - due
-            skip = int(late // period) if late >= period else 0   # periods lost: step them at once
-            got = blk.cmd.read(rec)          # else (lapped) this period keeps the last commands
-            for b, r in enumerate(robots):
-                n_mode = int(cmds[b, 1]) if got else seen[b][1]
-                while seen[b][1] < n_mode:
-                    code = int(ring[b, seen[b][1] % RING])
-                    if code == HOLD:
-                        r.hold()
-                    elif code == RESUME:
-                        r.resume()
-                    elif code == ENABLE:
-                        r.enable()
-                    elif code == FAULT:
-                        r.fault("fault requested by the service")
-                    seen[b][1] += 1
-                if got and cmds[b, 0] != seen[b][0]:
-                    seen[b][0] = int(cmds[b, 0])
-                    try:
-                        r.servo_cp(poses[b].reshape(4, 4))
-                    except InputError:
-                        pass            # counted in rejected_commands, kept in last_error
-                r.step(period * (1 + skip))
-            publish()
-            blk.ctl[CTL_TICKS] += 1 + skip
-            k += 1 + skip
-    finally:
-        shm.close()
-
-
 class RobotHost:
     """Robots built from ``tables`` (one ``[robot]`` table per arm) in a child process.
 
@@ -193,6 +105,9 @@ class RobotHost:
     Faults, for tests and fault-injection benchmarks: ``inject(kind, arm)``; after a ``kill``,
     ``restart()`` starts a new robot process at the arms' last joints (they stay in FAULT until
     ``enable()``).
+
+    The arms' side (``HostedRobot`` calls these): ``step_arm(b)``, ``stage_pose(b, pose)``,
+    ``send_mode(b, code)``, ``ready(b)``.
     """
 
     def __init__(self, tables: Sequence[dict], rate_hz: float = 1000.0, rt_priority: int = 0,
@@ -214,30 +129,30 @@ class RobotHost:
         self._shm = shared_memory.SharedMemory(create=True, size=Block.nbytes(self.n, dof))
         self._blk = Block(self._shm.buf, self.n, dof)   # a new shared memory object reads as zeros
         self._L = self._blk.layout
-        self._buf = np.zeros((self.n, self._blk.S))
+        self._buf = np.zeros((self.n, self._blk.S))      # the last state record read
         self._sum = np.zeros(self.n)
         self._finite = [True] * self.n
-        self._rec = np.zeros(self._blk.C)          # the commands written so far (this side's copy)
-        self._cmd, self._poses, self._ring = command_views(self._rec, self.n)
-        self._texts_buf = np.zeros((self.n, 2, TEXT), np.uint8)
+        self._got = False                                # whether the last read succeeded
+        self._taken = [True] * self.n                    # arm b has taken the last read
+        self._cmds = Commands(self.n)                    # the commands written so far (this side's copy)
         self._spawn(None)
         self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
         self.sync()
 
     def _spawn(self, start_q: Optional[list]) -> None:
         """Start the child on a zeroed block and wait until it has built the arms."""
-        np.ndarray((self._blk.size,), np.uint8, buffer=self._shm.buf)[:] = 0   # no command of a previous child
-        self._rec[:] = 0
+        self._blk.raw[:] = 0                       # no command of a previous child
+        self._cmds.rec[:] = 0
         self._staged = False
         self._versions = [(0.0, 0.0)] * self.n
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
         # the parent's main module imported again, as multiprocessing's spawn would)
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "pointfence.service.robot.hosted", self._shm.name,
+            [sys.executable, "-m", "pointfence.service.robot.hosted_child", self._shm.name,
              json.dumps(self._tables, default=_plain), str(self.dof), repr(self._rate), str(self._prio),
              str(os.getpid()), json.dumps(start_q)], stdin=subprocess.DEVNULL)
         end = time.monotonic() + self._start_timeout
-        while self._blk.ctl[CTL_READY] == 0:
+        while int(self._blk.ctl["ready"]) == 0:
             if self._proc.poll() is not None or time.monotonic() > end:
                 code = self._proc.poll()
                 self.close()
@@ -250,42 +165,62 @@ class RobotHost:
 
     # --- service side ---------------------------------------------------------------------------
     def sync(self) -> None:
-        """Copy the child's latest state into every arm's local instance (one copy for all arms),
-        after the watchdog: a child that has not stepped, or whose state record has not read,
-        for ``timeout_s`` faults every arm; an arm whose state is not finite faults."""
+        """Read the child's latest state (after the watchdog) and give every arm its row."""
+        self._read()
+        for b in range(self.n):
+            self._give(b)
+
+    def step_arm(self, b: int) -> None:
+        """Arm ``b``'s step: send every queued setpoint, read the child's record again if this arm
+        has taken the last read (else the read of this tick, by an arm stepped before it), and
+        give the arm its row. Right in any order of the arms' steps (module docstring)."""
+        self.publish()
+        if self._taken[b]:
+            self._read()
+        self._give(b)
+
+    def _read(self) -> None:
+        """Read the state record, after the watchdog: a child that has not stepped, or whose state
+        record has not read, for ``timeout_s`` faults every arm; an arm whose state is not finite
+        faults. Every arm may take this read once (``_give``)."""
         blk, buf, L = self._blk, self._buf, self._L
+        self._taken = [False] * self.n
         if blk is None:                    # closed: the arms keep their last state
+            self._got = False
             return
         now = time.monotonic()
-        ticks = int(blk.ctl[CTL_TICKS])
+        ticks = int(blk.ctl["ticks"])
         if ticks != self._ticks:
             self._ticks, self._ticks_at = ticks, now
-        got = blk.state.read(buf.reshape(-1))
+        got = self._got = blk.state.read(buf.reshape(-1))
         if got:
             self._read_at = now
         silent, unread = now - self._ticks_at, now - self._read_at
         self._alive = silent <= self.timeout_s and unread <= self.timeout_s
         if not self._alive and not all(r.latched for r in self.robots):
             self._lost(silent, unread)
-        if not got:            return                         # lapped (this thread was preempted): next tick
+        if not got:                        # lapped (this thread was preempted): the next read
+            return
         np.sum(buf, axis=1, out=self._sum)
         for b in range(self.n):
             ok = math.isfinite(self._sum[b])
             self._finite[b] = ok
             if not ok:
                 if not self.robots[b].latched:
-                    self.robots[b]._fail(f"{NONFINITE}: {', '.join(L.nonfinite_fields(buf[b]))} (arm {b})")
+                    self.robots[b].latch_fault(f"{NONFINITE}: {', '.join(L.nonfinite_fields(buf[b]))} (arm {b})")
                 continue
             v = (buf[b, L.fault_ver], buf[b, L.error_ver])
             if v != self._versions[b]:     # a fault reason or an error message changed
                 self._versions[b] = v
-                self.robots[b]._texts(get_text(blk.text[b, 0]), get_text(blk.text[b, 1]))
-        if not self._alive:
-            return
-        rows, sent = buf.tolist(), self._cmd.tolist()
-        for b, r in enumerate(self.robots):
-            if self._finite[b]:
-                r._load(rows[b], buf[b], sent[b])
+                self.robots[b].take_texts(get_text(blk.text[b, 0]), get_text(blk.text[b, 1]))
+
+    def _give(self, b: int) -> None:
+        """Arm ``b`` takes its row of the last read (where it read, the child answers and the row
+        is finite)."""
+        self._taken[b] = True
+        if self._got and self._alive and self._finite[b]:
+            c = self._cmds
+            self.robots[b].take_state(self._buf[b].tolist(), self._buf[b], int(c.servo_seq[b]), int(c.mode_seq[b]))
 
     def _lost(self, silent: float, unread: float) -> None:
         """Every arm FAULT: the child has not stepped for ``silent`` s, or its state record has not
@@ -296,7 +231,7 @@ class RobotHost:
         else:
             why = f"state record unreadable for {1e3 * unread:.0f} ms"
         for r in self.robots:
-            r._fail(f"{LOST}: {why}")
+            r.latch_fault(f"{LOST}: {why}")
 
     def ready(self, b: int) -> Optional[str]:
         """Why arm ``b`` cannot be enabled now (None: it can): the robot process must be running
@@ -308,6 +243,15 @@ class RobotHost:
         if not self._finite[b]:
             return f"{NONFINITE}: {', '.join(self._L.nonfinite_fields(self._buf[b]))} (arm {b})"
         return None
+
+    def sent(self, b: int) -> tuple:
+        """(setpoints, mode commands) sent to arm ``b`` so far."""
+        return int(self._cmds.servo_seq[b]), int(self._cmds.mode_seq[b])
+
+    @property
+    def pid(self) -> Optional[int]:
+        """The robot process's id (None: none runs)."""
+        return self._proc.pid if self._proc is not None else None
 
     def inject(self, kind: str, arm: Optional[int] = None) -> None:
         """Inject a robot fault (tests, ``pointfence bench soak``): ``"nan"``: the child publishes
@@ -342,7 +286,7 @@ class RobotHost:
         if self._proc is not None:
             if self._proc.poll() is None:
                 os.kill(self._proc.pid, signal.SIGCONT)
-                self._blk.ctl[CTL_STOP] = 1
+                self._blk.ctl["stop"] = 1
                 try:
                     self._proc.wait(timeout=2.0)
                 except subprocess.TimeoutExpired:
@@ -350,15 +294,15 @@ class RobotHost:
                     self._proc.wait(timeout=2.0)
         start_q = [r.measured_js().position.tolist() for r in self.robots]
         for r in self.robots:
-            r._fail(f"{LOST}: the robot process was restarted")
+            r.latch_fault(f"{LOST}: the robot process was restarted")
         self._spawn(start_q)
         for b in range(self.n):
-            self._send_mode(b, FAULT)      # the new process starts braked, as the arms read here
+            self.send_mode(b, FAULT)       # the new process starts braked, as the arms read here
 
-    def _stage_pose(self, b: int, pose: np.ndarray) -> None:
-        """Queue arm b's setpoint; ``publish`` sends every queued one at once."""
-        self._poses[b] = pose.ravel()
-        self._cmd[b, 0] += 1
+    def stage_pose(self, b: int, pose: np.ndarray) -> None:
+        """Queue arm b's setpoint (4x4 world); ``publish`` sends every queued one at once."""
+        self._cmds.pose[b] = pose.ravel()
+        self._cmds.servo_seq[b] += 1
         self._staged = True
 
     def publish(self) -> None:
@@ -366,23 +310,25 @@ class RobotHost:
         blk = self._blk
         if not self._staged or blk is None:
             return
-        blk.cmd.write(self._rec)
+        blk.cmd.write(self._cmds.rec)
         self._staged = False
 
-    def _send_mode(self, b: int, code: int) -> None:
-        """Send a mode command now (with any queued setpoints: they come first)."""
+    def send_mode(self, b: int, code: int) -> None:
+        """Send a mode command (``HOLD``, ``RESUME``, ``ENABLE``, ``FAULT``) now (with any queued
+        setpoints: they come first)."""
         blk = self._blk
         if blk is None:
             return
-        i = int(self._cmd[b, 1])
-        self._ring[b, i % RING] = code
-        self._cmd[b, 1] = i + 1
-        blk.cmd.write(self._rec)
+        c = self._cmds
+        i = int(c.mode_seq[b])
+        c.ring[b, i % RING] = code
+        c.mode_seq[b] = i + 1
+        blk.cmd.write(c.rec)
         self._staged = False
 
     @property
     def alive(self) -> bool:
-        """The robot process runs and stepped within the watchdog time (as of the last sync)."""
+        """The robot process runs and stepped within the watchdog time (as of the last read)."""
         return self._alive and self._proc is not None and self._proc.poll() is None
 
     def close(self) -> None:
@@ -392,7 +338,7 @@ class RobotHost:
             if proc.poll() is None:
                 os.kill(proc.pid, signal.SIGCONT)    # (a stalled child cannot see the stop request)
             if self._blk is not None:
-                self._blk.ctl[CTL_STOP] = 1
+                self._blk.ctl["stop"] = 1
             try:
                 proc.wait(timeout=2.0)
             except subprocess.TimeoutExpired:
@@ -418,65 +364,76 @@ class RobotHost:
 
 
 class HostedRobot:
-    """One arm of a ``RobotHost``: the robot interface the service uses (see robot/base.py).
+    """One arm of a ``RobotHost``: the robot interface the service and the self-filter use (the
+    ``robot/base.py`` interface, each member spelt out here; nothing else of the model is reached).
 
-    Reads (``state``, ``measured_cp``, ``setpoint_cp``, ``measured_js``, the joint lists, the
-    kinematics) come from a local instance of the model whose state ``step`` copies from the
-    child; commands (``servo_cp``, ``hold``, ``resume``, ``enable``, ``fault``) go to the child.
-    A FAULT of the robot process itself (silent, dead, non-finite state) is latched here: the
-    arm reads FAULT with that reason, sends nothing, and only ``enable()`` clears it, once
-    ``RobotHost.ready`` allows.
+    Geometry (``kin``, ``joint_limits``, ``workspace``, ``T_world_base``, ``home``, the
+    kinematics) is the local model's, which never changes. Reads (``t``, ``state``,
+    ``fault_reason``, ``measured_cp``, ``measured_js``, ``setpoint_cp`` ...) are the child's state
+    as of this arm's last ``step``. Commands (``servo_cp``, ``hold``, ``resume``, ``enable``,
+    ``fault``) go to the child. A FAULT of the robot process itself (silent, dead, non-finite
+    state) is latched here: the arm reads FAULT with that reason, sends nothing, and only
+    ``enable()`` clears it, once ``RobotHost.ready`` allows. ``rejected_commands`` and
+    ``ignored_commands`` count the child's and this side's (a setpoint refused or ignored here
+    never reaches the child).
     """
+
+    hosted = True
 
     def __init__(self, host: RobotHost, index: int, local):
         self._host, self._b, self._r = host, index, local
         self._L = host._L
+        self.model: str = local.model
+        self.dof: int = local.dof
+        self.joint_names: tuple = local.joint_names
+        self.control_period: float = local.control_period
         self._child_rejected = 0          # setpoints the child rejected (out of reach)
         self._rejected_seen = 0           # ... of which servo_cp has reported
         self._local_rejected = 0          # setpoints refused here (malformed, workspace)
+        self._child_ignored = 0           # commands the child ignored
+        self._local_ignored = 0           # setpoints not sent: the arm was not ENABLED here
+        self._last_error: Optional[str] = None
         self._latched: Optional[str] = None   # FAULT of the robot process (reason), until enable()
         self._pose = np.eye(4)
-        self.hosted = True
-
-    def __getattr__(self, name):          # everything not overridden: the synced local instance
-        return getattr(self._r, name)
 
     def __repr__(self) -> str:
-        proc = self._host._proc
-        return f"HostedRobot({self._r.model!r}, arm {self._b}, process {proc.pid if proc else None})"
+        return f"HostedRobot({self.model!r}, arm {self._b}, process {self._host.pid})"
 
-    # --- state from the child ---------------------------------------------------------------------
-    def _load(self, row: list, st: np.ndarray, sent: list) -> None:
-        """Take the child's state: ``row`` as floats, ``st`` the same as an array; ``sent``: the
-        setpoints and mode commands sent to this arm so far (counts)."""
-        r, L = self._r, self._L
-        if self._latched is not None:
-            return                         # latched until the host answers again and enable() is called
-        mode = _MODES[int(row[L.mode])] if row[L.mode_seq] >= sent[1] else None   # our mode commands applied
-        r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], st[L.T_meas], mode)
-        self._child_rejected = int(row[L.rejected])
-        r.rejected_commands = self._child_rejected + self._local_rejected
-        r.ignored_commands = int(row[L.ignored])
-        if row[L.servo_seq] >= sent[0]:    # else keep the setpoint just sent
-            r.adopt_setpoint(st[L.T_d], row[L.q_d])
-
-    def _texts(self, fault: Optional[str], err: Optional[str]) -> None:
-        self._r.adopt_texts(self._r.fault_reason if self._latched is not None else fault, err)
+    # --- geometry: the model's ------------------------------------------------------------------
+    @property
+    def kin(self):
+        """The model's kinematics object where it has one (Raven II: the instrument's axis for the
+        self-filter, robot/tool.py); None otherwise."""
+        return getattr(self._r, "kin", None)
 
     @property
-    def latched(self) -> bool:
-        """Whether the arm is in a FAULT of the robot process (cleared only by ``enable()``)."""
-        return self._latched is not None
+    def joint_limits(self) -> tuple:
+        return self._r.joint_limits
 
-    def _fail(self, why: str) -> None:
-        """Latch a FAULT of the robot process (the first reason stays) and brake the child's arm."""
-        if self._latched is not None:
-            return
-        self._latched = why
-        self._r.fault(why)                 # local copy: FAULT, joints stopped; servo_cp sends nothing
-        self._host._send_mode(self._b, FAULT)
+    @property
+    def workspace(self) -> Optional[tuple]:
+        return self._r.workspace
 
-    # --- the robot interface ------------------------------------------------------------------------
+    @property
+    def T_world_base(self) -> np.ndarray:
+        return self._r.T_world_base
+
+    @property
+    def home(self) -> np.ndarray:
+        return self._r.home
+
+    def forward_kinematics(self, q) -> np.ndarray:
+        return self._r.forward_kinematics(q)
+
+    def inverse_kinematics(self, T, seed=None) -> np.ndarray:
+        return self._r.inverse_kinematics(T, seed)
+
+    # --- state: the child's, as of this arm's last step ------------------------------------------
+    @property
+    def t(self) -> float:
+        """The child's time (s) of the state last taken."""
+        return self._r.t
+
     @property
     def state(self) -> RobotMode:
         return self._r.state
@@ -485,37 +442,101 @@ class HostedRobot:
     def fault_reason(self) -> Optional[str]:
         return self._r.fault_reason
 
+    @property
+    def last_error(self) -> Optional[str]:
+        return self._last_error
+
+    @property
+    def rejected_commands(self) -> int:
+        return self._child_rejected + self._local_rejected
+
+    @property
+    def ignored_commands(self) -> int:
+        return self._child_ignored + self._local_ignored
+
+    @property
+    def latched(self) -> bool:
+        """Whether the arm is in a FAULT of the robot process (cleared only by ``enable()``)."""
+        return self._latched is not None
+
+    def measured_cp(self, out: Optional[np.ndarray] = None) -> np.ndarray:
+        return self._r.measured_cp(out)
+
+    def measured_cp_position(self) -> np.ndarray:
+        return self._r.measured_cp_position()
+
+    def measured_jp_into(self, out: np.ndarray) -> None:
+        self._r.measured_jp_into(out)
+
+    def measured_js(self) -> JointState:
+        return self._r.measured_js()
+
+    def setpoint_cp(self, out: Optional[np.ndarray] = None) -> np.ndarray:
+        return self._r.setpoint_cp(out)
+
+    def setpoint_js(self) -> JointState:
+        return self._r.setpoint_js()
+
+    def read_state(self) -> RobotState:
+        st = self._r.read_state()
+        st.rejected_commands, st.ignored_commands, st.last_error = (self.rejected_commands, self.ignored_commands,
+                                                                    self._last_error)
+        return st
+
+    # --- RobotHost's calls ----------------------------------------------------------------------
+    def take_state(self, row: list, st: np.ndarray, servo_sent: int, modes_sent: int) -> None:
+        """Take the child's state row (``row`` as floats, ``st`` the same as an array), given the
+        setpoints and mode commands sent to this arm so far. Nothing while latched."""
+        r, L = self._r, self._L
+        if self._latched is not None:
+            return                         # latched until the host answers again and enable() is called
+        mode = _MODES[int(row[L.mode])] if row[L.mode_seq] >= modes_sent else None   # our mode commands applied
+        r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], st[L.T_meas], mode)
+        self._child_rejected = int(row[L.rejected])
+        self._child_ignored = int(row[L.ignored])
+        if row[L.servo_seq] >= servo_sent:  # else keep the setpoint just sent
+            r.adopt_setpoint(st[L.T_d], row[L.q_d])
+
+    def take_texts(self, fault: Optional[str], err: Optional[str]) -> None:
+        """Take the child's fault reason and last error (a latched reason stays)."""
+        self._r.adopt_texts(self._r.fault_reason if self._latched is not None else fault, err)
+        self._last_error = err
+
+    def latch_fault(self, why: str) -> None:
+        """Latch a FAULT of the robot process (the first reason stays) and brake the child's arm."""
+        if self._latched is not None:
+            return
+        self._latched = why
+        self._r.fault(why)                 # local copy: FAULT, joints stopped; servo_cp sends nothing
+        self._host.send_mode(self._b, FAULT)
+
+    # --- the robot interface: commands ----------------------------------------------------------
     def step(self, dt: float = 1e-3) -> None:
-        """The child steps on its own clock. The last arm's call of a tick sends every setpoint
-        queued in the tick; the first arm's call reads the child's latest state (all arms)."""
+        """The child steps on its own clock: this sends every setpoint queued so far and takes this
+        arm's newest state (``RobotHost.step_arm``). Right in any order of the arms' calls."""
         if not (dt > 0.0) or dt == math.inf:
             raise InputError(f"step: dt = {dt!r}; expected a finite number > 0")
-        host = self._host
-        if self._b == 0:
-            host.publish()                 # anything queued since the last arm's step
-            host.sync()
-        if self._b == host.n - 1:
-            host.publish()
+        self._host.step_arm(self._b)
 
     def servo_cp(self, T) -> bool:
         """Send a Cartesian setpoint (4x4 world pose, or a position (3,) with the setpoint's
-        orientation). Raises InputError, sending nothing, on a malformed or non-finite pose, a
-        workspace violation, or when the child rejected the previous setpoint (its message).
-        Returns False, sending nothing, unless the arm is ENABLED."""
+        orientation); it leaves at this arm's ``step``. Raises InputError, sending nothing, on a
+        malformed or non-finite pose, a workspace violation, or when the child rejected the previous
+        setpoint (its message). Returns False, sending nothing, unless the arm is ENABLED."""
         r = self._r
         if self._child_rejected > self._rejected_seen:
             self._rejected_seen = self._child_rejected
-            raise InputError(r.last_error or "servo_cp: the robot rejected the previous setpoint")
+            raise InputError(self._last_error or "servo_cp: the robot rejected the previous setpoint")
         try:
-            pose = r._setpoint_pose(T, out=self._pose)     # checks it, as the arm in the tick does
-        except InputError:
+            pose = r.checked_setpoint(T, out=self._pose)    # checks it, as the arm in the tick does
+        except InputError as e:
             self._local_rejected += 1
-            r.rejected_commands = self._child_rejected + self._local_rejected
+            self._last_error = str(e)
             raise
         if self._latched is not None or r.state is not RobotMode.ENABLED:
-            r.ignored_commands += 1
+            self._local_ignored += 1
             return False
-        self._host._stage_pose(self._b, pose)
+        self._host.stage_pose(self._b, pose)
         r.adopt_setpoint(pose)
         return True
 
@@ -524,7 +545,7 @@ class HostedRobot:
                          "haptic loop ([service] robot_process = false)")
 
     def _mode_cmd(self, code: int, local) -> None:
-        self._host._send_mode(self._b, code)
+        self._host.send_mode(self._b, code)
         local()
 
     def hold(self) -> None:
@@ -540,7 +561,7 @@ class HostedRobot:
         if self._latched is not None:
             why = self._host.ready(self._b)
             if why is not None:
-                self._r.last_error = f"enable refused: {why}"
+                self._last_error = f"enable refused: {why}"
                 return
             self._latched = None
         self._mode_cmd(ENABLE, self._r.enable)
@@ -553,9 +574,4 @@ class HostedRobot:
                          "(set it in [robot]), or run the robots in the haptic loop ([service] robot_process = false)")
 
     def close(self) -> None:
-        pass                               # the host owns the process
-
-
-if __name__ == "__main__":
-    _shm, _tables, _dof, _rate, _prio, _parent, _q = sys.argv[1:8]
-    _child(_shm, json.loads(_tables), int(_dof), float(_rate), int(_prio), int(_parent), json.loads(_q))
+        """Nothing: the host owns the process (``RobotHost.close``)."""

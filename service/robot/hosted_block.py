@@ -1,9 +1,12 @@
 """The shared-memory block between the service and its robot process (robot/hosted.py).
 
-Everything both sides must agree on is defined here, once: the control words, the state row of
-one arm (``StateLayout``: one NumPy structured dtype; both sides index a row through the slices
-derived from it), the command record (``command_views``), the texts, and the channel that moves
-a record across without either side waiting (``Channel``).
+Everything both sides must agree on is declared here, once, as NumPy structured dtypes:
+``block_dtype(n, dof)`` is the whole block (control words, fault injection codes, the state and
+command channels, the texts), built from ``state_dtype(dof)`` (one arm's state row) and
+``COMMAND`` (one arm's command row). Neither side computes an offset: ``Block`` lays the dtype
+over the shared buffer and takes every region from it by name, and each row is read as flat
+floats through a ``RowLayout`` derived from its dtype (an attribute per field: its index or
+slice). ``Channel`` moves a record across without either side waiting.
 
 A record's checksum is a CRC-32 of its bytes, never a sum of floats: a float sum of a record
 that holds a NaN is NaN, which equals nothing, so such a record would never read; the reader
@@ -22,8 +25,9 @@ HOLD, RESUME, ENABLE, FAULT = 1, 2, 3, 4
 RING = 64
 #: bytes of each arm's fault reason and last error text (UTF-8)
 TEXT = 240
-#: control words: stop request, child steps (the heartbeat), child pid, child ready
-CTL_STOP, CTL_TICKS, CTL_PID, CTL_READY = 0, 1, 2, 3
+#: control words: stop request (service -> child), periods stepped (the child's heartbeat),
+#: the child's pid, child ready (it has built the arms)
+CONTROL = np.dtype([("stop", "i8"), ("ticks", "i8"), ("pid", "i8"), ("ready", "i8")])
 #: per-arm fault injection codes (the service writes them; the child obeys): none, state NaN
 INJECT_NONE, INJECT_NAN = 0, 1
 #: the state fields a NaN injection poisons (what a controller with a broken estimator publishes)
@@ -42,16 +46,39 @@ def state_dtype(dof: int) -> np.dtype:
                      ("T_meas", "f8", (16,)), ("T_d", "f8", (16,))])
 
 
-class StateLayout:
-    """The state row of ``state_dtype(dof)`` as a flat float row: ``size`` floats, and for each
-    field name an attribute holding its index (scalars) or slice (arrays) into the row."""
+#: one arm's command row (service -> child), float64: setpoints sent (a sequence number), mode
+#: commands sent (a count), the latest setpoint pose (4x4 world, row-major), and the ring of mode
+#: commands (``HOLD`` ...; command i at ``i % RING``)
+COMMAND = np.dtype([("servo_seq", "f8"), ("mode_seq", "f8"), ("pose", "f8", (16,)), ("ring", "f8", (RING,))])
 
-    def __init__(self, dof: int):
-        self.dtype = state_dtype(dof)
-        self.names = self.dtype.names
-        self.size = self.dtype.itemsize // 8
+
+def _channel_dtype(row: np.dtype, n: int) -> np.dtype:
+    """A ``Channel`` of ``n`` rows of ``row``: two slots, their counters and the slot to read
+    (``meta``), and each slot's CRC-32 (``sums``)."""
+    return np.dtype([("data", row, (2, n)), ("meta", "i8", (4,)), ("sums", "i8", (2,))])
+
+
+def block_dtype(n: int, dof: int) -> np.dtype:
+    """The whole shared block for ``n`` arms of ``dof`` joints: control words (``CONTROL``),
+    per-arm fault injection codes (``INJECT_*``), the state channel (child -> service: ``n`` rows
+    of ``state_dtype(dof)``), the command channel (service -> child: ``n`` rows of ``COMMAND``)
+    and per arm two texts (fault reason, last error; UTF-8, ``TEXT`` bytes each)."""
+    return np.dtype([("ctl", CONTROL), ("inject", "i8", (n,)), ("state", _channel_dtype(state_dtype(dof), n)),
+                     ("cmd", _channel_dtype(COMMAND, n)), ("text", "u1", (n, 2, TEXT))])
+
+
+class RowLayout:
+    """A row of ``dtype`` (all float64 fields) as flat floats: ``size`` floats, and for each field
+    name an attribute holding its index (scalars) or slice (arrays) into the row."""
+
+    def __init__(self, dtype: np.dtype):
+        self.dtype = dtype
+        self.names = dtype.names
+        self.size = dtype.itemsize // 8
         for name in self.names:
-            sub, off = self.dtype.fields[name][:2]
+            sub, off = dtype.fields[name][:2]
+            if sub.base != np.float64:
+                raise TypeError(f"RowLayout: field {name!r} is {sub.base}; a row holds float64 fields only")
             i, k = off // 8, sub.itemsize // 8
             setattr(self, name, i if sub.shape == () else slice(i, i + k))
 
@@ -61,19 +88,31 @@ class StateLayout:
         return [name for name in self.names if not np.isfinite(rec[name]).all()]
 
 
+def StateLayout(dof: int) -> RowLayout:
+    """The layout of one arm's state row, ``state_dtype(dof)``."""
+    return RowLayout(state_dtype(dof))
+
+
+#: the layout of one arm's command row
+COMMAND_LAYOUT = RowLayout(COMMAND)
+
+
 class Channel:
     """One writer, one reader: a record of ``size`` floats in two slots. The writer fills the slot
     the reader was not pointed at (its counter odd while it writes, then the CRC-32 of the bytes),
     then points the reader at it; the reader copies the slot it is pointed at and keeps the copy if
     that slot's counter was even and unchanged around the copy and the CRC matches. Neither side
     ever waits for the other: a reader only retries if the writer lapped it (two whole writes
-    during one copy), and a writer preempted mid-write leaves the previous record readable."""
+    during one copy), and a writer preempted mid-write leaves the previous record readable.
 
-    def __init__(self, take, size: int):
-        self.size = size
-        self.data = take((2, size), np.float64)
-        self.meta = take((4,), np.int64)        # counter of slot 0, of slot 1, slot to read
-        self.sums = take((2,), np.int64)        # CRC-32 of each slot's bytes
+    ``region``: the channel's part of the block (a ``_channel_dtype`` record over the buffer)."""
+
+    def __init__(self, region: np.ndarray):
+        data = region["data"]
+        self.size = data.dtype.itemsize * data.shape[1] // 8
+        self.data = data.view(np.float64).reshape(2, self.size)   # the two slots as flat floats
+        self.meta = region["meta"]              # counter of slot 0, of slot 1, slot to read
+        self.sums = region["sums"]              # CRC-32 of each slot's bytes
 
     def write(self, rec: np.ndarray) -> None:
         w = 1 - int(self.meta[2])
@@ -98,40 +137,43 @@ class Channel:
 
 
 class Block:
-    """The shared block for ``n`` arms of ``dof`` joints: control words (``CTL_*``), per-arm
-    fault injection codes, the state channel (child -> service: ``n`` rows of ``layout.size``
-    floats), the command channel (service -> child: ``command_views``) and the arms' texts
-    (fault reason, last error; versioned in the state rows). ``buf`` None: only the size."""
+    """The shared block for ``n`` arms of ``dof`` joints (``block_dtype``) over ``buf`` (None: a
+    private zeroed copy). Its regions, by name: ``ctl`` (``CONTROL``: ``ctl["ticks"]`` etc.),
+    ``inject`` (n), ``state`` and ``cmd`` (``Channel``: rows of ``S`` and ``C`` floats per arm,
+    read through ``layout`` and ``command_layout``), ``text`` (n, 2, TEXT)."""
 
     def __init__(self, buf, n: int, dof: int):
         self.n, self.dof = n, dof
+        self.dtype = block_dtype(n, dof)
+        self.size = self.dtype.itemsize
+        rec = np.zeros((), self.dtype) if buf is None else np.ndarray((), self.dtype, buffer=buf)
         self.layout = StateLayout(dof)
+        self.command_layout = COMMAND_LAYOUT
         self.S = self.layout.size
-        self.C = n * (2 + 16 + RING)
-        off = 0
-
-        def take(shape, dtype):
-            nonlocal off
-            a = np.empty(shape, dtype) if buf is None else np.ndarray(shape, dtype, buffer=buf, offset=off)
-            off += a.nbytes
-            return a
-
-        self.ctl = take((4,), np.int64)
-        self.inject = take((n,), np.int64)
-        self.state = Channel(take, n * self.S)
-        self.cmd = Channel(take, self.C)
-        self.text = take((n, 2, TEXT), np.uint8)   # fault reason, last error (UTF-8)
-        self.size = off
+        self.C = COMMAND_LAYOUT.size
+        self.ctl = rec["ctl"]
+        self.inject = rec["inject"]
+        self.state = Channel(rec["state"])
+        self.cmd = Channel(rec["cmd"])
+        self.text = rec["text"]
+        self.raw = np.ndarray((self.size,), np.uint8, buffer=buf) if buf is not None else rec.reshape(1).view(np.uint8)
 
     @staticmethod
     def nbytes(n: int, dof: int) -> int:
-        return Block(None, n, dof).size
+        return block_dtype(n, dof).itemsize
 
 
-def command_views(rec: np.ndarray, n: int) -> tuple:
-    """(counts (n, 2): setpoints and mode commands sent, poses (n, 16), ring (n, RING)): views of
-    a command record of ``n * (2 + 16 + RING)`` floats."""
-    return (rec[: 2 * n].reshape(n, 2), rec[2 * n: 18 * n].reshape(n, 16), rec[18 * n:].reshape(n, RING))
+class Commands:
+    """The command record of ``n`` arms (``n`` rows of ``COMMAND`` as flat floats, ``rec``) and
+    views of its fields, one row per arm: ``servo_seq`` (n,), ``mode_seq`` (n,), ``pose`` (n, 16),
+    ``ring`` (n, RING)."""
+
+    def __init__(self, n: int, rec: Optional[np.ndarray] = None):
+        L = COMMAND_LAYOUT
+        self.rec = np.zeros(n * L.size) if rec is None else rec
+        rows = self.rec.reshape(n, L.size)
+        self.servo_seq, self.mode_seq = rows[:, L.servo_seq], rows[:, L.mode_seq]
+        self.pose, self.ring = rows[:, L.pose], rows[:, L.ring]
 
 
 def put_text(dst: np.ndarray, s: Optional[str]) -> None:

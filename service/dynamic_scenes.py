@@ -1,6 +1,8 @@
 """Dynamic scenarios of dissertation chapter 6 in simulated time (no wall clock anywhere):
-pop-through against a translating plane (fig. 2.15, 6.2), shared by ``pointfence bench dynamic``
-and the tests.
+pop-through against a translating plane (fig. 2.15, 6.2), the robot self-filter and occlusion
+(6.4) and the adaptive radius study (6.3). The product runs them (``pointfence demo``:
+``service/dynamic_demo.py``); ``pointfence bench dynamic`` and the tests measure them (bench
+imports the product, never the other way round).
 
 Time: haptic ticks at 1 kHz at t = k / 1000 s; frame ``seq`` is captured at seq / rate and
 reaches the pipeline ``latency`` s later, stamped on arrival (as a Kinect driver does), so the
