@@ -60,16 +60,10 @@ def motion(kind: str, amplitude: float, period: float):
 
 
 def trajectory_player(path):
-    from pointfence.service.masters import ScriptedMaster
+    from .trajectory import Trajectory
 
-    m = ScriptedMaster.from_csv(path)
-    t0 = m.times[0]
-
-    def pos(t):
-        m.poll(t0 + t)
-        return (float(m.position[0]), float(m.position[1]), float(m.position[2])), m.clutch
-
-    return pos, m.duration
+    m = Trajectory.from_csv(path)
+    return m.at, m.duration
 
 
 def run(args) -> int:

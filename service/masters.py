@@ -13,13 +13,13 @@ interpolation: the dissertation's "master device simulated by a computer program
 from __future__ import annotations
 
 import bisect
-import csv
 import math
 from abc import ABC, abstractmethod
 from pathlib import Path
 
 import numpy as np
 
+from pointfence.clients.trajectory import read_trajectory, write_trajectory  # noqa: F401 (also importable here)
 from pointfence.kernels.errors import InputError
 
 
@@ -103,37 +103,3 @@ class ScriptedMaster(Master):
 
     def to_csv(self, path) -> None:
         write_trajectory(path, self.times, self.positions, self.clutches)
-
-
-def read_trajectory(path):
-    """(times (N,), positions (N, 3), clutch (N,) bool) from a ``t,x,y,z[,clutch]`` CSV."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"trajectory {str(p)!r} not found; expected a CSV with columns t,x,y,z[,clutch]")
-    with p.open(newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows:
-        raise InputError(f"{p}: empty; expected a header t,x,y,z[,clutch] and rows")
-    head = [h.strip() for h in rows[0]]
-    need = ["t", "x", "y", "z"]
-    if head[:4] != need or (len(head) > 4 and head[4:] != ["clutch"]):
-        raise InputError(f"{p}: header {','.join(head)}; expected t,x,y,z or t,x,y,z,clutch")
-    try:
-        data = np.array([[float(v) for v in r] for r in rows[1:] if r], dtype=float)
-    except ValueError as e:
-        raise InputError(f"{p}: {e}") from None
-    if data.ndim != 2 or data.shape[0] < 1 or data.shape[1] != len(head):
-        raise InputError(f"{p}: expected rows of {len(head)} numbers")
-    clutch = data[:, 4] != 0 if len(head) == 5 else np.ones(len(data), bool)
-    return data[:, 0], data[:, 1:4], clutch
-
-
-def write_trajectory(path, times, positions, clutch=None) -> None:
-    with Path(path).open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["t", "x", "y", "z"] + (["clutch"] if clutch is not None else []))
-        for i in range(len(times)):
-            row = [repr(float(times[i]))] + [repr(float(v)) for v in positions[i]]
-            if clutch is not None:
-                row.append(int(bool(clutch[i])))
-            w.writerow(row)

@@ -269,3 +269,20 @@ def test_deadline_grid_estimate_recovers_from_a_tick_off_the_timeline(monkeypatc
         assert h._base_ns == t0 + 3_000
     finally:
         h.close()
+
+
+def test_device_sim_plays_a_trajectory_as_the_service_does(tmp_path):
+    """clients.trajectory (device-sim) and service.masters.ScriptedMaster interpolate one CSV alike."""
+    from pointfence.clients.trajectory import Trajectory, write_trajectory
+    from pointfence.service.masters import ScriptedMaster
+
+    path = tmp_path / "t.csv"
+    write_trajectory(path, [0.5, 0.7, 1.0, 1.6], [[0, 0, 0], [0.01, 0, -0.02], [0.01, 0.03, -0.02], [0, 0, 0.01]],
+                     [1, 0, 1, 1])
+    tr, m = Trajectory.from_csv(path), ScriptedMaster.from_csv(path)
+    assert tr.duration == pytest.approx(m.duration)
+    for t in np.linspace(-0.2, 1.5, 58):
+        m.poll(0.5 + t)
+        pos, clutch = tr.at(t)
+        np.testing.assert_allclose(pos, m.position, atol=1e-15)
+        assert clutch == m.clutch

@@ -46,9 +46,7 @@ KNOWN: list[frozenset] = []
 #: service/dynamic_demo.py imports bench/dynamic_scenes.py while bench/ imports service/ (bench
 #: measures, never serves), and clients/device_sim.py imports service/masters.py while
 #: service/serve.py imports clients/protocol.py. Remove an entry when its cycle is gone.
-KNOWN_PACKAGES: list[frozenset] = [
-    frozenset({"pointfence.bench", "pointfence.clients", "pointfence.service"}),
-]
+KNOWN_PACKAGES: list[frozenset] = []
 
 
 def package_dirs(root: Path = ROOT) -> dict:

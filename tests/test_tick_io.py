@@ -15,7 +15,7 @@ from pointfence.service.masters import Master
 from pointfence.service.record import Recorder, tick_input
 from pointfence.service.tick_io import TickInput, TickOutput
 
-from service_cases import balloon_config
+from service_cases import POINT_MASS, balloon_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,17 +36,8 @@ class _Untouchable(Master):
         assert not self.armed, "Service.step sent a force"
 
 
-class _UntouchableRobot:
-    """Robot stand-in: ``step`` must not use it (the tick's write does)."""
-
-    armed = False
-
-    def __getattr__(self, name):
-        raise AssertionError(f"Service.step touched the robot ({name})")
-
-
 def _service(tmp_path):
-    cfg = balloon_config(tmp_path, arch="III", robot='model = "none"')
+    cfg = balloon_config(tmp_path, arch="III", robot=POINT_MASS)
     svc = Service(cfg, [_Untouchable()], backend="numpy")
     from pointfence.service.frames import SimFrames
 
@@ -74,6 +65,8 @@ def _input(svc, k, pos, pedal=True, ok=True, **kw) -> TickInput:
 def test_step_is_a_function_of_plain_data_and_touches_no_device(tmp_path):
     svc, sources = _service(tmp_path)
     svc.masters[0].armed = True
+    robot = svc.robots[0]
+    held = robot.setpoint_cp().copy()
     down = np.array([0.0, 0.0, -0.002])
     out = None
     for k in range(1, 200):                  # the master moves down 0.2 m in 0.2 s (robot: 0.1 m at scale 0.5)
@@ -83,6 +76,7 @@ def test_step_is_a_function_of_plain_data_and_touches_no_device(tmp_path):
     assert out.xm[0, 2] < 0.1 and out.proxy[0, 2] > 0.139      # X_m deep in the balloon, the proxy on its fixture
     assert out.command[0, 2] >= out.proxy[0, 2] - 1e-9          # III: the command follows the proxy, never X_m
     assert np.isfinite(out.force).all() and np.linalg.norm(out.force[0]) > 0.1   # pushing into the balloon
+    assert robot.state.name == "HOLDING" and np.array_equal(robot.setpoint_cp(), held)   # step sent it nothing
     # an invalid master sample: that arm holds for MASTER, by name, and its gain ramps down
     k0 = 200
     for k in range(k0, k0 + 30):
