@@ -82,6 +82,10 @@ def _recover(rig, fault, ev, clear: bool = False) -> None:
         rig.pedals(True)
     if rig.steady(5.0):
         ev.recovered = rig.tick()
+    else:                       # what still held: judged (soak_check) as load or as a broken contract
+        st = rig.svc.status()
+        ev.notes["unrecovered"] = {"hold": st["hold"], "latched": st["latched_faults"], "coupled": st["coupled"],
+                                   "arms_holding": st["arms_holding"]}
 
 
 def run(args) -> dict:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pointfence.service.holds import INGEST, MASTER, OVERRUN, STALE, WATCHDOG
+from pointfence.service.holds import INGEST, MASTER, OVERRUN, STALE, WATCHDOG, reason_names
 
 #: robot motion allowed while an arm holds, and by an operator action alone (m)
 MAX_HOLD_MOTION = 1e-4
@@ -30,12 +30,30 @@ LOAD = TIMING | MASTER | INGEST | STALE
 #: arm held for it, as S9 wants, but the link was not available (on an overloaded machine the
 #: receiver falls behind the 50 ms session timeout); reported apart from the safety contract
 AVAILABILITY = "S9 (availability)"
+#: the names of the LOAD reasons, as the service's status gives them
+_LOAD_NAMES = set(reason_names(LOAD))
 
 
 #: failures that are a measured bound (latency, motion, ramp time) exceeded: the contract kept
 #: in kind, missed in degree; on a loaded machine they come and go with its load
 _BOUND_MARKS = (" ms after the fault was detectable", " mm while held", "force not zero within",
                 "while the operator held still")
+
+
+def _unrecovered(fault, ev) -> tuple:
+    """The run did not come back within the wait after the fault was removed (and cleared). If
+    nothing latched stayed and every arm still holding held only for load (late ticks, a device
+    link lost, snapshots late), the service did what S9 and S2 want on an overloaded machine:
+    availability; anything else (a fault still latched after a clear, another reason) breaks the
+    contract."""
+    left = ev.notes.get("unrecovered") if isinstance(ev.notes, dict) else None
+    what = f"{fault.name}: the run did not recover after the fault was removed"
+    if left is None:
+        return fault.invariant, what
+    reasons = set(left.get("hold", [])) | {r for arm in left.get("arms_holding", []) for r in arm}
+    if not left.get("latched") and reasons <= _LOAD_NAMES:
+        return AVAILABILITY, f"{what} (still holding for load only: {sorted(reasons) or 'a device not coupled'})"
+    return fault.invariant, f"{what} (holding: {sorted(reasons)}, latched: {left.get('latched')})"
 
 
 def failure_class(invariant: str, what: str) -> str:
@@ -109,7 +127,7 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float, robot_
                 fails.append(("S1", f"{fault.name} moved a robot's command {moved * 1e3:.3f} mm while the "
                                     "operator held still"))
     if ev.recovered is None:
-        fails.append((fault.invariant, f"{fault.name}: the run did not recover after the fault was removed"))
+        fails.append(_unrecovered(fault, ev))
     return {**out, "failures": fails, **{k: v for k, v in ev.notes.items() if k != "ingest_status"}}
 
 

@@ -25,6 +25,8 @@ from typing import Callable, Optional
 from pointfence.kernels.errors import KernelError
 from pointfence.service.holds import INGEST, KERNEL, MASTER, ROBOT, STALE, WATCHDOG
 
+from .soak_check import AVAILABILITY
+
 
 @dataclass
 class Event:
@@ -209,6 +211,12 @@ def _clear_while_coupled(rig, ev):
     ev.inject = rig.in_tick(lambda s: setattr(s.scene, "batch", FaultyBatch(s.scene.batch, "raise")))
     rig.sleep(0.2)
     rig.in_tick(lambda s: setattr(s.scene, "batch", s.scene.batch.original))
+    pedals = rig.svc.status()["pedal"]
+    if not all(pedals):      # a device's session lapsed under load: its pedal reads up, a clear would be right
+        ev.failures.append((AVAILABILITY, f"fault_cleared_while_coupled: not tried, a device's pedal was not down "
+                                          f"(its link lost under load): pedals {pedals}"))
+        ev.restore = rig.tick()
+        return
     code = rig.raw_control("POST", "/clear-faults", {}, True)     # the pedals are down
     rig.sleep(0.1)
     if code != 409:

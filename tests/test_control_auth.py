@@ -257,6 +257,17 @@ def _talk(srv, data: bytes, timeout=30.0) -> tuple:
     return int(out.split(b" ", 2)[1]), out.decode("utf-8", "replace")
 
 
+def _talk_when_free(srv, data: bytes) -> tuple:
+    """``_talk``, again while the two-handler server answers 503 busy (a handler of the request
+    before may still be closing its socket on a loaded machine; busy is tested on its own)."""
+    end = time.monotonic() + 10.0
+    while True:
+        status, reply = _talk(srv, data)
+        if status != 503 or "busy" not in reply or time.monotonic() > end:
+            return status, reply
+        time.sleep(0.05)
+
+
 def test_deeply_nested_or_malformed_bodies_are_400(rig, tight):
     rig.wait_ticks(5)
     before = state(rig)
@@ -267,11 +278,11 @@ def test_deeply_nested_or_malformed_bodies_are_400(rig, tight):
                        (b'{"radius": 0.01', "not valid JSON"),
                        (b'\xff\xfe', "not UTF-8"),
                        (b'{"radius": ' + b"9" * 5000 + b"}", "digits")):
-        status, reply = _talk(tight, _request(tight, body))
+        status, reply = _talk_when_free(tight, _request(tight, body))
         assert status == 400 and text in reply, (body[:40], status, reply[-300:])
-    status, reply = _talk(tight, _request(tight, b'{"radius": 0.01}', length=200))   # shorter than announced
+    status, reply = _talk_when_free(tight, _request(tight, b'{"radius": 0.01}', length=200))   # shorter than announced
     assert status == 400 and "body ended after 16 of its 200 bytes" in reply
-    status, reply = _talk(tight, _request(tight, b"{}", length=10 ** 9))
+    status, reply = _talk_when_free(tight, _request(tight, b"{}", length=10 ** 9))
     assert status == 413
     assert state(rig) == before
 

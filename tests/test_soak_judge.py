@@ -124,3 +124,23 @@ def test_failures_are_classed():
     assert failure_class("S3", "kernel_exception: arm 0 moved 0.300 mm while held (after its stop)") == "bound"
     assert failure_class("S3", "x: arm 1 held 5 ms after the fault was detectable (bound 1 ms)") == "bound"
     assert failure_class(AVAILABILITY, "forged_flood: a device's input was lost at tick 3 (4 ticks)") == "availability"
+
+
+def test_a_run_that_does_not_come_back_is_load_only_when_only_load_holds():
+    """Not recovered within the wait: an overloaded machine (late ticks, a device link lost) is
+    availability; a fault still latched after its clear, or any other reason, breaks the contract."""
+    never = recording()
+
+    def unrecovered(left):
+        ev = Event("kernel_exception", 100, 300, 400, None, notes={"unrecovered": left})
+        return judge(FAULTS["kernel_exception"], ev, never, 0.5, 0.05)["failures"]
+
+    load = unrecovered({"hold": ["overrun"], "latched": [], "coupled": [True, False],
+                        "arms_holding": [["overrun"], ["overrun", "master input invalid"]]})
+    assert (AVAILABILITY, ) == tuple({inv for inv, what in load if "did not recover" in what})
+    latched = unrecovered({"hold": ["kernel failure"], "latched": ["kernel failure"], "coupled": [False, False],
+                           "arms_holding": [["kernel failure"], ["kernel failure"]]})
+    assert any(inv == "S3" and "did not recover" in what and "kernel failure" in what for inv, what in latched)
+    other = unrecovered({"hold": [], "latched": [], "coupled": [False, True],
+                         "arms_holding": [["robot fault or rejected command"], []]})
+    assert any(inv == "S3" and "did not recover" in what for inv, what in other)
