@@ -2,7 +2,9 @@
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
-# -q and no "A new release of pip is available" notice: `make` prints only what a user can act on.
+# No "A new release of pip is available" notice, and -qq: pip prints errors, not the build
+# backend's notices about this layout (a top-level `pointfence/` folder beside the mapped
+# packages, an editable install), which a user cannot act on: `make` prints what a user can.
 PIP    := $(VENV)/bin/pip --disable-pip-version-check
 
 .PHONY: demo test install dev ctest clean
@@ -12,10 +14,10 @@ $(PY):
 	$(PIP) install -q --upgrade pip
 
 install: $(PY)
-	$(PIP) install -q -e .
+	$(PIP) install -qq -e .
 
 dev: $(PY)
-	$(PIP) install -q -e ".[dev]"
+	$(PIP) install -qq -e ".[dev]"
 
 demo: install
 	$(VENV)/bin/pointfence demo
