@@ -5,7 +5,7 @@ gives the lock up for an instant during its tick, a frame thread in the middle o
 (the robot self-filter, the enqueues of a snapshot build) takes it, and the loop waits until the
 interpreter forces a switch: up to the switch interval, and a tick waits for the interval set
 at the start of the other thread's wait. On a 2-core VM with four Raven II tools, 92-99 % of the
-loop's deadline misses fell while a frame was being ingested (bench/RESULTS.md, issue 5).
+loop's deadline misses fell while a frame was being ingested (bench/HISTORY.md, issue 5).
 
 Long Python work on a frame thread therefore calls ``checkpoint()`` between its steps (every
 capsule of the self-filter, every stage of a build). While a ``Gate`` is installed (the live

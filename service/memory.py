@@ -4,7 +4,7 @@ Transparent huge pages stall a live service. NumPy asks for huge pages on its la
 (``madvise(MADV_HUGEPAGE)``), and the kernel's ``khugepaged`` then collapses the process's
 pages into huge ones in the background. A collapse holds the process's memory-map lock for its
 whole length and is not preempted in a voluntary-preemption kernel: on the 2-core VM of
-bench/RESULTS.md (``perf sched timehist`` over a 4-proxy ``bench loop``), ``khugepaged`` ran
+bench/HISTORY.md (``perf sched timehist`` over a 4-proxy ``bench loop``), ``khugepaged`` ran
 5-14 ms at a time on one core while the SCHED_FIFO loop thread sat off the CPU waiting, a few
 times a minute; those were the loop's remaining 4-19 ms stalls and most of its deadline misses.
 

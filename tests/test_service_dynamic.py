@@ -11,6 +11,7 @@ import pytest
 from pointfence.kernels.errors import InputError
 from pointfence.service import config, replay
 from pointfence.service.masters import ScriptedMaster
+from pointfence.service.robot import robot_from_config
 from pointfence.service.robot.tool import tool_capsules
 from pointfence.service.sources import SyntheticSource
 from pointfence.service.sources.scenes import make_scene
@@ -218,9 +219,7 @@ def tool_run(tmp_path, service_keys: str):
     cam = default_camera("oblique", eye=(0.25, 0.0, 0.55), width=160, height=120)
     cfg = config.SceneConfig(**{**cfg.__dict__, "cameras": [config.CameraConfig(cam, "synthetic:plane")]})
     src = RobotToolSource(ToolInScene(base=make_scene("plane", disc_radius=0.1)), cam, quantize=False)
-    from pointfence.service.app import Service
-
-    robot = Service._make_robot(cfg.robot)
+    robot = robot_from_config(cfg.robot)
     src.robot = robot
     src.scene.capsules = tool_capsules(robot)
     # the master takes the tip 3 cm down (scale 0.5) in 1 s, well clear of the table's fixture

@@ -1,7 +1,7 @@
 """Tuning of the Warp backend's kernels: plain values, passed in (``WarpBackend(tuning=...)``,
 ``pipeline.proxies(..., tuning=...)``), never read at import.
 
-The defaults are the H100 sweeps' choices (bench/RESULTS.md). Two of them are also user-facing
+The defaults are the H100 sweeps' choices (bench/HISTORY.md). Two of them are also user-facing
 switches documented in README.md ("Backends") and may be overridden from the environment when
 a backend is made (``WarpTuning.from_environment``, the one place that reads them):
 ``POINTFENCE_WARP_RESIDENT_MAX`` (``resident_max``) and ``POINTFENCE_WARP_WS_CACHE_MAX``
