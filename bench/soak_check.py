@@ -51,9 +51,17 @@ def _unrecovered(fault, ev) -> tuple:
     if left is None:
         return fault.invariant, what
     reasons = set(left.get("hold", [])) | {r for arm in left.get("arms_holding", []) for r in arm}
-    if not left.get("latched") and reasons <= _LOAD_NAMES:
+    if load_only({"hold": left.get("hold", []), "arms_holding": left.get("arms_holding", []),
+                  "latched_faults": left.get("latched")}):
         return AVAILABILITY, f"{what} (still holding for load only: {sorted(reasons) or 'a device not coupled'})"
     return fault.invariant, f"{what} (holding: {sorted(reasons)}, latched: {left.get('latched')})"
+
+
+def load_only(status: dict) -> bool:
+    """Whether a ``Service.status()`` holds for load alone: nothing latched, and every reason any
+    arm holds for is a LOAD one (an arm merely not coupled counts as a device link lost)."""
+    reasons = set(status.get("hold", [])) | {r for arm in status.get("arms_holding", []) for r in arm}
+    return not status.get("latched_faults") and reasons <= _LOAD_NAMES
 
 
 def failure_class(invariant: str, what: str) -> str:

@@ -144,3 +144,12 @@ def test_a_run_that_does_not_come_back_is_load_only_when_only_load_holds():
     other = unrecovered({"hold": [], "latched": [], "coupled": [False, True],
                          "arms_holding": [["robot fault or rejected command"], []]})
     assert any(inv == "S3" and "did not recover" in what for inv, what in other)
+
+
+def test_a_status_holds_for_load_only_without_latched_faults_and_other_reasons():
+    from pointfence.bench.soak_check import load_only
+
+    assert load_only({"hold": ["overrun"], "arms_holding": [["overrun"], ["master input invalid"]], "latched_faults": []})
+    assert load_only({"hold": [], "arms_holding": [[], []], "latched_faults": []})       # a device not coupled
+    assert not load_only({"hold": [], "arms_holding": [["kernel failure"], []], "latched_faults": ["kernel failure"]})
+    assert not load_only({"hold": [], "arms_holding": [["robot fault or rejected command"], []], "latched_faults": []})
