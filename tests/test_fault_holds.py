@@ -139,13 +139,13 @@ def test_watchdog_sees_a_stall_once_per_tick():
 
 
 def test_a_hung_tick_is_seen_while_it_hangs():
-    """A threaded loop whose tick 300 blocks for 60 ms: the watchdog calls on_stall during the
+    """A threaded loop whose tick 300 (or the first after it) blocks for 60 ms: the watchdog calls on_stall during the
     hang (not after it), within a few milliseconds."""
     state = {"stall_at": None, "hang_end": None}
 
     class Target:
         def tick(self, k, t, dt, overrun, now):
-            if k == 300:
+            if k >= 300 and state["hang_end"] is None:    # (k == 300 itself may be a skipped period)
                 time.sleep(0.06)
                 state["hang_end"] = time.perf_counter()
 
