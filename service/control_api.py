@@ -53,7 +53,6 @@ import math
 import threading
 from typing import Callable, Optional
 
-
 from pointfence.kernels.errors import ConflictError, InputError, PointfenceError
 from pointfence.kernels.params import RadiusModel, Selection
 
