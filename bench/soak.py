@@ -71,7 +71,14 @@ def _recover(rig, fault, ev, clear: bool = False) -> None:
     """Conditions clear by themselves; latched faults (or a hold that stays) are cleared by the
     operator: pedals up, clear-faults, pedals down (S3)."""
     if clear or fault.latched or not rig.steady(1.5):
-        ev.notes["pedal_up_s"] = round(rig.pedals(False), 3)
+        up = rig.pedals(False, timeout=30.0)
+        ev.notes["pedal_up_s"] = round(up, 3)
+        if up == float("inf"):      # the link never brought the pedals up: no clear is tried (S3 would refuse it)
+            ev.notes["pedals_unread"] = True
+            ev.failures.append((AVAILABILITY, f"{fault.name}: the service never read the pedals up in 30 s (the "
+                                              f"devices' link behind under load): pedals {rig.svc.status()['pedal']}"))
+            rig.pedals(True)
+            return
         ev.clear = rig.tick()       # the clear happens at this tick or a little later
         try:
             rig.ctl.post("/clear-faults", {})

@@ -48,6 +48,8 @@ def _unrecovered(fault, ev) -> tuple:
     contract."""
     left = ev.notes.get("unrecovered") if isinstance(ev.notes, dict) else None
     what = f"{fault.name}: the run did not recover after the fault was removed"
+    if _pedals_unread(ev):
+        return AVAILABILITY, f"{what} (the pedals never read up: not cleared)"
     if left is None:
         return fault.invariant, what
     reasons = set(left.get("hold", [])) | {r for arm in left.get("arms_holding", []) for r in arm}
@@ -55,6 +57,11 @@ def _unrecovered(fault, ev) -> tuple:
                   "latched_faults": left.get("latched")}):
         return AVAILABILITY, f"{what} (still holding for load only: {sorted(reasons) or 'a device not coupled'})"
     return fault.invariant, f"{what} (holding: {sorted(reasons)}, latched: {left.get('latched')})"
+
+
+def _pedals_unread(ev) -> bool:
+    """The operator's clear was never tried: the service never read the pedals up (soak._recover)."""
+    return isinstance(ev.notes, dict) and bool(ev.notes.get("pedals_unread"))
 
 
 def load_only(status: dict) -> bool:
@@ -185,8 +192,8 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, robot_watchdog_s, ou
         if moved > MAX_HOLD_MOTION:
             fails.append(("S3", f"{fault.name}: arm {b} moved {moved * 1e3:.3f} mm while held (after its stop)"))
         if fault.latched:
-            if ev.clear is None:
-                fails.append(("S3", f"{fault.name}: never cleared"))
+            if ev.clear is None:   # (not tried when the link never brought the pedals up: availability)
+                fails.append((AVAILABILITY if _pedals_unread(ev) else "S3", f"{fault.name}: never cleared"))
             elif not (rec.arm_hold[h:end, b] & bit).all():
                 fails.append(("S3", f"{fault.name}: arm {b} came back before the fault was cleared (not latched)"))
         if b == 0:

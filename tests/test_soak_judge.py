@@ -153,3 +153,18 @@ def test_a_status_holds_for_load_only_without_latched_faults_and_other_reasons()
     assert load_only({"hold": [], "arms_holding": [[], []], "latched_faults": []})       # a device not coupled
     assert not load_only({"hold": [], "arms_holding": [["kernel failure"], []], "latched_faults": ["kernel failure"]})
     assert not load_only({"hold": [], "arms_holding": [["robot fault or rejected command"], []], "latched_faults": []})
+
+
+def test_a_clear_the_link_never_let_happen_is_availability():
+    """The devices' pedals never read up (the link behind under load): no clear was tried, so
+    "never cleared" and "did not recover" are the link's availability, not a broken contract."""
+    rec = kernel_fault(release=600)["failures"]          # (the same fault, held to the end)
+    assert not any("never cleared" in what for _, what in rec)
+    holds = np.zeros((N, 3))
+    holds[100:, 1:] = KERNEL
+    ev = Event("kernel_exception", 100, 300, None, None, notes={"pedals_unread": True})
+    fails = judge(FAULTS["kernel_exception"], ev, recording(holds=holds), 0.5, 0.05)["failures"]
+    assert {inv for inv, what in fails if "never cleared" in what or "did not recover" in what} == {AVAILABILITY}
+    ev = Event("kernel_exception", 100, 300, None, None)
+    fails = judge(FAULTS["kernel_exception"], ev, recording(holds=holds), 0.5, 0.05)["failures"]
+    assert any(inv == "S3" and "never cleared" in what for inv, what in fails)
