@@ -145,10 +145,17 @@ def _flood(kind: str):
         ev.inject = rig.tick()
         sent = rig.flood(kind, seconds=1.0)
         ev.restore = rig.tick()
-        rig.sleep(0.2)
-        ev.notes.update(sent=sent, rejected=rig.hub.status()["rejected_total"] - before)
-        if ev.notes["rejected"] <= 0:
-            ev.failures.append(("S6", f"{kind} flood of {sent} datagrams: none counted as rejected"))
+        end = time.monotonic() + 5.0     # an overloaded receiver works through its socket's backlog
+        while True:
+            rig.sleep(0.2)
+            rejected = rig.hub.status()["rejected_total"] - before
+            if rejected > 0 or time.monotonic() > end:
+                break
+        ev.notes.update(sent=sent, rejected=rejected)
+        if rejected <= 0:   # none reached the receiver (dropped by the kernel or still queued): nothing was
+            # accepted either (the judge checks the masters), so this is the link's availability, not S6
+            ev.failures.append((AVAILABILITY, f"{kind} flood of {sent} datagrams: none counted as rejected "
+                                              "within 5 s (the receiver behind under load)"))
     return run
 
 
