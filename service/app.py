@@ -361,6 +361,10 @@ class Service:
         np.subtract(want, self.gain, out=self._gstep)
         np.clip(self._gstep, -ramp, ramp, out=self._gstep)
         self.gain += self._gstep
+        self._scale_forces(out)
+
+    def _scale_forces(self, out: TickOutput) -> None:
+        """The rendered forces times each arm's gain, in the world and each master's frame."""
         np.copyto(out.gain, self.gain)
         np.multiply(self.scene.forces, self.gain[:, None], out=out.force)
         np.matmul(out.force, self.teleop.R, out=out.force_master)      # world -> master frame: R^T f
@@ -404,9 +408,7 @@ class Service:
         self.health.latch(EXCEPTION)
         self.gain -= dt / self.cfg.service.force_ramp_s
         np.maximum(self.gain, 0.0, out=self.gain)
-        np.copyto(out.gain, self.gain)
-        np.multiply(self.scene.forces, self.gain[:, None], out=out.force)
-        np.matmul(out.force, self.teleop.R, out=out.force_master)
+        self._scale_forces(out)
         self.devices.send_forces(out.force_master)
         self.devices.hold_robots(dt, self._coupled_prev, self.teleop.cmd)
         out.coupled[:] = False

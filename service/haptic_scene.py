@@ -105,27 +105,33 @@ class HapticScene:
             return
         tf = self._frame_time(inp.t, inp.now) if self._frame_time is not None else None
         inp.frame_time = math.nan if tf is None else tf
-        if tf is not None and self.tool_poses is not None:
-            self.tool_poses.record(tf)
-        if self._poll_tick:
-            feeder.poll_tick(inp.k, inp.t)
-        elif self._poll:
-            feeder.poll(inp.t)
-        inp.frame_age = age = feeder.max_age(inp.now)
-        inp.frames_too_old = age > self.cfg.service.max_frame_age_s and feeder.frames_too_old(inp.now)
+        inp.frame_age = self._advance_frames(inp)
+        self._judge_age(inp)
 
     def sense_recorded(self, inp: TickInput) -> None:
         """A replayed tick (``inp`` holds the recorded frame time and age): the self-filter's
         pose ring at the recorded frame time, the offline feeder's due snapshots, and whether an
         old snapshot is a camera problem (STALE) or an ingest one, as ``sense`` decides it."""
+        self._advance_frames(inp)
+        self._judge_age(inp)
+
+    def _advance_frames(self, inp: TickInput) -> float:
+        """The robots' joints into the self-filter's ring at the tick's frame time, an offline
+        feeder's due snapshots built; returns the newest published snapshot's age (s)."""
         feeder = self.feeder
-        if self.tool_poses is not None and inp.frame_time == inp.frame_time:
+        if self.tool_poses is not None and inp.frame_time == inp.frame_time:     # (not NaN)
             self.tool_poses.record(inp.frame_time)
         if self._poll_tick:
             feeder.poll_tick(inp.k, inp.t)
         elif self._poll:
             feeder.poll(inp.t)
-        inp.frames_too_old = inp.frame_age > self.cfg.service.max_frame_age_s and feeder.frames_too_old(inp.now)
+        return feeder.max_age(inp.now)
+
+    def _judge_age(self, inp: TickInput) -> None:
+        """Whether a snapshot past ``max_frame_age_s`` is a camera problem (frames stopped: STALE)
+        or an ingest one (frames arrive, no snapshot: INGEST)."""
+        inp.frames_too_old = (inp.frame_age > self.cfg.service.max_frame_age_s
+                              and self.feeder.frames_too_old(inp.now))
 
     def reseat(self, mask: np.ndarray, at: np.ndarray) -> None:
         """Proxies of arms in ``mask`` (B,) start again from ``at`` (B, 3); the others stay."""
