@@ -19,6 +19,11 @@ One tick (``Service.tick``, called by ``loop.HapticLoop`` at 1 kHz) reads as fou
 
 ``step`` is the tick as a function of plain data (``tick_io``): master samples, robot states,
 frame time and control state in; forces, proxies, commands and holds with named reasons out.
+Its arithmetic runs in the compiled tick core (``native/tick_core.c``): ``pf_step_pre`` before
+the proxy kernel (health's masks -> teleoperation, coupling, re-anchoring, HIP, proxy targets)
+and ``pf_step_post`` after it (force gains and frames, robot commands, the output's copies), on
+the components' own arrays; Python around them decides only what needs Python (the kernel
+launch, a re-seat of the proxies, the watchdog's hand-over).
 A held arm's force gain ramps to zero within ``force_ramp_s`` and its robot stops where it is;
 a condition must be clear for ``recover_s``, a latched fault cleared (``clear_faults``), before
 it comes back. Nothing in a tick allocates arrays except the robot model's own ``servo_cp``
@@ -29,6 +34,7 @@ the methods under "control"; it is applied at the start of the next tick.
 """
 from __future__ import annotations
 
+import ctypes
 import threading
 from collections import deque
 from typing import Optional, Sequence
@@ -38,6 +44,7 @@ import numpy as np
 from pointfence.kernels import get_backend
 from pointfence.kernels.errors import InputError, KernelError
 from pointfence.kernels.params_haptics import HapticParams
+from pointfence.native import StepCore, lib, ptr
 
 from .devices import Devices
 from .haptic_scene import HapticScene
@@ -48,6 +55,14 @@ from .teleop import Teleop, arch_code
 from .tick_io import TickInput, TickOutput
 
 RING = 1 << 16
+
+
+def _as_core_array(a, dtype, shape) -> np.ndarray:
+    """``a`` itself if the compiled core can read it as it is, else a converted copy."""
+    dtype = np.dtype(dtype)
+    if isinstance(a, np.ndarray) and a.dtype == dtype and a.shape == shape and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype), shape))
 
 
 class Service:
@@ -90,11 +105,11 @@ class Service:
         self.gain = np.zeros(n)                 # force gain per arm, in [0, 1]
         self._coupled_prev = np.zeros(n, bool)
         self._reseat = np.zeros(n, bool)
-        self._want = np.zeros(n, bool)
-        self._notb = np.zeros(n, bool)
-        self._ideal = ~self.devices.present
+        self._present = np.array(self.devices.present, bool)
         self._phip = np.zeros((n, 3))
-        self._gstep = np.zeros(n)
+        self._core = self._bind_core()
+        self._core_ref = ctypes.byref(self._core)
+        self._bound_inp: tuple = ()
         self._teleop_prev = bool(tc.teleop)
         # control state (set from other threads through the methods below; applied at tick start)
         self.haptics_on = bool(tc.haptics)
@@ -122,6 +137,40 @@ class Service:
         from .robot import robot_from_config
 
         return robot_from_config(table)
+
+    def _bind_core(self) -> StepCore:
+        """The compiled step's view of this service's arrays and of its ``TickOutput``."""
+        c, out = StepCore(n=self.n), self.out
+        c.coupled_prev, c.reseat = ptr(self._coupled_prev, bool, "coupled_prev"), ptr(self._reseat, bool, "reseat")
+        c.present, c.gain, c.phip = ptr(self._present, bool, "present"), ptr(self.gain, float, "gain"), \
+            ptr(self._phip, float, "phip")
+        for name in ("xm", "hip", "proxy", "force", "force_master", "command"):
+            setattr(c, name, ptr(getattr(out, name), float, f"TickOutput.{name}"))
+        c.gain_out, c.robot_pos_out = ptr(out.gain, float, "TickOutput.gain"), ptr(out.robot_pos, float, "robot_pos")
+        c.state = ptr(out.state, np.int32, "TickOutput.state")
+        for name in ("coupled", "engage", "release"):
+            setattr(c, name, ptr(getattr(out, name), bool, f"TickOutput.{name}"))
+        c.arm_hold = ptr(out.arm_hold, np.int64, "TickOutput.arm_hold")
+        return c
+
+    def _bind_input(self, inp: TickInput) -> tuple:
+        """Point the compiled step at ``inp``'s arrays (again only when they are other arrays than
+        last tick's: ``replay_tick`` and tests bring their own); returns the health's pointers."""
+        arrays = (inp.master_pos, inp.pedal, inp.master_ok, inp.robot_pos, inp.robot_fault)
+        bound = self._bound_inp
+        if bound and bound[0] and all(a is b for a, b in zip(arrays, bound[0])):
+            return bound[1]
+        n, c = self.n, self._core
+        want = ((float, (n, 3)), (bool, (n,)), (bool, (n,)), (float, (n, 3)), (bool, (n,)))
+        own = [_as_core_array(a, dt, shape) for a, (dt, shape) in zip(arrays, want)]
+        c.master_pos, c.pedal, c.master_ok, c.robot_pos = (ptr(a, dt, name) for a, (dt, _), name in zip(
+            own, want, ("master_pos", "pedal", "master_ok", "robot_pos")))
+        health_in = (c.master_ok, ptr(own[4], bool, "robot_fault"))
+        # a converted copy is not the input's own array: bind again next tick (its values may
+        # change); the copies live until then (the core's struct holds addresses, not arrays)
+        same = all(x is y for x, y in zip(own, arrays))
+        self._bound_inp = (arrays if same else (), health_in, own)
+        return health_in
 
     def attach_frames(self, feeder) -> None:
         """The frame feeder the ticks read (``HapticScene.attach_frames``)."""
@@ -257,6 +306,7 @@ class Service:
         commands (see the module docstring). Touches no device; returns ``self.out``."""
         out, tp, health, scene = self.out, self.teleop, self.health, self.scene
         out.k, out.t = inp.k, inp.t
+        health_in = self._bind_input(inp)
         # control law: a change re-anchors every arm (S1)
         if inp.architecture != tp.arch:
             tp.set_architecture(inp.architecture)     # (sets tp.law_changed)
@@ -264,33 +314,14 @@ class Service:
                       or inp.teleop != self._teleop_prev)
         tp.law_changed = False
         self._teleop_prev = inp.teleop
-        # health
-        health.assess(inp, self.cfg.service.max_frame_age_s)
-        ok = health.arm_ok
-        # teleoperation: a held arm's X_m does not follow the master (re-coupling must not replay its motion)
-        tp.map_masters(inp.master_pos, inp.pedal, ok)
-        coupled = out.coupled
-        np.logical_and(ok, inp.pedal, out=coupled)
-        if not inp.teleop:
-            coupled[:] = False
-        np.logical_not(self._coupled_prev, out=self._notb)
-        np.logical_and(coupled, self._notb, out=out.engage)
-        # S1: an arm that (re)couples, and every arm at a change of control law, starts from
-        # where its robot is commanded
-        if law_change:
-            self._reseat[:] = True
-            tp.reanchor_all()
-        else:
-            np.copyto(self._reseat, out.engage)
-            if out.engage.any():
-                tp.reanchor(out.engage)
-        xr = out.robot_pos
-        np.copyto(xr, inp.robot_pos)
-        np.copyto(xr, tp.cmd, where=self._ideal[:, None])      # an ideal robot is where it is commanded
-        hip = tp.update_hip(xr)
-        phip = self._proxy_targets(tp.proxy_hip(), ok, inp.pedal)
-        # proxies and forces
-        if inp.haptics and (not scene.running or (tp.arch == 3 and self._reseat.any())):
+        health.assess(inp, self.cfg.service.max_frame_age_s, health_in)
+        proxies, states = scene.batch_pointers()
+        # teleoperation: a held arm's X_m does not follow the master (re-coupling must not replay its
+        # motion); coupling; S1: an arm that (re)couples, and every arm at a change of control law,
+        # starts from where its robot is commanded; the HIP; where the proxies move
+        reseat = lib.pf_step_pre(self._core_ref, tp.ref, health.ref, proxies, int(law_change), int(inp.teleop))
+        hip = tp.hip
+        if inp.haptics and (not scene.running or (tp.arch == 3 and reseat)):
             # re-anchored arms' proxies start on the command in III (the proxy is the goal there:
             # a proxy that crept along the surface while the arm held must not pull the robot)
             # and on the HIP otherwise; the other arms' proxies stay where they are
@@ -301,73 +332,31 @@ class Service:
         out.kernel_us = 0.0
         if inp.haptics:
             try:
-                scene.render(inp, out, phip, hip)
+                scene.render(inp, out, self._phip, hip)
             except KernelError as e:
                 health.latch(KERNEL)
-                coupled[:] = False
+                out.coupled[:] = False
                 self.kernel_errors += 1
                 self.last_error = f"tick {inp.k}: {e}"
         if health.take_stall():          # the watchdog saw this tick (or the last) stall
             health.hold_all(WATCHDOG)
             health.seen(WATCHDOG, inp.t)
-            coupled[:] = False
+            out.coupled[:] = False
             self.gain[:] = 0.0
             self.last_error = (f"tick {inp.k}: tick watchdog: a tick ran past "
                                f"{self.cfg.service.max_lateness_s * 1e3:g} ms")
-        self._forces(inp, out, ok)
-        # robot commands: the goal by architecture, rate-limited, for coupled arms
-        batch = scene.batch
-        tp.command_goal(batch.positions, inp.haptics)
-        tp.limit_command(coupled)
-        np.logical_not(coupled, out=self._notb)
-        np.logical_and(self._coupled_prev, self._notb, out=out.release)
-        np.logical_and(out.release, self.devices.present, out=self._want)
-        np.copyto(tp.cmd, xr, where=self._want[:, None])        # a robot that decouples stops where it is
-        np.logical_and(coupled, self._ideal, out=self._want)
-        np.copyto(xr, tp.cmd, where=self._want[:, None])
-        np.logical_not(self._coupled_prev, out=self._notb)
-        np.logical_and(coupled, self._notb, out=out.engage)
-        np.copyto(self._coupled_prev, coupled)
-        # the output's views of the components' state
-        np.copyto(out.xm, tp.X_m)
-        np.copyto(out.hip, hip)
-        np.copyto(out.proxy, batch.positions)
-        np.copyto(out.state, batch.states)
-        np.copyto(out.command, tp.cmd)
+        # force gains (ramping over force_ramp_s) and frames; robot commands: the goal by
+        # architecture, rate-limited, for coupled arms; a robot that decouples stops where it is
+        proxies, states = scene.batch_pointers()
+        lib.pf_step_post(self._core_ref, tp.ref, health.ref, scene.renderer.ref, proxies, states, int(inp.haptics),
+                         inp.dt / self.cfg.service.force_ramp_s)
         out.hold = health.mask
-        np.copyto(out.arm_hold, health.arm)
         out.frame_seq = scene.frame_seq
         return out
 
-    def _proxy_targets(self, phip: np.ndarray, ok: np.ndarray, pedal: np.ndarray) -> np.ndarray:
-        """Where the proxies move this tick: ``phip``, except that the proxy of an arm held or
-        unclutched (no force) stays where it is: in III it must not creep off the command."""
-        np.logical_and(ok, pedal, out=self._want)
-        if self._want.all():
-            return phip
-        np.copyto(self._phip, phip)
-        np.logical_not(self._want, out=self._notb)
-        np.copyto(self._phip, self.scene.batch.positions, where=self._notb[:, None])
-        return self._phip
-
-    def _forces(self, inp: TickInput, out: TickOutput, ok: np.ndarray) -> None:
-        """Rendered forces times each arm's gain, which ramps (``force_ramp_s``) toward 1 for a
-        coupled arm with haptics engaged and toward 0 otherwise; world and master frames."""
-        want = self._want
-        np.logical_and(ok, inp.pedal, out=want)
-        if not inp.haptics:
-            want[:] = False
-        ramp = inp.dt / self.cfg.service.force_ramp_s
-        np.subtract(want, self.gain, out=self._gstep)
-        np.clip(self._gstep, -ramp, ramp, out=self._gstep)
-        self.gain += self._gstep
-        self._scale_forces(out)
-
     def _scale_forces(self, out: TickOutput) -> None:
         """The rendered forces times each arm's gain, in the world and each master's frame."""
-        np.copyto(out.gain, self.gain)
-        np.multiply(self.scene.forces, self.gain[:, None], out=out.force)
-        np.matmul(out.force, self.teleop.R, out=out.force_master)      # world -> master frame: R^T f
+        lib.pf_step_scale_forces(self._core_ref, self.teleop.ref, self.scene.renderer.ref)
 
     def write(self, out: TickOutput, dt: float) -> None:
         """Forces to the masters, commands to the robots (which step by ``dt``, s). A robot that

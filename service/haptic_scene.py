@@ -25,6 +25,7 @@ from pointfence.kernels.errors import ConflictError, InputError, PointfenceError
 from pointfence.kernels.forces import ForceRenderer
 from pointfence.kernels.haptics import haptic_pipeline_params
 from pointfence.kernels.params import PipelineParams
+from pointfence.native import ptr
 
 from .frames import PublishGate
 from .tick_io import TickInput, TickOutput
@@ -67,6 +68,8 @@ class HapticScene:
         #: the first tick that saw each snapshot number
         self.snapshot_first_tick: dict = {}
         self._reseat_pos = np.zeros((n, 3))
+        self._bound_batch: tuple = (None, None)      # (storage, (positions, states) pointers)
+        self._bound_hip: tuple = (None, None)         # (array, pointer)
 
     # --- set-up ----------------------------------------------------------------------------------
     def attach_frames(self, feeder) -> None:
@@ -139,6 +142,16 @@ class HapticScene:
         np.copyto(self._reseat_pos, at, where=mask[:, None])
         self.batch.reset(self._reseat_pos)
 
+    def batch_pointers(self) -> tuple:
+        """The proxies' positions ((B, 3) float32, world, m) and states ((B,) int32) as pointers
+        for the compiled tick core, bound again only when the batch (or its storage) changes."""
+        pos = self.batch.positions
+        key = pos.base if pos.base is not None else pos
+        if key is not self._bound_batch[0]:
+            self._bound_batch = (key, (ptr(pos, np.float32, "proxy positions"),
+                                       ptr(self.batch.states, np.int32, "proxy states")))
+        return self._bound_batch[1]
+
     def render(self, inp: TickInput, out: TickOutput, targets: np.ndarray, hip: np.ndarray) -> None:
         """ONE kernel launch: every proxy toward ``targets`` (B, 3) in the published snapshot
         (predicted to the tick's frame time with ``[motion] enabled``), then the forces on the
@@ -154,7 +167,12 @@ class HapticScene:
         if seq != self.frame_seq:
             self.frame_seq = seq
             self.snapshot_first_tick.setdefault(seq, inp.k)
-        self.renderer.update(self.batch.positions, hip, self.batch.states)
+        if hip is not self._bound_hip[0]:
+            self._bound_hip = (hip, ptr(hip, np.float64, "hip"))
+        proxies, states = self.batch_pointers()
+        if self.renderer.update_bound(proxies, self._bound_hip[1], states):
+            # a proxy or HIP that is not finite: the renderer changed nothing; name the row
+            self.renderer.update(self.batch.positions, hip, self.batch.states)
 
     @property
     def forces(self) -> np.ndarray:

@@ -9,13 +9,19 @@ a stall seen by the watchdog): every arm holds and decouples from then on (S3).
 
 The watchdog's thread reports a stall with ``note_stall``; the tick takes it with
 ``take_stall`` (a plain attribute hand-over: one writer, one reader).
+
+The per-tick arithmetic runs in the compiled tick core (``native/tick_core.c``, ``pf_health_*``)
+on this class's arrays.
 """
 from __future__ import annotations
 
+import ctypes
 import math
 from typing import Optional
 
 import numpy as np
+
+from pointfence.native import HealthCore, lib, ptr
 
 from .holds import LATCHED, REASONS, HoldReason
 from .tick_io import TickInput
@@ -31,51 +37,45 @@ class Health:
         self.n = int(n)
         self.recover_s = float(recover_s)
         self._seen = np.full(len(_ROW), -math.inf)     # last loop time each global reason was seen (s)
+        self._bits = np.array([int(b) for b in _ROW], np.int64)
         self._master_seen = np.full(n, -math.inf)      # per arm: master invalid
         self._robot_seen = np.full(n, -math.inf)       # per arm: robot fault or rejected command
-        #: latched faults (``HoldReason`` bits) until ``clear``
-        self.latched = 0
-        #: this tick's reasons for all arms, and per arm
-        self.mask = 0
+        #: this tick's reasons per arm
         self.arm = np.zeros(n, np.int64)
         #: arms with no reason to hold this tick
         self.arm_ok = np.zeros(n, bool)
-        self._flag = np.zeros(n, bool)
-        self._since = np.zeros(n)
-        self._bits = np.zeros(n, np.int64)
+        c = self.core = HealthCore(n=self.n, reasons=len(_ROW), recover_s=self.recover_s,
+                                   master_bit=int(HoldReason.MASTER), robot_bit=int(HoldReason.ROBOT))
+        c.bits, c.seen = ptr(self._bits, np.int64, "bits"), ptr(self._seen, np.float64, "seen")
+        c.master_seen = ptr(self._master_seen, np.float64, "master_seen")
+        c.robot_seen = ptr(self._robot_seen, np.float64, "robot_seen")
+        c.arm, c.arm_ok = ptr(self.arm, np.int64, "arm"), ptr(self.arm_ok, bool, "arm_ok")
+        self.ref = ctypes.byref(c)
         self._stall_at: Optional[float] = None
         self.watchdog_trips = 0
 
-    # --- per tick --------------------------------------------------------------------------------
-    def assess(self, inp: TickInput, max_frame_age_s: float) -> None:
-        """This tick's hold masks from its input (see the module docstring)."""
-        t, rec = inp.t, self.recover_s
-        if inp.overrun:
-            self.seen(HoldReason.OVERRUN, t)
-        if inp.frame_age > max_frame_age_s:            # S2: the newest published snapshot is too old
-            self.seen(HoldReason.STALE if inp.frames_too_old else HoldReason.INGEST, t)
-        np.logical_not(inp.master_ok, out=self._flag)
-        np.copyto(self._master_seen, t, where=self._flag)
-        np.copyto(self._robot_seen, t, where=inp.robot_fault)
-        hold = self.latched
-        for bit, i in _ROW.items():
-            if t - self._seen[i] < rec:
-                hold |= bit
-        self.mask = int(hold)
-        arm = self.arm
-        self._per_arm(self._master_seen, t, HoldReason.MASTER, arm, first=True)
-        self._per_arm(self._robot_seen, t, HoldReason.ROBOT, arm, first=False)
-        np.bitwise_or(arm, self.mask, out=arm)
-        np.equal(arm, 0, out=self.arm_ok)
+    @property
+    def mask(self) -> int:
+        """This tick's reasons for all arms (``HoldReason`` bits)."""
+        return self.core.mask
 
-    def _per_arm(self, seen, t, bit, arm, first: bool) -> None:
-        np.subtract(t, seen, out=self._since)
-        np.less(self._since, self.recover_s, out=self._flag)
-        if first:
-            np.multiply(self._flag, int(bit), out=arm)
-        else:
-            np.multiply(self._flag, int(bit), out=self._bits)
-            np.bitwise_or(arm, self._bits, out=arm)
+    @property
+    def latched(self) -> int:
+        """Latched faults (``HoldReason`` bits) until ``clear``."""
+        return self.core.latched
+
+    # --- per tick --------------------------------------------------------------------------------
+    def assess(self, inp: TickInput, max_frame_age_s: float, bound: Optional[tuple] = None) -> None:
+        """This tick's hold masks from its input (see the module docstring). ``bound``: the
+        input's ``master_ok`` and ``robot_fault`` as pointers bound once (``native.ptr``; the
+        tick's path), else they are converted here."""
+        t = inp.t
+        if inp.overrun:
+            self._seen[_ROW[HoldReason.OVERRUN]] = t
+        if inp.frame_age > max_frame_age_s:            # S2: the newest published snapshot is too old
+            self._seen[_ROW[HoldReason.STALE if inp.frames_too_old else HoldReason.INGEST]] = t
+        ok, fault = bound if bound is not None else (_b(inp.master_ok, self.n), _b(inp.robot_fault, self.n))
+        lib.pf_health_assess(self.ref, t, ok, fault)
 
     def seen(self, reason: HoldReason, t: float) -> None:
         """Condition ``reason`` (a global one) was seen at loop time ``t`` (s)."""
@@ -87,14 +87,12 @@ class Health:
 
     def latch(self, reason: HoldReason) -> None:
         """A fault that holds until ``clear`` (and every arm, from now on)."""
-        self.latched |= int(reason)
+        self.core.latched |= int(reason)
         self.hold_all(reason)
 
     def hold_all(self, reason: HoldReason) -> None:
         """Every arm holds for ``reason`` from now on in this tick."""
-        self.mask |= int(reason)
-        np.bitwise_or(self.arm, int(reason), out=self.arm)
-        self.arm_ok[:] = False
+        lib.pf_health_hold_all(self.ref, int(reason))
 
     # --- the watchdog's hand-over -------------------------------------------------------------------
     def note_stall(self, now: float) -> None:
@@ -114,11 +112,15 @@ class Health:
         """Forget latched faults and robot faults (``Service.clear_faults`` checks the pedals first)."""
         self._seen[:] = -math.inf
         self._robot_seen[:] = -math.inf
-        self.latched = 0
+        self.core.latched = 0
 
     @property
     def latched_reasons(self) -> HoldReason:
         return HoldReason(self.latched & LATCHED)
+
+
+def _b(a, n: int):
+    return ptr(np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=bool), (n,))), bool, "mask")
 
 
 __all__ = ["Health"]

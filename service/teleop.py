@@ -28,18 +28,24 @@ All quantities are world-frame positions (m) in (B, 3) arrays updated in place e
   the commanded point X_r* moves at most ``max_robot_speed * dt`` per tick towards its goal
   (this is architecture III's limit against the proxy jumping at edges; it also makes switching
   I <-> III smooth, and bounds I and II as a safety limit).
+
+The arithmetic runs in the compiled tick core (``native/tick_core.c``, ``pf_teleop_*``) on this
+class's arrays; ``Service.step`` calls it there directly, the methods here call the same
+functions one at a time.
 """
 from __future__ import annotations
+
+import ctypes
 
 import numpy as np
 
 from pointfence.kernels.errors import InputError
+from pointfence.native import TeleopCore, lib, ptr
 
 ARCHITECTURES = ("I", "II", "III")
 #: master motion (world frame, m, after scaling) that ends an arm's anchoring after a re-anchor
 ANCHOR_RELEASE = 1e-4
 ARCH_CODE = {"I": 1, "II": 2, "III": 3}
-_TINY = 1e-12
 
 
 def arch_code(architecture) -> int:
@@ -61,6 +67,13 @@ class Teleop:
         max_robot_speed: bound on the command's (and the HIP blend's) speed, m/s.
         dt: tick period, s.
         architecture: initial architecture.
+
+    State, (B, 3) world-frame arrays updated in place: ``X_m`` (mapped master point), ``hip``
+    (this tick's HIP), ``cmd`` (robot command X_r*), ``goal`` (the command's goal before the
+    rate limit), ``target`` (the HIP without its blend offset), ``e_hip`` (the blend offset);
+    ``dev_prev`` (last valid master sample, master frame); (B,) ``live`` (valid and pedal down
+    last tick), ``anchored`` (re-anchored, command held until the master moves).
+    ``core`` is the compiled core's view of all of it (``native.TeleopCore``).
     """
 
     def __init__(self, n: int, T_world_master=None, scale: float = 0.5, max_robot_speed: float = 0.05,
@@ -73,29 +86,48 @@ class Teleop:
         self.scale = float(scale)
         self.vmax = float(max_robot_speed)
         self.dt = float(dt)
-        self.arch = arch_code(architecture)
         z = lambda: np.zeros((self.n, 3))  # noqa: E731
-        self.dev_prev = z()      # last valid master sample (master frame)
-        self.X_m = z()           # mapped master point (world)
-        self.hip = z()           # HIP used this tick
-        self.e_hip = z()         # HIP blend offset
-        self.target = z()        # the HIP's target (X_m, or X_r in II) without the blend offset
-        self._blending = False   # e_hip may be non-zero
-        self.cmd = z()           # robot command X_r* (world)
-        self.goal = z()          # command goal before the rate limit
-        self._t3 = z()
-        self._t3b = z()
-        self._nrm = np.zeros(self.n)
-        self._fac = np.zeros(self.n)
-        self.live = np.zeros(self.n, bool)      # master sample valid and pedal down, last tick
-        #: re-anchored arms whose command stays put until their master has moved ANCHOR_RELEASE
-        self.anchored = np.zeros(self.n, bool)
+        self.dev_prev = z()
+        self.X_m = z()
+        self.hip = z()
+        self.e_hip = z()
+        self.target = z()
+        self.cmd = z()
+        self.goal = z()
         self._moved = np.zeros(self.n)
-        self._act = np.zeros(self.n, bool)
-        self._inact = np.zeros(self.n, bool)
+        self.live = np.zeros(self.n, bool)
+        self.anchored = np.zeros(self.n, bool)
+        c = self.core = TeleopCore(n=self.n, scale=self.scale, vmax=self.vmax, dt=self.dt,
+                                   anchor_release=ANCHOR_RELEASE)
+        c.R[:] = self.R.ravel().tolist()
+        c.p[:] = self.p.tolist()
+        for name in ("dev_prev", "X_m", "hip", "e_hip", "target", "cmd", "goal"):
+            setattr(c, name, ptr(getattr(self, name), np.float64, name))
+        c.moved = ptr(self._moved, np.float64, "moved")
+        c.live, c.anchored = ptr(self.live, bool, "live"), ptr(self.anchored, bool, "anchored")
+        self.ref = ctypes.byref(c)
+        self.arch = arch_code(architecture)
         self.rebase = True                       # next HIP update keeps the HIP continuous
-        self._anchoring = False
         self.law_changed = False                 # set by set_architecture, taken by the service
+
+    # --- the core's flags ---------------------------------------------------------------------------
+    @property
+    def arch(self) -> int:
+        """The architecture's code: 1, 2, 3 (I, II, III)."""
+        return self.core.arch
+
+    @arch.setter
+    def arch(self, code: int) -> None:
+        self.core.arch = int(code)
+
+    @property
+    def rebase(self) -> bool:
+        """The next HIP update keeps the HIP continuous (takes up the jump in ``e_hip``)."""
+        return bool(self.core.rebase)
+
+    @rebase.setter
+    def rebase(self, on: bool) -> None:
+        self.core.rebase = int(bool(on))
 
     # --- set-up ---------------------------------------------------------------------------------
     def register(self, dev, out) -> np.ndarray:
@@ -118,11 +150,10 @@ class Teleop:
         self.goal[:] = self.X_m
         self.hip[:] = self.X_m
         self.e_hip[:] = 0.0
-        self._blending = False
         self.live[:] = False
         self.anchored[:] = False
-        self._anchoring = False
-        self.rebase = False
+        c = self.core
+        c.blending = c.anchoring = c.rebase = 0
 
     def set_architecture(self, architecture) -> None:
         """A new architecture (applied between ticks); ``law_changed`` tells the service to
@@ -137,32 +168,12 @@ class Teleop:
     def architecture(self) -> str:
         return ARCHITECTURES[self.arch - 1]
 
-    # --- per tick --------------------------------------------------------------------------------
+    # --- per tick (``Service.step`` runs these inside the core's ``pf_step_pre`` / ``_post``) ----------
     def map_masters(self, dev: np.ndarray, pedal: np.ndarray, ok: np.ndarray) -> None:
         """Integrate master motion into X_m for arms whose pedal is down and whose sample is valid
-        on this tick and the previous one (indexing: anything else leaves X_m where it is)."""
-        act, inact, d = self._act, self._inact, self._t3
-        np.logical_and(pedal, ok, out=act)
-        np.logical_and(act, self.live, out=inact)   # active now and last tick
-        self.live[:] = act
-        act[:] = inact
-        np.logical_not(act, out=inact)
-        np.subtract(dev, self.dev_prev, out=d)
-        np.copyto(d, 0.0, where=inact[:, None])      # also clears NaN from invalid samples
-        np.matmul(d, self.RT, out=self._t3b)
-        self._t3b *= self.scale
-        if self._anchoring:      # an anchored arm's X_m stays on its command; the motion only counts
-            self._moved += self._norms(self._t3b)
-            np.logical_and(self.anchored, self._moved < ANCHOR_RELEASE, out=self.anchored)
-            np.copyto(self._t3b, 0.0, where=self.anchored[:, None])
-            self._anchoring = bool(self.anchored.any())
-        self.X_m += self._t3b
-        np.copyto(self.dev_prev, dev, where=ok[:, None])
-
-    def hip_target(self, xr: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """The HIP by architecture: X_r for II, X_m otherwise."""
-        out[:] = xr if self.arch == 2 else self.X_m
-        return out
+        on this tick and the previous one (indexing: anything else leaves X_m where it is). An
+        anchored arm's X_m stays put until its master has moved ``ANCHOR_RELEASE``."""
+        lib.pf_teleop_map_masters(self.ref, _d3(dev, self.n, "dev"), _b(pedal, self.n, "pedal"), _b(ok, self.n, "ok"))
 
     def proxy_hip(self) -> np.ndarray:
         """The point the proxies move towards this tick (after ``update_hip``): the HIP, except in
@@ -171,50 +182,26 @@ class Teleop:
         return self.target if self.arch == 3 else self.hip
 
     def update_hip(self, xr: np.ndarray) -> np.ndarray:
-        """This tick's HIP: target plus the decaying blend offset (continuous across switches)."""
-        target = self.hip_target(xr, self.target)
-        if self.rebase:
-            np.subtract(self.hip, target, out=self.e_hip)
-            self.rebase = False
-            self._blending = True
-        if self._blending:       # an offset left by a switch or a re-anchoring decays to zero
-            self._shrink(self.e_hip, self.vmax * self.dt)
-            self._blending = bool(self.e_hip.any())
-            np.add(target, self.e_hip, out=self.hip)
-        else:
-            self.hip[:] = target
+        """This tick's HIP: its target (X_r ``xr`` in II, X_m otherwise) plus the decaying blend
+        offset (continuous across switches)."""
+        lib.pf_teleop_update_hip(self.ref, _d3(xr, self.n, "xr"))
         return self.hip
 
     def command_goal(self, proxies, haptics_running: bool) -> np.ndarray:
         """X_r* before the rate limit: the proxy in III (while rendering), X_m otherwise."""
-        if self.arch == 3 and haptics_running:
-            self.goal[:] = proxies
-        else:
-            self.goal[:] = self.X_m
+        p = np.ascontiguousarray(proxies, dtype=np.float32).reshape(self.n, 3)
+        lib.pf_teleop_command_goal(self.ref, ptr(p, np.float32, "proxies"), int(bool(haptics_running)))
         return self.goal
 
     def reanchor(self, mask: np.ndarray) -> None:
         """Indexing for arms in ``mask`` that (re)couple (pedal down, recovery from a hold): X_m
         shifts by (command - goal), so that the goal equals the current command and the robot
         does not move (S1), while the operator's push into a fixture (X_m beyond the proxy) is
-        kept. In III the goal is the proxy: the caller places it on the command (``Service.tick``;
-        it was frozen while the arm held). The HIP stays continuous."""
-        m = np.asarray(mask, bool)[:, None]
-        d = self._t3b
-        np.subtract(self.cmd, self.goal, out=d)
-        np.copyto(d, 0.0, where=~m)
-        self.X_m += d
-        np.copyto(self.goal, self.cmd, where=m)
-        self._anchor(m[:, 0])
-        self.rebase = True
-
-    def _anchor(self, mask) -> None:
-        """Arms in ``mask`` keep their command (and X_m) until their master has moved
-        ``ANCHOR_RELEASE`` (S1: after a re-anchor the arm follows only new master motion, not the
-        fixture's response to depth noise); motion before the releasing tick's is not mapped."""
-        self.anchored |= mask
-        np.copyto(self._moved, 0.0, where=mask)
-        self._anchoring = bool(self.anchored.any())
+        kept. In III the goal is the proxy: the caller places it on the command (``Service.step``;
+        it was frozen while the arm held). The HIP stays continuous. The arms stay anchored
+        (command held) until their master has moved ``ANCHOR_RELEASE``: after a re-anchor an arm
+        follows only new master motion, not the fixture's response to depth noise."""
+        lib.pf_teleop_reanchor(self.ref, _b(mask, self.n, "mask"))
 
     def reanchor_all(self) -> None:
         """A change of control law (architecture, haptics or teleoperation engaged or not, new
@@ -222,43 +209,20 @@ class Teleop:
         goal is the command and no robot moves by itself (S1); in III the caller places the
         proxies on the commands, which then move towards ``proxy_hip()``: X_m itself, not the
         decaying HIP. The HIP stays continuous, so the force does not jump."""
-        self.X_m[:] = self.cmd
-        self.goal[:] = self.cmd
-        self._anchor(True)
-        self.rebase = True
+        lib.pf_teleop_reanchor_all(self.ref)
 
     def limit_command(self, coupled: np.ndarray) -> np.ndarray:
-        """Move the command of coupled arms towards the goal by at most ``max_robot_speed * dt``."""
-        d = self._t3
-        np.subtract(self.goal, self.cmd, out=d)
-        if self._anchoring or not coupled.all():
-            np.logical_not(coupled, out=self._inact)
-            np.logical_or(self._inact, self.anchored, out=self._inact)
-            np.copyto(d, 0.0, where=self._inact[:, None])
-        self._clamp(d, self.vmax * self.dt)
-        self.cmd += d
+        """Move the command of coupled, unanchored arms towards the goal by at most
+        ``max_robot_speed * dt``."""
+        lib.pf_teleop_limit_command(self.ref, _b(coupled, self.n, "coupled"))
         return self.cmd
 
-    # --- vector helpers (in place, no allocation) -------------------------------------------------
-    def _norms(self, v: np.ndarray) -> np.ndarray:
-        np.einsum("ij,ij->i", v, v, out=self._nrm)
-        np.sqrt(self._nrm, out=self._nrm)
-        return self._nrm
 
-    def _clamp(self, v: np.ndarray, length: float) -> None:
-        """Scale rows of ``v`` longer than ``length`` down to it."""
-        n = self._norms(v)
-        np.maximum(n, length, out=self._fac)
-        np.maximum(self._fac, _TINY, out=self._fac)
-        np.divide(length, self._fac, out=self._fac)
-        np.minimum(self._fac, 1.0, out=self._fac)
-        v *= self._fac[:, None]
+def _d3(a, n: int, name: str):
+    """(n, 3) float64 pointer for a call outside the tick's fused path (converts if needed)."""
+    return ptr(np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), (n, 3))), np.float64, name)
 
-    def _shrink(self, v: np.ndarray, length: float) -> None:
-        """Shorten every row of ``v`` by ``length`` (rows shorter than that become zero)."""
-        n = self._norms(v)
-        np.maximum(n, _TINY, out=self._fac)
-        np.divide(length, self._fac, out=self._fac)
-        np.subtract(1.0, self._fac, out=self._fac)
-        np.maximum(self._fac, 0.0, out=self._fac)
-        v *= self._fac[:, None]
+
+def _b(a, n: int, name: str):
+    """(n,) bool pointer for a call outside the tick's fused path (converts if needed)."""
+    return ptr(np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=bool), (n,))), bool, name)
