@@ -87,6 +87,9 @@ def add_arguments(p):
                         "driver runs (default 70, below the service loop's 80; 0: normal)")
     p.add_argument("--spin-us", type=float, default=300.0, help="client busy-waits this long before each tick (default 300)")
     p.add_argument("--attack-hz", type=float, default=10.0, help="hostile datagrams per second (default 10; 0: none)")
+    p.add_argument("--flood-hz", type=float, default=0.0,
+                   help="a forged-datagram flood at this rate from a process of its own during the measured run "
+                        "(STATE-shaped, this session's header, random tags; default 0: none)")
     p.add_argument("--startup-timeout", type=float, default=180.0, help="seconds to wait for the service to run")
 
 
@@ -120,6 +123,28 @@ def _hub_counters(host: str, control_port, token_file=None) -> tuple:
         return None, None
     c = ControlClient(host, control_port, 10.0, token_file=token_file).status()["clients"]
     return int(c["accepted"]), int(c["feedback_sent"])
+
+
+def _start_flood(host: str, port: int, header_of, seconds: float, rate_hz: float):
+    """The forged flood of ``bench soak`` (``soak_devices.flood_main``) in a process of its own."""
+    import multiprocessing
+
+    from .soak_devices import flood_main
+
+    ctx = multiprocessing.get_context("spawn")
+    conn, child = ctx.Pipe()
+    p = ctx.Process(target=flood_main, args=(child, host, port, "forged", seconds, rate_hz, [header_of]), daemon=True)
+    p.start()
+    return p, conn
+
+
+def _end_flood(flood) -> int:
+    p, conn = flood
+    n = conn.recv() if conn.poll(60) else 0
+    p.join(timeout=5)
+    if p.is_alive():
+        p.kill()
+    return int(n)
 
 
 def run(args) -> dict:
@@ -184,6 +209,7 @@ def run(args) -> dict:
         client.stats = type(client.stats)()
         ticks_seen.clear()
         hub0 = _hub_counters(host, addr.get("control_port"), addr.get("control_token_file"))
+        flood = _start_flood(host, port, client.last_datagram, args.duration, args.flood_hz) if args.flood_hz > 0 else None
         totals = {"sent": 0, "echoed": 0, "feedback": 0, "rejected_in": 0, "rtt": [], "ticks": 0}
         link_lost, timing_errors, lost_msgs = 0, 0, []
         t0 = time.perf_counter()
@@ -215,6 +241,7 @@ def run(args) -> dict:
             if time.perf_counter() - t0 < args.duration - 0.01:
                 client = new_client()
         wall = time.perf_counter() - t0
+        flooded = _end_flood(flood) if flood is not None else 0
         hub1 = _hub_counters(host, addr.get("control_port"), addr.get("control_token_file"))
         attacker.close()
     finally:
@@ -257,6 +284,9 @@ def run(args) -> dict:
         "config": args.config or "light (160x120 camera)",
         "frames": "rendered live" if args.render_live else "30 pre-rendered frames served in real time", "attacks_sent": sent_attacks[0], "rejected": {k: v for k, v in udp.get("rejected", {}).items() if v},
         "rejected_total": udp.get("rejected_total"), "client_rejected": totals["rejected_in"],
+        "flood_hz": args.flood_hz, "flood_sent": flooded, "kernel_dropped": udp.get("kernel_dropped"),
+        # the age of the master sample each tick used: its kernel arrival at the service to the tick
+        **{f"master_state_age_ms_{k[:-3]}": v for k, v in (udp.get("state_age_ms") or {}).items() if k != "n"},
         "sessions_timed_out": udp.get("sessions_timed_out"),
         "service_loop": service.get("loop"), "targets": {"rtt_us_p99": 1000, "loss_ratio": 0.0},
     }

@@ -38,7 +38,9 @@ import numpy as np
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
+from .age_hist import AgeHistogram
 from .masters import Master
+from .rx_stamps import StampedReader
 from .udp_cookies import CookieJar
 from .udp_ratelimit import SourceLimiter, poll_loop
 
@@ -50,8 +52,8 @@ class Session:
 
     __slots__ = ("id", "device_id", "slot", "key", "addr", "window", "workspace", "timeout_s", "max_force",
                  "hello", "t_open", "proven", "rejected", "error", "accepted",
-                 "lock", "n", "s_seq", "s_pos", "s_flags", "s_buttons", "s_quat", "s_grasp", "s_t_client",
-                 "seen", "last_rx_t", "has_state", "seq", "t_client_ns", "tx_seq")
+                 "lock", "n", "s_seq", "s_pos", "s_flags", "s_buttons", "s_quat", "s_grasp", "s_t_client", "s_rx_ns",
+                 "seen", "last_rx_t", "has_state", "seq", "t_client_ns", "rx_ns", "tx_seq")
 
     def __init__(self, sid, device_id, slot, key, addr, hello: P.Hello, timeout_s, max_force, t_open: float):
         self.id = sid
@@ -78,15 +80,17 @@ class Session:
         self.s_quat = [1.0, 0.0, 0.0, 0.0]
         self.s_grasp = 0.0
         self.s_t_client = 0
+        self.s_rx_ns = 0                 # kernel arrival of the sample (perf_counter ns; rx_stamps)
         self.seen = 0                    # tick: samples copied so far
         self.last_rx_t = None            # tick: loop time of the newest sample (or of the first tick that saw the session)
         self.has_state = False
         self.seq = 0
         self.t_client_ns = 0
+        self.rx_ns = 0                   # tick: arrival of the sample it uses (perf_counter ns)
         self.tx_seq = 0
 
-    def publish(self, seq: int, st: P.State) -> None:
-        """Receiver: make ``st`` (checked) the session's latest sample."""
+    def publish(self, seq: int, st: P.State, rx_ns: int) -> None:
+        """Receiver: make ``st`` (checked; arrived at ``rx_ns``, perf_counter ns) the session's latest sample."""
         p, q = st.position, st.orientation
         with self.lock:
             self.s_seq = seq
@@ -98,6 +102,7 @@ class Session:
             if st.flags & P.F_GRASP:
                 self.s_grasp = st.grasp
             self.s_t_client = st.t_client_ns
+            self.s_rx_ns = rx_ns
             self.n += 1
 
 
@@ -146,6 +151,7 @@ class UdpMaster(Master):
                 grasp = s.s_grasp
                 seq = s.s_seq
                 t_client = s.s_t_client
+                rx_ns = s.s_rx_ns
             pos = self.position
             pos[0], pos[1], pos[2] = x, y, z
             self.clutch = bool(flags & P.F_CLUTCH)
@@ -158,6 +164,7 @@ class UdpMaster(Master):
             s.seen = n
             s.seq = seq
             s.t_client_ns = t_client
+            s.rx_ns = rx_ns
             s.last_rx_t = t
             s.has_state = True
         elif s.last_rx_t is None:
@@ -167,6 +174,8 @@ class UdpMaster(Master):
             self.ok = False
             self.clutch = False
             return
+        if s.has_state:
+            hub.ages.record(hub.t_ns - s.rx_ns)
         self.ok = s.has_state
 
     def send_force(self, f: np.ndarray) -> None:
@@ -203,14 +212,8 @@ class UdpHub:
         self.rate_hz = float(rate_hz)
         self.max_force = float(max_force)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            # room for a flood while the receiver waits for the interpreter lock: datagrams the
-            # kernel drops for want of buffer would be genuine ones too (Linux caps it at rmem_max)
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-        except OSError:
-            pass
         self.sock.bind((host, int(port)))
-        self.sock.setblocking(False)
+        self.reader = StampedReader(self.sock, 4 << 20)
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
@@ -221,6 +224,8 @@ class UdpHub:
         self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
         self.t = None                     # loop time of the last tick
+        self.t_ns = 0                     # its start (perf_counter ns): the "now" of the samples' ages
+        self.ages = AgeHistogram()        # ages of the samples the ticks used (kernel arrival -> tick)
         self._base_ns = None              # perf_counter_ns at loop time 0 (tick deadlines): see tick
         self._base_win = [None, None]     # minima of the current and the previous window of ticks
         self._base_n = 0
@@ -268,29 +273,27 @@ class UdpHub:
 
     def pump(self, limit: int = 4096) -> int:
         """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
-        sock, buf, view = self.sock, self._buf, memoryview(self._buf)
+        buf, view, read = self._buf, memoryview(self._buf), self.reader.read
         allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
+        self.reader.begin()
         k = 0
         while k < limit and not self._stop.is_set():
-            try:
-                n, addr = sock.recvfrom_into(buf)
-            except (BlockingIOError, InterruptedError):
+            got = read(buf)
+            if got is None:
                 break
-            except OSError:      # e.g. ICMP port unreachable reported on a UDP socket; a closed socket
-                if sock.fileno() < 0:
-                    break
-                continue
+            n, addr, rx_ns = got
             k += 1
             self.received += 1
             now = time.monotonic()
             if not allow(addr, now) or (n > _TYPE_AT and buf[_TYPE_AT] == P.HELLO and not hello_allow(addr, now)):
                 self.counters["rate_limited"] += 1
                 continue
-            self.handle(view[:n], addr)
+            self.handle(view[:n], addr, rx_ns)
         return k
 
-    def handle(self, data, addr) -> int:
-        """Check and apply one datagram from ``addr``; returns the E_* code (E_OK when accepted)."""
+    def handle(self, data, addr, rx_ns: Optional[int] = None) -> int:
+        """Check and apply one datagram from ``addr`` (arrived at ``rx_ns``, perf_counter ns;
+        default: now); returns the E_* code (E_OK when accepted)."""
         session = None
         try:
             h = P.parse_header(data)
@@ -310,7 +313,7 @@ class UdpHub:
                 st = P.State.decode(data, session.workspace)
                 if not session.window.commit(h.seq):
                     raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-                session.publish(h.seq, st)
+                session.publish(h.seq, st, time.perf_counter_ns() if rx_ns is None else rx_ns)
                 session.proven = True
                 session.addr = addr
                 session.accepted += 1
@@ -434,11 +437,12 @@ class UdpHub:
     def tick(self, t: float) -> None:
         """Once per tick (by the first master polled): the deadline grid's origin for FEEDBACK."""
         self.t = t
+        self.t_ns = now = time.perf_counter_ns()
         # the deadline grid's origin: tick time minus loop time, at its minimum (the least late
         # tick). A windowed minimum (the last 1,000 to 2,000 ticks), so that a poll outside the
         # loop's timeline (the service's start-up poll at loop time 0, before the first tick;
         # measured 32 ms early) cannot shift the clients' phase lock for good.
-        base = time.perf_counter_ns() - int(round(t * 1e9))
+        base = now - int(round(t * 1e9))
         w = self._base_win
         if w[0] is None or base < w[0]:
             w[0] = base
@@ -508,4 +512,6 @@ class UdpHub:
             "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
             "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
             "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
+            "kernel_dropped": self.reader.dropped, "rcvbuf_bytes": self.reader.rcvbuf if self.sock.fileno() >= 0 else None,
+            "state_age_ms": self.ages.summary(),
         }
