@@ -11,13 +11,17 @@ bad tag, unknown session; in turn) go to the same port from another socket.
 
 Reports ``rtt_us_p50/p99/max`` (a state's send -> arrival of the first force computed from it),
 ``loss_ratio`` (datagrams lost on the link, both ways: states the client sent that the service
-never accepted, plus feedback the service sent that the client never received, over all sent;
+never received (neither accepted nor superseded by a newer one in the same drain), plus feedback the service sent that the client never received, over all sent;
 the service's counters are read through its control API at the start and end of the measured
 run), ``unanswered_ratio`` (states whose own sequence no feedback echoed: lost, or accepted in
-the same tick as a newer state of the same device, which the tick used instead:
-``states_superseded``), ``feedback_gaps`` (service ticks whose feedback never arrived), the
+the same tick as, or drained together with, a newer state of the same device, which the tick
+used instead: ``states_superseded``), ``feedback_gaps`` (service ticks whose feedback never arrived), the
 service's ``rejected`` counters, its loop timing and the client's timing violations. When the link is lost (no feedback for the session timeout: the service or
-this process stalled) the client reconnects and ``link_lost`` counts it. Target (2-core CPU,
+this process stalled) the client reconnects and ``link_lost`` counts it.
+``master_state_age_ms_p50/p99/max``: how old the master sample each service tick used was (its
+kernel arrival at the service to the tick; the hub's ``state_age_ms``); ``--flood-hz`` adds a
+forged flood from a process of its own (``kernel_dropped``: datagrams the service's socket had
+no room for). Target (2-core CPU,
 loopback): rtt p99 <= 1 ms, zero loss over 60 s.
 """
 from __future__ import annotations
@@ -117,12 +121,12 @@ def _attack(sock, addr, client, k: int) -> None:
 
 
 def _hub_counters(host: str, control_port, token_file=None) -> tuple:
-    """(states accepted, feedback sent) by the service's UDP hub so far, read through its control
-    API with the run's token; (None, None) without a control API."""
+    """(states accepted, feedback sent, states superseded) by the service's UDP hub so far, read
+    through its control API with the run's token; (None, None, None) without a control API."""
     if not control_port:
-        return None, None
+        return None, None, None
     c = ControlClient(host, control_port, 10.0, token_file=token_file).status()["clients"]
-    return int(c["accepted"]), int(c["feedback_sent"])
+    return int(c["accepted"]), int(c["feedback_sent"]), int(c.get("superseded", 0))
 
 
 def _start_flood(host: str, port: int, header_of, seconds: float, rate_hz: float):
@@ -259,10 +263,12 @@ def run(args) -> dict:
     udp = service.get("udp", {})
     sent, echoed, fb_in = totals["sent"], totals["echoed"], totals["feedback"]
     if hub0[0] is not None and hub1[0] is not None:
-        accepted, fb_out = hub1[0] - hub0[0], hub1[1] - hub0[1]
-        # (a datagram of the warm-up still in flight at the first reading counts once too many)
-        lost_states, lost_fb = max(0, sent - accepted), max(0, fb_out - fb_in)
-        link = {"states_accepted_by_service": accepted, "states_lost": lost_states, "states_superseded": max(0, accepted - echoed),
+        accepted, fb_out, newer = hub1[0] - hub0[0], hub1[1] - hub0[1], hub1[2] - hub0[2]
+        # (a datagram of the warm-up still in flight at the first reading counts once too many);
+        # a state that a newer one replaced in the receiver's drain arrived: superseded, not lost
+        lost_states, lost_fb = max(0, sent - accepted - newer), max(0, fb_out - fb_in)
+        link = {"states_accepted_by_service": accepted, "states_lost": lost_states,
+                "states_superseded_in_drain": newer, "states_superseded": max(0, accepted - echoed) + newer,
                 "feedback_sent_by_service": fb_out, "feedback_lost": lost_fb,
                 "loss_ratio": round((lost_states + lost_fb) / (sent + fb_out), 6) if sent + fb_out else None}
     else:

@@ -72,6 +72,7 @@ class StampedReader:
         #: datagrams the kernel dropped for want of receive buffer (since the socket opened)
         self.dropped = 0
         self._off = 0
+        self.begin()
 
     @property
     def rcvbuf(self) -> int:
@@ -79,7 +80,8 @@ class StampedReader:
         return self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
 
     def begin(self) -> None:
-        """Before a drain: read the clock offset that moves the kernel's stamps onto perf_counter."""
+        """Before a drain: read again the clock offset that moves the kernel's stamps onto
+        perf_counter's clock (the realtime clock may have been stepped or slewed)."""
         if self.stamps:
             self._off = realtime_minus_perf_ns()
 

@@ -314,7 +314,8 @@ def test_bench_e2e_accounts_for_every_datagram():
     assert out.returncode == 0, out.stderr[-2000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["states_sent"] > 2000 and r["link_lost"] == 0
-    assert r["states_accepted_by_service"] >= r["states_sent"] - 2 >= r["states_answered"] - 2
+    # a state the receiver's drain found with a newer one of its device behind it is received, not lost
+    assert r["states_accepted_by_service"] + r["states_superseded_in_drain"] >= r["states_sent"] - 2 >= r["states_answered"] - 2
     assert r["states_lost"] <= 2 and r["loss_ratio"] is not None and r["loss_ratio"] < 0.01
     assert r["states_answered"] + r["states_superseded"] + r["states_lost"] >= r["states_sent"]
     assert r["feedback_sent_by_service"] > 2000 and r["feedback_received"] > 2000
