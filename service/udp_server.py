@@ -10,8 +10,9 @@ service). See ``clients/PROTOCOL.md``. Two sides, two threads:
   (``udp_ratelimit.SourceLimiter``), answers handshakes and BYEs in arrival order, and of each
   session's STATEs in the drain checks the newest first (header, window, tag, values): the first
   one accepted becomes the session's latest sample (a few floats written under the session's
-  own short lock, ``udp_session.Session``), the older ones are ``superseded`` unread. A backlog
-  that queued while the receiver was starved is never handed to the tick in order.
+  own short lock, ``udp_session.Session``); the older ones are checked after it and counted
+  (``superseded`` when authentic), never used. A backlog that queued while the receiver was
+  starved is never handed to the tick in order.
 * **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot under that lock
   (no socket, no HMAC, no allocation), decides timeouts in loop time, and uses the sample only
   if it reached the socket no longer than the session's timeout before the tick (else the master
@@ -191,7 +192,7 @@ class UdpHub:
         self.counters = {name: 0 for name in P.ERROR_NAMES.values() if name != "ok"}
         self.counters["rate_limited"] = 0
         self.accepted = 0                 # STATE messages accepted
-        self.superseded = 0               # STATEs a newer one of their session replaced in the same drain
+        self.superseded = 0               # authentic STATEs a newer one of their session beat in the same drain
         self.stale_ticks = 0              # master reads whose newest sample was older than the timeout
         self.received = 0                 # datagrams read from the socket
         self.hellos = 0
@@ -286,7 +287,7 @@ class UdpHub:
 
     def _resolve(self) -> None:
         """Apply the held STATEs: per session, newest first, until one is accepted; the older
-        ones are ``superseded`` (never verified, never used: no MAC, not an error of the session)."""
+        ones are checked after it (``_older``: a forgery is counted as any other) and never used."""
         slots = self._slots
         for session, held in self._pending.items():
             held.sort(key=lambda c: c[0], reverse=True)
@@ -296,7 +297,7 @@ class UdpHub:
                     if not live:
                         raise P.ProtocolError(P.E_NO_SESSION)
                     if seq < session.window.top:           # below the sample accepted just now
-                        self.superseded += 1
+                        self._older(session, seq, memoryview(slots[i])[:n])
                         continue
                     self._state(session, seq, memoryview(slots[i])[:n], addr, rx_ns)
                 except P.ProtocolError as e:
@@ -364,6 +365,21 @@ class UdpHub:
         session.addr = addr
         session.accepted += 1
         self.accepted += 1
+
+    def _older(self, session: Session, seq: int, data) -> None:
+        """A STATE older than the one its drain just accepted (it was new when the drain began):
+        checked as any other (tag, values; a replay inside the window; raises ProtocolError) and
+        recorded in the window where it still fits, but never used: ``superseded``. (The sample
+        is published before these MACs are computed.)"""
+        w = session.window
+        inside = w.top - seq < w.size
+        if inside:
+            w.check(seq)
+        P.verify(data, session.key)
+        P.State.decode(data, session.workspace)
+        if inside:
+            w.commit(seq)
+        self.superseded += 1
 
     def _count(self, e: P.ProtocolError, session: Optional[Session]) -> None:
         """A rejected datagram: counted per reason, and against its session if it named a live one."""
@@ -536,6 +552,7 @@ class UdpHub:
             "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
             "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
             "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
-            "superseded": self.superseded, "stale_ticks": self.stale_ticks, "kernel_dropped": self.reader.dropped, "rcvbuf_bytes": self.reader.rcvbuf if self.sock.fileno() >= 0 else None,
+            "superseded": self.superseded, "stale_ticks": self.stale_ticks, "kernel_dropped": self.reader.dropped,
+            "rcvbuf_bytes": self.reader.rcvbuf if self.sock.fileno() >= 0 else None,
             "state_age_ms": self.ages.summary(),
         }

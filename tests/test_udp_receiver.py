@@ -36,9 +36,9 @@ def connected(hub, timeout_ms):
 
 def test_a_backlog_queued_while_the_receiver_was_paused_gives_the_tick_only_its_newest_sample():
     """100 states wait in the socket (the receiver paused), with a forgery numbered above them:
-    one drain accepts the newest authentic one only (the forgery fails its tag, the 99 older
-    ones are superseded: no MAC, no error against the session). Before: all 100 were accepted
-    one after the other, each in turn the sample a tick would read."""
+    one drain accepts the newest authentic one only (the forgery fails its tag; the 99 older
+    ones are checked after it and superseded: never used, no error against the session). Before:
+    all 100 were accepted one after the other, each in turn the sample a tick would read."""
     hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000)
     try:
         c = connected(hub, 1000)
