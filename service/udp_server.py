@@ -62,6 +62,9 @@ _TYPE_AT = 3       # offset of the message type in the header (magic 2 bytes, ve
 #: STATE datagrams a drain holds before it applies them (each session's newest first); a
 #: receive buffer of RCVBUF_BYTES holds fewer
 BATCH = 256
+#: a drain applies what it holds at least this often (s of the receiver's clock): under a flood
+#: that keeps the socket from ever emptying, the newest sample is still published every drain
+DRAIN_S = 0.5e-3
 
 
 class UdpMaster(Master):
@@ -155,11 +158,13 @@ class UdpHub:
         limiter: the per-source rate limiter (default: 4,000 datagrams/s, bursts of 400).
         rcvbuf_bytes: the socket's receive buffer (default ``rx_stamps.RCVBUF_BYTES``: tens of
             milliseconds of traffic, not seconds).
+        drain_s: a drain applies what it holds at least this often (s; default ``DRAIN_S``).
     """
 
     def __init__(self, psk: bytes, slots: int = 1, host: str = "127.0.0.1", port: int = 0,
                  timeout_ms: int = P.DEFAULT_TIMEOUT_MS, rate_hz: float = 1000.0, max_force: float = 10.0,
-                 receiver: bool = True, limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES):
+                 receiver: bool = True, limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES,
+                 drain_s: float = DRAIN_S):
         self.psk = P.check_key(psk)
         if int(slots) < 1:
             raise InputError(f"slots = {slots}; expected at least one master slot")
@@ -181,6 +186,7 @@ class UdpHub:
         self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
         self._slots = [bytearray(P.MAX_DATAGRAM) for _ in range(BATCH)]   # a drain's STATE datagrams
+        self.drain_s = float(drain_s)
         self._pending: dict = {}          # session -> [(seq, slot index, size, address, arrival ns)]
         self.t = None                     # loop time of the last tick
         self.t_ns = 0                     # its start (perf_counter ns): the "now" of the samples' ages
@@ -246,12 +252,14 @@ class UdpHub:
         return k
 
     def _drain(self, limit: int):
-        """Read up to ``limit`` datagrams, or until BATCH STATEs are held: (read, maybe more wait).
+        """Read up to ``limit`` datagrams, until BATCH STATEs are held or for DRAIN_S: (read, maybe
+        more wait).
         Floods are cut per source before any header is read; STATEs that could still be new for a
         live session are held for ``_resolve``; everything else is handled at once."""
         slots, read, pending = self._slots, self.reader.read, self._pending
         allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
         held = k = 0
+        end = time.monotonic() + self.drain_s
         while k < limit:
             if held == len(slots) or self._stop.is_set():
                 return k, True
@@ -263,6 +271,8 @@ class UdpHub:
             k += 1
             self.received += 1
             now = time.monotonic()
+            if now > end:
+                limit = k                             # the last one of this drain
             typ = buf[_TYPE_AT] if n > _TYPE_AT else -1
             if not allow(addr, now) or (typ == P.HELLO and not hello_allow(addr, now)):
                 self.counters["rate_limited"] += 1

@@ -39,7 +39,7 @@ def test_a_backlog_queued_while_the_receiver_was_paused_gives_the_tick_only_its_
     one drain accepts the newest authentic one only (the forgery fails its tag; the 99 older
     ones are checked after it and superseded: never used, no error against the session). Before:
     all 100 were accepted one after the other, each in turn the sample a tick would read."""
-    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000)
+    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000, drain_s=5.0)    # one drain, however loaded the machine
     try:
         c = connected(hub, 1000)
         for k in range(1, 101):
@@ -157,6 +157,23 @@ def test_a_forged_flood_on_a_starved_receiver_never_makes_the_genuine_sample_old
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.wait()
+        hub.close()
+
+
+def test_a_drain_that_never_finds_the_socket_empty_still_publishes_every_drain_s():
+    """A flood that keeps the socket from ever emptying must not hold the genuine sample back
+    until the drain's limit (4,096 datagrams: 200 ms of a 20,000/s flood): a drain applies what
+    it holds every ``drain_s``. Here a drain of 0 s applies after each datagram read."""
+    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000, drain_s=0.0)
+    try:
+        c = connected(hub, 1000)
+        for k in range(1, 11):
+            c.send_state((0.001 * k, 0.0, 0.0))
+        hub.pump()
+        s = hub.sessions[c.session]
+        assert s.accepted == 10 and hub.superseded == 0
+        c.close()
+    finally:
         hub.close()
 
 
