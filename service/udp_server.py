@@ -159,18 +159,25 @@ class UdpHub:
         rcvbuf_bytes: the socket's receive buffer (default ``rx_stamps.RCVBUF_BYTES``: tens of
             milliseconds of traffic, not seconds).
         drain_s: a drain applies what it holds at least this often (s; default ``DRAIN_S``).
+        max_age_ms: a sample that reached the socket longer than this before the tick is not used
+            (the master reports ``ok = False``: its arm holds); default: the session's timeout.
+            At most MAX_TIMEOUT_MS. (A run on a simulated clock, whose loop time is not the wall
+            clock the arrival stamps are on, gives the ceiling.)
     """
 
     def __init__(self, psk: bytes, slots: int = 1, host: str = "127.0.0.1", port: int = 0,
                  timeout_ms: int = P.DEFAULT_TIMEOUT_MS, rate_hz: float = 1000.0, max_force: float = 10.0,
                  receiver: bool = True, limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES,
-                 drain_s: float = DRAIN_S):
+                 drain_s: float = DRAIN_S, max_age_ms: Optional[int] = None):
         self.psk = P.check_key(psk)
         if int(slots) < 1:
             raise InputError(f"slots = {slots}; expected at least one master slot")
         if not 1 <= int(timeout_ms) <= P.MAX_TIMEOUT_MS:
             raise InputError(f"timeout_ms = {timeout_ms}; expected 1..{P.MAX_TIMEOUT_MS}")
         self.timeout_ms = int(timeout_ms)
+        if max_age_ms is not None and not 1 <= int(max_age_ms) <= P.MAX_TIMEOUT_MS:
+            raise InputError(f"max_age_ms = {max_age_ms}; expected 1..{P.MAX_TIMEOUT_MS} (ms)")
+        self.max_age_ms = None if max_age_ms is None else int(max_age_ms)
         self.rate_hz = float(rate_hz)
         self.max_force = float(max_force)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -458,6 +465,8 @@ class UdpHub:
         key = P.session_key(self.psk, hello.nonce, server_nonce, dev, sid)
         tmo = min(hello.timeout_ms or self.timeout_ms, self.timeout_ms)
         s = Session(sid, dev, slot, key, addr, hello, tmo / 1000.0, min(hello.max_force, self.max_force), now)
+        if self.max_age_ms is not None:
+            s.max_age_ns = self.max_age_ms * 1_000_000
         self.sessions[sid] = s
         self.by_device[dev] = s
         self.masters[slot].session = s

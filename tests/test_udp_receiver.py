@@ -177,6 +177,26 @@ def test_a_drain_that_never_finds_the_socket_empty_still_publishes_every_drain_s
         hub.close()
 
 
+def test_max_age_has_a_ceiling_and_bounds_the_sample_age():
+    import pytest
+    from pointfence.kernels.errors import InputError
+
+    with pytest.raises(InputError, match="max_age_ms = 5000; expected 1..1000"):
+        UdpHub(KEY, 1, receiver=False, max_age_ms=5000)
+    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000, max_age_ms=100)
+    try:
+        c = connected(hub, 1000)
+        c.send_state((0.01, 0.0, 0.0))
+        time.sleep(0.2)
+        hub.pump()
+        m = hub.masters[0]
+        m.poll(1.0)
+        assert not m.ok and hub.stale_ticks == 1
+        c.close()
+    finally:
+        hub.close()
+
+
 def test_the_receive_buffer_holds_tens_of_milliseconds_and_arrivals_are_kernel_stamped():
     """The hub's socket asks for RCVBUF_BYTES (before: 4 MiB, seconds of flood); each datagram
     carries the time it reached the socket, not the time it was read."""
