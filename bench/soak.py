@@ -146,6 +146,7 @@ def run(args) -> dict:
         rig.sleep(0.3)
     finally:
         timing = rig.run.timing()
+        ages = rig.hub.status()["state_age_ms"]
         region = _region(rig)
         link = rig.stop()
     from pointfence.service.record import load_recording
@@ -192,6 +193,11 @@ def run(args) -> dict:
         "max_stopping_distance_mm": max(stops) if stops else None,
         "timing_holds_during_attacks_and_actions": sum(v.get("timing_holds", 0) for v in verdicts),
         "max_penetration_mm": None if pen is None else round(pen * 1e3, 3),
+        # the age of the master samples the ticks used (kernel arrival -> tick), whole run and floods
+        "master_state_age_ms_p50": ages["p50_ms"], "master_state_age_ms_p99": ages["p99_ms"],
+        "master_state_age_ms_max": ages["max_ms"],
+        "master_state_age_ms_p99_during_floods": max((v["state_age_ms"]["p99_ms"] or 0.0 for v in verdicts
+                                                      if isinstance(v.get("state_age_ms"), dict)), default=None),
         "ticks_recorded": int(meta.get("ticks_recorded", len(rec.k))),
         "ticks_lost": int(meta.get("ticks_lost", 0)),
         "torn_bytes": int(data.get("torn_bytes", 0)),

@@ -142,9 +142,12 @@ def _device(cmd: str, seconds: float):
 def _flood(kind: str):
     def run(rig, ev):
         before = rig.hub.status()["rejected_total"]
+        ages = rig.hub.ages.counts()
         ev.inject = rig.tick()
         sent = rig.flood(kind, seconds=1.0)
         ev.restore = rig.tick()
+        # how old the master samples were that the ticks used during the flood (kernel arrival -> tick)
+        ev.notes["state_age_ms"] = rig.hub.ages.summary([b - a for a, b in zip(ages, rig.hub.ages.counts())])
         end = time.monotonic() + 5.0     # an overloaded receiver works through its socket's backlog
         while True:
             rig.sleep(0.2)

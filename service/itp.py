@@ -38,7 +38,12 @@ Two sides, two threads, as in ``udp_server.UdpHub``:
   under one short lock.
 * **The haptic tick** (``ItpArmMaster.poll``) copies its arm's part of the newest sample under
   that lock (no socket, no parsing, no allocation) and decides the arm's timeout in loop time,
-  counted from the tick that first saw the newest sample.
+  counted from the tick that first saw the newest sample. The sample is used only if its newest
+  packet reached the socket (kernel stamp, ``rx_stamps``) no longer than the timeout before the
+  tick: increments must all be integrated, so a backlog that queued while the receiver was
+  starved is worked through in order, but the arm holds (``ok = False``, S9; ``stale_ticks``)
+  until the sample is fresh again, rather than following the operator seconds late. The receive
+  buffer holds tens of milliseconds of packets, not seconds.
 """
 from __future__ import annotations
 
@@ -53,7 +58,9 @@ from typing import Optional
 
 import numpy as np
 
+from .age_hist import AgeHistogram
 from .masters import Master
+from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_ratelimit import SourceLimiter, poll_loop
 
 log = logging.getLogger("pointfence.itp")
@@ -97,6 +104,7 @@ class ItpArmMaster(Master):
         self.grasp = 0.0
         self.seen = 0                    # the receiver's sample count at the last copy
         self.last_t = -math.inf          # loop time of the tick that first saw the newest sample, s
+        self.rx_ns = 0                   # kernel arrival of its newest packet (perf_counter ns)
 
     def poll(self, t: float) -> None:
         """The tick's read (loop time ``t``, s): copy the newest sample if there is one, decide
@@ -107,7 +115,14 @@ class ItpArmMaster(Master):
         r = self.receiver
         if r.n != self.seen:
             r.copy_to(self, t)
-        self.ok = self.seen > 0 and t - self.last_t <= r.timeout_s
+        if self.seen == 0 or t - self.last_t > r.timeout_s:
+            self.ok = False
+            return
+        age = (hub.t_ns if hub is not None else time.perf_counter_ns()) - self.rx_ns
+        r.ages.record(age)
+        self.ok = age <= r.max_age_ns
+        if not self.ok:          # the newest packet waited longer than the timeout: none (S9)
+            r.stale_ticks += 1
 
 
 class ItpReceiver:
@@ -126,25 +141,26 @@ class ItpReceiver:
             outside the tick (deterministic tests).
         limiter: the per-source rate limiter (default: 4,000 packets/s, bursts of 400; a genuine
             ITP master sends 1,000 a second).
+        rcvbuf_bytes: the socket's receive buffer (default ``rx_stamps.RCVBUF_BYTES``: tens of
+            milliseconds of packets, not seconds).
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 36000, timeout_ms: int = 50, checksum: str = "sum",
                  max_step_um: int = 10000, max_jump: int = 1000, lock_timeout_s: float = 1.0, receiver: bool = True,
-                 limiter: Optional[SourceLimiter] = None):
+                 limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES):
         if not 1 <= int(max_jump) < 0x80000000:
             raise ValueError(f"max_jump = {max_jump}; expected 1 .. 2^31 - 1 packets")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-        except OSError:
-            pass
         try:
             self.sock.bind((host, int(port)))
         except BaseException:
             self.sock.close()
             raise
-        self.sock.setblocking(False)
+        self.reader = StampedReader(self.sock, rcvbuf_bytes)
         self.timeout_s = timeout_ms / 1000.0
+        self.max_age_ns = int(round(self.timeout_s * 1e9))   # a sample older at the tick is not used
+        self.ages = AgeHistogram()       # ages of the samples the ticks used (kernel arrival -> tick)
+        self.stale_ticks = 0
         self.checksum = checksum
         self.max_step_um = int(max_step_um)
         self.max_jump = int(max_jump)
@@ -168,6 +184,7 @@ class ItpReceiver:
         self._buttons = [0, 0]
         self._grasp = [0.0, 0.0]
         self._mode = 0
+        self._rx_ns = 0                  # kernel arrival of the newest accepted packet (perf_counter ns)
         self.exposed = not ipaddress.ip_address(self.sock.getsockname()[0]).is_loopback
         self.warning = None
         if self.exposed:
@@ -201,6 +218,7 @@ class ItpReceiver:
             buttons = self._buttons[a]
             grasp = self._grasp[a]
             mode = self._mode
+            rx_ns = self._rx_ns
         p = m.position
         p[0], p[1], p[2] = x, y, z
         o = m.orientation
@@ -210,6 +228,7 @@ class ItpReceiver:
         m.clutch = mode == 1
         m.seen = n
         m.last_t = t
+        m.rx_ns = rx_ns
 
     # --- the receiver (outside the tick) ------------------------------------------------------------------
     def _run(self) -> None:
@@ -217,30 +236,27 @@ class ItpReceiver:
 
     def pump(self, limit: int = 4096) -> int:
         """Receive and handle the waiting packets (at most ``limit``); returns how many."""
-        sock, buf, view = self.sock, self._buf, self._view
+        buf, view, read = self._buf, self._view, self.reader.read
         allow = self.limiter.allow
+        self.reader.begin()
         k = 0
         while k < limit and not self._stop.is_set():
-            try:
-                n, addr = sock.recvfrom_into(buf)
-            except (BlockingIOError, InterruptedError):
+            got = read(buf)
+            if got is None:
                 break
-            except OSError:      # e.g. ICMP port unreachable reported on a UDP socket; a closed socket
-                if sock.fileno() < 0:
-                    break
-                continue
+            n, addr, rx_ns = got
             k += 1
             self.received += 1
             now = time.monotonic()
             if not allow(addr, now):
                 self.counters["rate_limited"] += 1
                 continue
-            self.handle(view[:n], now, addr)
+            self.handle(view[:n], now, addr, rx_ns)
         return k
 
-    def handle(self, data, t: float, addr) -> bool:
-        """Check and apply one packet from ``addr`` received at time ``t`` (receiver clock, s);
-        False: rejected (counted)."""
+    def handle(self, data, t: float, addr, rx_ns: Optional[int] = None) -> bool:
+        """Check and apply one packet from ``addr`` received at time ``t`` (receiver clock, s;
+        it reached the socket at ``rx_ns``, perf_counter ns, default now); False: rejected (counted)."""
         if self.source is not None and self.last_accept_t is not None and t - self.last_accept_t > self.lock_timeout_s:
             self.source = None           # the locked master fell silent: the next valid packet may take the link
             self.seq = None
@@ -293,6 +309,7 @@ class ItpReceiver:
                 self._buttons[a] = v[17 + a] & 0xFFFFFFFF
                 self._grasp[a] = v[19 + a] * 1e-3
             self._mode = mode
+            self._rx_ns = time.perf_counter_ns() if rx_ns is None else rx_ns
             self.n += 1
         return True
 
@@ -303,6 +320,7 @@ class ItpReceiver:
                 "receiver": "thread" if self._thread is not None else "pump",
                 "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
                 "authenticated": False, "exposed": self.exposed, "warning": self.warning,
+                "stale_ticks": self.stale_ticks, "state_age_ms": self.ages.summary(), "kernel_dropped": self.reader.dropped,
                 "locked_to": list(src) if src is not None else None}
 
     def close(self) -> None:

@@ -4,13 +4,20 @@
 service). See ``clients/PROTOCOL.md``. Two sides, two threads:
 
 * **The receiver** (a thread of its own, or ``pump()`` called by the owner outside the tick when
-  built with ``receiver=False``) reads the socket, drops floods per source address before any
-  tag is computed (``udp_ratelimit.SourceLimiter``), checks every datagram (size, header, tag,
-  sequence, values), answers handshakes and publishes each accepted STATE into its session's
-  latest-sample slot: a few floats written under the session's own short lock.
+  built with ``receiver=False``) drains the socket without blocking, each datagram with the time
+  the kernel received it (``rx_stamps.StampedReader``; a receive buffer of tens of milliseconds,
+  not seconds), drops floods per source address before any header or tag is read
+  (``udp_ratelimit.SourceLimiter``), answers handshakes and BYEs in arrival order, and of each
+  session's STATEs in the drain checks the newest first (header, window, tag, values): the first
+  one accepted becomes the session's latest sample (a few floats written under the session's
+  own short lock, ``udp_session.Session``); the older ones are checked after it and counted
+  (``superseded`` when authentic), never used. A backlog that queued while the receiver was
+  starved is never handed to the tick in order.
 * **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot under that lock
-  (no socket, no HMAC, no allocation), decides timeouts in loop time and sends FEEDBACK
-  (non-blocking ``sendto``).
+  (no socket, no HMAC, no allocation), decides timeouts in loop time, and uses the sample only
+  if it reached the socket no longer than the session's timeout before the tick (else the master
+  reports ``ok = False``: the arm holds, S9; ``stale_ticks``); it records each sample's age
+  (``ages``, status ``state_age_ms``) and sends FEEDBACK (non-blocking ``sendto``).
 
 Handshake (PROTOCOL.md section 6): a HELLO without a valid cookie is answered with a COOKIE
 (``udp_cookies.CookieJar``; no state kept); the HELLO that repeats the cookie opens a session.
@@ -38,67 +45,12 @@ import numpy as np
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
+from .age_hist import AgeHistogram
 from .masters import Master
+from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
 from .udp_ratelimit import SourceLimiter, poll_loop
-
-
-class Session:
-    """One authenticated client bound to a slot. Written by the receiver: the latest sample
-    (under ``lock``), ``proven``, ``addr``, ``rejected``, ``error``, ``accepted``; by the tick:
-    ``seen``, ``last_rx_t``, ``has_state``, ``seq``, ``t_client_ns``, ``tx_seq``."""
-
-    __slots__ = ("id", "device_id", "slot", "key", "addr", "window", "workspace", "timeout_s", "max_force",
-                 "hello", "t_open", "proven", "rejected", "error", "accepted",
-                 "lock", "n", "s_seq", "s_pos", "s_flags", "s_buttons", "s_quat", "s_grasp", "s_t_client",
-                 "seen", "last_rx_t", "has_state", "seq", "t_client_ns", "tx_seq")
-
-    def __init__(self, sid, device_id, slot, key, addr, hello: P.Hello, timeout_s, max_force, t_open: float):
-        self.id = sid
-        self.device_id = device_id
-        self.slot = slot
-        self.key = key
-        self.addr = addr
-        self.window = P.ReplayWindow()
-        self.workspace = (hello.workspace_min, hello.workspace_max)
-        self.timeout_s = timeout_s
-        self.max_force = max_force
-        self.hello = hello
-        self.t_open = t_open             # receiver clock (monotonic s) at WELCOME
-        self.proven = False              # a valid STATE arrived: the client holds the session key
-        self.rejected = 0
-        self.error = P.E_OK
-        self.accepted = 0
-        self.lock = threading.Lock()     # guards the latest sample below (held for a copy of a few values)
-        self.n = 0                       # samples published so far
-        self.s_seq = 0
-        self.s_pos = [0.0, 0.0, 0.0]
-        self.s_flags = 0
-        self.s_buttons = 0
-        self.s_quat = [1.0, 0.0, 0.0, 0.0]
-        self.s_grasp = 0.0
-        self.s_t_client = 0
-        self.seen = 0                    # tick: samples copied so far
-        self.last_rx_t = None            # tick: loop time of the newest sample (or of the first tick that saw the session)
-        self.has_state = False
-        self.seq = 0
-        self.t_client_ns = 0
-        self.tx_seq = 0
-
-    def publish(self, seq: int, st: P.State) -> None:
-        """Receiver: make ``st`` (checked) the session's latest sample."""
-        p, q = st.position, st.orientation
-        with self.lock:
-            self.s_seq = seq
-            self.s_pos[0], self.s_pos[1], self.s_pos[2] = p[0], p[1], p[2]
-            self.s_flags = st.flags
-            self.s_buttons = st.buttons
-            if st.flags & P.F_ORIENTATION:
-                self.s_quat[0], self.s_quat[1], self.s_quat[2], self.s_quat[3] = q[0], q[1], q[2], q[3]
-            if st.flags & P.F_GRASP:
-                self.s_grasp = st.grasp
-            self.s_t_client = st.t_client_ns
-            self.n += 1
+from .udp_session import Session
 
 
 #: drains per window of the deadline-grid estimate (UdpHub.tick)
@@ -107,6 +59,12 @@ BASE_WINDOW = 1000
 #: the service two MACs and an answer (a flood of replayed HELLOs is dropped before them)
 HELLO_RATE, HELLO_BURST = 20.0, 10.0
 _TYPE_AT = 3       # offset of the message type in the header (magic 2 bytes, version 1 byte)
+#: STATE datagrams a drain holds before it applies them (each session's newest first); a
+#: receive buffer of RCVBUF_BYTES holds fewer
+BATCH = 256
+#: a drain applies what it holds at least this often (s of the receiver's clock): under a flood
+#: that keeps the socket from ever emptying, the newest sample is still published every drain
+DRAIN_S = 0.5e-3
 
 
 class UdpMaster(Master):
@@ -146,6 +104,7 @@ class UdpMaster(Master):
                 grasp = s.s_grasp
                 seq = s.s_seq
                 t_client = s.s_t_client
+                rx_ns = s.s_rx_ns
             pos = self.position
             pos[0], pos[1], pos[2] = x, y, z
             self.clutch = bool(flags & P.F_CLUTCH)
@@ -158,6 +117,7 @@ class UdpMaster(Master):
             s.seen = n
             s.seq = seq
             s.t_client_ns = t_client
+            s.rx_ns = rx_ns
             s.last_rx_t = t
             s.has_state = True
         elif s.last_rx_t is None:
@@ -167,6 +127,13 @@ class UdpMaster(Master):
             self.ok = False
             self.clutch = False
             return
+        if s.has_state:
+            age = hub.t_ns - s.rx_ns
+            hub.ages.record(age)
+            if age > s.max_age_ns:       # a sample that waited longer than the timeout: none (S9)
+                hub.stale_ticks += 1
+                self.ok = False
+                return
         self.ok = s.has_state
 
     def send_force(self, f: np.ndarray) -> None:
@@ -189,28 +156,33 @@ class UdpHub:
         receiver: run the receiver thread (default); False: the owner calls ``pump()`` itself,
             outside the tick (deterministic tests on a simulated clock).
         limiter: the per-source rate limiter (default: 4,000 datagrams/s, bursts of 400).
+        rcvbuf_bytes: the socket's receive buffer (default ``rx_stamps.RCVBUF_BYTES``: tens of
+            milliseconds of traffic, not seconds).
+        drain_s: a drain applies what it holds at least this often (s; default ``DRAIN_S``).
+        max_age_ms: a sample that reached the socket longer than this before the tick is not used
+            (the master reports ``ok = False``: its arm holds); default: the session's timeout.
+            At most MAX_TIMEOUT_MS. (A run on a simulated clock, whose loop time is not the wall
+            clock the arrival stamps are on, gives the ceiling.)
     """
 
     def __init__(self, psk: bytes, slots: int = 1, host: str = "127.0.0.1", port: int = 0,
                  timeout_ms: int = P.DEFAULT_TIMEOUT_MS, rate_hz: float = 1000.0, max_force: float = 10.0,
-                 receiver: bool = True, limiter: Optional[SourceLimiter] = None):
+                 receiver: bool = True, limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES,
+                 drain_s: float = DRAIN_S, max_age_ms: Optional[int] = None):
         self.psk = P.check_key(psk)
         if int(slots) < 1:
             raise InputError(f"slots = {slots}; expected at least one master slot")
         if not 1 <= int(timeout_ms) <= P.MAX_TIMEOUT_MS:
             raise InputError(f"timeout_ms = {timeout_ms}; expected 1..{P.MAX_TIMEOUT_MS}")
         self.timeout_ms = int(timeout_ms)
+        if max_age_ms is not None and not 1 <= int(max_age_ms) <= P.MAX_TIMEOUT_MS:
+            raise InputError(f"max_age_ms = {max_age_ms}; expected 1..{P.MAX_TIMEOUT_MS} (ms)")
+        self.max_age_ms = None if max_age_ms is None else int(max_age_ms)
         self.rate_hz = float(rate_hz)
         self.max_force = float(max_force)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            # room for a flood while the receiver waits for the interpreter lock: datagrams the
-            # kernel drops for want of buffer would be genuine ones too (Linux caps it at rmem_max)
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-        except OSError:
-            pass
         self.sock.bind((host, int(port)))
-        self.sock.setblocking(False)
+        self.reader = StampedReader(self.sock, rcvbuf_bytes)
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
@@ -220,7 +192,12 @@ class UdpHub:
         self.hello_limiter = SourceLimiter(rate=HELLO_RATE, burst=HELLO_BURST)
         self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
+        self._slots = [bytearray(P.MAX_DATAGRAM) for _ in range(BATCH)]   # a drain's STATE datagrams
+        self.drain_s = float(drain_s)
+        self._pending: dict = {}          # session -> [(seq, slot index, size, address, arrival ns)]
         self.t = None                     # loop time of the last tick
+        self.t_ns = 0                     # its start (perf_counter ns): the "now" of the samples' ages
+        self.ages = AgeHistogram()        # ages of the samples the ticks used (kernel arrival -> tick)
         self._base_ns = None              # perf_counter_ns at loop time 0 (tick deadlines): see tick
         self._base_win = [None, None]     # minima of the current and the previous window of ticks
         self._base_n = 0
@@ -228,6 +205,8 @@ class UdpHub:
         self.counters = {name: 0 for name in P.ERROR_NAMES.values() if name != "ok"}
         self.counters["rate_limited"] = 0
         self.accepted = 0                 # STATE messages accepted
+        self.superseded = 0               # authentic STATEs a newer one of their session beat in the same drain
+        self.stale_ticks = 0              # master reads whose newest sample was older than the timeout
         self.received = 0                 # datagrams read from the socket
         self.hellos = 0
         self.cookies_sent = 0
@@ -267,54 +246,91 @@ class UdpHub:
         poll_loop(self.sock, self._stop, self.pump)
 
     def pump(self, limit: int = 4096) -> int:
-        """Receive and handle the waiting datagrams (at most ``limit``); returns how many."""
-        sock, buf, view = self.sock, self._buf, memoryview(self._buf)
+        """Drain the waiting datagrams (at most ``limit``) and apply them; returns how many were
+        read. Handshakes and BYEs are applied in arrival order; of each session's STATEs only the
+        newest authentic one is (verified newest first by sequence, ``_resolve``): a backlog that
+        waited in the socket while the receiver was starved is never handed to the tick in order."""
+        self.reader.begin()
+        k, more = 0, True
+        while more and k < limit and not self._stop.is_set():
+            got, more = self._drain(limit - k)
+            k += got
+            self._resolve()
+        return k
+
+    def _drain(self, limit: int):
+        """Read up to ``limit`` datagrams, until BATCH STATEs are held or for DRAIN_S: (read, maybe
+        more wait).
+        Floods are cut per source before any header is read; STATEs that could still be new for a
+        live session are held for ``_resolve``; everything else is handled at once."""
+        slots, read, pending = self._slots, self.reader.read, self._pending
         allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
-        k = 0
-        while k < limit and not self._stop.is_set():
-            try:
-                n, addr = sock.recvfrom_into(buf)
-            except (BlockingIOError, InterruptedError):
-                break
-            except OSError:      # e.g. ICMP port unreachable reported on a UDP socket; a closed socket
-                if sock.fileno() < 0:
-                    break
-                continue
+        held = k = 0
+        end = time.monotonic() + self.drain_s
+        while k < limit:
+            if held == len(slots) or self._stop.is_set():
+                return k, True
+            buf = slots[held]
+            got = read(buf)
+            if got is None:
+                return k, False
+            n, addr, rx_ns = got
             k += 1
             self.received += 1
             now = time.monotonic()
-            if not allow(addr, now) or (n > _TYPE_AT and buf[_TYPE_AT] == P.HELLO and not hello_allow(addr, now)):
+            if now > end:
+                limit = k                             # the last one of this drain
+            typ = buf[_TYPE_AT] if n > _TYPE_AT else -1
+            if not allow(addr, now) or (typ == P.HELLO and not hello_allow(addr, now)):
                 self.counters["rate_limited"] += 1
                 continue
-            self.handle(view[:n], addr)
-        return k
+            view = memoryview(buf)[:n]
+            if typ != P.STATE:
+                self.handle(view, addr, rx_ns)
+                continue
+            session = None
+            try:
+                h = P.parse_header(view)
+                session = self._session_of(h)
+                session.window.check(h.seq)           # replayed or stale: no MAC (RFC 4303 3.4.3)
+                if h.seq <= session.window.top:
+                    raise P.ProtocolError(P.E_STALE, "older than the newest sample")
+            except P.ProtocolError as e:
+                self._count(e, session)
+                continue
+            pending.setdefault(session, []).append((h.seq, held, n, addr, rx_ns))
+            held += 1
+        return k, True
 
-    def handle(self, data, addr) -> int:
-        """Check and apply one datagram from ``addr``; returns the E_* code (E_OK when accepted)."""
+    def _resolve(self) -> None:
+        """Apply the held STATEs: per session, newest first, until one is accepted; the older
+        ones are checked after it (``_older``: a forgery is counted as any other) and never used."""
+        slots = self._slots
+        for session, held in self._pending.items():
+            held.sort(key=lambda c: c[0], reverse=True)
+            live = self.sessions.get(session.id) is session      # (a BYE in the same drain ends it)
+            for seq, i, n, addr, rx_ns in held:
+                try:
+                    if not live:
+                        raise P.ProtocolError(P.E_NO_SESSION)
+                    if seq < session.window.top:           # below the sample accepted just now
+                        self._older(session, seq, memoryview(slots[i])[:n])
+                        continue
+                    self._state(session, seq, memoryview(slots[i])[:n], addr, rx_ns)
+                except P.ProtocolError as e:
+                    self._count(e, session if live else None)
+        self._pending.clear()
+
+    def handle(self, data, addr, rx_ns: Optional[int] = None) -> int:
+        """Check and apply one datagram from ``addr`` (arrived at ``rx_ns``, perf_counter ns;
+        default: now); returns the E_* code (E_OK when accepted)."""
         session = None
         try:
             h = P.parse_header(data)
             typ = h.type
             if typ == P.STATE:
-                session = self.sessions.get(h.session)
-                if session is None or session.device_id != h.device_id:
-                    session = None
-                    raise P.ProtocolError(P.E_NO_SESSION)
-                # the anti-replay window first (RFC 4303 3.4.3): a replayed or stale datagram costs
-                # no MAC, nor does one older than the newest sample (it could never be used); the
-                # window only moves once the MAC has been verified (commit below)
-                session.window.check(h.seq)
-                if h.seq <= session.window.top:
-                    raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-                P.verify(data, session.key)
-                st = P.State.decode(data, session.workspace)
-                if not session.window.commit(h.seq):
-                    raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-                session.publish(h.seq, st)
-                session.proven = True
-                session.addr = addr
-                session.accepted += 1
-                self.accepted += 1
+                session = self._session_of(h)
+                self._state(session, h.seq, data, addr, time.perf_counter_ns() if rx_ns is None else rx_ns)
                 return P.E_OK
             if typ == P.HELLO:
                 P.verify(data, self.psk)
@@ -339,11 +355,55 @@ class UdpHub:
                 return P.E_OK
             raise P.ProtocolError(P.E_DIRECTION, f"{P.TYPE_NAMES[typ]} is never sent to the service")
         except P.ProtocolError as e:
-            self.counters[P.ERROR_NAMES[e.code]] += 1
-            if session is not None:
-                session.rejected += 1
-                session.error = e.code
+            self._count(e, session)
             return e.code
+
+    def _session_of(self, h) -> Session:
+        """The live session a STATE's header names; raises E_NO_SESSION."""
+        session = self.sessions.get(h.session)
+        if session is None or session.device_id != h.device_id:
+            raise P.ProtocolError(P.E_NO_SESSION)
+        return session
+
+    def _state(self, session: Session, seq: int, data, addr, rx_ns: int) -> None:
+        """Check one STATE of ``session`` and make it the session's sample; raises ProtocolError."""
+        # the anti-replay window first (RFC 4303 3.4.3): a replayed or stale datagram costs no
+        # MAC, nor does one older than the newest sample (it could never be used); the window
+        # only moves once the MAC has been verified (commit below)
+        session.window.check(seq)
+        if seq <= session.window.top:
+            raise P.ProtocolError(P.E_STALE, "older than the newest sample")
+        P.verify(data, session.key)
+        st = P.State.decode(data, session.workspace)
+        if not session.window.commit(seq):
+            raise P.ProtocolError(P.E_STALE, "older than the newest sample")
+        session.publish(seq, st, rx_ns)
+        session.proven = True
+        session.addr = addr
+        session.accepted += 1
+        self.accepted += 1
+
+    def _older(self, session: Session, seq: int, data) -> None:
+        """A STATE older than the one its drain just accepted (it was new when the drain began):
+        checked as any other (tag, values; a replay inside the window; raises ProtocolError) and
+        recorded in the window where it still fits, but never used: ``superseded``. (The sample
+        is published before these MACs are computed.)"""
+        w = session.window
+        inside = w.top - seq < w.size
+        if inside:
+            w.check(seq)
+        P.verify(data, session.key)
+        P.State.decode(data, session.workspace)
+        if inside:
+            w.commit(seq)
+        self.superseded += 1
+
+    def _count(self, e: P.ProtocolError, session: Optional[Session]) -> None:
+        """A rejected datagram: counted per reason, and against its session if it named a live one."""
+        self.counters[P.ERROR_NAMES[e.code]] += 1
+        if session is not None:
+            session.rejected += 1
+            session.error = e.code
 
     def _hello(self, h, hello: P.Hello, addr) -> None:
         self.hellos += 1
@@ -405,6 +465,8 @@ class UdpHub:
         key = P.session_key(self.psk, hello.nonce, server_nonce, dev, sid)
         tmo = min(hello.timeout_ms or self.timeout_ms, self.timeout_ms)
         s = Session(sid, dev, slot, key, addr, hello, tmo / 1000.0, min(hello.max_force, self.max_force), now)
+        if self.max_age_ms is not None:
+            s.max_age_ns = self.max_age_ms * 1_000_000
         self.sessions[sid] = s
         self.by_device[dev] = s
         self.masters[slot].session = s
@@ -434,11 +496,12 @@ class UdpHub:
     def tick(self, t: float) -> None:
         """Once per tick (by the first master polled): the deadline grid's origin for FEEDBACK."""
         self.t = t
+        self.t_ns = now = time.perf_counter_ns()
         # the deadline grid's origin: tick time minus loop time, at its minimum (the least late
         # tick). A windowed minimum (the last 1,000 to 2,000 ticks), so that a poll outside the
         # loop's timeline (the service's start-up poll at loop time 0, before the first tick;
         # measured 32 ms early) cannot shift the clients' phase lock for good.
-        base = time.perf_counter_ns() - int(round(t * 1e9))
+        base = now - int(round(t * 1e9))
         w = self._base_win
         if w[0] is None or base < w[0]:
             w[0] = base
@@ -508,4 +571,7 @@ class UdpHub:
             "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
             "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
             "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
+            "superseded": self.superseded, "stale_ticks": self.stale_ticks, "kernel_dropped": self.reader.dropped,
+            "rcvbuf_bytes": self.reader.rcvbuf if self.sock.fileno() >= 0 else None,
+            "state_age_ms": self.ages.summary(),
         }

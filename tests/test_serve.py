@@ -34,7 +34,8 @@ class Rig:
     def __init__(self, tmp_path, slots=1, robot=POINT_MASS, arch="I"):
         tmp_path.mkdir(parents=True, exist_ok=True)
         cfg = balloon_config(tmp_path, arch=arch, robot=robot)
-        self.hub = UdpHub(KEY, slots, receiver=False)
+        # the loop runs on a FakeClock: the wall-clock age of a sample says nothing about loop time
+        self.hub = UdpHub(KEY, slots, receiver=False, max_age_ms=P.MAX_TIMEOUT_MS)
         self.svc = Service(cfg, self.hub.masters, record=4000)
         self.hub.attach(self.svc)
         self.sources = cfg.open_sources()
@@ -314,11 +315,13 @@ def test_bench_e2e_accounts_for_every_datagram():
     assert out.returncode == 0, out.stderr[-2000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["states_sent"] > 2000 and r["link_lost"] == 0
-    assert r["states_accepted_by_service"] >= r["states_sent"] - 2 >= r["states_answered"] - 2
+    # a state the receiver's drain found with a newer one of its device behind it is received, not lost
+    assert r["states_accepted_by_service"] + r["states_superseded_in_drain"] >= r["states_sent"] - 2 >= r["states_answered"] - 2
     assert r["states_lost"] <= 2 and r["loss_ratio"] is not None and r["loss_ratio"] < 0.01
     assert r["states_answered"] + r["states_superseded"] + r["states_lost"] >= r["states_sent"]
     assert r["feedback_sent_by_service"] > 2000 and r["feedback_received"] > 2000
-    assert r["rejected_total"] >= r["attacks_sent"] > 100
+    # (a hostile datagram the kernel dropped for want of buffer under load was refused too, uncounted by the hub)
+    assert r["rejected_total"] + r["kernel_dropped"] >= r["attacks_sent"] > 100
     assert 0 < r["rtt_us_p50"] < 100000
 
 
