@@ -181,6 +181,8 @@ class Robot(ABC):
         if (workspace_min is None) != (workspace_max is None):
             raise InputError("workspace: give both workspace_min and workspace_max, or neither")
         self._ws = None if workspace_min is None else as_limits(workspace_min, workspace_max, 3, "workspace")
+        #: the workspace as six floats (x, y, z min, x, y, z max): the per-tick check compares scalars
+        self._ws_box = None if self._ws is None else tuple(self._ws[0].tolist() + self._ws[1].tolist())
         if not (isinstance(control_rate_hz, (int, float)) and math.isfinite(control_rate_hz) and control_rate_hz > 0):
             raise InputError(f"control_rate_hz = {control_rate_hz!r}; expected a number > 0")
         self.control_period = 1.0 / float(control_rate_hz)
@@ -365,9 +367,12 @@ class Robot(ABC):
                 pose[0, 3], pose[1, 3], pose[2, 3] = x, y, z
             else:
                 pose = as_pose(a, "servo_cp pose")
+                x, y, z = pose[:3, 3].tolist()
         except InputError as e:
             self._reject(str(e))
-        self._check_workspace(pose[:3, 3], "servo_cp")
+        box = self._ws_box
+        if box is not None and not (box[0] <= x <= box[3] and box[1] <= y <= box[4] and box[2] <= z <= box[5]):
+            self._check_workspace(pose[:3, 3], "servo_cp")    # (outside: raises, naming the axis)
         return pose
 
     def servo_cp(self, T) -> bool:
@@ -473,7 +478,7 @@ class Robot(ABC):
     def adopt_setpoint(self, T_d, q_d=None) -> None:
         """Take the setpoint (pose ``T_d``: 16 values or 4x4, world; joints ``q_d`` where given) of
         this model's controller running in another process."""
-        np.copyto(self._T_d16, np.reshape(T_d, 16))
+        np.copyto(self._T_d16, T_d.reshape(16) if type(T_d) is np.ndarray else np.reshape(T_d, 16))
         if q_d is not None:
             self._q_d[:] = q_d
 
