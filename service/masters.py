@@ -64,6 +64,7 @@ class ScriptedMaster(Master):
         if c.shape != t.shape:
             raise InputError(f"scripted master: {c.size} clutch values for {t.size} samples")
         self.name = name
+        self._pos = memoryview(self.position)   # (poll writes floats through it: no NumPy call)
         self.times = t
         self.positions = p
         self.clutches = c
@@ -94,7 +95,7 @@ class ScriptedMaster(Master):
             (dx, dy, dz), (px, py, pz) = self._dl[i], self._pl[i]
             x, y, z = dx * w + px, dy * w + py, dz * w + pz    # (the same float64 arithmetic as before)
             self.clutch = self._cl[i]
-        pos = self.position
+        pos = self._pos
         pos[0], pos[1], pos[2] = x, y, z
         self.ok = math.isfinite(x + y + z)
 

@@ -204,6 +204,7 @@ class Robot(ABC):
         self._scratch4 = np.eye(4)
         self._T_meas16 = self._T_meas.reshape(16)   # flat views of the poses (adopt_*)
         self._T_d16 = self._T_d.reshape(16)
+        self._T_meas_mv, self._T_d_mv = memoryview(self._T_meas16), memoryview(self._T_d16)
         self.t = 0.0
         self._mode = RobotMode.ENABLED
         self._fault: Optional[str] = None
@@ -465,20 +466,27 @@ class Robot(ABC):
         """Take the measured state of this model's controller running in another process (the
         service's copy of a hosted arm, robot/hosted.py): time ``t`` (s), joints ``q``, ``dq``,
         ``tau`` (``dof`` values each), measured pose ``T_meas`` (16 values, world, row-major) and,
-        where given, the operating ``mode``. Nothing is checked: the caller checked it."""
+        where given, the operating ``mode``. Nothing is checked: the caller checked it. (A memoryview
+        of 16 floats is the cheapest ``T_meas``: a plain copy.)"""
         self.t = t
         if mode is not None:
             self._mode = mode
         self._q[:] = q
         self._dq[:] = dq
         self._tau[:] = tau
-        np.copyto(self._T_meas16, T_meas)
+        if type(T_meas) is memoryview:
+            self._T_meas_mv[:] = T_meas
+        else:
+            np.copyto(self._T_meas16, T_meas)
         self._T_meas_ok = True
 
     def adopt_setpoint(self, T_d, q_d=None) -> None:
         """Take the setpoint (pose ``T_d``: 16 values or 4x4, world; joints ``q_d`` where given) of
-        this model's controller running in another process."""
-        np.copyto(self._T_d16, T_d.reshape(16) if type(T_d) is np.ndarray else np.reshape(T_d, 16))
+        this model's controller running in another process (a memoryview of 16 floats: a plain copy)."""
+        if type(T_d) is memoryview:
+            self._T_d_mv[:] = T_d
+        else:
+            np.copyto(self._T_d16, T_d.reshape(16) if type(T_d) is np.ndarray else np.reshape(T_d, 16))
         if q_d is not None:
             self._q_d[:] = q_d
 

@@ -133,8 +133,9 @@ class RobotHost:
         self._buf = np.zeros((n, self._blk.S))           # the last state record read
         self._buf_mv = memoryview(self._buf.reshape(-1))  # (made once: Channel.read copies into it)
         self._row_arrays = [self._buf[b] for b in range(n)]
-        self._T_meas = [self._buf[b, L.T_meas] for b in range(n)]   # views of each arm's poses in it
-        self._T_d = [self._buf[b, L.T_d] for b in range(n)]
+        # each arm's poses in it, as memoryviews (16 floats: the arm copies them)
+        self._T_meas = [memoryview(self._buf[b, L.T_meas]) for b in range(n)]
+        self._T_d = [memoryview(self._buf[b, L.T_d]) for b in range(n)]
         self._rows: list = [None] * n                    # each arm's row of the last read, as floats
         self._finite = [True] * n
         self._got = False                                # whether the last read succeeded
@@ -142,7 +143,8 @@ class RobotHost:
         self._took = [0] * n                             # the read arm b took last (== _reads: the last)
         self._cmds = Commands(n)                         # the commands written so far (this side's copy)
         self._cmds_mv = memoryview(self._cmds.rec)
-        self._pose_rows = [self._cmds.pose[b].reshape(4, 4) for b in range(n)]
+        self._pose_rows = [memoryview(self._cmds.pose[b]) for b in range(n)]   # (16 floats each)
+        self._servo_seq_at = [b * self._blk.C + self._blk.command_layout.servo_seq for b in range(n)]
         self._spawn(None)
         self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
         self.sync()
@@ -312,11 +314,12 @@ class RobotHost:
         for b in range(self.n):
             self.send_mode(b, FAULT)       # the new process starts braked, as the arms read here
 
-    def stage_pose(self, b: int, pose: np.ndarray) -> None:
-        """Queue arm b's setpoint (4x4 world); ``publish`` sends every queued one at once."""
-        np.copyto(self._pose_rows[b], pose)
+    def stage_pose(self, b: int, pose) -> None:
+        """Queue arm b's setpoint (4x4 world: an array, or a memoryview of its 16 floats, row-major);
+        ``publish`` sends every queued one at once."""
+        self._pose_rows[b][:] = pose if type(pose) is memoryview else memoryview(np.ascontiguousarray(pose).reshape(16))
         k = self._servo_sent[b] = self._servo_sent[b] + 1
-        self._cmds.servo_seq[b] = k
+        self._cmds_mv[self._servo_seq_at[b]] = float(k)
         self._staged = True
 
     def publish(self) -> None:
@@ -408,7 +411,8 @@ class HostedRobot:
         self._local_ignored = 0           # setpoints not sent: the arm was not ENABLED here
         self._last_error: Optional[str] = None
         self._latched: Optional[str] = None   # FAULT of the robot process (reason), until enable()
-        self._pose = np.eye(4)
+        self._pose = np.eye(4)            # the setpoint being sent (scratch), and its 16 floats
+        self._pose16 = memoryview(self._pose.reshape(16))
 
     def __repr__(self) -> str:
         return f"HostedRobot({self.model!r}, arm {self._b}, process {self._host.pid})"
@@ -498,9 +502,9 @@ class HostedRobot:
         return st
 
     # --- RobotHost's calls ----------------------------------------------------------------------
-    def take_state(self, row: list, T_meas: np.ndarray, T_d: np.ndarray, servo_sent: int, modes_sent: int) -> None:
+    def take_state(self, row: list, T_meas, T_d, servo_sent: int, modes_sent: int) -> None:
         """Take the child's state row (``row`` as floats; ``T_meas`` and ``T_d``: its two poses, 16
-        floats each, as arrays), given the setpoints and mode commands sent to this arm so far.
+        floats each, as memoryviews or arrays), given the setpoints and mode commands sent to this arm so far.
         Nothing while latched."""
         if self._latched is not None:
             return                         # latched until the host answers again and enable() is called
@@ -551,8 +555,10 @@ class HostedRobot:
         if self._latched is not None or r.state is not RobotMode.ENABLED:
             self._local_ignored += 1
             return False
-        self._host.stage_pose(self._b, pose)
-        r.adopt_setpoint(pose)
+        if pose is not self._pose:         # (a 4x4 pose was given: checked into a new array)
+            np.copyto(self._pose, pose)
+        self._host.stage_pose(self._b, self._pose16)
+        r.adopt_setpoint(self._pose16)
         return True
 
     def servo_jp(self, q) -> bool:
