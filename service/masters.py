@@ -68,11 +68,12 @@ class ScriptedMaster(Master):
         self.times = t
         self.positions = p
         self.clutches = c
-        # the script as Python floats and bools: a poll is scalar arithmetic (no NumPy call on a (3,) row)
+        # the trajectory as Python floats: a poll is scalar arithmetic (no NumPy call on a (3,) row).
+        # ``times`` and ``positions`` are fixed here; ``clutches`` is read at each poll (an operator
+        # script may lift the pedal by writing it)
         self._tl = t.tolist()
         self._pl = p.tolist()
         self._dl = (np.diff(p, axis=0) if t.size > 1 else np.zeros((0, 3))).tolist()
-        self._cl = c.tolist()
         self.t0 = float(t0)
         self.poll(self.t0 + t[0])
 
@@ -86,15 +87,15 @@ class ScriptedMaster(Master):
         i = bisect.bisect_right(tl, s) - 1
         if i < 0:
             x, y, z = self._pl[0]
-            self.clutch = self._cl[0]
+            i = 0
         elif i >= len(tl) - 1:
             x, y, z = self._pl[-1]
-            self.clutch = self._cl[-1]
+            i = -1
         else:
             w = (s - tl[i]) / (tl[i + 1] - tl[i])
             (dx, dy, dz), (px, py, pz) = self._dl[i], self._pl[i]
             x, y, z = dx * w + px, dy * w + py, dz * w + pz    # (the same float64 arithmetic as before)
-            self.clutch = self._cl[i]
+        self.clutch = bool(self.clutches[i])
         pos = self._pos
         pos[0], pos[1], pos[2] = x, y, z
         self.ok = math.isfinite(x + y + z)

@@ -45,6 +45,17 @@ def test_scripted_master_interpolates_exactly_as_the_numpy_reference():
         assert m.clutch is bool(clutch) and m.ok is True
 
 
+def test_a_scripted_masters_pedal_follows_its_clutches_array():
+    m = ScriptedMaster([0.0, 1.0, 2.0], np.zeros((3, 3)))
+    for t in (-1.0, 0.5, 1.5, 3.0):
+        m.poll(t)
+        assert m.clutch is True
+    m.clutches[:] = False                               # the operator lifts the pedal (tests/test_service_ctl.py)
+    for t in (-1.0, 0.5, 1.5, 3.0):
+        m.poll(t)
+        assert m.clutch is False
+
+
 def test_a_scripted_master_with_a_non_finite_sample_is_not_ok():
     m = ScriptedMaster([0.0, 1.0], [[0.0, 0.0, 0.0], [math.nan, 0.0, 0.0]])
     m.poll(0.5)
