@@ -363,8 +363,7 @@ class Service:
         refuses its command keeps its setpoint, and so does the command; the arm holds (S3)."""
         dev = self.devices
         dev.send_forces(out.force_master)
-        dev.command_robots(out, dt)
-        if dev.refused.any():
+        if dev.command_robots(out, dt):          # (True: an arm refused its command)
             for b in np.flatnonzero(dev.refused):
                 self.teleop.cmd[b] = dev.kept[b]
                 out.command[b] = dev.kept[b]

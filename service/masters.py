@@ -64,11 +64,16 @@ class ScriptedMaster(Master):
         if c.shape != t.shape:
             raise InputError(f"scripted master: {c.size} clutch values for {t.size} samples")
         self.name = name
+        self._pos = memoryview(self.position)   # (poll writes floats through it: no NumPy call)
         self.times = t
         self.positions = p
         self.clutches = c
+        # the trajectory as Python floats: a poll is scalar arithmetic (no NumPy call on a (3,) row).
+        # ``times`` and ``positions`` are fixed here; ``clutches`` is read at each poll (an operator
+        # script may lift the pedal by writing it)
         self._tl = t.tolist()
-        self._d = np.diff(p, axis=0) if t.size > 1 else np.zeros((0, 3))
+        self._pl = p.tolist()
+        self._dl = (np.diff(p, axis=0) if t.size > 1 else np.zeros((0, 3))).tolist()
         self.t0 = float(t0)
         self.poll(self.t0 + t[0])
 
@@ -80,19 +85,20 @@ class ScriptedMaster(Master):
         s = t - self.t0
         tl = self._tl
         i = bisect.bisect_right(tl, s) - 1
-        p = self.positions
         if i < 0:
-            self.position[:] = p[0]
-            self.clutch = bool(self.clutches[0])
+            x, y, z = self._pl[0]
+            i = 0
         elif i >= len(tl) - 1:
-            self.position[:] = p[-1]
-            self.clutch = bool(self.clutches[-1])
+            x, y, z = self._pl[-1]
+            i = -1
         else:
             w = (s - tl[i]) / (tl[i + 1] - tl[i])
-            np.multiply(self._d[i], w, out=self.position)
-            np.add(self.position, p[i], out=self.position)
-            self.clutch = bool(self.clutches[i])
-        self.ok = math.isfinite(self.position[0] + self.position[1] + self.position[2])
+            (dx, dy, dz), (px, py, pz) = self._dl[i], self._pl[i]
+            x, y, z = dx * w + px, dy * w + py, dz * w + pz    # (the same float64 arithmetic as before)
+        self.clutch = bool(self.clutches[i])
+        pos = self._pos
+        pos[0], pos[1], pos[2] = x, y, z
+        self.ok = math.isfinite(x + y + z)
 
     # --- files ---------------------------------------------------------------------------------
     @classmethod

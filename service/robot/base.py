@@ -181,6 +181,8 @@ class Robot(ABC):
         if (workspace_min is None) != (workspace_max is None):
             raise InputError("workspace: give both workspace_min and workspace_max, or neither")
         self._ws = None if workspace_min is None else as_limits(workspace_min, workspace_max, 3, "workspace")
+        #: the workspace as six floats (x, y, z min, x, y, z max): the per-tick check compares scalars
+        self._ws_box = None if self._ws is None else tuple(self._ws[0].tolist() + self._ws[1].tolist())
         if not (isinstance(control_rate_hz, (int, float)) and math.isfinite(control_rate_hz) and control_rate_hz > 0):
             raise InputError(f"control_rate_hz = {control_rate_hz!r}; expected a number > 0")
         self.control_period = 1.0 / float(control_rate_hz)
@@ -202,6 +204,7 @@ class Robot(ABC):
         self._scratch4 = np.eye(4)
         self._T_meas16 = self._T_meas.reshape(16)   # flat views of the poses (adopt_*)
         self._T_d16 = self._T_d.reshape(16)
+        self._T_meas_mv, self._T_d_mv = memoryview(self._T_meas16), memoryview(self._T_d16)
         self.t = 0.0
         self._mode = RobotMode.ENABLED
         self._fault: Optional[str] = None
@@ -365,9 +368,12 @@ class Robot(ABC):
                 pose[0, 3], pose[1, 3], pose[2, 3] = x, y, z
             else:
                 pose = as_pose(a, "servo_cp pose")
+                x, y, z = pose[:3, 3].tolist()
         except InputError as e:
             self._reject(str(e))
-        self._check_workspace(pose[:3, 3], "servo_cp")
+        box = self._ws_box
+        if box is not None and not (box[0] <= x <= box[3] and box[1] <= y <= box[4] and box[2] <= z <= box[5]):
+            self._check_workspace(pose[:3, 3], "servo_cp")    # (outside: raises, naming the axis)
         return pose
 
     def servo_cp(self, T) -> bool:
@@ -460,20 +466,27 @@ class Robot(ABC):
         """Take the measured state of this model's controller running in another process (the
         service's copy of a hosted arm, robot/hosted.py): time ``t`` (s), joints ``q``, ``dq``,
         ``tau`` (``dof`` values each), measured pose ``T_meas`` (16 values, world, row-major) and,
-        where given, the operating ``mode``. Nothing is checked: the caller checked it."""
+        where given, the operating ``mode``. Nothing is checked: the caller checked it. (A memoryview
+        of 16 floats is the cheapest ``T_meas``: a plain copy.)"""
         self.t = t
         if mode is not None:
             self._mode = mode
         self._q[:] = q
         self._dq[:] = dq
         self._tau[:] = tau
-        np.copyto(self._T_meas16, T_meas)
+        if type(T_meas) is memoryview:
+            self._T_meas_mv[:] = T_meas
+        else:
+            np.copyto(self._T_meas16, T_meas)
         self._T_meas_ok = True
 
     def adopt_setpoint(self, T_d, q_d=None) -> None:
         """Take the setpoint (pose ``T_d``: 16 values or 4x4, world; joints ``q_d`` where given) of
-        this model's controller running in another process."""
-        np.copyto(self._T_d16, np.reshape(T_d, 16))
+        this model's controller running in another process (a memoryview of 16 floats: a plain copy)."""
+        if type(T_d) is memoryview:
+            self._T_d_mv[:] = T_d
+        else:
+            np.copyto(self._T_d16, T_d.reshape(16) if type(T_d) is np.ndarray else np.reshape(T_d, 16))
         if q_d is not None:
             self._q_d[:] = q_d
 

@@ -69,7 +69,7 @@ from pointfence.kernels.errors import InputError
 
 from .base import JointState, RobotMode, RobotState
 from .factory import robot_from_config
-from .hosted_block import ENABLE, FAULT, HOLD, INJECT_NAN, INJECT_NONE, RESUME, RING, Block, Commands, get_text
+from .hosted_block import ENABLE, FAULT, HOLD, INJECT_NAN, INJECT_NONE, RESUME, RING, TICKS, Block, Commands, get_text
 
 LOST = "robot process not answering"
 NONFINITE = "robot state non-finite"
@@ -129,12 +129,22 @@ class RobotHost:
         self._shm = shared_memory.SharedMemory(create=True, size=Block.nbytes(self.n, dof))
         self._blk = Block(self._shm.buf, self.n, dof)   # a new shared memory object reads as zeros
         self._L = self._blk.layout
-        self._buf = np.zeros((self.n, self._blk.S))      # the last state record read
-        self._sum = np.zeros(self.n)
-        self._finite = [True] * self.n
+        L, n = self._L, self.n
+        self._buf = np.zeros((n, self._blk.S))           # the last state record read
+        self._buf_mv = memoryview(self._buf.reshape(-1))  # (made once: Channel.read copies into it)
+        self._row_arrays = [self._buf[b] for b in range(n)]
+        # each arm's poses in it, as memoryviews (16 floats: the arm copies them)
+        self._T_meas = [memoryview(self._buf[b, L.T_meas]) for b in range(n)]
+        self._T_d = [memoryview(self._buf[b, L.T_d]) for b in range(n)]
+        self._rows: list = [None] * n                    # each arm's row of the last read, as floats
+        self._finite = [True] * n
         self._got = False                                # whether the last read succeeded
-        self._taken = [True] * self.n                    # arm b has taken the last read
-        self._cmds = Commands(self.n)                    # the commands written so far (this side's copy)
+        self._reads = 0                                  # reads of the record so far
+        self._took = [0] * n                             # the read arm b took last (== _reads: the last)
+        self._cmds = Commands(n)                         # the commands written so far (this side's copy)
+        self._cmds_mv = memoryview(self._cmds.rec)
+        self._pose_rows = [memoryview(self._cmds.pose[b]) for b in range(n)]   # (16 floats each)
+        self._servo_seq_at = [b * self._blk.C + self._blk.command_layout.servo_seq for b in range(n)]
         self._spawn(None)
         self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
         self.sync()
@@ -143,6 +153,8 @@ class RobotHost:
         """Start the child on a zeroed block and wait until it has built the arms."""
         self._blk.raw[:] = 0                       # no command of a previous child
         self._cmds.rec[:] = 0
+        self._servo_sent = [0] * self.n            # setpoints and mode commands sent (the record's counts)
+        self._modes_sent = [0] * self.n
         self._staged = False
         self._versions = [(0.0, 0.0)] * self.n
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
@@ -174,8 +186,9 @@ class RobotHost:
         """Arm ``b``'s step: send every queued setpoint, read the child's record again if this arm
         has taken the last read (else the read of this tick, by an arm stepped before it), and
         give the arm its row. Right in any order of the arms' steps (module docstring)."""
-        self.publish()
-        if self._taken[b]:
+        if self._staged:
+            self.publish()
+        if self._took[b] == self._reads:
             self._read()
         self._give(b)
 
@@ -183,16 +196,16 @@ class RobotHost:
         """Read the state record, after the watchdog: a child that has not stepped, or whose state
         record has not read, for ``timeout_s`` faults every arm; an arm whose state is not finite
         faults. Every arm may take this read once (``_give``)."""
-        blk, buf, L = self._blk, self._buf, self._L
-        self._taken = [False] * self.n
+        blk = self._blk
+        self._reads += 1
         if blk is None:                    # closed: the arms keep their last state
             self._got = False
             return
         now = time.monotonic()
-        ticks = int(blk.ctl["ticks"])
+        ticks = blk.ctl_words[TICKS]
         if ticks != self._ticks:
             self._ticks, self._ticks_at = ticks, now
-        got = self._got = blk.state.read(buf.reshape(-1))
+        got = self._got = blk.state.read(self._buf_mv)
         if got:
             self._read_at = now
         silent, unread = now - self._ticks_at, now - self._read_at
@@ -201,26 +214,28 @@ class RobotHost:
             self._lost(silent, unread)
         if not got:                        # lapped (this thread was preempted): the next read
             return
-        np.sum(buf, axis=1, out=self._sum)
-        for b in range(self.n):
-            ok = math.isfinite(self._sum[b])
-            self._finite[b] = ok
+        L, rows, finite, versions = self._L, self._rows, self._finite, self._versions
+        fault_ver, error_ver = L.fault_ver, L.error_ver
+        for b, arr in enumerate(self._row_arrays):
+            row = rows[b] = arr.tolist()
+            # (a NaN or an infinity anywhere makes the sum non-finite)
+            ok = finite[b] = math.isfinite(sum(row))
             if not ok:
                 if not self.robots[b].latched:
-                    self.robots[b].latch_fault(f"{NONFINITE}: {', '.join(L.nonfinite_fields(buf[b]))} (arm {b})")
+                    self.robots[b].latch_fault(f"{NONFINITE}: {', '.join(L.nonfinite_fields(arr))} (arm {b})")
                 continue
-            v = (buf[b, L.fault_ver], buf[b, L.error_ver])
-            if v != self._versions[b]:     # a fault reason or an error message changed
-                self._versions[b] = v
+            v = (row[fault_ver], row[error_ver])
+            if v != versions[b]:           # a fault reason or an error message changed
+                versions[b] = v
                 self.robots[b].take_texts(get_text(blk.text[b, 0]), get_text(blk.text[b, 1]))
 
     def _give(self, b: int) -> None:
         """Arm ``b`` takes its row of the last read (where it read, the child answers and the row
         is finite)."""
-        self._taken[b] = True
+        self._took[b] = self._reads
         if self._got and self._alive and self._finite[b]:
-            c = self._cmds
-            self.robots[b].take_state(self._buf[b].tolist(), self._buf[b], int(c.servo_seq[b]), int(c.mode_seq[b]))
+            self.robots[b].take_state(self._rows[b], self._T_meas[b], self._T_d[b], self._servo_sent[b],
+                                      self._modes_sent[b])
 
     def _lost(self, silent: float, unread: float) -> None:
         """Every arm FAULT: the child has not stepped for ``silent`` s, or its state record has not
@@ -246,7 +261,7 @@ class RobotHost:
 
     def sent(self, b: int) -> tuple:
         """(setpoints, mode commands) sent to arm ``b`` so far."""
-        return int(self._cmds.servo_seq[b]), int(self._cmds.mode_seq[b])
+        return self._servo_sent[b], self._modes_sent[b]
 
     @property
     def pid(self) -> Optional[int]:
@@ -299,10 +314,12 @@ class RobotHost:
         for b in range(self.n):
             self.send_mode(b, FAULT)       # the new process starts braked, as the arms read here
 
-    def stage_pose(self, b: int, pose: np.ndarray) -> None:
-        """Queue arm b's setpoint (4x4 world); ``publish`` sends every queued one at once."""
-        self._cmds.pose[b] = pose.ravel()
-        self._cmds.servo_seq[b] += 1
+    def stage_pose(self, b: int, pose) -> None:
+        """Queue arm b's setpoint (4x4 world: an array, or a memoryview of its 16 floats, row-major);
+        ``publish`` sends every queued one at once."""
+        self._pose_rows[b][:] = pose if type(pose) is memoryview else memoryview(np.ascontiguousarray(pose).reshape(16))
+        k = self._servo_sent[b] = self._servo_sent[b] + 1
+        self._cmds_mv[self._servo_seq_at[b]] = float(k)
         self._staged = True
 
     def publish(self) -> None:
@@ -310,7 +327,7 @@ class RobotHost:
         blk = self._blk
         if not self._staged or blk is None:
             return
-        blk.cmd.write(self._cmds.rec)
+        blk.cmd.write(self._cmds_mv)
         self._staged = False
 
     def send_mode(self, b: int, code: int) -> None:
@@ -320,10 +337,10 @@ class RobotHost:
         if blk is None:
             return
         c = self._cmds
-        i = int(c.mode_seq[b])
+        i = self._modes_sent[b]
         c.ring[b, i % RING] = code
-        c.mode_seq[b] = i + 1
-        blk.cmd.write(c.rec)
+        c.mode_seq[b] = self._modes_sent[b] = i + 1
+        blk.cmd.write(self._cmds_mv)
         self._staged = False
 
     @property
@@ -394,7 +411,8 @@ class HostedRobot:
         self._local_ignored = 0           # setpoints not sent: the arm was not ENABLED here
         self._last_error: Optional[str] = None
         self._latched: Optional[str] = None   # FAULT of the robot process (reason), until enable()
-        self._pose = np.eye(4)
+        self._pose = np.eye(4)            # the setpoint being sent (scratch), and its 16 floats
+        self._pose16 = memoryview(self._pose.reshape(16))
 
     def __repr__(self) -> str:
         return f"HostedRobot({self.model!r}, arm {self._b}, process {self._host.pid})"
@@ -484,18 +502,19 @@ class HostedRobot:
         return st
 
     # --- RobotHost's calls ----------------------------------------------------------------------
-    def take_state(self, row: list, st: np.ndarray, servo_sent: int, modes_sent: int) -> None:
-        """Take the child's state row (``row`` as floats, ``st`` the same as an array), given the
-        setpoints and mode commands sent to this arm so far. Nothing while latched."""
-        r, L = self._r, self._L
+    def take_state(self, row: list, T_meas, T_d, servo_sent: int, modes_sent: int) -> None:
+        """Take the child's state row (``row`` as floats; ``T_meas`` and ``T_d``: its two poses, 16
+        floats each, as memoryviews or arrays), given the setpoints and mode commands sent to this arm so far.
+        Nothing while latched."""
         if self._latched is not None:
             return                         # latched until the host answers again and enable() is called
+        r, L = self._r, self._L
         mode = _MODES[int(row[L.mode])] if row[L.mode_seq] >= modes_sent else None   # our mode commands applied
-        r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], st[L.T_meas], mode)
+        r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], T_meas, mode)
         self._child_rejected = int(row[L.rejected])
         self._child_ignored = int(row[L.ignored])
         if row[L.servo_seq] >= servo_sent:  # else keep the setpoint just sent
-            r.adopt_setpoint(st[L.T_d], row[L.q_d])
+            r.adopt_setpoint(T_d, row[L.q_d])
 
     def take_texts(self, fault: Optional[str], err: Optional[str]) -> None:
         """Take the child's fault reason and last error (a latched reason stays)."""
@@ -536,8 +555,10 @@ class HostedRobot:
         if self._latched is not None or r.state is not RobotMode.ENABLED:
             self._local_ignored += 1
             return False
-        self._host.stage_pose(self._b, pose)
-        r.adopt_setpoint(pose)
+        if pose is not self._pose:         # (a 4x4 pose was given: checked into a new array)
+            np.copyto(self._pose, pose)
+        self._host.stage_pose(self._b, self._pose16)
+        r.adopt_setpoint(self._pose16)
         return True
 
     def servo_jp(self, q) -> bool:

@@ -28,6 +28,8 @@ TEXT = 240
 #: control words: stop request (service -> child), periods stepped (the child's heartbeat),
 #: the child's pid, child ready (it has built the arms)
 CONTROL = np.dtype([("stop", "i8"), ("ticks", "i8"), ("pid", "i8"), ("ready", "i8")])
+#: index of the heartbeat in ``Block.ctl_words`` (the control words as int64)
+TICKS = CONTROL.fields["ticks"][1] // 8
 #: per-arm fault injection codes (the service writes them; the child obeys): none, state NaN
 INJECT_NONE, INJECT_NAN = 0, 1
 #: the state fields a NaN injection poisons (what a controller with a broken estimator publishes)
@@ -113,25 +115,35 @@ class Channel:
         self.data = data.view(np.float64).reshape(2, self.size)   # the two slots as flat floats
         self.meta = region["meta"]              # counter of slot 0, of slot 1, slot to read
         self.sums = region["sums"]              # CRC-32 of each slot's bytes
+        # the same words as memoryviews, made once: an element of one is a Python int or float
+        # (a tenth of a NumPy scalar's cost) and a slice assignment is a plain copy
+        self._meta = memoryview(self.meta)
+        self._sums = memoryview(self.sums)
+        self._slots = (memoryview(self.data[0]), memoryview(self.data[1]))
 
-    def write(self, rec: np.ndarray) -> None:
-        w = 1 - int(self.meta[2])
-        self.meta[w] += 1
-        np.copyto(self.data[w], rec)
-        self.sums[w] = zlib.crc32(rec)
-        self.meta[w] += 1
-        self.meta[2] = w
+    def write(self, rec) -> None:
+        """Publish ``rec`` (``size`` contiguous float64: an array or a memoryview of one)."""
+        meta = self._meta
+        w = 1 - meta[2]
+        meta[w] += 1
+        self._slots[w][:] = rec
+        self._sums[w] = zlib.crc32(rec)
+        meta[w] += 1
+        meta[2] = w
 
-    def read(self, out: np.ndarray, tries: int = 8) -> bool:
-        """Copy the latest whole record into ``out`` (contiguous floats); False if none was
-        consistent in ``tries`` attempts (the writer lapped this reader)."""
+    def read(self, out, tries: int = 8) -> bool:
+        """Copy the latest whole record into ``out`` (``size`` contiguous float64: an array, or a
+        memoryview of one, which saves making one per call); False if none was consistent in
+        ``tries`` attempts (the writer lapped this reader)."""
+        meta, sums, slots = self._meta, self._sums, self._slots
+        dst = out if type(out) is memoryview else memoryview(out)
         for _ in range(tries):
-            i = int(self.meta[2])
-            s1 = int(self.meta[i])
+            i = meta[2]
+            s1 = meta[i]
             if s1 & 1:
                 continue
-            np.copyto(out, self.data[i])
-            if int(self.meta[i]) == s1 and zlib.crc32(out) == int(self.sums[i]):
+            dst[:] = slots[i]
+            if meta[i] == s1 and zlib.crc32(dst) == sums[i]:
                 return True
         return False
 
@@ -139,8 +151,9 @@ class Channel:
 class Block:
     """The shared block for ``n`` arms of ``dof`` joints (``block_dtype``) over ``buf`` (None: a
     private zeroed copy). Its regions, by name: ``ctl`` (``CONTROL``: ``ctl["ticks"]`` etc.),
-    ``inject`` (n), ``state`` and ``cmd`` (``Channel``: rows of ``S`` and ``C`` floats per arm,
-    read through ``layout`` and ``command_layout``), ``text`` (n, 2, TEXT)."""
+    ``ctl_words`` (the same as int64), ``inject`` (n), ``state`` and ``cmd`` (``Channel``: rows of
+    ``S`` and ``C`` floats per arm, read through ``layout`` and ``command_layout``), ``text``
+    (n, 2, TEXT)."""
 
     def __init__(self, buf, n: int, dof: int):
         self.n, self.dof = n, dof
@@ -152,6 +165,8 @@ class Block:
         self.S = self.layout.size
         self.C = COMMAND_LAYOUT.size
         self.ctl = rec["ctl"]
+        #: the control words as a memoryview of int64 (``ctl_words[TICKS]``: a Python int)
+        self.ctl_words = memoryview(self.ctl.reshape(1).view(np.int64))
         self.inject = rec["inject"]
         self.state = Channel(rec["state"])
         self.cmd = Channel(rec["cmd"])
