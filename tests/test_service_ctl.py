@@ -324,7 +324,8 @@ def test_live_serve_process_with_ctl(tmp_path):
         assert rc == 0 and st["architecture"] == "III" and st["clients"]["slots"] == 1
         rc, m = ctl_("metrics")
         assert rc == 0 and m["loop"]["ticks"] > 0 and m["clients"]["connected"] == 0
-        assert m["hold"] == [] or m["hold"] == ["overrun"]        # a loaded machine may overrun; nothing else
+        # a loaded machine may overrun or stall a tick past the watchdog's limit; nothing else holds
+        assert set(m["hold"]) <= {"overrun", "tick watchdog"}
         assert ctl_("set-architecture", "I")[1]["architecture"] == "I"
         assert ctl_("radius", "0.015")[1]["fixture"]["radius"] == pytest.approx(0.015)
         rc, err = ctl_("set-architecture", "IV")
