@@ -1,6 +1,7 @@
 """`pointfence bench frames`: frame ingest against the peers a user would otherwise pick.
 
-ingest = upload + deproject + transform + noise + radius + selection + crop + counting sort,
+ingest = upload + deproject + transform + noise + radius + selection + crop + counting sort
+(with each cell put into pixel order, so that builds are deterministic),
 for 1 and 4 cameras at 640x480 on a synthetic tabletop; where the backend has a depth staging
 buffer (Warp), also with the frames already written into it by the cameras
 (``ingest_staged_ms_4cam_*``: the ingest without its host copy). Peers, on the same points and queries:

@@ -11,7 +11,10 @@ from .grid import Grid
 
 @dataclass
 class HostSnapshot:
-    """A snapshot's arrays on the host, sorted by cell (counting-sort order).
+    """A snapshot's arrays on the host, sorted by cell and, within a cell, by rig pixel (camera,
+    then pixel: the reference's stable counting sort). Every backend gives this same order on
+    every build, so the same frames give the same snapshot bit for bit (positions to rounding
+    across backends) and a proxy's sums over a cell's points round the same way every run.
 
     Attributes:
         points: float32 (N, 4): world x, y, z (m) and fixture radius r_f (m).

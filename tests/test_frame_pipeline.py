@@ -30,6 +30,7 @@ def assert_same_snapshot(a, b, fma=False):
         assert a.n_points == b.n_points
         assert a.per_camera == b.per_camera
         np.testing.assert_array_equal(a.cell_start, b.cell_start)
+        np.testing.assert_array_equal(a.pixel, b.pixel)   # the same order within every cell
     np.testing.assert_array_equal(A["pixel"], B["pixel"])
     np.testing.assert_allclose(A["points"][:, :3], B["points"][:, :3], rtol=0, atol=1e-6)
     np.testing.assert_allclose(A["points"][:, 3], B["points"][:, 3], rtol=1e-5, atol=1e-7)

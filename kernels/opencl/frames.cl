@@ -4,9 +4,12 @@
 //   cam  = depth_scale, z_min, z_max, noise a, noise b, lateral (m per m of depth), has_color, has_mask
 //   cami = pixel offset in the rig, pixel count, max_code, camera index
 // The hash is a counting sort of pixel indices: classify (attributes and cell per pixel, written
-// in pixel order), count_runs, scan, scatter (4-byte entries only). A snapshot is
+// in pixel order), count_runs, scan, scatter (4-byte entries only), sort_cells. A snapshot is
 //   pts[pix] = (x, y, z, r_f) and sigma[pix] for every surviving pixel (pixel order), and
-//   order[start[c] .. start[c+1]) = entries of cell c, entry = pix | protected << 31.
+//   order[start[c] .. start[c+1]) = entries of cell c, entry = pix | protected << 31, in
+//   ascending pixel order within the cell (the reference's stable sort: camera, then pixel).
+// The scatter's order within a cell depends on which work-item's atomic came first; sort_cells
+// makes it the pixel order, so the same frames give the same snapshot on every run and device.
 // Moving only 4-byte entries keeps the scattered writes in cache (moving 26-byte points was 15x slower on PoCL).
 #pragma OPENCL FP_CONTRACT OFF
 
@@ -148,6 +151,55 @@ __kernel void scatter(__global const int *pix_cell, __global const int *pix_rank
     int cell = pix_cell[pix];
     if (cell < 0) return;
     order[start[cell] + pix_rank[pix]] = pix | ((int)pix_prot[pix] << 31);
+}
+
+// Pixel index of an order entry (bit 31 holds the protected flag).
+inline int entry_pixel(int e) { return e & 0x7fffffff; }
+
+// Max-heap sift-down of o[i] within o[0 .. n), keyed by pixel.
+inline void sift_down(__global int *o, int i, int n) {
+    int v = o[i], kv = entry_pixel(v);
+    for (;;) {
+        int ch = 2 * i + 1;
+        if (ch >= n) break;
+        int kc = entry_pixel(o[ch]);
+        if (ch + 1 < n) {
+            int k2 = entry_pixel(o[ch + 1]);
+            if (k2 > kc) { ++ch; kc = k2; }
+        }
+        if (kc <= kv) break;
+        o[i] = o[ch];
+        i = ch;
+    }
+    o[i] = v;
+}
+
+// Every cell's entries into ascending pixel order, one work-item per cell. Pixels are unique, so
+// the result does not depend on the order the scatter left (deterministic by construction).
+// Segments already in order are left alone; short ones take an insertion sort (a cell's entries
+// arrive as a few ascending runs), long ones a heapsort (O(n log n) in place, whatever the order).
+__kernel void sort_cells(__global const int *start, int ncells, __global int *order) {
+    int c = get_global_id(0);
+    if (c >= ncells) return;
+    int a = start[c], n = start[c + 1] - a;
+    if (n < 2) return;
+    __global int *o = order + a;
+    int sorted = 1;
+    for (int i = 1; i < n && sorted; ++i) sorted = entry_pixel(o[i - 1]) < entry_pixel(o[i]);
+    if (sorted) return;
+    if (n <= 32) {
+        for (int i = 1; i < n; ++i) {
+            int v = o[i], kv = entry_pixel(v), j = i;
+            while (j > 0 && entry_pixel(o[j - 1]) > kv) { o[j] = o[j - 1]; --j; }
+            o[j] = v;
+        }
+        return;
+    }
+    for (int i = n / 2 - 1; i >= 0; --i) sift_down(o, i, n);
+    for (int end = n - 1; end > 0; --end) {
+        int t = o[0]; o[0] = o[end]; o[end] = t;
+        sift_down(o, 0, end);
+    }
 }
 
 // ---- motion estimation (kernels/motion.py) ----------------------------------------------------

@@ -93,6 +93,7 @@ class OpenCLPipeline(FramePipeline):
         self.k_scan_partials = self.prg.scan_partials
         self.k_scan_add = self.prg.scan_add
         self.k_scatter = self.prg.scatter
+        self.k_sort_cells = self.prg.sort_cells
         self.k_neighbors = self.prg.neighbors
         self.k_moments = self.prg.cell_moments
         self.k_expand = self.prg.expand_velocity
@@ -181,6 +182,7 @@ class OpenCLPipeline(FramePipeline):
             self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
             self.k_scatter(q, (_round_up(self.npix),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
                            slot.start, slot.order)
+            self.k_sort_cells(q, (_round_up(self.ncells),), None, slot.start, C, slot.order)
             checkpoint()
             self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
             for i in range(len(rig)):

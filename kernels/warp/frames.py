@@ -1,8 +1,10 @@
 """Frame pipeline and spatial-hash build as Warp kernels. Mirrors kernels/opencl/frames.cl.
 
 Snapshot layout (as the OpenCL backend): ``pts[pix] = (x, y, z, r_f)`` and ``sigma[pix]`` in
-pixel order; ``order[start[c]:start[c+1]]`` = entries of cell c, entry = pix | protected << 31;
-plus ``sorted_pts``, the points in ``order``'s order (the GPU reads them coalesced).
+pixel order; ``order[start[c]:start[c+1]]`` = entries of cell c, entry = pix | protected << 31,
+in ascending pixel order within the cell (``sort_cells``: the same order on every run and
+backend, the reference's); plus ``sorted_pts``, the points in ``order``'s order (the GPU reads
+them coalesced).
 """
 from __future__ import annotations
 
@@ -184,19 +186,95 @@ def scan_add(start: wp.array(dtype=int), n: int, chunk: int, partial: wp.array(d
 
 @wp.kernel
 def scatter(pix_cell: wp.array(dtype=int), pix_rank: wp.array(dtype=int), pix_prot: wp.array(dtype=int),
-            start: wp.array(dtype=int), pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int),
-            sorted_pts: wp.array(dtype=wp.vec4)):
-    """Entries into their cell's slots, and (GPU layout) a cell-sorted copy of the points so that
-    queries read consecutive points with one coalesced load instead of two dependent ones."""
+            start: wp.array(dtype=int), order: wp.array(dtype=int)):
+    """Entries into their cell's slots (in the order the counting atomics handed out ranks:
+    ``sort_cells`` puts each cell into pixel order afterwards)."""
     pix = wp.tid()
     cell = pix_cell[pix]
     if cell >= 0:
         e = pix
         if pix_prot[pix] != 0:
             e = pix | (-2147483647 - 1)
-        slot = start[cell] + pix_rank[pix]
-        order[slot] = e
-        sorted_pts[slot] = pts[pix]
+        order[start[cell] + pix_rank[pix]] = e
+
+
+@wp.func
+def entry_pixel(e: int) -> int:
+    """Pixel index of an order entry (bit 31 holds the protected flag)."""
+    return e & 2147483647
+
+
+@wp.func
+def sift_down(order: wp.array(dtype=int), a: int, i0: int, n: int):
+    """Max-heap sift-down of order[a + i0] within order[a : a + n], keyed by pixel."""
+    i = i0
+    v = order[a + i]
+    kv = entry_pixel(v)
+    ch = 2 * i + 1
+    while ch < n:
+        kc = entry_pixel(order[a + ch])
+        if ch + 1 < n:
+            k2 = entry_pixel(order[a + ch + 1])
+            if k2 > kc:
+                ch = ch + 1
+                kc = k2
+        if kc <= kv:
+            break
+        order[a + i] = order[a + ch]
+        i = ch
+        ch = 2 * i + 1
+    order[a + i] = v
+
+
+@wp.kernel
+def sort_cells(start: wp.array(dtype=int), order: wp.array(dtype=int)):
+    """Every cell's entries into ascending pixel order, one thread per cell (as frames.cl's
+    sort_cells: pixels are unique, so the result does not depend on the scatter's order).
+    Segments in order are left alone; short ones take an insertion sort, long ones a heapsort."""
+    c = wp.tid()
+    a = start[c]
+    n = start[c + 1] - a
+    if n < 2:
+        return
+    ordered = int(1)
+    i = int(1)
+    while i < n and ordered != 0:
+        if entry_pixel(order[a + i - 1]) > entry_pixel(order[a + i]):
+            ordered = 0
+        i = i + 1
+    if ordered != 0:
+        return
+    if n <= 32:
+        for k in range(1, n):
+            v = order[a + k]
+            kv = entry_pixel(v)
+            j = k
+            while j > 0 and entry_pixel(order[a + j - 1]) > kv:
+                order[a + j] = order[a + j - 1]
+                j = j - 1
+            order[a + j] = v
+        return
+    h = n / 2 - 1
+    while h >= 0:
+        sift_down(order, a, h, n)
+        h = h - 1
+    end = n - 1
+    while end > 0:
+        t = order[a]
+        order[a] = order[a + end]
+        order[a + end] = t
+        sift_down(order, a, 0, end)
+        end = end - 1
+
+
+@wp.kernel
+def gather_sorted(order: wp.array(dtype=int), start: wp.array(dtype=int), n_cells: int, pts: wp.array(dtype=wp.vec4),
+                  sorted_pts: wp.array(dtype=wp.vec4)):
+    """(GPU layout) the points in ``order``'s order, so that queries read consecutive points
+    with one coalesced load instead of two dependent ones."""
+    i = wp.tid()
+    if i < start[n_cells]:
+        sorted_pts[i] = pts[entry_pixel(order[i])]
 
 
 @wp.kernel

@@ -178,8 +178,10 @@ class WarpPipeline(FramePipeline):
         wp.launch(k.scan_add, dim=self.nchunks, device=dev, inputs=[slot.start, C, self.chunk, self.partial])
         if self.npix:
             wp.launch(k.scatter, dim=self.npix, device=dev,
-                      inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.pts, slot.order,
-                              slot.sorted_pts])
+                      inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.order])
+            wp.launch(k.sort_cells, dim=C, device=dev, inputs=[slot.start, slot.order])
+            wp.launch(k.gather_sorted, dim=self.npix, device=dev,
+                      inputs=[slot.order, slot.start, C, slot.pts, slot.sorted_pts])
         wp.copy(self._n_host, slot.start, src_offset=C, count=1)
         wp.copy(self._cam_host, self.cam_counts)
 
