@@ -7,8 +7,10 @@ up to its last whole chunk (``Recording.torn``: it ended early). What it returns
 * ``meta``: the ``pointfence/run`` metadata (arms, rate, epoch, cameras, configuration text,
   start state, architecture, backend, ...);
 * ``rows``: every recorded tick as ``tick_cdr`` ring rows (N, width), in tick order;
-* ``snapshots``: snapshot seq -> (frame seq per camera, capture stamps, per-frame poses);
-* ``frame(camera, seq)``: a recorded frame as a ``kernels.frame.DepthFrame`` (decoded on demand).
+* ``snapshots``: snapshot seq -> (frame seq per camera, recorded frame numbers, capture stamps,
+  per-frame poses);
+* ``frame(camera, index, ...)``: a recorded frame as a ``kernels.frame.DepthFrame`` (decoded on
+  demand).
 
 A file that is not an MCAP, not a pointfence recording, or damaged before anything readable
 is an ``InputError`` naming the file and what is wrong.
@@ -43,40 +45,28 @@ class Recording:
         self.layout = TickLayout(int(meta["arms"]))
         self.cameras = [c["name"] for c in meta.get("cameras", [])]
 
-    def frame(self, cam_index: int, seq: int) -> DepthFrame:
-        """Camera ``cam_index``'s frame ``seq`` as recorded (raises InputError if it is not in the file)."""
+    def frame(self, cam_index: int, index: int, seq: int, stamp: float, pose=None) -> DepthFrame:
+        """Camera ``cam_index``'s recorded frame number ``index`` (its running number in the file),
+        as a frame of source number ``seq`` captured at ``stamp`` (s) with pose ``pose`` (16
+        numbers, NaN: the camera's own). Raises InputError if it is not in the file."""
         name = self.cameras[cam_index]
-        snap_stamp = self._stamps.get((cam_index, seq))
-        key = (name, "depth", seq)
-        if key not in self._images or snap_stamp is None:
-            raise InputError(f"{self.path}: frame {seq} of camera {name!r} is not in the recording (dropped while "
-                             "recording, or after the point where the file ends)")
+        key = (name, "depth", int(index))
+        if key not in self._images:
+            raise InputError(f"{self.path}: frame {seq} of camera {name!r} (recorded frame {index}) is not in the "
+                             "recording (dropped while recording, or after the point where the file ends)")
         fmt, data = self._images[key]
         where = f"{self.path}: camera {name!r} frame {seq}"
         depth = depth_png.decode_depth(data, fmt, where)
-        color = self._images.get((name, "color", seq))
-        mask = self._images.get((name, "mask", seq))
-        stamp, pose = snap_stamp
-        return DepthFrame(camera=name, depth=depth, timestamp=stamp, seq=int(seq),
+        color = self._images.get((name, "color", int(index)))
+        mask = self._images.get((name, "mask", int(index)))
+        T = None if pose is None or len(pose) < 16 or math.isnan(pose[0]) else np.array(pose, float).reshape(4, 4)
+        return DepthFrame(camera=name, depth=depth, timestamp=float(stamp), seq=int(seq),
                           color=None if color is None else depth_png.decode_png(color[1], 3, where),
-                          mask=None if mask is None else depth_png.decode_png(mask[1], 1, where), T_world_cam=pose)
-
-    @property
-    def _stamps(self) -> dict:
-        """(camera index, frame seq) -> (exact capture stamp, pose or None), from the snapshot table."""
-        out = self.__dict__.get("_stamp_cache")
-        if out is None:
-            out = {}
-            for fseqs, stamps, poses in self.snapshots.values():
-                for i, (s, t) in enumerate(zip(fseqs, stamps)):
-                    p = poses[16 * i: 16 * i + 16]
-                    out[(i, int(s))] = (float(t), None if len(p) < 16 or math.isnan(p[0]) else np.array(p).reshape(4, 4))
-            self.__dict__["_stamp_cache"] = out
-        return out
+                          mask=None if mask is None else depth_png.decode_png(mask[1], 1, where), T_world_cam=T)
 
 
 def _decode_snapshot(data: bytes):
-    """(seq, frame seqs, stamps, poses) of a ``pointfence_msgs/Snapshot`` message."""
+    """(seq, (frame seqs, frame indices, stamps, poses)) of a ``pointfence_msgs/Snapshot`` message."""
     from mcap_ros2._dynamic import generate_dynamic
 
     from .ros2_schemas import msgdef
@@ -86,7 +76,7 @@ def _decode_snapshot(data: bytes):
         dec = _DEC["snap"] = generate_dynamic("pointfence_msgs/Snapshot", msgdef("pointfence_msgs/Snapshot"))
         dec = _DEC["snap"] = dec["pointfence_msgs/Snapshot"]
     m = dec(data)
-    return int(m.seq), list(m.frame_seq), list(m.frame_stamp), list(m.t_world_cam)
+    return int(m.seq), (list(m.frame_seq), list(m.frame_index), list(m.frame_stamp), list(m.t_world_cam))
 
 
 _DEC: dict = {}
@@ -155,11 +145,11 @@ def _take(topic: str, rec, ticks: dict, snapshots: dict, images: dict) -> None:
     if topic in (TICK_INPUT, TICK_OUTPUT):
         ticks["in" if topic == TICK_INPUT else "out"].append(bytes(rec.data))
     elif topic == SNAPSHOTS:
-        seq, fseqs, stamps, poses = _decode_snapshot(bytes(rec.data))
-        snapshots[seq] = (fseqs, stamps, poses)
+        seq, entry = _decode_snapshot(bytes(rec.data))
+        snapshots[seq] = entry
     elif topic.endswith("/compressed"):
         parts = topic.strip("/").split("/")
-        if len(parts) == 3:          # /<camera>/<depth|color|mask>/compressed; sequence: the frame's number
+        if len(parts) == 3:          # /<camera>/<depth|color|mask>/compressed; sequence: the frame's running number
             images[(parts[0], parts[1], int(rec.sequence))] = _image(bytes(rec.data))
 
 

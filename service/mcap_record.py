@@ -81,6 +81,7 @@ class McapRecorder:
         self.epoch_ns = time.time_ns()
         self._pending: deque = deque()
         self._last_frame: list = []        # per camera: the last frame object offered
+        self._index: list = []
         self._latest: list = []            # per camera: the latest recorded frame (for the fixture cloud)
         self._cameras: list = []
         self._params = None
@@ -146,6 +147,7 @@ class McapRecorder:
         self._cameras = [c.camera for c in cfg.cameras]
         self._params = cfg.pipeline
         self._last_frame = [None] * len(self._cameras)
+        self._index = [-1] * len(self._cameras)     # running number of each camera's recorded frames
         self._latest = [None] * len(self._cameras)
         cams = [{"name": c.name, "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                  "depth_scale": c.depth_scale, "T_world_cam": np.asarray(c.T_world_cam, float).ravel().tolist(),
@@ -171,16 +173,17 @@ class McapRecorder:
         if len(self._pending) >= MAX_PENDING:
             self.snapshots_dropped += 1
             return
-        new = []
+        new, index = [], self._index
         for i, f in enumerate(frames):
             if f is self._last_frame[i]:
                 new.append(None)
                 continue
             self._last_frame[i] = f
-            new.append((f.seq, f.timestamp, f.depth.copy(), None if f.color is None else f.color.copy(),
+            index[i] += 1
+            new.append((index[i], f.timestamp, f.depth.copy(), None if f.color is None else f.color.copy(),
                         None if f.mask is None else f.mask.copy(), None if f.T_world_cam is None
                         else np.asarray(f.T_world_cam, float).copy(), f.camera))
-        self._pending.append((int(seq), [int(f.seq) for f in frames], [float(f.timestamp) for f in frames],
+        self._pending.append((int(seq), [int(f.seq) for f in frames], list(index), [float(f.timestamp) for f in frames],
                               [None if f.T_world_cam is None else np.asarray(f.T_world_cam, float).ravel()
                                for f in frames], new))
 
@@ -218,11 +221,11 @@ class McapRecorder:
     def _write_frames(self) -> None:
         tw = self._tw
         while self._pending:
-            seq, fseqs, stamps, poses, new = self._pending.popleft()
+            seq, fseqs, findex, stamps, poses, new = self._pending.popleft()
             for i, fr in enumerate(new):
                 if fr is None:
                     continue
-                fseq, ts, depth, color, mask, _, name = fr
+                fseq, ts, depth, color, mask, _, name = fr       # (fseq: the running number)
                 ns = self._frame_ns(ts)
                 tops = camera_topics(name)
                 tw.raw(tops["depth"], "sensor_msgs/CompressedImage",
@@ -238,7 +241,7 @@ class McapRecorder:
                 self.frames_recorded += 1
             ns = self._frame_ns(max(stamps)) if stamps else self.epoch_ns
             tw.dyn(SNAPSHOTS, "pointfence_msgs/Snapshot",
-                   {"header": stamp(ns, "world"), "seq": seq, "frame_seq": fseqs, "frame_stamp": stamps,
+                   {"header": stamp(ns, "world"), "seq": seq, "frame_seq": fseqs, "frame_index": findex, "frame_stamp": stamps,
                     "t_world_cam": [x for p in poses for x in (p.tolist() if p is not None else [float("nan")] * 16)]},
                    ns)
             self.snapshots_recorded += 1

@@ -93,6 +93,7 @@ class RecordedFrames(_FeedBase):
         self.build_at = build_at
         self.too_old = False
         self.missing: list = []
+        self._index = [-1] * n            # the recorded frame each camera's latest is
 
     def frames_too_old(self, now: float) -> bool:
         return self.too_old
@@ -104,10 +105,11 @@ class RecordedFrames(_FeedBase):
             if entry is None:
                 self.missing.append(seq)
                 continue
-            for i, fseq in enumerate(entry[0]):
-                f = self.latest[i]
-                if f is None or f.seq != fseq:
-                    self.latest[i] = self.rec.frame(i, int(fseq))
+            fseqs, findex, stamps, poses = entry
+            for i, (fseq, idx) in enumerate(zip(fseqs, findex)):
+                if self._index[i] != idx:
+                    self.latest[i] = self.rec.frame(i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16])
+                    self._index[i] = idx
                     self.frames_in[i] += 1
                 self.arrival[i] = t
             self.pipeline.seq = seq - 1          # numbered as the live run numbered it

@@ -65,6 +65,8 @@ _MAIN = {
     "pointfence_msgs/Snapshot": (
         "# the camera frames (one per camera, configuration order) snapshot seq was built from\n"
         "std_msgs/Header header\nint64 seq\nint64[] frame_seq\n"
+        "# each frame's running number on its camera's image topics (their MCAP message sequence)\n"
+        "int64[] frame_index\n"
         "# each frame's capture timestamp (s, the source's clock, exact) and its pose T_world_cam\n"
         "# (16 row-major numbers per camera, NaN: the camera's fixed pose)\n"
         "float64[] frame_stamp\nfloat64[] t_world_cam\n",
