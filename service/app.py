@@ -50,7 +50,7 @@ from .devices import Devices
 from .haptic_scene import HapticScene
 from .health import Health
 from .holds import EXCEPTION, KERNEL, REASONS, WATCHDOG, HoldReason, describe, reason_names
-from .record import make_recorder
+from .recorders import make_recorder
 from .teleop import Teleop, arch_code
 from .tick_io import TickInput, TickOutput
 

@@ -33,12 +33,28 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 from .frames import _FeedBase
+from .masters import Master
 from .robot.base import RobotMode
 from .tick_cdr import TickRows, row_into
 from .tick_io import TickInput, TickOutput
 
 #: fields of TickOutput that are wall-clock measurements, not results
 _TIMING = ("kernel_us", "tick_us")
+
+
+class StartMaster(Master):
+    """The master as ``Service.start`` read it in the recorded run; every tick's sample comes
+    from the recording (``replay_tick`` reads no master)."""
+
+    name = "recorded"
+
+    def __init__(self, pos, pedal, ok):
+        super().__init__()
+        self._sample = (np.array(pos, float), bool(pedal), bool(ok))
+
+    def poll(self, t: float) -> None:
+        self.position[:] = self._sample[0]
+        self.clutch, self.ok = self._sample[1], self._sample[2]
 
 
 class RecordedRobot:
@@ -162,7 +178,6 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
     """Replay ``recording`` (``mcap_read.Recording``); returns (service, check) where ``check``
     is the exactness report (None for a what-if run)."""
     from .app import Service
-    from .replay import PlaybackMaster
 
     meta, lay, rows = recording.meta, recording.layout, recording.rows
     if not len(rows):
@@ -177,8 +192,7 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
                                   "master_ok": first_in.master_ok.tolist(), "robot_pos": first_in.robot_pos.tolist(),
                                   "robot_present": first_in.robot_present.tolist(), "haptics": first_in.haptics,
                                   "teleop": first_in.teleop, "architecture": meta.get("architecture")}
-    masters = [PlaybackMaster(np.array([[*start["master_pos"][b], start["pedal"][b], start["master_ok"][b]]]))
-               for b in range(n)]
+    masters = [StartMaster(start["master_pos"][b], start["pedal"][b], start["master_ok"][b]) for b in range(n)]
     present = [bool(x) for x in start["robot_present"]]
     if what_if:
         robots = [Service._make_robot(cfg.robot) if present[b] else None for b in range(n)]
