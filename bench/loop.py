@@ -19,6 +19,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -85,6 +86,9 @@ def add_arguments(p):
                         "(default 0: skip)")
     p.add_argument("--floor-load", type=int, default=None, metavar="N",
                    help="busy processes of normal priority beside the floor's loop (default: one per core)")
+    p.add_argument("--record", action="store_true",
+                   help="record each run to an MCAP file (service/mcap_record.py) in a temporary folder, as "
+                        "`serve --record` does; adds the recording's disk rate and losses to the JSON")
     p.add_argument("--render-live", action="store_true",
                    help="render synthetic frames on the reader threads while the loop runs (default: 30 frames "
                         "pre-rendered and served at the camera rate, as a real camera's C driver would cost)")
@@ -100,10 +104,16 @@ def circling_master(i: int, n: int, duration: float) -> ScriptedMaster:
     return ScriptedMaster(t, p, name=f"circle{i}")
 
 
-def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool, cache: dict) -> dict:
+def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool, cache: dict,
+         record: bool = False) -> dict:
+    import tempfile
+
     masters = [circling_master(i, n, seconds + warmup + 5.0) for i in range(n)]
     sources = None if live else canned_sources(cfg, 30, cache)
-    run = LiveRun(cfg, masters, backend=backend, device=device, sources=sources)
+    tmp = tempfile.TemporaryDirectory(prefix="pointfence-loop-") if record else None
+    path = Path(tmp.name) / f"loop-{n}.mcap" if record else None
+    run = LiveRun(cfg, masters, backend=backend, device=device, sources=sources, record_path=path)
+    t_start = time.monotonic()
     run.start()
     try:
         run.wait(warmup)
@@ -119,8 +129,17 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         frames = sum(run.frames.frames_in)
     finally:
         run.stop()
+    rec_stats = {}
+    if record:
+        r, size = run.service.recorder, path.stat().st_size
+        rec_stats = {"record_mb": round(size / 1e6, 2), "record_s": round(time.monotonic() - t_start, 2),
+                     # per second of recorded ticks (the run's loop time)
+                     "record_mb_per_s": round(size / 1e6 / max(r.ticks_recorded / cfg.service.rate_hz, 1e-3), 2),
+                     "record_ticks_lost": r.ticks_lost, "record_snapshots_dropped": r.snapshots_dropped,
+                     "record_frames": r.frames_recorded, "record_error": r.write_error}
+        tmp.cleanup()
     in_contact = int((run.service.batch.states != 0).sum())
-    return {
+    return {**rec_stats,
         "proxies": n, "ticks": tm.ticks, "periods": tm.periods,
         "tick_us_p50": round(tm.compute_us_p50, 1), "tick_us_p99": round(tm.compute_us_p99, 1),
         "tick_us_max": round(tm.compute_us_max, 1),
@@ -149,8 +168,8 @@ def run(args) -> dict:
         probe = _one(cfg, counts[-1], 2.0, args.warmup, args.backend, args.device, args.render_live, cache)
         load = (os.cpu_count() or 1) if args.floor_load is None else args.floor_load
         floor = machine_floor(cfg, args.floor, probe["tick_us_p50"] * 1e-6, load)
-    runs = [_one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache)
-            for n in counts]
+    runs = [_one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache,
+                 getattr(args, "record", False)) for n in counts]
     from pointfence.kernels import get_backend
 
     be = get_backend(args.backend or cfg.backend, args.device or cfg.device)

@@ -50,7 +50,7 @@ from .devices import Devices
 from .haptic_scene import HapticScene
 from .health import Health
 from .holds import EXCEPTION, KERNEL, REASONS, WATCHDOG, HoldReason, describe, reason_names
-from .record import Recorder
+from .recorders import make_recorder
 from .teleop import Teleop, arch_code
 from .tick_io import TickInput, TickOutput
 
@@ -75,8 +75,8 @@ class Service:
             robot (X_r = X_r*); default: built from ``cfg.robot`` (model "none": ideal).
         backend, device: override the configured compute backend.
         record: ticks to record in memory (0: no recording).
-        record_path: stream the recording to this ``.pfrec`` file instead (record.py: a crash
-            loses at most the last fraction of a second, S8).
+        record_path: stream the recording to this ``.pfrec`` or ``.mcap`` file (record.py,
+            mcap_record.py: a crash loses at most the last fraction of a second, S8).
     """
 
     def __init__(self, cfg, masters: Sequence, robots: Optional[Sequence] = None, backend: Optional[str] = None,
@@ -121,8 +121,7 @@ class Service:
         self.kernel_errors = 0
         self.last_error: Optional[str] = None
         self.scene_time_offset = 0.0   # scene (camera) time at loop time 0
-        self.recorder = (Recorder(n=n, path=record_path) if record_path is not None
-                         else Recorder(record, n) if record else None)
+        self.recorder = make_recorder(n, record, record_path, sc.rate_hz)
         self._pub_lock = threading.Lock()
         self._published = TickOutput.zeros(n)
         self.kernel_us = np.zeros(RING)         # the kernel's wall-clock time per tick (us), a ring
@@ -291,6 +290,7 @@ class Service:
     def read(self, inp: TickInput, k: int, t: float, dt: float, overrun: bool, now: float) -> None:
         """Fill ``inp``: the loop's timing, the control state, the masters, the robots, the frames."""
         inp.k, inp.t, inp.dt, inp.overrun, inp.now = k, t, dt, overrun, now
+        inp.watchdog_stall = False
         with self._ctl:
             inp.law_change = self._reanchor
             self._reanchor = False
@@ -339,6 +339,8 @@ class Service:
                 self.kernel_errors += 1
                 self.last_error = f"tick {inp.k}: {e}"
         if health.take_stall():          # the watchdog saw this tick (or the last) stall
+            inp.watchdog_stall = True    # (recorded: a replay of this tick stalls as it did)
+        if inp.watchdog_stall:
             health.hold_all(WATCHDOG)
             health.seen(WATCHDOG, inp.t)
             out.coupled[:] = False

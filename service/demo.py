@@ -62,6 +62,9 @@ def add_arguments(p):
                    help="s; a tick later than this holds the robot (default 0.02 for the demo on a shared or "
                         "loaded machine; the configuration's [service] max_lateness_s otherwise applies)")
     p.add_argument("--out", default=None, help="folder to keep every run's ticks.csv, summary.json, inputs.npz")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record every live chapter-3 run to FILE-<scene>_<arch>.mcap (ROS 2 schemas; "
+                        "`pointfence replay --recording` replays each exactly)")
     p.add_argument("--report", default="out/demo", help="report folder: PNG plots and table.md/table.json "
                                                         "(default out/demo; '' for none)")
     p.add_argument("--no-probes", action="store_true", help="skip the chapter-2 surface probes (figs. 2.12-2.15)")
@@ -89,9 +92,13 @@ def _one(cfg, scene, arch, args, viewer=None):
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
         # a live run streams its recording to disk as it goes (S8); without --out it stays in memory
+        record_path = None if out_dir is None else out_dir / "recording.pfrec"
+        if args.record:     # MCAP (keeps the ticks in memory too: the report reads them)
+            base = Path(args.record)
+            record_path = base.with_name(f"{base.stem}-{scene}_{arch}.mcap")
+            print(f"recording {scene} {arch} to {record_path}")
         run = LiveRun(cfg, [master], architecture=arch, backend=args.backend, device=args.device,
-                      record_s=duration + 1.0, sources=sources,
-                      record_path=None if out_dir is None else out_dir / "recording.pfrec")
+                      record_s=duration + 1.0, sources=sources, record_path=record_path)
         run.start()
         try:
             run.wait(duration)

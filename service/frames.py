@@ -96,6 +96,9 @@ class _FeedBase:
         self.ingest_lock = threading.Lock()
         #: frames -> frames, applied before every ingest (the robot self-filter; None: none)
         self.frame_filter = None
+        #: called with (snapshot seq, the frames it was built from) after each build (the MCAP
+        #: recorder's ``offer_snapshot``: it must return at once; None: nobody records)
+        self.on_snapshot = None
 
     def frame_time(self, t: float, now: float) -> Optional[float]:
         """The tick's time on the frames' clock (loop time ``t``, clock reading ``now``); None
@@ -144,7 +147,8 @@ class _FeedBase:
             return False
         try:
             flt = self.frame_filter
-            info = self.pipeline.ingest(list(frames) if flt is None else flt(frames))
+            built = list(frames) if flt is None else flt(frames)
+            info = self.pipeline.ingest(built)
         except PointfenceError as e:   # bad frame: the previous snapshot stays current
             self.ingest_errors += 1
             self.last_error = f"ingest: {e}"
@@ -156,6 +160,8 @@ class _FeedBase:
         self.snapshots += 1
         self.published_arrival = max(self.published_arrival, arrival)
         self.snapshot_frames[info.seq] = tuple(int(f.seq) for f in frames)
+        if self.on_snapshot is not None:
+            self.on_snapshot(info.seq, built)
         return True
 
     def status(self, now: float) -> dict:

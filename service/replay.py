@@ -3,6 +3,7 @@
     pointfence replay --config F --trajectory T.csv --out DIR [--architecture A] [--backend B]
     pointfence replay --config F --recording RUN_DIR --out DIR      # re-run a recorded run
     pointfence replay --config F --recording RUN.pfrec --out DIR    # ... from its streamed recording
+    pointfence replay --recording RUN.mcap --out DIR [--architecture A] [--radius R] [--backend B]
 
 With ``--trajectory`` a scripted master plays ``t,x,y,z[,clutch]`` (master frame, m, s) at 1 ms
 ticks; camera frames arrive at their own timestamps (synthetic: seq / rate_hz) and are ingested
@@ -13,6 +14,12 @@ again exactly; a streamed recording (``.pfrec``, service/record.py: written whil
 on, readable after a crash up to its last whole chunk) holds the same, and a folder holding a
 ``recording.pfrec`` but no ``inputs.npz`` is read from it. Same inputs, same backend: identical ``ticks.csv`` except the ``tick_us``
 column (this machine's compute time of each tick).
+
+An MCAP recording (``serve|demo --record FILE.mcap``) holds the depth frames, the
+configuration and every tick's input and output: ``mcap_replay`` replays it with no camera,
+device or robot, checks that every tick's output is the recorded one (``summary.json``
+``replay``), and with ``--architecture`` / ``--radius`` re-runs the same inputs under other
+settings (``--config`` is not needed and not used).
 
 Writes ``DIR/ticks.csv`` (``record.TICK_COLUMNS``), ``DIR/summary.json`` (architecture, ticks,
 frames, the 6.1 measures, tick_us_p50/p99, deadline_misses = ticks whose compute exceeded the
@@ -45,7 +52,10 @@ def add_arguments(p):
     src.add_argument("--recording", help="a recorded run to play again exactly: its folder (inputs.npz, or recording.pfrec) "
                      "or its streamed .pfrec file")
     p.add_argument("--out", required=True, help="output folder for ticks.csv, summary.json, inputs.npz")
-    p.add_argument("--architecture", choices=("I", "II", "III"), default=None, help="override [teleop] architecture")
+    p.add_argument("--architecture", choices=("I", "II", "III"), default=None,
+                   help="override [teleop] architecture (an .mcap recording: a what-if re-run of its inputs)")
+    p.add_argument("--radius", type=float, default=None,
+                   help="m; an .mcap recording: re-run its inputs with this [fixture] radius (what-if)")
     p.add_argument("--backend", default=None, help="override the configured backend (numpy, opencl, warp)")
     p.add_argument("--device", default=None, help="override the configured device")
     p.add_argument("--duration", type=float, default=None, help="seconds to run (default: the trajectory's end + 0.5 s)")
@@ -168,7 +178,46 @@ def write_outputs(svc, sources, cfg, out_dir, frames: int, backend_spec=None) ->
     return s
 
 
+def replay_mcap(args) -> dict:
+    """``--recording FILE.mcap``: replay (or re-run under other settings) and write the outputs."""
+    from . import limits
+    from .mcap_read import open_recording
+    from .mcap_replay import replay
+
+    if args.radius is not None:
+        limits.check("fixture.radius", args.radius, "--radius")
+    rec = open_recording(args.recording)
+    t0 = time.perf_counter()
+    svc, check = replay(rec, backend=args.backend, device=args.device, architecture=args.architecture,
+                        radius=args.radius)
+    wall = time.perf_counter() - t0
+    sources = _ground_truth_sources(svc.cfg)
+    try:
+        s = write_outputs(svc, sources, svc.cfg, args.out, svc.feeder.snapshots)
+    finally:
+        for src in sources:
+            src.close()
+    ticks = len(rec.rows)
+    s["recording"] = {"file": str(rec.path), "ticks": ticks, "torn": rec.torn,
+                      "ticks_lost_while_recording": rec.meta.get("ticks_lost"),
+                      "snapshots_dropped_while_recording": rec.meta.get("snapshots_dropped")}
+    s["replay"] = check if check is not None else {"what_if": {"architecture": args.architecture, "radius": args.radius,
+                                                               "backend": args.backend}}
+    s["replay_wall_s"] = round(wall, 3)
+    s["replay_speed_x_real_time"] = round(ticks / svc.rate_hz / wall, 2) if wall > 0 else None
+    Path(args.out, "summary.json").write_text(json.dumps(s, indent=2) + "\n")
+    return s
+
+
+def _ground_truth_sources(cfg) -> list:
+    """Synthetic cameras' sources (their exact scene geometry for the measures; no device)."""
+    return [cfg.open_source(c) for c in cfg.cameras if c.source.startswith("synthetic:")]
+
+
 def run(args) -> int:
+    if args.recording and str(args.recording).endswith(".mcap"):
+        print(json.dumps(replay_mcap(args), indent=2))
+        return 0
     cfg = config_mod.load(args.config)
     if args.recording:
         svc, sources = replay_recording(cfg, args.recording, backend=args.backend, device=args.device)

@@ -56,6 +56,10 @@ class LiveRun:
                           "hold_reasons": {str(int(b)): {"name": r.name, "invariant": r.invariant, "latched": r.latched}
                                            for b, r in REASONS.items()}},  # (int: str(IntFlag) differs across Pythons)
                          self.frames.snapshot_frames)
+            if hasattr(rec, "attach"):   # MCAP: the frames themselves, the cameras, the clock (mcap_record.py)
+                from .mcap_record import config_text
+
+                rec.attach(self.frames, cfg, self.clock.now, config_text(cfg))
         self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
                                rt_priority=cfg.service.rt_priority if rt_priority is None else rt_priority)
         self._mark = (0, 0, 0, 0)
@@ -72,6 +76,8 @@ class LiveRun:
             self.stop()
             raise RuntimeError(f"no snapshot within {first_frame_timeout} s: {self.frames.status(self.clock.now())}")
         self.service.start()
+        if hasattr(self.service.recorder, "note_start"):
+            self.service.recorder.note_start(self.service)
         self.service.warm_up()
         # Everything made so far (modules, kernels, buffers) lives as long as the run: frozen, a
         # full collection no longer scans it. Unfrozen, one took 12-17 ms in whichever thread

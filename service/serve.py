@@ -3,7 +3,7 @@
     pointfence serve --new-key pf.key                      # write a fresh 32-byte key and exit
     pointfence serve --key-file pf.key [--config F] [--clients N] [--port 47800] [--bind 127.0.0.1]
                      [--timeout-ms 50] [--duration S] [--itp 127.0.0.1:36000 --itp-slots 0,1]
-                     [--control-port 47801 [--control-token FILE] | --no-control] [--record RUN.pfrec]
+                     [--control-port 47801 [--control-token FILE] | --no-control] [--record RUN.mcap]
 
 Each client (``pointfence.clients.Client``, the C SDK, ``pointfence device-sim``) opens a
 session with a HELLO tagged with the key and then drives one master slot, i.e. one proxy and
@@ -16,7 +16,10 @@ The local HTTP JSON control API (``control_api.py``; ``pointfence ctl``) listens
 Every request to it needs this run's token, which serve writes (mode 0600) to ``--control-token``
 or ``$XDG_RUNTIME_DIR/pointfence/control-<port>.token`` (``ctl_auth.py``); ``pointfence ctl``
 finds it there. A UDP or control port that is in use is an error naming it (never a move to
-another port). ``--record`` streams the run's recording to disk while it goes on (S8).
+another port). ``--record FILE.mcap`` streams the run to an MCAP file with ROS 2 schemas while it goes on
+(``mcap_record``: depth, camera info, poses, wrenches, events, every tick's input and output;
+S8), which ``pointfence replay --recording FILE.mcap`` replays exactly; a ``.pfrec`` name
+keeps the older format.
 """
 from __future__ import annotations
 
@@ -70,9 +73,10 @@ def add_arguments(p):
                         "XDG_RUNTIME_DIR); pass the same FILE to `pointfence ctl --token-file`")
     p.add_argument("--control-bind", default="127.0.0.1", help="control API address: loopback only (default 127.0.0.1)")
     p.add_argument("--no-control", action="store_true", help="no control API")
-    p.add_argument("--record", default=None, metavar="FILE.pfrec",
-                   help="stream every tick of the run to this recording while it goes on (a crash or kill -9 loses "
-                        "at most the last 0.25 s); `pointfence replay --recording FILE.pfrec` plays it again")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="stream the run to this MCAP recording (ROS 2 schemas: depth, poses, forces, events, every "
+                        "tick) while it goes on (a crash or kill -9 loses at most the last 0.25 s); `pointfence replay "
+                        "--recording FILE.mcap` replays it exactly (a .pfrec FILE: the older format)")
     p.add_argument("--prerender", type=int, default=0, metavar="FRAMES",
                    help="render this many frames of each synthetic camera before starting and serve them in a loop at "
                         "the camera's rate (rendering live holds Python's interpreter lock for milliseconds a frame, "

@@ -56,6 +56,9 @@ class TickInput:
     haptics: bool = True
     teleop: bool = True
     law_change: bool = False
+    #: the tick watchdog saw this tick (or the last) stall (``Health.take_stall``, taken by
+    #: ``Service.step``): recorded, so that a replay holds where the run held
+    watchdog_stall: bool = False
 
     @classmethod
     def zeros(cls, n: int) -> "TickInput":

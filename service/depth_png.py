@@ -1,0 +1,70 @@
+"""Lossless image payloads of ``sensor_msgs/CompressedImage`` messages.
+
+Depth is ROS's ``compressedDepth`` form, as ``compressed_depth_image_transport`` writes a
+16UC1 image (github.com/ros-perception/image_transport_plugins, ``codec.cpp``
+``encodeCompressedDepthImage``): format ``"16UC1; compressedDepth png"``, the data a 12-byte
+``ConfigHeader`` {int32 format (INV_DEPTH = 0), float32 depthQuantA, depthQuantB (0 for 16UC1:
+not quantised)} then a 16-bit grey PNG of the raw depth codes (the camera's units: metres =
+code x ``depth_scale``, in the camera's ``CameraInfo``). Unlike ROS's encoder nothing beyond a
+maximum depth is zeroed: the codes are kept exactly. Colour is a plain ``png`` (RGB, written
+as OpenCV's BGR PNG), a selection mask a grey ``png``.
+"""
+from __future__ import annotations
+
+import struct
+
+import cv2
+import numpy as np
+
+from pointfence.kernels.errors import InputError
+
+DEPTH_FORMAT = "16UC1; compressedDepth png"
+INV_DEPTH = 0
+_CONFIG = struct.Struct("<iff")
+#: PNG zlib level: 1 is 3-4x faster than OpenCV's default 3 for a few per cent more bytes
+PNG_LEVEL = 1
+
+
+def _png(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, PNG_LEVEL])
+    if not ok:
+        raise InputError(f"PNG encoding of a {img.dtype} {img.shape} image failed")
+    return buf.tobytes()
+
+
+def encode_depth(depth: np.ndarray) -> bytes:
+    """``compressedDepth`` data of a uint16 (H, W) depth image."""
+    if depth.dtype != np.uint16 or depth.ndim != 2:
+        raise InputError(f"depth image {depth.dtype} {depth.shape}; expected uint16 (H, W)")
+    return _CONFIG.pack(INV_DEPTH, 0.0, 0.0) + _png(depth)
+
+
+def decode_depth(data: bytes, fmt: str, where: str) -> np.ndarray:
+    """The uint16 (H, W) depth codes of a ``compressedDepth`` message (``where`` names it in errors)."""
+    if "compressedDepth" not in fmt or not fmt.startswith("16UC1"):
+        raise InputError(f"{where}: depth format {fmt!r}; expected {DEPTH_FORMAT!r} (16-bit raw depth)")
+    if len(data) <= _CONFIG.size:
+        raise InputError(f"{where}: compressedDepth data of {len(data)} bytes; expected a 12-byte header and a PNG")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8, offset=_CONFIG.size), cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        raise InputError(f"{where}: the depth PNG does not decode to a 16-bit grey image (a damaged recording)")
+    return img
+
+
+def encode_color(rgb: np.ndarray) -> bytes:
+    return _png(np.ascontiguousarray(rgb[:, :, ::-1]))
+
+
+def encode_mask(mask: np.ndarray) -> bytes:
+    return _png(np.ascontiguousarray(mask, dtype=np.uint8))
+
+
+def decode_png(data: bytes, channels: int, where: str) -> np.ndarray:
+    """An 8-bit PNG: RGB (H, W, 3) for ``channels`` 3, grey (H, W) for 1."""
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint8 or (img.ndim == 3) != (channels == 3):
+        raise InputError(f"{where}: the PNG does not decode to an 8-bit {'RGB' if channels == 3 else 'grey'} image")
+    return np.ascontiguousarray(img[:, :, ::-1]) if channels == 3 else img
+
+
+__all__ = ["DEPTH_FORMAT", "encode_depth", "decode_depth", "encode_color", "encode_mask", "decode_png"]

@@ -1,0 +1,170 @@
+"""Reading a pointfence MCAP recording (``mcap_record``), whole or cut short by a crash.
+
+``open_recording(path)`` reads the file record by record with ``mcap``'s ``StreamReader``
+(chunk CRCs checked), so a file that ``kill -9`` cut short, which has no summary section, reads
+up to its last whole chunk (``Recording.torn``: it ended early). What it returns:
+
+* ``meta``: the ``pointfence/run`` metadata (arms, rate, epoch, cameras, configuration text,
+  start state, architecture, backend, ...);
+* ``rows``: every recorded tick as ``tick_cdr`` ring rows (N, width), in tick order;
+* ``snapshots``: snapshot seq -> (frame seq per camera, recorded frame numbers, capture stamps,
+  per-frame poses);
+* ``frame(camera, index, ...)``: a recorded frame as a ``kernels.frame.DepthFrame`` (decoded on
+  demand).
+
+A file that is not an MCAP, not a pointfence recording, or damaged before anything readable
+is an ``InputError`` naming the file and what is wrong.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from pointfence.kernels.errors import InputError
+from pointfence.kernels.frame import DepthFrame
+
+from . import depth_png
+from .mcap_record import FORMAT
+from .ros2_schemas import SNAPSHOTS, TICK_INPUT, TICK_OUTPUT
+from .tick_cdr import TickLayout
+
+
+class Recording:
+    def __init__(self, path, meta, rows, snapshots, images, torn, messages):
+        self.path, self.meta, self.rows, self.snapshots = path, meta, rows, snapshots
+        self._images = images              # (camera, topic kind, frame seq) -> (format, data)
+        self.torn = torn                   # None, or why the file ends early
+        self.messages = messages
+        self.layout = TickLayout(int(meta["arms"]))
+        self.cameras = [c["name"] for c in meta.get("cameras", [])]
+
+    def frame(self, cam_index: int, index: int, seq: int, stamp: float, pose=None) -> DepthFrame:
+        """Camera ``cam_index``'s recorded frame number ``index`` (its running number in the file),
+        as a frame of source number ``seq`` captured at ``stamp`` (s) with pose ``pose`` (16
+        numbers, NaN: the camera's own). Raises InputError if it is not in the file."""
+        name = self.cameras[cam_index]
+        key = (name, "depth", int(index))
+        if key not in self._images:
+            raise InputError(f"{self.path}: frame {seq} of camera {name!r} (recorded frame {index}) is not in the "
+                             "recording (dropped while recording, or after the point where the file ends)")
+        fmt, data = self._images[key]
+        where = f"{self.path}: camera {name!r} frame {seq}"
+        depth = depth_png.decode_depth(data, fmt, where)
+        color = self._images.get((name, "color", int(index)))
+        mask = self._images.get((name, "mask", int(index)))
+        T = None if pose is None or len(pose) < 16 or math.isnan(pose[0]) else np.array(pose, float).reshape(4, 4)
+        return DepthFrame(camera=name, depth=depth, timestamp=float(stamp), seq=int(seq),
+                          color=None if color is None else depth_png.decode_png(color[1], 3, where),
+                          mask=None if mask is None else depth_png.decode_png(mask[1], 1, where), T_world_cam=T)
+
+
+def _decode_snapshot(data: bytes):
+    """(seq, (frame seqs, frame indices, stamps, poses)) of a ``pointfence_msgs/Snapshot`` message."""
+    from mcap_ros2._dynamic import generate_dynamic
+
+    from .ros2_schemas import msgdef
+
+    dec = _DEC.get("snap")
+    if dec is None:
+        dec = _DEC["snap"] = generate_dynamic("pointfence_msgs/Snapshot", msgdef("pointfence_msgs/Snapshot"))
+        dec = _DEC["snap"] = dec["pointfence_msgs/Snapshot"]
+    m = dec(data)
+    return int(m.seq), (list(m.frame_seq), list(m.frame_index), list(m.frame_stamp), list(m.t_world_cam))
+
+
+_DEC: dict = {}
+
+
+def open_recording(path) -> Recording:
+    """Read a recording; see the module docstring."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"recording {str(p)!r} not found; expected an .mcap file that `pointfence serve --record` or "
+                         "`demo --record` wrote")
+    with p.open("rb") as fh:
+        head = fh.read(8)
+        if head != b"\x89MCAP0\r\n":
+            raise InputError(f"{p}: not an MCAP file (its first bytes are {head!r}, expected b'\\x89MCAP0\\r\\n')")
+        fh.seek(0)
+        channels: dict = {}
+        meta: dict = {}
+        ticks = {"in": [], "out": []}
+        snapshots: dict = {}
+        images: dict = {}
+        torn = None
+        count = 0
+        try:
+            for rec in StreamReader(fh, validate_crcs=True, record_size_limit=1 << 30).records:
+                if isinstance(rec, Channel):
+                    channels[rec.id] = rec.topic
+                elif isinstance(rec, Metadata) and rec.name == "pointfence/run":
+                    meta.update({k: json.loads(v) for k, v in rec.metadata.items()})
+                elif isinstance(rec, Message):
+                    count += 1
+                    _take(channels.get(rec.channel_id, ""), rec, ticks, snapshots, images)
+                elif isinstance(rec, Schema):
+                    pass
+        except (McapError, struct.error, ValueError, EOFError, OSError, Exception) as e:   # noqa: BLE001
+            # a torn or damaged tail: everything before it is kept (S8)
+            torn = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
+    if meta.get("format") != FORMAT:
+        raise InputError(f"{p}: not a pointfence recording (no 'pointfence/run' metadata with format {FORMAT!r}"
+                         + (f"; the file is damaged near its start: {torn}" if torn else "") + ")")
+    try:
+        rows = _tick_rows(TickLayout(int(meta["arms"])), ticks)
+    except ValueError as e:
+        raise InputError(f"{p}: {e} (a damaged recording, or one of another pointfence version)") from None
+    return Recording(p, meta, rows, snapshots, images, torn, count)
+
+
+def _tick_rows(lay: TickLayout, ticks: dict) -> np.ndarray:
+    """Ring rows of the ticks whose input and output are both in the file, in tick order."""
+    parts = {}
+    for part in ("in", "out"):
+        r = np.zeros((len(ticks[part]), lay.width))
+        lay.decode(part, ticks[part], r)
+        parts[part] = r
+    kin, kout = (parts[p][:, lay.cols[(p, "k")][0]] for p in ("in", "out"))
+    common, i_in, i_out = np.intersect1d(kin, kout, return_indices=True)
+    rows = parts["in"][i_in]
+    for name in lay.names("out"):
+        c, k = lay.cols[("out", name)]
+        rows[:, c: c + k] = parts["out"][i_out, c: c + k]
+    return rows
+
+
+def _take(topic: str, rec, ticks: dict, snapshots: dict, images: dict) -> None:
+    """One message into the reader's tables, by topic."""
+    if topic in (TICK_INPUT, TICK_OUTPUT):
+        ticks["in" if topic == TICK_INPUT else "out"].append(bytes(rec.data))
+    elif topic == SNAPSHOTS:
+        seq, entry = _decode_snapshot(bytes(rec.data))
+        snapshots[seq] = entry
+    elif topic.endswith("/compressed"):
+        parts = topic.strip("/").split("/")
+        if len(parts) == 3:          # /<camera>/<depth|color|mask>/compressed; sequence: the frame's running number
+            images[(parts[0], parts[1], int(rec.sequence))] = _image(bytes(rec.data))
+
+
+def _image(data: bytes):
+    """(format, payload) of a CDR-encoded ``sensor_msgs/CompressedImage``."""
+    off = 4 + 8                                     # encapsulation, stamp
+    (n,) = struct.unpack_from("<I", data, off)      # frame_id
+    off += 4 + n
+    off += (-(off - 4)) % 4
+    (n,) = struct.unpack_from("<I", data, off)      # format
+    fmt = data[off + 4: off + 4 + n - 1].decode()
+    off += 4 + n
+    off += (-(off - 4)) % 4
+    (n,) = struct.unpack_from("<I", data, off)      # data
+    return fmt, data[off + 4: off + 4 + n]
+
+
+__all__ = ["open_recording", "Recording"]

@@ -1,0 +1,165 @@
+"""Writing the topics of a pointfence MCAP recording (``ros2_schemas`` lists them) from the
+recorder's ring rows and frames; used only by the recorder's writer thread.
+
+``TopicWriter`` wraps an ``mcap.writer.Writer`` (profile ``ros2``): every schema is registered
+with its full ros2msg text, every channel on first use (``cdr`` encoding). Fixed-shape
+messages are encoded as NumPy records (``cdr``); the few irregular ones (camera info, events,
+snapshots, the fixture cloud) with ``mcap_ros2``'s own encoder.
+
+Per arm b (CRTK names, ``ros2_schemas.robot_ns`` / ``master_ns``), at ``pose_hz``:
+``/PSM1/measured_cp`` (the robot's measured tool tip, world), ``/PSM1/servo_cp`` (the command
+X_r*, world), ``/MTMR/measured_cp`` (the master's sample, master frame), ``/MTMR/servo_cf``
+(the force sent to the master, its frame, N), and ``/pointfence/arm0/{xm,hip,proxy}``
+(PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). Orientations
+are identity: pointfence's points have none.
+"""
+from __future__ import annotations
+
+import numpy as np
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap_ros2._dynamic import serialize_dynamic
+
+from .cdr import pose_layout, stamp_fields, wrench_layout
+from .holds import REASONS, ROBOT
+from .ros2_schemas import EVENTS, master_ns, msgdef, robot_ns
+
+
+class TopicWriter:
+    def __init__(self, writer):
+        self.w = writer
+        self._schemas: dict = {}
+        self._channels: dict = {}
+        self._encoders: dict = {}
+        self.messages = 0
+
+    def _channel(self, topic: str, schema: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sid = self._schemas.get(schema)
+            if sid is None:
+                sid = self._schemas[schema] = self.w.register_schema(schema, SchemaEncoding.ROS2, msgdef(schema).encode())
+            cid = self._channels[topic] = self.w.register_channel(topic, MessageEncoding.CDR, sid)
+        return cid
+
+    def raw(self, topic: str, schema: str, data: bytes, log_ns: int, sequence: int = 0) -> None:
+        """A message already CDR-encoded; ``sequence``: the MCAP message's sequence number (a
+        camera frame's number on the image topics)."""
+        self.w.add_message(self._channel(topic, schema), int(log_ns), data, int(log_ns), int(sequence) & 0xFFFFFFFF)
+        self.messages += 1
+
+    def dyn(self, topic: str, schema: str, msg: dict, log_ns: int, sequence: int = 0) -> None:
+        """A message given as a dict, encoded by ``mcap_ros2``."""
+        enc = self._encoders.get(schema)
+        if enc is None:
+            enc = self._encoders[schema] = serialize_dynamic(schema, msgdef(schema))[schema]
+        self.raw(topic, schema, enc(msg), log_ns, sequence)
+
+
+def stamp(ns: int, frame_id: str) -> dict:
+    return {"stamp": {"sec": int(ns) // 1_000_000_000, "nanosec": int(ns) % 1_000_000_000}, "frame_id": frame_id}
+
+
+class ArmTopics:
+    """The decimated pose and wrench topics of every arm, from ring rows (``TickLayout`` columns)."""
+
+    def __init__(self, layout, n: int):
+        self.layout, self.n = layout, n
+        self.topics = []   # (topic, schema, layout, (part, field), record field)
+        for b in range(n):
+            r, m, pf = robot_ns(b), master_ns(b), f"/pointfence/arm{b}"
+            self.topics += [(f"/{r}/measured_cp", "geometry_msgs/PoseStamped", pose_layout("world"), ("in", "robot_pos"), "p"),
+                            (f"/{r}/servo_cp", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "command"), "p"),
+                            (f"/{m}/measured_cp", "geometry_msgs/PoseStamped", pose_layout(f"{m}_base"), ("in", "master_pos"), "p"),
+                            (f"/{m}/servo_cf", "geometry_msgs/WrenchStamped", wrench_layout(f"{m}_base"), ("out", "force_master"), "f"),
+                            (f"{pf}/xm", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "xm"), "p"),
+                            (f"{pf}/hip", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "hip"), "p"),
+                            (f"{pf}/proxy", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "proxy"), "p"),
+                            (f"{pf}/force", "geometry_msgs/WrenchStamped", wrench_layout("world"), ("out", "force"), "f")]
+        self.arm_of = [b for b in range(n) for _ in range(8)]
+
+    def write(self, tw: TopicWriter, rows: np.ndarray, ns: np.ndarray) -> None:
+        for (topic, schema, lay, key, fld), b in zip(self.topics, self.arm_of):
+            c, _ = self.layout.cols[key]
+            rec = lay.blank(len(rows))
+            stamp_fields(rec, ns)
+            rec[fld] = rows[:, c + 3 * b: c + 3 * b + 3]
+            if fld == "p":
+                rec["q"][:, 3] = 1.0
+            buf, size = rec.tobytes(), lay.size
+            for i in range(len(rows)):
+                tw.raw(topic, schema, buf[i * size: (i + 1) * size], ns[i])
+
+
+def _names(mask: int) -> tuple:
+    rs = [r for bit, r in REASONS.items() if int(mask) & int(bit)]
+    return ",".join(r.name for r in rs), ",".join(dict.fromkeys(r.invariant for r in rs))
+
+
+class EventDetector:
+    """``pointfence_msgs/Event`` messages from consecutive ticks: an arm that starts or stops
+    holding (with its reasons and their invariants), a robot that faults, an architecture
+    switch, haptics or teleoperation engaged or disengaged."""
+
+    def __init__(self, layout, n: int):
+        self.layout, self.n = layout, n
+        self.prev = None
+        self.count = 0
+
+    def _col(self, row, part, name, b=None):
+        c, _ = self.layout.cols[(part, name)]
+        return row[c if b is None else c + b]
+
+    def _watched(self) -> np.ndarray:
+        cols = self.layout.cols
+        idx = [cols[("out", "arm_hold")][0] + b for b in range(self.n)]
+        idx += [cols[("in", "robot_fault")][0] + b for b in range(self.n)]
+        return np.array(idx + [cols[("in", name)][0] for name in ("architecture", "haptics", "teleop")])
+
+    def write(self, tw: TopicWriter, rows: np.ndarray, ns: np.ndarray) -> None:
+        if not len(rows):
+            return
+        col, idx = self._col, self._watched()
+        first = self.prev if self.prev is not None else rows[0].copy()
+        if self.prev is None:   # the run starts without holds or faults
+            first[idx[: 2 * self.n]] = 0
+        before = np.vstack([first[None], rows[:-1]])
+        changed = np.flatnonzero(np.any(rows[:, idx] != before[:, idx], axis=1))
+        self.prev = rows[-1].copy()
+        for i in changed:
+            row, prev, t_ns = rows[i], before[i], ns[i]
+            k = int(col(row, "in", "k"))
+            for b in range(self.n):
+                new, old = int(col(row, "out", "arm_hold", b)), int(col(prev, "out", "arm_hold", b))
+                if new != old:
+                    kind = "hold" if new else "release"
+                    names, inv = _names(new if new else old)
+                    self._emit(tw, t_ns, k, b, kind, names, inv, new, "" if new else "these reasons cleared")
+                if col(row, "in", "robot_fault", b) and not col(prev, "in", "robot_fault", b):
+                    self._emit(tw, t_ns, k, b, "fault", *_names(ROBOT), int(col(row, "out", "hold")),
+                               "the robot reports a fault")
+            for name, kind in (("architecture", "architecture"), ("haptics", "control"), ("teleop", "control")):
+                if col(row, "in", name) != col(prev, "in", name):
+                    v = int(col(row, "in", name))
+                    detail = (f"architecture {('I', 'II', 'III')[v - 1] if 1 <= v <= 3 else v}" if name == "architecture"
+                              else f"{name} {'engaged' if v else 'disengaged'}")
+                    self._emit(tw, t_ns, k, -1, kind, "", "S1", int(col(row, "out", "hold")), detail)
+
+    def _emit(self, tw, t_ns, k, arm, kind, reason, invariant, mask, detail) -> None:
+        self.count += 1
+        tw.dyn(EVENTS, "pointfence_msgs/Event", {"header": stamp(t_ns, "world"), "tick": k, "arm": arm, "kind": kind,
+                                                  "reason": reason, "invariant": invariant, "hold_mask": mask,
+                                                  "detail": detail}, t_ns)
+
+
+def camera_info(cam, ns: int) -> dict:
+    """``sensor_msgs/CameraInfo`` of camera ``cam`` (``kernels.camera.Camera``): K, D (plumb_bob:
+    k1 k2 p1 p2 k3), R identity, P = [K | 0]; frame id the camera's name (its optical frame)."""
+    fx, fy, cx, cy = cam.fx, cam.fy, cam.cx, cam.cy
+    return {"header": stamp(ns, cam.name), "height": cam.height, "width": cam.width, "distortion_model": "plumb_bob",
+            "d": [float(x) for x in cam.dist], "k": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+            "r": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0], "p": [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
+
+
+__all__ = ["TopicWriter", "ArmTopics", "EventDetector", "camera_info", "stamp"]

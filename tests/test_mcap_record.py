@@ -1,0 +1,291 @@
+"""MCAP recordings (service/mcap_record.py, mcap_read.py, mcap_replay.py): a live `serve` run with a
+simulated device and a synthetic camera replays to the same TickOutputs bit for bit; `kill -9`
+leaves a file that reads up to its last second; the messages decode with mcap-ros2-support into
+the standard types with the right fields and units; a run from a recorded-depth source replays
+with the source gone; a damaged file is a clear InputError (S8)."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pointfence.kernels.errors import InputError
+from pointfence.service import config as config_mod
+from pointfence.service import depth_png
+from pointfence.service.mcap_read import open_recording
+from pointfence.service.mcap_replay import replay
+from pointfence.service.mcap_record import McapRecorder
+from pointfence.service.tick_io import TickInput, TickOutput
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+
+def _serve(tmp_path, record: Path, seconds: float, backend: str = "numpy", client: bool = True):
+    """A `pointfence serve --record` process with a device-sim client; returns (serve, client, ready time)."""
+    from pointfence.bench.e2e import LIGHT_SCENE
+
+    key = tmp_path / "pf.key"
+    subprocess.run([sys.executable, "-m", "pointfence", "serve", "--new-key", str(key)], env=ENV, check=True,
+                   capture_output=True)
+    scene = tmp_path / "scene.toml"
+    scene.write_text(LIGHT_SCENE)
+    ready = tmp_path / "ready.json"
+    serve = subprocess.Popen([sys.executable, "-m", "pointfence", "serve", "--key-file", str(key), "--port", "0",
+                              "--no-control", "--config", str(scene), "--ready-file", str(ready), "--backend", backend,
+                              "--duration", str(seconds), "--status-every", "0", "--prerender", "5",
+                              "--record", str(record)], env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    end = time.monotonic() + 120
+    while not ready.exists() and serve.poll() is None and time.monotonic() < end:
+        time.sleep(0.05)
+    assert ready.exists(), serve.stderr.read().decode()[-2000:] if serve.poll() is not None else "no ready file"
+    port = json.loads(ready.read_text())["port"]
+    dev = None
+    if client:
+        dev = subprocess.Popen([sys.executable, "-m", "pointfence", "device-sim", "--key-file", str(key), "--port",
+                                str(port), "--motion", "circle", "--duration", str(seconds)], env=ENV,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return serve, dev
+
+
+def _stop(*procs):
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.kill()
+            p.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """One recorded live serve run (numpy backend, a simulated device, a synthetic camera)."""
+    tmp = tmp_path_factory.mktemp("served")
+    rec = tmp / "run.mcap"
+    serve, dev = _serve(tmp, rec, 4.0)
+    try:
+        serve.wait(timeout=120)
+        assert serve.returncode == 0, serve.stderr.read().decode()[-2000:]
+    finally:
+        _stop(serve, dev)
+    return rec
+
+
+def test_a_recorded_serve_run_replays_to_the_same_tick_outputs(served, tmp_path):
+    r = open_recording(served)
+    assert r.torn is None and len(r.rows) > 1500
+    lay = r.layout
+    ok = r.rows[:, lay.cols[("in", "master_ok")][0]]
+    assert ok.any(), "the device-sim client never drove the master"
+    assert r.snapshots and r.meta["backend"] == "numpy"
+    svc, check = replay(r)
+    assert check["exact"], check
+    assert check["ticks_compared"] == len(r.rows) and check["mismatched_ticks"] == 0
+    # the CLI writes ticks.csv and summary.json as today
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "pointfence", "replay", "--recording", str(served), "--out", str(out)],
+                         env=ENV, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["replay"]["exact"] and s["ticks"] == len(r.rows)
+    assert (out / "ticks.csv").read_text().count("\n") == len(r.rows) + 1
+
+
+def test_what_if_runs_the_same_inputs_under_other_settings(served):
+    r = open_recording(served)
+    svc, check = replay(r, architecture="I", radius=0.03)
+    assert check is None
+    assert svc.architecture == "I" and svc.fixture_params.radius.r_base == 0.03
+    assert svc.recorder.count == len(r.rows)
+
+
+def test_replay_detects_a_tick_that_differs(served):
+    r = open_recording(served)
+    c = r.layout.cols[("out", "force")][0]
+    r.rows[len(r.rows) // 2, c] += 1e-9            # one recorded force, changed by a nanonewton
+    _, check = replay(r)
+    assert not check["exact"] and check["mismatched_ticks"] >= 1
+    assert check["first_mismatch"]["field"] == "force"
+
+
+def test_messages_decode_into_the_standard_ros2_types(served):
+    from mcap_ros2.reader import read_ros2_messages
+
+    r = open_recording(served)
+    lay, rows = r.layout, r.rows
+    by_k = {int(k): i for i, k in enumerate(rows[:, lay.cols[("in", "k")][0]])}
+    seen: dict = {}
+    for m in read_ros2_messages(str(served)):
+        seen.setdefault(m.channel.topic, []).append(m)
+    for topic in ("/PSM1/measured_cp", "/PSM1/servo_cp", "/MTMR/measured_cp", "/MTMR/servo_cf", "/pointfence/arm0/proxy",
+                  "/overhead/depth/compressed", "/overhead/depth/camera_info", "/overhead/color/compressed",
+                  "/pointfence/tick/input", "/pointfence/tick/output", "/pointfence/snapshots", "/pointfence/events",
+                  "/pointfence/fixtures"):
+        assert topic in seen, f"{topic} missing; topics: {sorted(seen)}"
+    assert seen["/PSM1/measured_cp"][0].schema.name == "geometry_msgs/PoseStamped"
+    assert seen["/MTMR/servo_cf"][0].schema.name == "geometry_msgs/WrenchStamped"
+    # every TickInput decodes to the recorded values (m, world frame); the poses carry the same numbers
+    ti = seen["/pointfence/tick/input"]
+    assert len(ti) == len(rows)
+    msg = ti[len(ti) // 2].ros_msg
+    i = by_k[msg.k]
+    c, k = lay.cols[("in", "robot_pos")]
+    np.testing.assert_array_equal(msg.robot_pos, rows[i, c: c + k])
+    pose = seen["/PSM1/measured_cp"][5].ros_msg
+    assert pose.header.frame_id == "world" and pose.pose.orientation.w == 1.0
+    stamps = {(m.ros_msg.header.stamp.sec, m.ros_msg.header.stamp.nanosec): m.ros_msg for m in ti}
+    tin = stamps[(pose.header.stamp.sec, pose.header.stamp.nanosec)]
+    assert [pose.pose.position.x, pose.pose.position.y, pose.pose.position.z] == list(tin.robot_pos[:3])
+    assert 0.0 < pose.pose.position.z < 0.3                        # metres above the table, not millimetres
+    wr = seen["/MTMR/servo_cf"][-1].ros_msg
+    assert wr.header.frame_id == "MTMR_base" and np.isfinite(wr.wrench.force.x)
+    info = seen["/overhead/depth/camera_info"][0].ros_msg
+    cam = r.meta["cameras"][0]
+    assert info.distortion_model == "plumb_bob" and info.width == cam["width"] and info.height == cam["height"]
+    assert list(info.k) == [cam["fx"], 0.0, cam["cx"], 0.0, cam["fy"], cam["cy"], 0.0, 0.0, 1.0]
+    img = seen["/overhead/depth/compressed"][0].ros_msg
+    assert img.format == depth_png.DEPTH_FORMAT and bytes(img.data[:4]) == b"\x00\x00\x00\x00"   # INV_DEPTH header
+    depth = depth_png.decode_depth(bytes(img.data), img.format, "test")
+    assert depth.shape == (cam["height"], cam["width"]) and depth.dtype == np.uint16
+    z = depth[depth > 0] * cam["depth_scale"]
+    assert 0.2 < np.median(z) < 1.0                              # the table 0.6 m below the camera
+    cloud = seen["/pointfence/fixtures"][0].ros_msg
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"] and cloud.point_step == 12
+    ev = [m.ros_msg for m in seen["/pointfence/events"]]
+    assert all(e.kind in ("hold", "release", "fault", "control", "architecture") for e in ev)
+    holds = [e for e in ev if e.kind == "hold"]
+    assert holds and all(e.reason and e.invariant.startswith("S") for e in holds)
+
+
+def test_kill_9_leaves_a_readable_file_holding_all_but_the_last_second(tmp_path):
+    from mcap.exceptions import McapError
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    rec = tmp_path / "killed.mcap"
+    serve, dev = _serve(tmp_path, rec, 120.0, backend="opencl")
+    try:
+        time.sleep(3.0)
+        t_kill = time.perf_counter()            # the service's loop clock (perf_counter: CLOCK_MONOTONIC)
+        serve.send_signal(signal.SIGKILL)
+        serve.wait(timeout=10)
+    finally:
+        _stop(serve, dev)
+    r = open_recording(rec)
+    assert r.torn is not None                   # no summary: the run never ended
+    lay = r.layout
+    k = r.rows[:, lay.cols[("in", "k")][0]]
+    now = r.rows[:, lay.cols[("in", "now")][0]]
+    assert len(k) > 1000 and (np.diff(k) > 0).all()
+    assert now[-1] >= t_kill - 1.0, f"the file ends {t_kill - now[-1]:.2f} s before the kill"
+    # mcap's own reader opens it and reads every message up to the cut
+    n = 0
+    with rec.open("rb") as fh:
+        try:
+            for record in StreamReader(fh, validate_crcs=True).records:
+                n += isinstance(record, Message)
+        except McapError:
+            pass
+    assert n >= 2 * len(k)
+
+
+def test_a_recording_from_a_recorded_depth_source_replays_without_the_source(tmp_path):
+    src = DATA / "apc_shelfbin_50f"
+    if not src.is_dir():
+        pytest.skip("../shared/data is not here")
+    copy = tmp_path / "frames"
+    shutil.copytree(src, copy)
+    scene = tmp_path / "scene.toml"
+    scene.write_text(f'backend = "numpy"\n[fixture]\nradius = 0.01\n[[camera]]\nname = "shelf"\nsource = "recorded:{copy}"\n'
+                     '[robot]\nmodel = "none"\n')
+    from pointfence.bench.loop import circling_master
+    from pointfence.service.runner import LiveRun
+
+    cfg = config_mod.load(scene)
+    rec = tmp_path / "shelf.mcap"
+    run = LiveRun(cfg, [circling_master(0, 1, 10.0)], backend="numpy", record_path=rec)
+    run.start()
+    try:
+        run.wait(2.0)
+    finally:
+        run.stop()
+    shutil.rmtree(copy)                          # the source is gone
+    r = open_recording(rec)
+    assert len(r.snapshots) >= 2 and r.meta["cameras"][0]["source"].startswith("recorded:")
+    _, check = replay(r)
+    assert check["exact"], check
+
+
+def test_corrupt_or_truncated_files_are_clear_errors(served, tmp_path):
+    bad = tmp_path / "not.mcap"
+    bad.write_bytes(b"PFREC\x001\nhello")
+    with pytest.raises(InputError, match=r"not\.mcap: not an MCAP file"):
+        open_recording(bad)
+    with pytest.raises(InputError, match="not found"):
+        open_recording(tmp_path / "missing.mcap")
+    data = served.read_bytes()
+    head = tmp_path / "head.mcap"
+    head.write_bytes(data[:40])
+    with pytest.raises(InputError, match="head.mcap: not a pointfence recording"):
+        open_recording(head)
+    half = tmp_path / "half.mcap"                # cut in the middle of a chunk: the chunks before it read
+    half.write_bytes(data[: len(data) // 2])
+    r = open_recording(half)
+    full = open_recording(served)
+    assert r.torn and 0 < len(r.rows) < len(full.rows)
+    np.testing.assert_array_equal(r.rows, full.rows[: len(r.rows)])
+    flipped = bytearray(data)                    # a damaged byte: reading stops at the chunk it is in
+    flipped[len(data) // 2] ^= 0xFF
+    (tmp_path / "flip.mcap").write_bytes(bytes(flipped))
+    r = open_recording(tmp_path / "flip.mcap")
+    assert r.torn and len(r.rows) < len(full.rows)
+    np.testing.assert_array_equal(r.rows, full.rows[: len(r.rows)])
+
+
+def test_the_ticks_side_copies_and_allocates_nothing(tmp_path):
+    n = 2
+    rec = McapRecorder(tmp_path / "alloc.mcap", n)
+    inp, out = TickInput.zeros(n), TickOutput.zeros(n)
+    try:
+        for k in range(200):          # warm up (first calls create cached views)
+            inp.k = out.k = k
+            rec.write(inp, out)
+            rec.note_tick_us(10.0)
+        tracemalloc.start()
+        snap0 = tracemalloc.take_snapshot()
+        for k in range(200, 1200):
+            inp.k, inp.t, out.k = k, k * 1e-3, k
+            inp.master_pos[:] = k
+            rec.write(inp, out)
+            rec.note_tick_us(10.0)
+        snap1 = tracemalloc.take_snapshot()
+        tracemalloc.stop()
+    finally:
+        rec.close()
+    grown = [s for s in snap1.compare_to(snap0, "filename") if "mcap_record" in str(s.traceback) or
+             "tick_cdr" in str(s.traceback)]
+    assert sum(s.size_diff for s in grown) < 4096, grown
+    r = open_recording(tmp_path / "alloc.mcap")
+    assert len(r.rows) == 1200 and r.rows[-1, r.layout.cols[("in", "k")][0]] == 1199
+    c, k = r.layout.cols[("in", "master_pos")]
+    assert (r.rows[-1, c: c + k] == 1199).all()
+
+
+@pytest.mark.xfail(reason="opencl snapshots are not yet deterministic on PoCL (issue 20, deliverable 0, in progress): "
+                          "the same frames built twice can order points differently within a cell", strict=False)
+def test_a_recorded_opencl_run_replays_exactly(tmp_path):
+    rec = tmp_path / "ocl.mcap"
+    serve, dev = _serve(tmp_path, rec, 4.0, backend="opencl")
+    try:
+        serve.wait(timeout=120)
+    finally:
+        _stop(serve, dev)
+    _, check = replay(open_recording(rec))
+    assert check["exact"], check
