@@ -241,8 +241,9 @@ def test_corrupt_or_truncated_files_are_clear_errors(served, tmp_path):
     full = open_recording(served)
     assert r.torn and 0 < len(r.rows) < len(full.rows)
     np.testing.assert_array_equal(r.rows, full.rows[: len(r.rows)])
-    flipped = bytearray(data)                    # a damaged byte: reading stops at the chunk it is in
-    flipped[len(data) // 2] ^= 0xFF
+    flipped = bytearray(data)     # damaged bytes through the middle third (one byte alone may land
+    for at in range(len(data) // 3, 2 * len(data) // 3, 1024):      # outside a chunk): reading stops
+        flipped[at] ^= 0xFF                                           # at the first damaged chunk
     (tmp_path / "flip.mcap").write_bytes(bytes(flipped))
     r = open_recording(tmp_path / "flip.mcap")
     assert r.torn and len(r.rows) < len(full.rows)
@@ -278,8 +279,6 @@ def test_the_ticks_side_copies_and_allocates_nothing(tmp_path):
     assert (r.rows[-1, c: c + k] == 1199).all()
 
 
-@pytest.mark.xfail(reason="opencl snapshots are not yet deterministic on PoCL (issue 20, deliverable 0, in progress): "
-                          "the same frames built twice can order points differently within a cell", strict=False)
 def test_a_recorded_opencl_run_replays_exactly(tmp_path):
     rec = tmp_path / "ocl.mcap"
     serve, dev = _serve(tmp_path, rec, 4.0, backend="opencl")
