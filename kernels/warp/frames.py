@@ -2,8 +2,8 @@
 
 Snapshot layout (as the OpenCL backend): ``pts[pix] = (x, y, z, r_f)`` and ``sigma[pix]`` in
 pixel order; ``order[start[c]:start[c+1]]`` = entries of cell c, entry = pix | protected << 31,
-in ascending pixel order within the cell (``sort_cells``: the same order on every run and
-backend, the reference's); plus ``sorted_pts``, the points in ``order``'s order (the GPU reads
+in ascending pixel order within the cell (a stable radix sort of the pixels by cell,
+``wp.utils.radix_sort_pairs``: the same order on every run and backend, the reference's); plus ``sorted_pts``, the points in ``order``'s order (the GPU reads
 them coalesced).
 """
 from __future__ import annotations
@@ -130,8 +130,8 @@ def classify(depth: wp.array(dtype=wp.uint16), rays: wp.array(dtype=wp.vec2), ca
 
 @wp.kernel
 def count_runs(pix_cell: wp.array(dtype=int), cam_of: wp.array(dtype=int), npix: int, per: int,
-               counts: wp.array(dtype=int), pix_rank: wp.array(dtype=int), cam_counts: wp.array(dtype=int)):
-    """Count per cell and rank per pixel, one atomic per run of same-cell pixels of one camera
+               counts: wp.array(dtype=int), cam_counts: wp.array(dtype=int)):
+    """Count per cell and per camera, one atomic per run of same-cell pixels of one camera
     (each thread walks ``per`` consecutive pixels; neighbouring pixels mostly share a cell)."""
     a = wp.tid() * per
     e = wp.min(npix, a + per)
@@ -144,10 +144,8 @@ def count_runs(pix_cell: wp.array(dtype=int), cam_of: wp.array(dtype=int), npix:
             pix += 1
         if cell >= 0:
             n = pix - first
-            base = wp.atomic_add(counts, cell, n)
+            wp.atomic_add(counts, cell, n)
             wp.atomic_add(cam_counts, cam, n)
-            for j in range(first, pix):
-                pix_rank[j] = base + (j - first)
 
 
 @wp.kernel
@@ -185,17 +183,19 @@ def scan_add(start: wp.array(dtype=int), n: int, chunk: int, partial: wp.array(d
 
 
 @wp.kernel
-def scatter(pix_cell: wp.array(dtype=int), pix_rank: wp.array(dtype=int), pix_prot: wp.array(dtype=int),
-            start: wp.array(dtype=int), order: wp.array(dtype=int)):
-    """Entries into their cell's slots (in the order the counting atomics handed out ranks:
-    ``sort_cells`` puts each cell into pixel order afterwards)."""
+def sort_input(pix_cell: wp.array(dtype=int), pix_prot: wp.array(dtype=int), n_cells: int,
+               keys: wp.array(dtype=int), entries: wp.array(dtype=int)):
+    """Each pixel's (cell, entry) pair in pixel order for the stable radix sort that builds
+    ``order``; a pixel in no cell gets key ``n_cells`` (sorted past every cell)."""
     pix = wp.tid()
     cell = pix_cell[pix]
-    if cell >= 0:
-        e = pix
-        if pix_prot[pix] != 0:
-            e = pix | (-2147483647 - 1)
-        order[start[cell] + pix_rank[pix]] = e
+    e = pix
+    if pix_prot[pix] != 0:
+        e = pix | (-2147483647 - 1)
+    if cell < 0:
+        cell = n_cells
+    keys[pix] = cell
+    entries[pix] = e
 
 
 @wp.func
@@ -204,67 +204,12 @@ def entry_pixel(e: int) -> int:
     return e & 2147483647
 
 
-@wp.func
-def sift_down(order: wp.array(dtype=int), a: int, i0: int, n: int):
-    """Max-heap sift-down of order[a + i0] within order[a : a + n], keyed by pixel."""
-    i = i0
-    v = order[a + i]
-    kv = entry_pixel(v)
-    ch = 2 * i + 1
-    while ch < n:
-        kc = entry_pixel(order[a + ch])
-        if ch + 1 < n:
-            k2 = entry_pixel(order[a + ch + 1])
-            if k2 > kc:
-                ch = ch + 1
-                kc = k2
-        if kc <= kv:
-            break
-        order[a + i] = order[a + ch]
-        i = ch
-        ch = 2 * i + 1
-    order[a + i] = v
-
-
 @wp.kernel
-def sort_cells(start: wp.array(dtype=int), order: wp.array(dtype=int)):
-    """Every cell's entries into ascending pixel order, one thread per cell (as frames.cl's
-    sort_cells: pixels are unique, so the result does not depend on the scatter's order).
-    Segments in order are left alone; short ones take an insertion sort, long ones a heapsort."""
-    c = wp.tid()
-    a = start[c]
-    n = start[c + 1] - a
-    if n < 2:
-        return
-    ordered = int(1)
-    i = int(1)
-    while i < n and ordered != 0:
-        if entry_pixel(order[a + i - 1]) > entry_pixel(order[a + i]):
-            ordered = 0
-        i = i + 1
-    if ordered != 0:
-        return
-    if n <= 32:
-        for k in range(1, n):
-            v = order[a + k]
-            kv = entry_pixel(v)
-            j = k
-            while j > 0 and entry_pixel(order[a + j - 1]) > kv:
-                order[a + j] = order[a + j - 1]
-                j = j - 1
-            order[a + j] = v
-        return
-    h = n / 2 - 1
-    while h >= 0:
-        sift_down(order, a, h, n)
-        h = h - 1
-    end = n - 1
-    while end > 0:
-        t = order[a]
-        order[a] = order[a + end]
-        order[a + end] = t
-        sift_down(order, a, 0, end)
-        end = end - 1
+def take_sorted(entries: wp.array(dtype=int), start: wp.array(dtype=int), n_cells: int, order: wp.array(dtype=int)):
+    """The sorted entries of the pixels in a cell are ``order`` (the rest sorted past them)."""
+    i = wp.tid()
+    if i < start[n_cells]:
+        order[i] = entries[i]
 
 
 @wp.kernel

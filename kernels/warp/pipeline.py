@@ -68,8 +68,11 @@ class WarpPipeline(FramePipeline):
         self._cams = wp.zeros(len(rig), dtype=k.CamArgs, device=dev)
         self._graphs = {}
         self.pix_cell = wp.zeros(max(npix, 1), dtype=int, device=dev)
-        self.pix_rank = wp.zeros(max(npix, 1), dtype=int, device=dev)
         self.pix_prot = wp.zeros(max(npix, 1), dtype=int, device=dev)
+        # (cell, entry) pairs of every pixel for the radix sort, with its scratch half
+        self.sort_keys = wp.zeros(2 * max(npix, 1), dtype=int, device=dev)
+        self.sort_entries = wp.zeros(2 * max(npix, 1), dtype=int, device=dev)
+        self.sort_bits = max(1, int(C).bit_length())      # keys are 0 .. C
         self.cam_counts = wp.zeros(len(rig), dtype=int, device=dev)
         cam_of = np.repeat(np.arange(len(rig), dtype=np.int32), np.diff(rig.offsets))
         if params.motion.enabled:
@@ -172,14 +175,18 @@ class WarpPipeline(FramePipeline):
             # of a warp hitting one counter serialise on the GPU)
             per = self.backend.tuning.run_pixels
             wp.launch(k.count_runs, dim=(self.npix + per - 1) // per, device=dev,
-                      inputs=[self.pix_cell, self.cam_of, self.npix, per, self.counts, self.pix_rank, self.cam_counts])
+                      inputs=[self.pix_cell, self.cam_of, self.npix, per, self.counts, self.cam_counts])
         wp.launch(k.scan_chunks, dim=self.nchunks, device=dev, inputs=[self.counts, C, self.chunk, slot.start, self.partial])
         wp.launch(k.scan_partials, dim=1, device=dev, inputs=[self.partial, self.nchunks, slot.start, C])
         wp.launch(k.scan_add, dim=self.nchunks, device=dev, inputs=[slot.start, C, self.chunk, self.partial])
         if self.npix:
-            wp.launch(k.scatter, dim=self.npix, device=dev,
-                      inputs=[self.pix_cell, self.pix_rank, self.pix_prot, slot.start, slot.order])
-            wp.launch(k.sort_cells, dim=C, device=dev, inputs=[slot.start, slot.order])
+            # order: the pixels sorted by cell with a stable radix sort of pixel-ordered pairs, so
+            # each cell's entries are in pixel order whatever order the GPU ran in (deterministic,
+            # the reference's order); the counting atomics above give only the cells' starts
+            wp.launch(k.sort_input, dim=self.npix, device=dev,
+                      inputs=[self.pix_cell, self.pix_prot, C, self.sort_keys, self.sort_entries])
+            wp.utils.radix_sort_pairs(self.sort_keys, self.sort_entries, self.npix, 0, self.sort_bits)
+            wp.launch(k.take_sorted, dim=self.npix, device=dev, inputs=[self.sort_entries, slot.start, C, slot.order])
             wp.launch(k.gather_sorted, dim=self.npix, device=dev,
                       inputs=[slot.order, slot.start, C, slot.pts, slot.sorted_pts])
         wp.copy(self._n_host, slot.start, src_offset=C, count=1)
