@@ -82,10 +82,13 @@ def library_path() -> Path:
 
 
 def load() -> ctypes.CDLL:
-    """Build (if needed) and load the tick core."""
+    """Build (if needed) and load the tick core. Its functions run for microseconds inside the
+    tick: they are called holding the interpreter lock (``ctypes.PyDLL``), since releasing it
+    around each call would let another thread (frame ingest, UDP receiver, recorder) take it and
+    keep the tick waiting for it back."""
     path = library_path()
     try:
-        return ctypes.CDLL(str(path))
+        return ctypes.PyDLL(str(path))
     except OSError as e:
         raise NativeBuildError(f"loading the tick core {path} failed: {e}; delete it to rebuild") from None
 

@@ -192,3 +192,14 @@ def test_the_core_is_the_bottom_layer():
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else []
             assert not any(n.startswith("pointfence") for n in names), f"{f.name} imports {names}"
+
+
+def test_the_core_is_called_holding_the_interpreter_lock():
+    """A tick's core calls must not hand the interpreter lock to another thread (each such hand
+    -over can keep the tick waiting for up to the switch interval): the library is a PyDLL."""
+    import ctypes
+
+    from pointfence.native import lib
+
+    assert isinstance(lib, ctypes.PyDLL)
+    assert lib.pf_step_pre._flags_ & ctypes._FUNCFLAG_PYTHONAPI
