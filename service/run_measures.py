@@ -40,7 +40,7 @@ from typing import Optional
 
 import numpy as np
 
-from pointfence.kernels.errors import InputError
+from pointfence.kernels.errors import InputError, PointfenceError
 
 from . import measures
 from .recorded_surface import RecordedSurface
@@ -231,7 +231,7 @@ def after_run(path, log=None) -> dict:
             log(f"measuring {path} from its recorded depth ({len(rec.snapshots)} snapshots, {len(rec.rows)} ticks)")
         summary = evaluate(rec).summary
         summary["stored_in"] = store(path, summary)
-    except (InputError, OSError) as e:
+    except (PointfenceError, OSError) as e:      # the run's own status is still printed
         return {"error": str(e)}
     if log is not None:
         log(f"measures done in {time.monotonic() - t0:.1f} s: {line(summary)}")
