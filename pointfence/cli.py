@@ -20,6 +20,8 @@ COMMANDS = {
     "ctl": ("pointfence.service.ctl", "control a running `pointfence serve` through its local HTTP JSON API (status, metrics, architecture, engage/disengage, radius, selection)"),
     "device-sim": ("pointfence.clients.device_sim", "a simulated haptic device (trajectory CSV or scripted motion) against a live service"),
     "replay": ("pointfence.service.replay", "deterministic offline run of the whole service (scripted master or a recording): ticks.csv, summary.json"),
+    "inspect": ("pointfence.service.inspect_cmd", "what an MCAP recording holds (topics, rates, cameras, arms, faults, holds) "
+                "and the run's measures; --json, --plot DIR"),
     "backends": ("pointfence.kernels.cli", "list compute backends and devices available here"),
     "calib": ("pointfence.calib.cli", "camera calibration: intrinsics, extrinsics, multi (ICP), noise; cable tension"),
     "cable": ("pointfence.service.cable.cli", "cable-driven grasper: demo, identify, calib-tension, run (simulated plant)"),

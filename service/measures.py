@@ -12,7 +12,9 @@ a signed distance to the forbidden region d(X, t) (m, negative inside):
 
 Region distances come from ground truth when it exists (``SceneRegion``: the synthetic scene's
 exact protected surface, at the time of each tick, minus the fixture radius) or from the last
-snapshot's protected points and their radii (``SnapshotRegion``).
+snapshot's protected points and their radii (``SnapshotRegion``). A recording's measures (``serve
+--record``, ``pointfence inspect``) come from its recorded depth, tick by tick against the snapshot
+each tick used (``run_measures``, ``recorded_surface``).
 """
 from __future__ import annotations
 
@@ -93,18 +95,28 @@ def compute(times, xr, cmd, xm, region, mask=None) -> dict:
     xr, cmd, xm = (np.asarray(a, dtype=float) for a in (xr, cmd, xm))
     m = np.ones(len(t), bool) if mask is None else np.asarray(mask, bool)
     if not m.any():
-        return {"safety_max_penetration_m": None, "submittance_min_distance_m": None, "tracking_rms_m": None,
-                "tracking_master_rms_m": None, "min_robot_distance_m": None}
-    d_r = region(xr[m], t[m])
-    d_m = region(xm[m], t[m])
-    held = (d_m < 0) & (d_r >= 0)
-    free = d_m >= 0
-    err_cmd = np.linalg.norm(xr[m] - cmd[m], axis=1)
-    err_m = np.linalg.norm(xr[m] - xm[m], axis=1)
+        return summarise(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    return summarise(region(xr[m], t[m]), region(xm[m], t[m]), np.linalg.norm(xr[m] - cmd[m], axis=1),
+                     np.linalg.norm(xr[m] - xm[m], axis=1))
+
+
+def summarise(d_r, d_m, err_cmd, err_m, coupled=None) -> dict:
+    """The measures from per-tick values: signed distances of the robot ``d_r`` and of the mapped
+    master ``d_m`` to the forbidden region (m, negative inside), |X_r - X_r*| ``err_cmd`` and
+    |X_r - X_m| ``err_m`` (m), all (N,). Safety and ``min_robot_distance_m`` are over every
+    tick; submittance and tracking over the ticks in ``coupled`` (default all: the ticks where
+    the master drives the robot). A value with no tick to take it from is None."""
+    d_r, d_m, err_cmd, err_m = (np.asarray(a, dtype=float) for a in (d_r, d_m, err_cmd, err_m))
+    c = np.ones(len(d_r), bool) if coupled is None else np.asarray(coupled, bool)
+    held = c & (d_m < 0) & (d_r >= 0)
+    free = c & (d_m >= 0)
 
     def r(v) -> Optional[float]:
         return None if v is None or not math.isfinite(v) else float(v)
 
+    if not len(d_r):
+        return {"safety_max_penetration_m": None, "submittance_min_distance_m": None, "tracking_rms_m": None,
+                "tracking_master_rms_m": None, "min_robot_distance_m": None}
     return {
         "safety_max_penetration_m": r(max(0.0, -float(d_r.min()))),
         "submittance_min_distance_m": r(float(d_r[held].min())) if held.any() else None,

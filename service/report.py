@@ -156,9 +156,10 @@ def plot_translating_plane(p: dict, path) -> None:
     plt.close(fig)
 
 
-def plot_experiment(scene: str, runs: list, path) -> None:
+def plot_experiment(scene: str, runs: list, path, title: Optional[str] = None) -> None:
     """Signed distances of the robot (and the mapped master) to the forbidden region over time,
-    one panel per architecture; for static scenes also the robot's x-z path over the region."""
+    one panel per architecture; for static scenes also the robot's x-z path over the region.
+    ``title``: the figure's title (default: the dissertation figure of ``scene``)."""
     plt = _plt()
     runs = [(a, tr) for a, tr in runs if tr is not None and "d_r" in tr]
     if not runs:
@@ -196,7 +197,7 @@ def plot_experiment(scene: str, runs: list, path) -> None:
         ax.set(xlabel="x (mm)", ylabel="z (mm)", title="x-z paths (red: forbidden region)")
         ax.set_aspect("equal", adjustable="datalim")
         ax.legend(fontsize=7)
-    fig.suptitle(f"fig. {FIGURES.get(scene, '?')}: {scene.replace('_', ' ')}")
+    fig.suptitle(title or f"fig. {FIGURES.get(scene, '?')}: {scene.replace('_', ' ')}")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -19,7 +19,9 @@ finds it there. A UDP or control port that is in use is an error naming it (neve
 another port). ``--record FILE.mcap`` streams the run to an MCAP file with ROS 2 schemas while it goes on
 (``mcap_record``: depth, camera info, poses, wrenches, events, every tick's input and output;
 S8), which ``pointfence replay --recording FILE.mcap`` replays exactly; a ``.pfrec`` name
-keeps the older format.
+keeps the older format. At the end of an MCAP recording the run's measures (dissertation 6.1:
+safety, submittance, tracking) are computed from the recorded depth (``run_measures``), printed
+on stderr, stored with the recording and added to the final status (``measures``).
 """
 from __future__ import annotations
 
@@ -251,6 +253,10 @@ def run(args) -> int:
             status["itp"] = itp.status()
             itp.close()
         hub.close()
+        if args.record and str(args.record).endswith(".mcap"):   # the 6.1 measures from the recorded depth
+            from .run_measures import after_run
+
+            status["measures"] = after_run(args.record, log=lambda s: print(f"pointfence serve: {s}", file=sys.stderr))
         text = json.dumps(status)
         if args.stats_file:
             Path(args.stats_file).write_text(text + "\n")
