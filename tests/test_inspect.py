@@ -50,7 +50,7 @@ def served(tmp_path_factory):
 
 
 def test_inspect_reports_a_recorded_serve_run(served, tmp_path):
-    from mcap_ros2.reader import read_ros2_messages
+    from test_mcap_record import ros2_messages
 
     # serve measured its run from the recorded depth and kept the measures beside the file
     side = run_measures.sidecar_path(served)
@@ -70,7 +70,7 @@ def test_inspect_reports_a_recorded_serve_run(served, tmp_path):
     assert cam["frames"] == topics["/overhead/depth/compressed"]["messages"] > 0
     assert rep["arms"] == [{"arm": 0, "robot": "PSM1", "master": "MTMR", "robot_model": "raven2"}]
     # holds: exactly the file's own hold events, each with its reasons and invariants
-    holds = [m.ros_msg for m in read_ros2_messages(str(served), topics=["/pointfence/events"]) if m.ros_msg.kind == "hold"]
+    holds = [m.ros_msg for m in ros2_messages(served, topics=["/pointfence/events"]) if m.ros_msg.kind == "hold"]
     assert len(rep["holds"]) == len(holds)
     assert [(h["tick"], h["reason"]) for h in rep["holds"]] == [(int(h.tick), h.reason) for h in holds]
     assert all(h["reason"] and re.fullmatch(r"S\d(,S\d)*", h["invariant"]) for h in rep["holds"])

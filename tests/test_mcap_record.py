@@ -115,14 +115,26 @@ def test_replay_detects_a_tick_that_differs(served):
     assert check["first_mismatch"]["field"] == "force"
 
 
-def test_messages_decode_into_the_standard_ros2_types(served):
-    from mcap_ros2.reader import read_ros2_messages
+def ros2_messages(path, topics=None):
+    """Every message of ``path`` decoded by mcap-ros2-support (``.schema``, ``.channel``, ``.message``,
+    ``.ros_msg``)."""
+    from types import SimpleNamespace
 
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    with open(path, "rb") as f:
+        for schema, channel, message, ros_msg in make_reader(f, decoder_factories=[DecoderFactory()]) \
+                .iter_decoded_messages(topics=topics):
+            yield SimpleNamespace(schema=schema, channel=channel, message=message, ros_msg=ros_msg)
+
+
+def test_messages_decode_into_the_standard_ros2_types(served):
     r = open_recording(served)
     lay, rows = r.layout, r.rows
     by_k = {int(k): i for i, k in enumerate(rows[:, lay.cols[("in", "k")][0]])}
     seen: dict = {}
-    for m in read_ros2_messages(str(served)):
+    for m in ros2_messages(served):
         seen.setdefault(m.channel.topic, []).append(m)
     for topic in ("/PSM1/measured_cp", "/PSM1/servo_cp", "/MTMR/measured_cp", "/MTMR/servo_cf", "/pointfence/arm0/proxy",
                   "/overhead/depth/compressed", "/overhead/depth/camera_info", "/overhead/color/compressed",
