@@ -90,6 +90,7 @@ _SIGNATURES = {
     "pf_step_pre": (c_int32, [_S, _T, _H, _F, c_int32, c_int32]),
     "pf_step_scale_forces": (None, [_S, _T, _FC]),
     "pf_step_post": (None, [_S, _T, _H, _FC, _F, _I32, c_int32, c_double]),
+    "pf_step_publish": (None, [_S, _S]),
 }
 
 

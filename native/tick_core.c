@@ -431,3 +431,16 @@ void pf_step_post(pf_step *s, pf_teleop *tp, const pf_health *h, const pf_forces
     memcpy(s->hip, tp->hip, sizeof(double) * 3 * (size_t)n);
     memcpy(s->command, tp->cmd, sizeof(double) * 3 * (size_t)n);
 }
+
+/* The output's positions, forces and states into another step's output (the copy other threads
+ * read: Service.snapshot / status), under the caller's lock. */
+void pf_step_publish(const pf_step *s, pf_step *dst) {
+    const size_t b3 = sizeof(double) * 3 * (size_t)s->n;
+    memcpy(dst->xm, s->xm, b3);
+    memcpy(dst->hip, s->hip, b3);
+    memcpy(dst->proxy, s->proxy, b3);
+    memcpy(dst->command, s->command, b3);
+    memcpy(dst->robot_pos_out, s->robot_pos_out, b3);
+    memcpy(dst->force, s->force, b3);
+    memcpy(dst->state, s->state, sizeof(int32_t) * (size_t)s->n);
+}

@@ -124,6 +124,8 @@ class Service:
         self.recorder = make_recorder(n, record, record_path, sc.rate_hz)
         self._pub_lock = threading.Lock()
         self._published = TickOutput.zeros(n)
+        self._pub_core = self._bind_core(self._published)
+        self._pub_ref = ctypes.byref(self._pub_core)
         self.kernel_us = np.zeros(RING)         # the kernel's wall-clock time per tick (us), a ring
         self.ticks = 0
         self._started = False
@@ -137,9 +139,10 @@ class Service:
 
         return robot_from_config(table)
 
-    def _bind_core(self) -> StepCore:
-        """The compiled step's view of this service's arrays and of its ``TickOutput``."""
-        c, out = StepCore(n=self.n), self.out
+    def _bind_core(self, out: Optional[TickOutput] = None) -> StepCore:
+        """The compiled step's view of this service's arrays and of ``out`` (default: its
+        ``TickOutput``; the published copy has a view of its own, for ``pf_step_publish``)."""
+        c, out = StepCore(n=self.n), (self.out if out is None else out)
         c.coupled_prev, c.reseat = ptr(self._coupled_prev, bool, "coupled_prev"), ptr(self._reseat, bool, "reseat")
         c.present, c.gain, c.phip = ptr(self._present, bool, "present"), ptr(self.gain, float, "gain"), \
             ptr(self._phip, float, "phip")
@@ -378,13 +381,7 @@ class Service:
         self.ticks += 1
         p = self._published
         with self._pub_lock:
-            np.copyto(p.xm, out.xm)
-            np.copyto(p.hip, out.hip)
-            np.copyto(p.proxy, out.proxy)
-            np.copyto(p.command, out.command)
-            np.copyto(p.robot_pos, out.robot_pos)
-            np.copyto(p.force, out.force)
-            np.copyto(p.state, out.state)
+            lib.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state
             p.t, p.k = out.t, out.k
         if self.recorder is not None:
             self.recorder.write(inp, out)

@@ -203,3 +203,21 @@ def test_the_core_is_called_holding_the_interpreter_lock():
 
     assert isinstance(lib, ctypes.PyDLL)
     assert lib.pf_step_pre._flags_ & ctypes._FUNCFLAG_PYTHONAPI
+
+
+def test_the_published_copy_is_the_ticks_output(tmp_path):
+    """``publish`` copies every position, force and state of the tick's output (one core call)
+    into what ``snapshot`` hands to other threads."""
+    from test_tick_io import _input, _service
+
+    svc, _ = _service(tmp_path)
+    out = None
+    for k in range(1, 60):
+        inp = _input(svc, k, np.array([0.0, 0.0, -0.002 * k]))
+        out = svc.step(inp)
+        svc.publish(inp, out)
+    snap = svc.snapshot()
+    for key, name in (("xm", "xm"), ("hip", "hip"), ("proxy", "proxy"), ("cmd", "command"), ("xr", "robot_pos"),
+                      ("force", "force"), ("state", "state")):
+        assert np.array_equal(snap[key], getattr(out, name)), key
+    assert snap["tick"] == out.k == 59 and np.abs(snap["force"]).max() > 0      # a real push, not zeros
