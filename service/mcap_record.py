@@ -52,8 +52,9 @@ from .tick_cdr import TickLayout, TickRows
 
 FORMAT = "pointfence mcap recording"
 VERSION = 1
-#: ring rows (4 s at 1 kHz: the writer may fall that far behind)
-RING = 4096
+#: ring rows (16 s at 1 kHz: the writer may fall that far behind, e.g. short of CPU on a loaded
+#: machine where the service's SCHED_FIFO threads come first; 7 MB for one arm)
+RING = 16384
 #: snapshot entries waiting for the writer (0.8 s of a 30 Hz camera)
 MAX_PENDING = 24
 #: metadata names the recorder writes itself
@@ -288,7 +289,12 @@ class McapRecorder:
                 "ticks_recorded": self.ticks_recorded, "ticks_written": int(self._hdr[mcap_shm.FLUSHED]),
                 "ticks_lost": self.ticks_lost, "snapshots_recorded": self.snapshots_recorded,
                 "snapshots_dropped": self.snapshots_dropped, "frames_recorded": self.frames_recorded,
-                "flushes": int(self._hdr[mcap_shm.BEAT]), "error": self.write_error}
+                "flushes": int(self._hdr[mcap_shm.BEAT]), "error": self.write_error,
+                # the writer's time (s): encoding ticks, encoding frames, chunk writes and fsync,
+                # its longest flush, its CPU time
+                "writer_s": {k: round(int(self._hdr[i]) * 1e-6, 3) for k, i in (
+                    ("ticks", mcap_shm.US_TICKS), ("frames", mcap_shm.US_FRAMES), ("sync", mcap_shm.US_SYNC),
+                    ("flush_max", mcap_shm.US_FLUSH_MAX), ("cpu", mcap_shm.US_CPU))}}
 
     def close(self) -> None:
         """Write everything recorded, the MCAP summary and footer, and end the writer process

@@ -26,6 +26,9 @@ import numpy as np
 
 # header counters (int64): the service's side, then the writer's
 WRITTEN, FLUSHED, SNAPS_WRITTEN, SNAPS_CONSUMED, FRAMES_RECORDED, SNAPSHOTS_RECORDED, BEAT = range(7)
+# the writer's timing counters (int64 us, cumulative): encoding ticks, encoding frames, chunk
+# writes and fsync, the longest flush, and the writer's CPU time
+US_TICKS, US_FRAMES, US_SYNC, US_FLUSH_MAX, US_CPU = range(7, 12)
 HEADER = 16
 #: per camera in a snapshot entry: new (1: an image in this entry), frame seq, recorded index,
 #: capture stamp (s), clock - stamp (s, NaN: none), colour (0/1), mask (0/1), 16 pose numbers (NaN: the camera's)
@@ -113,4 +116,5 @@ class FrameBlock:
 
 
 __all__ = ["TickBlock", "FrameBlock", "create", "attach", "shm_dir", "HEADER", "ENTRY", "WRITTEN", "FLUSHED",
-           "SNAPS_WRITTEN", "SNAPS_CONSUMED", "FRAMES_RECORDED", "SNAPSHOTS_RECORDED", "BEAT"]
+           "SNAPS_WRITTEN", "SNAPS_CONSUMED", "FRAMES_RECORDED", "SNAPSHOTS_RECORDED", "BEAT", "US_TICKS",
+           "US_FRAMES", "US_SYNC", "US_FLUSH_MAX", "US_CPU"]

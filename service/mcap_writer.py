@@ -15,7 +15,7 @@ stdin (``send``/``receive``: 4-byte length, then a pickled tuple):
 * ``("close",)``: write everything, the summary and footer, and exit 0.
 
 Every ``flush_s`` it writes the ticks the ring holds (first: they are cheap and the ring must
-not fill), then the snapshot entries, the fixture cloud at ``cloud_hz``, ends the chunk and
+not fill), then the snapshot entries for at most ``flush_s`` more, the fixture cloud at ``cloud_hz``, ends the chunk and
 fsyncs. End of stdin without ``close`` means the service died (``kill -9``, a crash): it writes
 what the rings hold, a ``pointfence/end`` metadata record saying so, the summary, and exits 0;
 the file is then whole up to the service's last tick. An error (disk full, ...) is one line on
@@ -118,15 +118,25 @@ class Writer:
     def flush(self, final: bool) -> None:
         from . import mcap_shm
 
+        h = self.hdr
+        t0 = time.perf_counter()
         for name, enc in self.pending_meta:
             self.w.add_metadata(name, enc)
         self.pending_meta = []
         self.write_ticks(final)
-        self.write_frames()
+        t1 = time.perf_counter()
+        self.write_frames(None if final else t0 + self.p["flush_s"])
         self.write_cloud()
+        t2 = time.perf_counter()
         self.w.flush()
         os.fsync(self.fh.fileno())
-        self.hdr[mcap_shm.BEAT] += 1
+        t3 = time.perf_counter()
+        h[mcap_shm.US_TICKS] += int((t1 - t0) * 1e6)
+        h[mcap_shm.US_FRAMES] += int((t2 - t1) * 1e6)
+        h[mcap_shm.US_SYNC] += int((t3 - t2) * 1e6)
+        h[mcap_shm.US_FLUSH_MAX] = max(int(h[mcap_shm.US_FLUSH_MAX]), int((t3 - t0) * 1e6))
+        h[mcap_shm.US_CPU] = int(time.process_time() * 1e6)
+        h[mcap_shm.BEAT] += 1
 
     def write_ticks(self, final: bool) -> None:
         from . import mcap_shm
@@ -156,7 +166,10 @@ class Writer:
     def _frame_ns(self, ts: float, cms: float) -> int:
         return self.epoch_ns + int(round((ts + cms) * 1e9))
 
-    def write_frames(self) -> None:
+    def write_frames(self, until) -> None:
+        """Encode the snapshot entries the ring holds, until the monotonic time ``until`` (s;
+        None: all): a writer short of CPU keeps its chunks and fsyncs every ``flush_s`` and
+        leaves the rest for its next flush (the ring then fills and drops snapshots, counted)."""
         from . import depth_png, mcap_shm
         from .cdr import compressed_image
         from .mcap_topics import camera_info, stamp
@@ -167,7 +180,7 @@ class Writer:
             return
         written = int(self.hdr[mcap_shm.SNAPS_WRITTEN])
         tw = self.tw
-        while self.consumed < written:
+        while self.consumed < written and (until is None or time.perf_counter() < until):
             slot = self.consumed % fb.slots
             seq = int(fb.meta[slot, 0])
             fseqs, findex, stamps, poses, cmss = [], [], [], [], []
