@@ -97,6 +97,11 @@ class TickRows:
                 else:
                     self._scalars[part].append((name, c))
         self.tick_us_col = layout.cols[("out", TICK_US)][0]
+        self._out_cols = []     # (field, first column, columns, per-arm shape or None)
+        for name, _, _, per_arm in layout.fields["out"]:
+            c, k = layout.cols[("out", name)]
+            self._out_cols.append((name, c, k, ((layout.n, per_arm) if per_arm > 1 else (layout.n,)) if per_arm
+                                   else None))
 
     def fill(self, inp, out, row: np.ndarray) -> None:
         st = self.stage
@@ -107,6 +112,14 @@ class TickRows:
                 st[c] = getattr(obj, name)
         st[self.tick_us_col] = 0.0
         row[:] = st
+
+    def fill_out(self, out, row: np.ndarray) -> None:
+        """Only the ``TickOutput`` columns of ``row`` (straight into it, no staging row)."""
+        for name, c, k, shape in self._out_cols:
+            if shape is None:
+                row[c] = getattr(out, name)
+            else:
+                np.copyto(row[c: c + k].reshape(shape), getattr(out, name), casting="unsafe")
 
 
 def row_into(layout: TickLayout, row: np.ndarray, inp: TickInput, out=None) -> None:
