@@ -1,5 +1,5 @@
 """Every tick's ``TickInput`` and ``TickOutput``, lossless: a float64 ring row the tick fills, and
-the ``pointfence_msgs/TickInput`` / ``TickOutput`` messages (``ros2_schemas``) a writer thread
+the ``pointfence_msgs/TickInput`` / ``TickOutput`` messages (``ros2_schemas``) the writer process
 encodes from those rows and a replay decodes back into the structs.
 
 A row holds every field of both structs (``n`` excepted: the recording's arm count) and the
