@@ -55,8 +55,9 @@ VERSION = 1
 #: ring rows (16 s at 1 kHz: the writer may fall that far behind, e.g. short of CPU on a loaded
 #: machine where the service's SCHED_FIFO threads come first; 7 MB for one arm)
 RING = 16384
-#: snapshot entries waiting for the writer (0.8 s of a 30 Hz camera)
-MAX_PENDING = 24
+#: snapshot entries waiting for the writer (2 s of a 30 Hz camera; 1.8 MB of shared memory an
+#: entry for a 640x480 camera: depth, colour and mask)
+MAX_PENDING = 64
 #: metadata names the recorder writes itself
 RESERVED = ("pointfence/run", "pointfence/end")
 #: seconds ``close`` waits for the writer to write the rest and exit
