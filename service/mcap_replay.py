@@ -24,7 +24,6 @@ one of them stops being exact there, and ``replay.first_mismatch`` shows where.
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Optional
 
@@ -36,7 +35,7 @@ from .masters import Master
 from .recorded_frames import RecordedFrames
 from .robot.base import RobotMode
 from .tick_cdr import TickRows, row_into
-from .tick_io import TickInput, TickOutput
+from .tick_io import TickInput
 
 #: fields of TickOutput that are wall-clock measurements, not results
 _TIMING = ("kernel_us", "tick_us")
