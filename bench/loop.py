@@ -136,7 +136,9 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
                      # per second of recorded ticks (the run's loop time)
                      "record_mb_per_s": round(size / 1e6 / max(r.ticks_recorded / cfg.service.rate_hz, 1e-3), 2),
                      "record_ticks_lost": r.ticks_lost, "record_snapshots_dropped": r.snapshots_dropped,
-                     "record_frames": r.frames_recorded, "record_error": r.write_error}
+                     "record_frames": r.frames_recorded, "record_error": r.write_error,
+                     # the writer process's time (s): encoding ticks, frames, chunk writes and fsync, CPU
+                     **({"record_writer_s": r.status()["writer_s"]} if hasattr(r, "status") else {})}
         tmp.cleanup()
     in_contact = int((run.service.batch.states != 0).sum())
     return {**rec_stats,

@@ -455,6 +455,8 @@ class Service:
         }
         st.update(self.scene.status(now))
         st["robots"] = self.devices.robot_status()
+        if hasattr(self.recorder, "status"):   # MCAP: the writer process's health and losses
+            st["recording"] = self.recorder.status()
         return st
 
     def close(self) -> None:

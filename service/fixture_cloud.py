@@ -1,7 +1,7 @@
 """The fixture cloud of a recording: the protected points of the newest frames, downsampled, as a
 ``sensor_msgs/PointCloud2`` (x, y, z float32, world frame, m).
 
-Computed by the recorder's writer thread from the frames it records (never in the tick, never
+Computed by the recorder's writer process from the frames it records (never in the tick, never
 from the backend's buffers): every ``stride``-th pixel of each camera deprojected with its
 pinhole model (lens distortion ignored: a picture, not the fixture itself), kept where the
 depth is valid and in range, inside the workspace, and selected as the pipeline selects

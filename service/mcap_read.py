@@ -6,6 +6,10 @@ up to its last whole chunk (``Recording.torn``: it ended early). What it returns
 
 * ``meta``: the ``pointfence/run`` metadata (arms, rate, epoch, cameras, configuration text,
   start state, architecture, backend, ...);
+* ``metadata``: every metadata record by name -> {key: value} (JSON values decoded; the newest
+  value of a key where a name has several records): ``pointfence/run`` (= ``meta``),
+  ``pointfence/end`` (the service died and the writer closed the file), and what callers added
+  with ``McapRecorder.add_metadata`` (e.g. end-of-run measures);
 * ``rows``: every recorded tick as ``tick_cdr`` ring rows (N, width), in tick order;
 * ``snapshots``: snapshot seq -> (frame seq per camera, recorded frame numbers, capture stamps,
   per-frame poses);
@@ -37,8 +41,9 @@ from .tick_cdr import TickLayout
 
 
 class Recording:
-    def __init__(self, path, meta, rows, snapshots, images, torn, messages):
+    def __init__(self, path, meta, rows, snapshots, images, torn, messages, metadata=None):
         self.path, self.meta, self.rows, self.snapshots = path, meta, rows, snapshots
+        self.metadata = metadata if metadata is not None else {"pointfence/run": meta}
         self._images = images              # (camera, topic kind, frame seq) -> (format, data)
         self.torn = torn                   # None, or why the file ends early
         self.messages = messages
@@ -94,7 +99,8 @@ def open_recording(path) -> Recording:
             raise InputError(f"{p}: not an MCAP file (its first bytes are {head!r}, expected b'\\x89MCAP0\\r\\n')")
         fh.seek(0)
         channels: dict = {}
-        meta: dict = {}
+        metadata: dict = {"pointfence/run": {}}
+        meta = metadata["pointfence/run"]
         ticks = {"in": [], "out": []}
         snapshots: dict = {}
         images: dict = {}
@@ -104,8 +110,8 @@ def open_recording(path) -> Recording:
             for rec in StreamReader(fh, validate_crcs=True, record_size_limit=1 << 30).records:
                 if isinstance(rec, Channel):
                     channels[rec.id] = rec.topic
-                elif isinstance(rec, Metadata) and rec.name == "pointfence/run":
-                    meta.update({k: json.loads(v) for k, v in rec.metadata.items()})
+                elif isinstance(rec, Metadata):
+                    metadata.setdefault(rec.name, {}).update(_decode_metadata(rec))
                 elif isinstance(rec, Message):
                     count += 1
                     _take(channels.get(rec.channel_id, ""), rec, ticks, snapshots, images)
@@ -121,7 +127,19 @@ def open_recording(path) -> Recording:
         rows = _tick_rows(TickLayout(int(meta["arms"])), ticks)
     except ValueError as e:
         raise InputError(f"{p}: {e} (a damaged recording, or one of another pointfence version)") from None
-    return Recording(p, meta, rows, snapshots, images, torn, count)
+    return Recording(p, meta, rows, snapshots, images, torn, count, metadata)
+
+
+def _decode_metadata(rec) -> dict:
+    """A metadata record's map with its JSON values decoded (a value that is not JSON, written by
+    another tool, is kept as its text)."""
+    out = {}
+    for k, v in rec.metadata.items():
+        try:
+            out[k] = json.loads(v)
+        except ValueError:
+            out[k] = v
+    return out
 
 
 def _tick_rows(lay: TickLayout, ticks: dict) -> np.ndarray:

@@ -4,62 +4,75 @@ FILE.mcap``), streamed to disk while the run goes on (S8).
 Three sides, and what each may do:
 
 * the 1 kHz tick (``write``, ``note_tick_us``): copies its ``TickInput`` and ``TickOutput`` into
-  a preallocated ring row (``tick_cdr.TickRows``); no encoding, no I/O, no allocation. A tick
-  that finds the ring full (the writer more than ``capacity`` ticks behind) is not recorded and
-  counts in ``ticks_lost``.
+  a row of the tick ring in shared memory (``mcap_shm.TickBlock``, ``tick_cdr.TickRows``); no
+  encoding, no I/O, no allocation, no lock. A tick that finds the ring full (the writer more
+  than ``capacity`` ticks behind, or gone) is not recorded and counts in ``ticks_lost``.
 * the frame feeder's ingest side (``offer_snapshot``, called by ``frames._FeedBase`` after each
-  snapshot is built, with the frames it was built from, after the robot self-filter): keeps
-  copies of the frames it has not seen in a bounded queue and returns; a full queue drops the
-  snapshot and counts it (``snapshots_dropped``): a replay then says which snapshot is missing.
-* the writer thread: every ``flush_s`` (<= 0.5 s) it encodes what the others left (depth as
-  lossless ``compressedDepth`` PNG with its ``CameraInfo``, colour and mask PNGs, the snapshot
-  table, every tick's input and output, the decimated poses and wrenches, events, the fixture
-  cloud at ``cloud_hz``), ends the MCAP chunk and fsyncs. A ``kill -9`` leaves every chunk
-  written before it: all but the last ``flush_s`` and the chunk being written, readable with
-  ``mcap_read.open_recording`` (the summary section at the end exists only after ``close()``).
+  snapshot is built, with the frames it was built from, after the robot self-filter): copies
+  the frames it has not seen into the next entry of the frame ring in shared memory
+  (``mcap_shm.FrameBlock``) and returns; a full ring drops the snapshot and counts it
+  (``snapshots_dropped``): a replay then says which snapshot is missing.
+* the writer **process** (``mcap_writer``, ``python -m pointfence.service.mcap_writer``): every
+  ``flush_s`` (<= 0.5 s) it encodes what the others left (every tick's input and output, the
+  decimated poses and wrenches, events, depth as lossless ``compressedDepth`` PNG with its
+  ``CameraInfo``, colour and mask PNGs, the snapshot table, the fixture cloud at ``cloud_hz``),
+  ends the MCAP chunk and fsyncs. Being another process, its encoding never takes the service's
+  interpreter lock. A ``kill -9`` of the service: the writer sees its control pipe end, writes
+  what the rings hold and closes the file (a ``pointfence/end`` metadata record says so). A
+  ``kill -9`` of both: every chunk written before it stays readable with
+  ``mcap_read.open_recording`` (all but the last ``flush_s`` and the chunk being written). A
+  writer that dies is reported by ``status()`` (and ``write_error``); the tick never waits for
+  it, its ticks then count in ``ticks_lost`` once the ring is full.
 
 Stamps and log times are the loop clock mapped to wall-clock time: ``epoch_ns`` (in the
 ``pointfence/recording`` metadata) is the wall clock at loop-clock 0; a frame's capture
 timestamp goes through the feeder's loop-clock offset where it has one.
+
+``add_metadata(name, values)`` adds a metadata record of the caller's (end-of-run measures, ...),
+read back as ``mcap_read.Recording.metadata[name]``.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
-import threading
+import subprocess
+import sys
 import time
-from collections import deque
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from mcap.writer import CompressionType, Writer
 
 from pointfence.kernels.errors import InputError
 
-from . import depth_png
-from .cdr import compressed_image
-from .fixture_cloud import pointcloud2, protected_points
-from .mcap_topics import ArmTopics, EventDetector, TopicWriter, camera_info, stamp
-from .ros2_schemas import FIXTURES, SNAPSHOTS, TICK_INPUT, TICK_OUTPUT, camera_topics
+from . import mcap_shm
+from .mcap_writer import send
 from .tick_cdr import TickLayout, TickRows
 
 FORMAT = "pointfence mcap recording"
 VERSION = 1
-#: ring rows (4 s at 1 kHz: the writer may fall that far behind)
-RING = 4096
-#: snapshots waiting for the writer (2 s of a 30 Hz camera)
+#: ring rows (16 s at 1 kHz: the writer may fall that far behind, e.g. short of CPU on a loaded
+#: machine where the service's SCHED_FIFO threads come first; 7 MB for one arm)
+RING = 16384
+#: snapshot entries waiting for the writer (2 s of a 30 Hz camera; 1.8 MB of shared memory an
+#: entry for a 640x480 camera: depth, colour and mask)
 MAX_PENDING = 64
+#: metadata names the recorder writes itself
+RESERVED = ("pointfence/run", "pointfence/end")
+#: seconds ``close`` waits for the writer to write the rest and exit
+CLOSE_TIMEOUT_S = 60.0
 
 
 class McapRecorder:
     """See the module docstring. ``keep`` > 0 also keeps that many ticks in memory
-    (``record.Recorder``) for what reads a finished run's arrays (the demo's report)."""
+    (``record.Recorder``) for what reads a finished run's arrays (the demo's report). ``nice``:
+    the writer process's niceness increment (0: the service's own priority)."""
 
     streaming = True
 
     def __init__(self, path, n: int = 1, keep: int = 0, capacity: int = RING, flush_s: float = 0.25,
-                 pose_hz: float = 100.0, cloud_hz: float = 2.0, rate_hz: float = 1000.0):
+                 pose_hz: float = 100.0, cloud_hz: float = 2.0, rate_hz: float = 1000.0, nice: int = 0):
         if not 0 < flush_s <= 0.5:
             raise InputError(f"McapRecorder: flush_s = {flush_s!r}; expected 0 < flush_s <= 0.5 s (S8: a crash may "
                              "lose at most the last second)")
@@ -68,74 +81,94 @@ class McapRecorder:
         self.rate_hz, self.pose_hz, self.cloud_hz = float(rate_hz), float(pose_hz), float(cloud_hz)
         self.layout = TickLayout(self.n)
         self._fill = TickRows(self.layout)
-        self.data = np.zeros((self.capacity, self.layout.width))
         from .record import Recorder
 
         self.memory = Recorder(keep, self.n) if keep else None
         self._next = 0
-        self._flushed = 0
         self.ticks_recorded = self.ticks_lost = 0
         self.full = False
-        self.snapshots_recorded = self.snapshots_dropped = self.frames_recorded = 0
-        self.write_error: Optional[str] = None
+        self.snapshots_dropped = 0
+        self._error: Optional[str] = None
         self.epoch_ns = time.time_ns()
-        self._pending: deque = deque()
         self._last_frame: list = []        # per camera: the last frame object offered
         self._index: list = []
-        self._latest: list = []            # per camera: the latest recorded frame (for the fixture cloud)
-        self._cameras: list = []
-        self._params = None
+        self._frames: Optional[mcap_shm.FrameBlock] = None
+        self._frame_path: Optional[str] = None
+        self._snaps = 0
         self._feeder = None
-        self._meta: dict = {}
-        self._meta_dirty = False
-        self._next_cloud = 0.0
+        self._closed = False
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._fh = self.path.open("wb")
+            out = self.path.open("wb")
         except OSError as e:
             raise InputError(f"cannot write the recording {str(self.path)!r} ({e.strerror or e}); choose a FILE.mcap "
                              "in a folder you may write to") from None
-        self._w = Writer(self._fh, chunk_size=4 << 20, compression=CompressionType.ZSTD)
-        self._w.start(profile="ros2", library="pointfence")
-        self._tw = TopicWriter(self._w)
-        self._arms = ArmTopics(self.layout, self.n)
-        self._events = EventDetector(self.layout, self.n)
+        self._tick_path, buf = mcap_shm.create(mcap_shm.TickBlock.nbytes(self.capacity, self.layout.width),
+                                               "pointfence-ticks-")
+        self._ticks = mcap_shm.TickBlock(buf, self.capacity, self.layout.width)
+        self._hdr = self._ticks.header
+        self.data = self._ticks.rows
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.mcap_writer"],
+                                          stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                          pass_fds=(out.fileno(),), close_fds=True)
+        finally:
+            fd = out.fileno()
+            out.close()          # (the writer holds its own copy of the descriptor)
+        self._send(("init", {"path": str(self.path), "fd": fd, "tick_path": self._tick_path, "n": self.n,
+                             "capacity": self.capacity, "flush_s": self.flush_s, "rate_hz": self.rate_hz,
+                             "pose_hz": self.pose_hz, "cloud_hz": self.cloud_hz, "epoch_ns": self.epoch_ns,
+                             "nice": int(nice)}))
         self.describe({"format": FORMAT, "version": VERSION, "arms": self.n, "rate_hz": self.rate_hz,
                        "pose_hz": self.pose_hz, "cloud_hz": self.cloud_hz, "flush_s": self.flush_s})
-        self._stop = threading.Event()
-        self._lock = threading.Lock()      # the writer's own state against close()
-        self._thread = threading.Thread(target=self._writer, name="pointfence-mcap", daemon=True)
-        self._thread.start()
 
     # --- the tick's side ------------------------------------------------------------------------
     def write(self, inp, out) -> None:
-        """Record one tick (``Service.publish``): a copy into the ring, nothing else."""
+        """Record one tick (``Service.publish``): a copy into the shared ring, nothing else."""
         if self.memory is not None:
             self.memory.write(inp, out)
         j = self._next
-        if j - self._flushed >= self.capacity:
+        if j - self._hdr[mcap_shm.FLUSHED] >= self.capacity:
             self.full = True
             self.ticks_lost += 1
             return
         self.full = False
         self._fill.fill(inp, out, self.data[j % self.capacity])
         self._next = j + 1
+        self._hdr[mcap_shm.WRITTEN] = j + 1        # (after the row: the writer reads rows below it)
         self.ticks_recorded += 1
 
     def note_tick_us(self, us: float) -> None:
         """The loop's compute time of the tick just recorded (us)."""
         if self.memory is not None:
             self.memory.note_tick_us(us)
-        if self._next > self._flushed and not self.full:
+        if self._next > 0 and not self.full:
             self.data[(self._next - 1) % self.capacity, self._fill.tick_us_col] = us
 
-    # --- set-up (before the run) ---------------------------------------------------------------------
+    # --- set-up (before the run), metadata ------------------------------------------------------------
     def describe(self, meta: dict, snapshot_frames=None) -> None:
         """Run facts for the ``pointfence/run`` metadata (JSON values): architecture, backend,
         cameras, ... (``snapshot_frames`` is the .pfrec recorder's; here the frames come through
         ``offer_snapshot``)."""
-        self._meta.update(meta)
-        self._meta_dirty = True
+        self._send(("meta", "pointfence/run", _jsonable("pointfence/run", meta)))
+
+    def add_metadata(self, name: str, values: dict) -> None:
+        """Add a metadata record ``name`` holding ``values`` (str keys, JSON-serialisable values:
+        numbers, strings, lists, dicts) to the recording, e.g. the end-of-run measures; call it
+        from any thread but the tick's, before ``close()``. It reaches the file at the writer's
+        next flush (<= ``flush_s``) and reads back as ``mcap_read.Recording.metadata[name]``
+        (the same dict). A second call with the same name adds a second record; the reader keeps
+        the newest value of each key. Raises InputError for a reserved or empty name, values that
+        are not a dict of JSON values, or a closed recording."""
+        if not isinstance(name, str) or not name or name in RESERVED:
+            raise InputError(f"add_metadata: name {name!r}; expected a non-empty string other than {RESERVED} "
+                             "(e.g. 'pointfence/measures')")
+        if not isinstance(values, dict):
+            raise InputError(f"add_metadata({name!r}): values is a {type(values).__name__}; expected a dict")
+        if self._closed:
+            raise InputError(f"add_metadata({name!r}): the recording {self.path} is closed; add metadata before "
+                             "close()")
+        self._send(("meta", name, _jsonable(name, values)))
 
     def attach(self, feeder, cfg, clock_now=None, config_text: Optional[str] = None) -> None:
         """Take frames from ``feeder`` (``frames._FeedBase``: its ``on_snapshot``), the camera
@@ -143,17 +176,20 @@ class McapRecorder:
         0 maps to ``epoch_ns``. Call before the feeder builds its first snapshot."""
         if clock_now is not None:
             self.epoch_ns = time.time_ns() - int(round(clock_now() * 1e9))
+            self._send(("epoch", self.epoch_ns))
         self._feeder = feeder
-        self._cameras = [c.camera for c in cfg.cameras]
-        self._params = cfg.pipeline
-        self._last_frame = [None] * len(self._cameras)
-        self._index = [-1] * len(self._cameras)     # running number of each camera's recorded frames
-        self._latest = [None] * len(self._cameras)
+        cameras = [c.camera for c in cfg.cameras]
+        self._last_frame = [None] * len(cameras)
+        self._index = [-1] * len(cameras)     # running number of each camera's recorded frames
+        shapes = [(c.height, c.width) for c in cameras]
+        self._frame_path, buf = mcap_shm.create(mcap_shm.FrameBlock.nbytes(shapes, MAX_PENDING), "pointfence-frames-")
+        self._frames = mcap_shm.FrameBlock(buf, shapes, MAX_PENDING)
+        self._send(("frames", self._frame_path, shapes, MAX_PENDING, cameras, cfg.pipeline))
         cams = [{"name": c.name, "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                  "depth_scale": c.depth_scale, "T_world_cam": np.asarray(c.T_world_cam, float).ravel().tolist(),
                  "dist": [float(x) for x in c.dist], "noise": {"a": c.noise.a, "b": c.noise.b}, "z_min": c.z_min,
                  "z_max": c.z_max, "max_code": c.max_code, "source": cc.source, "rate_hz": cc.rate_hz}
-                for c, cc in zip(self._cameras, cfg.cameras)]
+                for c, cc in zip(cameras, cfg.cameras)]
         self.describe({"epoch_ns": self.epoch_ns, "cameras": cams, "config": config_text,
                        "config_path": cfg.path})
         feeder.on_snapshot = self.offer_snapshot
@@ -167,134 +203,129 @@ class McapRecorder:
                                  "teleop": bool(service.teleop_on), "architecture": service.architecture}})
 
     # --- the ingest side ------------------------------------------------------------------------------
-    def offer_snapshot(self, seq: int, frames) -> None:
-        """Snapshot ``seq`` was built from ``frames`` (one per camera): copies of the frames not
-        offered before go to the writer; never blocks."""
-        if len(self._pending) >= MAX_PENDING:
-            self.snapshots_dropped += 1
-            return
-        new, index = [], self._index
-        for i, f in enumerate(frames):
-            if f is self._last_frame[i]:
-                new.append(None)
-                continue
-            self._last_frame[i] = f
-            index[i] += 1
-            new.append((index[i], f.timestamp, f.depth.copy(), None if f.color is None else f.color.copy(),
-                        None if f.mask is None else f.mask.copy(), None if f.T_world_cam is None
-                        else np.asarray(f.T_world_cam, float).copy(), f.camera))
-        self._pending.append((int(seq), [int(f.seq) for f in frames], list(index), [float(f.timestamp) for f in frames],
-                              [None if f.T_world_cam is None else np.asarray(f.T_world_cam, float).ravel()
-                               for f in frames], new))
-
-    # --- the writer thread ---------------------------------------------------------------------------
-    def _writer(self) -> None:
-        while not self._stop.wait(self.flush_s):
-            self._flush(final=False)
-        self._flush(final=True)
-
-    def _frame_ns(self, ts: float) -> int:
+    def _clock_minus_stamp(self) -> float:
         cms = getattr(self._feeder, "clock_minus_stamp", None)
         if cms is None:
             t0 = getattr(self._feeder, "_t0", None) or [getattr(self._feeder, "t0", 0.0)]
             cms = -float(t0[0])
-        return self.epoch_ns + int(round((ts + cms) * 1e9))
+        return float(cms)
 
-    def _flush(self, final: bool) -> None:
-        with self._lock:
-            if self._fh.closed:
+    def offer_snapshot(self, seq: int, frames) -> None:
+        """Snapshot ``seq`` was built from ``frames`` (one per camera): the frames not offered
+        before are copied into the next frame-ring entry for the writer; never blocks. A full
+        ring, or a frame not of its camera's size, drops the snapshot (``snapshots_dropped``)."""
+        fb = self._frames
+        if fb is None or self._snaps - self._hdr[mcap_shm.SNAPS_CONSUMED] >= fb.slots:
+            self.snapshots_dropped += 1
+            return
+        slot = self._snaps % fb.slots
+        for i, f in enumerate(frames):
+            if f is not self._last_frame[i] and f.depth.shape != fb.shapes[i]:
+                self.snapshots_dropped += 1
+                self._error = self._error or (f"camera {f.camera!r}: a frame of {f.depth.shape} while the recording "
+                                              f"expects {fb.shapes[i]} (its camera model); such snapshots are dropped")
                 return
-            try:
-                if self._meta_dirty:
-                    self._meta_dirty = False
-                    self._w.add_metadata("pointfence/run", {k: json.dumps(v) for k, v in self._meta.items()})
-                self._write_frames()
-                self._write_ticks(final)
-                self._write_cloud()
-                self._w.flush()
-                self._fh.flush()
-                os.fsync(self._fh.fileno())
-            except (OSError, ValueError) as e:
-                self.write_error = f"recording {self.path}: {e}"
-                self._stop.set()
+        cms = self._clock_minus_stamp()
+        fb.meta[slot, 0] = seq
+        for i, f in enumerate(frames):
+            e = fb.cam_meta(slot, i)
+            new = f is not self._last_frame[i]
+            if new:
+                self._last_frame[i] = f
+                self._index[i] += 1
+                np.copyto(fb.depth[slot][i], f.depth)
+                if f.color is not None:
+                    np.copyto(fb.color[slot][i], f.color, casting="unsafe")
+                if f.mask is not None:
+                    np.copyto(fb.mask[slot][i], f.mask, casting="unsafe")
+            e[mcap_shm.NEW] = new
+            e[mcap_shm.FSEQ], e[mcap_shm.INDEX], e[mcap_shm.STAMP], e[mcap_shm.CMS] = f.seq, self._index[i], f.timestamp, cms
+            e[mcap_shm.COLOR], e[mcap_shm.MASK] = f.color is not None, f.mask is not None
+            e[mcap_shm.POSE:] = math.nan if f.T_world_cam is None else np.asarray(f.T_world_cam, float).ravel()
+        self._snaps += 1
+        self._hdr[mcap_shm.SNAPS_WRITTEN] = self._snaps     # (after the entry: the writer reads entries below it)
 
-    def _write_frames(self) -> None:
-        tw = self._tw
-        while self._pending:
-            seq, fseqs, findex, stamps, poses, new = self._pending.popleft()
-            for i, fr in enumerate(new):
-                if fr is None:
-                    continue
-                fseq, ts, depth, color, mask, _, name = fr       # (fseq: the running number)
-                ns = self._frame_ns(ts)
-                tops = camera_topics(name)
-                tw.raw(tops["depth"], "sensor_msgs/CompressedImage",
-                       compressed_image(ns, name, depth_png.DEPTH_FORMAT, depth_png.encode_depth(depth)), ns, fseq)
-                tw.dyn(tops["info"], "sensor_msgs/CameraInfo", camera_info(self._cameras[i], ns), ns, fseq)
-                if color is not None:
-                    tw.raw(tops["color"], "sensor_msgs/CompressedImage",
-                           compressed_image(ns, name, "rgb8; png compressed bgr8", depth_png.encode_color(color)), ns, fseq)
-                if mask is not None:
-                    tw.raw(tops["mask"], "sensor_msgs/CompressedImage",
-                           compressed_image(ns, name, "mono8; png compressed mono8", depth_png.encode_mask(mask)), ns, fseq)
-                self._latest[i] = _Frame(depth, color, mask, fr[5])
-                self.frames_recorded += 1
-            ns = self._frame_ns(max(stamps)) if stamps else self.epoch_ns
-            tw.dyn(SNAPSHOTS, "pointfence_msgs/Snapshot",
-                   {"header": stamp(ns, "world"), "seq": seq, "frame_seq": fseqs, "frame_index": findex, "frame_stamp": stamps,
-                    "t_world_cam": [x for p in poses for x in (p.tolist() if p is not None else [float("nan")] * 16)]},
-                   ns)
-            self.snapshots_recorded += 1
-
-    def _write_ticks(self, final: bool) -> None:
-        upto = self._next if final else self._next - 1   # (the newest row may still get its tick_us)
-        a = self._flushed
-        while a < upto:
-            i = a % self.capacity
-            m = min(upto - a, self.capacity - i)
-            rows = self.data[i: i + m].copy()
-            self._flushed = a + m     # (the ring rows may be reused from here on)
-            lay = self.layout
-            now = rows[:, lay.cols[("in", "now")][0]]
-            ns = self.epoch_ns + np.round(now * 1e9).astype(np.int64)
-            for part, topic, schema in (("in", TICK_INPUT, "pointfence_msgs/TickInput"),
-                                        ("out", TICK_OUTPUT, "pointfence_msgs/TickOutput")):
-                for msg, t in zip(lay.encode(part, rows, ns), ns):
-                    self._tw.raw(topic, schema, msg, t)
-            k = rows[:, lay.cols[("in", "k")][0]].astype(np.int64)
-            every = max(1, int(round(self.rate_hz / self.pose_hz)))
-            sel = k % every == 0
-            self._arms.write(self._tw, rows[sel], ns[sel])
-            self._events.write(self._tw, rows, ns)
-            a += m
-
-    def _write_cloud(self) -> None:
-        if self.cloud_hz <= 0 or self._params is None or all(f is None for f in self._latest):
+    # --- the writer process ---------------------------------------------------------------------------
+    def _send(self, msg: tuple) -> None:
+        """A control message to the writer (never from the tick); a writer gone is reported."""
+        if self._closed or self._proc.poll() is not None:
             return
-        now = time.monotonic()
-        if now < self._next_cloud:
-            return
-        self._next_cloud = now + 1.0 / self.cloud_hz
-        pts = protected_points(self._cameras, self._latest, self._params)
-        ns = time.time_ns()
-        self._tw.dyn(FIXTURES, "sensor_msgs/PointCloud2", pointcloud2(pts, ns), ns)
+        try:
+            send(self._proc.stdin, msg)
+        except (BrokenPipeError, OSError) as e:
+            self._error = self._error or f"recording {self.path}: the writer process is gone ({e})"
+
+    def _writer_error(self) -> Optional[str]:
+        rc = self._proc.poll()
+        if rc is None or (rc == 0 and self._closed):
+            return None
+        text = ""
+        if self._proc.stderr is not None and not self._proc.stderr.closed:
+            text = self._proc.stderr.read().decode(errors="replace").strip()
+            self._proc.stderr.close()
+            self._stderr_text = text
+        text = getattr(self, "_stderr_text", text)
+        how = f"signal {-rc}" if rc < 0 else f"exit status {rc}"
+        return (f"recording {self.path}: the MCAP writer process (pid {self._proc.pid}) ended ({how})"
+                + (f": {text.splitlines()[-1]}" if text else "")
+                + "; ticks after its last flush are not recorded (ticks_lost counts them)")
+
+    @property
+    def write_error(self) -> Optional[str]:
+        """What went wrong with the recording (None: nothing): the writer process ended, a disk
+        error, a frame of a size the recording cannot hold."""
+        return self._writer_error() or self._error
+
+    @property
+    def frames_recorded(self) -> int:
+        return int(self._hdr[mcap_shm.FRAMES_RECORDED])
+
+    @property
+    def snapshots_recorded(self) -> int:
+        return int(self._hdr[mcap_shm.SNAPSHOTS_RECORDED])
+
+    def status(self) -> dict:
+        """The recording's counts and health, for the service's status."""
+        return {"path": str(self.path), "writer_alive": self._proc.poll() is None, "writer_pid": self._proc.pid,
+                "ticks_recorded": self.ticks_recorded, "ticks_written": int(self._hdr[mcap_shm.FLUSHED]),
+                "ticks_lost": self.ticks_lost, "snapshots_recorded": self.snapshots_recorded,
+                "snapshots_dropped": self.snapshots_dropped, "frames_recorded": self.frames_recorded,
+                "flushes": int(self._hdr[mcap_shm.BEAT]), "error": self.write_error,
+                # the writer's time (s): encoding ticks, encoding frames, chunk writes and fsync,
+                # its longest flush, its CPU time
+                "writer_s": {k: round(int(self._hdr[i]) * 1e-6, 3) for k, i in (
+                    ("ticks", mcap_shm.US_TICKS), ("frames", mcap_shm.US_FRAMES), ("sync", mcap_shm.US_SYNC),
+                    ("flush_max", mcap_shm.US_FLUSH_MAX), ("cpu", mcap_shm.US_CPU))}}
 
     def close(self) -> None:
-        """Write everything recorded, the MCAP summary and footer, and end the writer (idempotent)."""
-        if self._thread is not None:
-            self._stop.set()
-            self._thread.join()
-            self._thread = None
-            with self._lock:
-                if not self._fh.closed:
-                    self.describe({"ticks_recorded": self.ticks_recorded, "ticks_lost": self.ticks_lost,
-                                   "snapshots_dropped": self.snapshots_dropped})
-                    try:
-                        self._w.add_metadata("pointfence/run", {k: json.dumps(v) for k, v in self._meta.items()})
-                        self._w.finish()
-                    except (OSError, ValueError) as e:
-                        self.write_error = f"recording {self.path}: {e}"
-                    self._fh.close()
+        """Write everything recorded, the MCAP summary and footer, and end the writer process
+        (idempotent; waits up to ``CLOSE_TIMEOUT_S``)."""
+        if self._closed:
+            return
+        self.describe({"ticks_recorded": self.ticks_recorded, "ticks_lost": self.ticks_lost,
+                       "snapshots_dropped": self.snapshots_dropped})
+        self._send(("close",))
+        self._closed = True
+        try:
+            self._proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            self._proc.wait(timeout=CLOSE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait()
+            self._error = self._error or (f"recording {self.path}: the writer did not finish within "
+                                          f"{CLOSE_TIMEOUT_S} s and was killed; the file ends at its last chunk")
+        self._error = self._writer_error() or self._error
+        if self._proc.stderr is not None and not self._proc.stderr.closed:
+            self._proc.stderr.close()
+        for p in (self._tick_path, self._frame_path):
+            if p is not None:
+                try:
+                    os.unlink(p)
+                except FileNotFoundError:
+                    pass
 
     # --- reading (what the in-memory recorder gives) -------------------------------------------------
     def __getattr__(self, name):
@@ -305,6 +336,19 @@ class McapRecorder:
                              "read it with pointfence.service.mcap_read)")
 
 
+def _jsonable(name: str, values: dict) -> dict:
+    """``values`` checked to be a dict of JSON values (the writer stores each key's JSON text)."""
+    for k, v in values.items():
+        if not isinstance(k, str):
+            raise InputError(f"metadata {name!r}: key {k!r} is a {type(k).__name__}; expected str keys")
+        try:
+            json.dumps(v)
+        except (TypeError, ValueError) as e:
+            raise InputError(f"metadata {name!r}: the value of {k!r} is not JSON ({e}); give numbers, strings, "
+                             "lists or dicts (e.g. arr.tolist())") from None
+    return dict(values)
+
+
 def config_text(cfg) -> str:
     """The TOML text ``cfg`` was read from (its file, or the embedded defaults), kept in the
     recording so that a replay needs no configuration file."""
@@ -312,13 +356,6 @@ def config_text(cfg) -> str:
 
     p = Path(cfg.path) if cfg.path else None
     return p.read_text() if p is not None and p.is_file() else embedded_defaults()
-
-
-class _Frame:
-    """A recorded frame's images, for the fixture cloud."""
-
-    def __init__(self, depth, color, mask, T_world_cam):
-        self.depth, self.color, self.mask, self.T_world_cam = depth, color, mask, T_world_cam
 
 
 __all__ = ["McapRecorder", "config_text", "FORMAT", "VERSION"]

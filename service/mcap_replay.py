@@ -24,7 +24,6 @@ one of them stops being exact there, and ``replay.first_mismatch`` shows where.
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Optional
 
@@ -32,14 +31,15 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
-from .frames import _FeedBase
 from .masters import Master
+from .recorded_frames import RecordedFrames
 from .robot.base import RobotMode
 from .tick_cdr import TickRows, row_into
-from .tick_io import TickInput, TickOutput
+from .tick_io import TickInput
 
 #: fields of TickOutput that are wall-clock measurements, not results
 _TIMING = ("kernel_us", "tick_us")
+_EYE = np.eye(4)
 
 
 class StartMaster(Master):
@@ -74,8 +74,8 @@ class RecordedRobot:
         return RobotMode.FAULT if self.fault else RobotMode.ENABLED
 
     def measured_cp(self, out=None):
-        T = np.eye(4) if out is None else out
-        T[...] = np.eye(4)
+        T = _EYE.copy() if out is None else out
+        T[...] = _EYE
         T[:3, 3] = self.pos
         return T
 
@@ -93,44 +93,6 @@ class RecordedRobot:
 
     def step(self, dt: float) -> None:
         pass
-
-
-class RecordedFrames(_FeedBase):
-    """Re-builds the recorded snapshots: ``build_at`` maps a tick number k to the snapshot seqs
-    to build (in order) before that tick's proxy launch. ``too_old`` is the recorded
-    ``frames_too_old`` of the tick being replayed."""
-
-    def __init__(self, pipeline, recording, build_at: dict, stale_s: float, max_age_s: float):
-        super().__init__(pipeline, [], stale_s, max_age_s)
-        self.rec = recording
-        self.names = list(recording.cameras)
-        n = len(self.names)
-        self.latest, self.arrival, self.frames_in = [None] * n, [-math.inf] * n, [0] * n
-        self.build_at = build_at
-        self.too_old = False
-        self.missing: list = []
-        self._index = [-1] * n            # the recorded frame each camera's latest is
-
-    def frames_too_old(self, now: float) -> bool:
-        return self.too_old
-
-    def poll_tick(self, k: int, t: float) -> bool:
-        built = False
-        for seq in self.build_at.get(k, ()):
-            entry = self.rec.snapshots.get(seq)
-            if entry is None:
-                self.missing.append(seq)
-                continue
-            fseqs, findex, stamps, poses = entry
-            for i, (fseq, idx) in enumerate(zip(fseqs, findex)):
-                if self._index[i] != idx:
-                    self.latest[i] = self.rec.frame(i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16])
-                    self._index[i] = idx
-                    self.frames_in[i] += 1
-                self.arrival[i] = t
-            self.pipeline.seq = seq - 1          # numbered as the live run numbered it
-            built |= self._ingest(list(self.latest), t)
-        return built
 
 
 def build_schedule(recording) -> dict:
@@ -201,59 +163,102 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
     svc = Service(cfg, masters, robots=robots, backend=backend or meta.get("backend"),
                   device=device or (None if backend else meta.get("device_spec")), record=len(rows),
                   architecture=architecture or start.get("architecture") or meta.get("architecture"))
+    ks, ts = (rows[:, lay.cols[("in", name)][0]] for name in ("k", "t"))
     feeder = RecordedFrames(svc.pipeline, recording, build_schedule(recording), cfg.service.stale_s,
-                            cfg.service.max_frame_age_s)
+                            cfg.service.max_frame_age_s, tick_times=dict(zip(ks.astype(np.int64).tolist(), ts.tolist())))
     svc.attach_frames(feeder)
     svc.engage_haptics(bool(start["haptics"]))
     svc.engage_teleop(bool(start["teleop"]))
-    check = None if what_if else _Check(lay)
-    inp, rec_out = TickInput.zeros(n), TickOutput.zeros(n)
+    check = None if what_if else _Check(lay, len(rows))
+    inp = TickInput.zeros(n)
+    recorded = _Inputs(lay, rows, inp)
     arch_code = svc.teleop.arch if what_if and architecture else None
-    for row in rows:
-        row_into(lay, row, inp)
-        if arch_code is not None:
-            inp.architecture = arch_code
-        feeder.too_old = inp.frames_too_old
-        if not what_if:
-            for b, r in enumerate(robots):
-                if r is not None:
-                    r.pos[:] = inp.robot_pos[b]
-                    r.fault = bool(inp.robot_fault[b])
-        w0 = time.perf_counter()
-        out = svc.replay_tick(inp)
-        svc.note_tick_us((time.perf_counter() - w0) * 1e6)
-        if check is not None:
-            check.compare(inp, out, row)
+    arms = [(b, r) for b, r in enumerate(robots) if r is not None and not what_if]
+    rpos, rfault = inp.robot_pos, inp.robot_fault
+    clock = time.perf_counter
+    try:
+        for i in range(len(rows)):
+            recorded.into(i)
+            if arch_code is not None:
+                inp.architecture = arch_code
+            feeder.too_old = inp.frames_too_old
+            for b, r in arms:
+                r.pos[:] = rpos[b]
+                r.fault = bool(rfault[b])
+            w0 = clock()
+            out = svc.replay_tick(inp)
+            svc.note_tick_us((clock() - w0) * 1e6)
+            if check is not None:
+                check.take(i, out)
+    finally:
+        feeder.close()
+    if check is not None:
+        check.finish(rows)
     if feeder.missing:
         if check is not None:
             check.report["missing_snapshots"] = sorted(set(feeder.missing))
     return svc, (None if check is None else check.report)
 
 
-class _Check:
-    """Compares each replayed tick's output with the recorded one (timing fields aside)."""
+class _Inputs:
+    """Every recorded ``TickInput``, unpacked once from the ring rows into typed per-field arrays
+    and lists, so that a tick's ``into(i)`` only copies into ``inp`` (the same values
+    ``tick_cdr.row_into`` gives, without its per-tick conversions)."""
 
-    def __init__(self, lay):
+    def __init__(self, lay, rows: np.ndarray, inp: TickInput):
+        self.inp = inp
+        self.arrays, self.scalars = [], []
+        for name, _, dtype, per_arm in lay.fields["in"]:
+            c, k = lay.cols[("in", name)]
+            if per_arm:
+                dst = getattr(inp, name)
+                self.arrays.append((dst, rows[:, c: c + k].reshape((len(rows),) + dst.shape).astype(dst.dtype)))
+            else:
+                kind, col = np.dtype(dtype), rows[:, c]
+                vals = (col != 0).tolist() if kind == bool else col.astype(np.int64).tolist() if kind.kind == "i" \
+                    else col.tolist()
+                self.scalars.append((name, vals))
+
+    def into(self, i: int) -> None:
+        inp = self.inp
+        for dst, a in self.arrays:
+            dst[...] = a[i]
+        for name, vals in self.scalars:
+            setattr(inp, name, vals[i])
+
+
+class _Check:
+    """Compares each replayed tick's output with the recorded one (timing fields aside): ``take``
+    keeps the replayed output of tick i, ``finish`` compares all of them at once."""
+
+    def __init__(self, lay, count: int):
         self.lay = lay
-        self.rows = TickRows(lay)
-        self.scratch = np.zeros(lay.width)
+        self.fill = TickRows(lay)
+        self.got = np.zeros((count, lay.width))
+        self.taken = 0
         self.cols = np.concatenate([np.arange(c, c + k) for (part, name), (c, k) in lay.cols.items()
                                     if part == "out" and name not in _TIMING])
         self.report = {"exact": True, "ticks_compared": 0, "mismatched_ticks": 0, "first_mismatch": None}
 
-    def compare(self, inp, out, row) -> None:
-        self.rows.fill(inp, out, self.scratch)
-        a, b = self.scratch[self.cols], row[self.cols]
-        self.report["ticks_compared"] += 1
+    def take(self, i: int, out) -> None:
+        self.fill.fill_out(out, self.got[i])
+        self.taken = i + 1
+
+    def finish(self, rows: np.ndarray) -> None:
+        n = self.taken
+        a, b = self.got[:n][:, self.cols], rows[:n][:, self.cols]
         same = (a == b) | (np.isnan(a) & np.isnan(b))
-        if not same.all():
+        bad = np.flatnonzero(~same.all(axis=1))
+        self.report["ticks_compared"] = n
+        self.report["mismatched_ticks"] = int(len(bad))
+        if len(bad):
             self.report["exact"] = False
-            self.report["mismatched_ticks"] += 1
-            if self.report["first_mismatch"] is None:
-                col = int(self.cols[np.flatnonzero(~same)[0]])
-                name = next(nm for (part, nm), (c, k) in self.lay.cols.items() if part == "out" and c <= col < c + k)
-                self.report["first_mismatch"] = {"tick": int(out.k), "field": name, "recorded": float(row[col]),
-                                                 "replayed": float(self.scratch[col])}
+            i = int(bad[0])
+            col = int(self.cols[np.flatnonzero(~same[i])[0]])
+            name = next(nm for (part, nm), (c, k) in self.lay.cols.items() if part == "out" and c <= col < c + k)
+            kcol = self.lay.cols[("out", "k")][0]
+            self.report["first_mismatch"] = {"tick": int(self.got[i, kcol]), "field": name,
+                                             "recorded": float(rows[i, col]), "replayed": float(self.got[i, col])}
 
 
 __all__ = ["replay", "recording_config", "build_schedule", "RecordedRobot", "RecordedFrames"]

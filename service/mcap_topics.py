@@ -1,5 +1,5 @@
 """Writing the topics of a pointfence MCAP recording (``ros2_schemas`` lists them) from the
-recorder's ring rows and frames; used only by the recorder's writer thread.
+recorder's ring rows and frames; used only by the recorder's writer process (``mcap_writer``).
 
 ``TopicWriter`` wraps an ``mcap.writer.Writer`` (profile ``ros2``): every schema is registered
 with its full ros2msg text, every channel on first use (``cdr`` encoding). Fixed-shape

@@ -176,22 +176,42 @@ def test_messages_decode_into_the_standard_ros2_types(served):
     assert holds and all(e.reason and e.invariant.startswith("S") for e in holds)
 
 
-def test_kill_9_leaves_a_readable_file_holding_all_but_the_last_second(tmp_path):
+def _children(pid: int) -> list:
+    with open(f"/proc/{pid}/task/{pid}/children") as fh:
+        return [int(x) for x in fh.read().split()]
+
+
+def _writer_pid(serve) -> int:
+    """The MCAP writer process of a `serve` process (python -m pointfence.service.mcap_writer)."""
+    for c in _children(serve.pid):
+        try:
+            cmd = Path(f"/proc/{c}/cmdline").read_bytes()
+        except FileNotFoundError:
+            continue
+        if b"pointfence.service.mcap_writer" in cmd:
+            return c
+    raise AssertionError(f"serve {serve.pid} has no MCAP writer child: {_children(serve.pid)}")
+
+
+def _gone(pid: int, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except FileNotFoundError:
+            return True
+        if stat.rsplit(")", 1)[1].split()[0] == "Z":     # a zombie: exited (its parent, killed, never reaped it)
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _ticks_to_the_kill(rec: Path, t_kill: float):
     from mcap.exceptions import McapError
     from mcap.records import Message
     from mcap.stream_reader import StreamReader
 
-    rec = tmp_path / "killed.mcap"
-    serve, dev = _serve(tmp_path, rec, 120.0, backend="opencl")
-    try:
-        time.sleep(3.0)
-        t_kill = time.perf_counter()            # the service's loop clock (perf_counter: CLOCK_MONOTONIC)
-        serve.send_signal(signal.SIGKILL)
-        serve.wait(timeout=10)
-    finally:
-        _stop(serve, dev)
     r = open_recording(rec)
-    assert r.torn is not None                   # no summary: the run never ended
     lay = r.layout
     k = r.rows[:, lay.cols[("in", "k")][0]]
     now = r.rows[:, lay.cols[("in", "now")][0]]
@@ -206,6 +226,101 @@ def test_kill_9_leaves_a_readable_file_holding_all_but_the_last_second(tmp_path)
         except McapError:
             pass
     assert n >= 2 * len(k)
+    return r
+
+
+def test_kill_9_of_the_service_leaves_a_whole_file_up_to_its_last_tick(tmp_path):
+    rec = tmp_path / "killed.mcap"
+    serve, dev = _serve(tmp_path, rec, 120.0, backend="opencl")
+    try:
+        time.sleep(3.0)
+        writer = _writer_pid(serve)
+        t_kill = time.perf_counter()            # the service's loop clock (perf_counter: CLOCK_MONOTONIC)
+        serve.send_signal(signal.SIGKILL)
+        serve.wait(timeout=10)
+    finally:
+        _stop(serve, dev)
+    assert _gone(writer, 30.0), "the writer process did not end after the service was killed"
+    r = _ticks_to_the_kill(rec, t_kill)
+    assert r.torn is None                       # the writer saw its service die and closed the file
+    assert "killed or crashed" in r.metadata["pointfence/end"]["reason"]
+
+
+def test_kill_9_of_service_and_writer_leaves_a_readable_file_holding_all_but_the_last_second(tmp_path):
+    rec = tmp_path / "killed.mcap"
+    serve, dev = _serve(tmp_path, rec, 120.0, backend="opencl")
+    try:
+        time.sleep(3.0)
+        writer = _writer_pid(serve)
+        t_kill = time.perf_counter()
+        os.kill(writer, signal.SIGKILL)
+        serve.send_signal(signal.SIGKILL)
+        serve.wait(timeout=10)
+    finally:
+        _stop(serve, dev)
+    r = _ticks_to_the_kill(rec, t_kill)
+    assert r.torn is not None                   # no summary: nobody closed the file
+    assert "pointfence/end" not in r.metadata
+
+
+def test_a_writer_that_dies_is_reported_and_never_blocks_the_tick(tmp_path):
+    n = 1
+    rec = McapRecorder(tmp_path / "orphan.mcap", n, capacity=256)
+    inp, out = TickInput.zeros(n), TickOutput.zeros(n)
+    try:
+        for k in range(100):
+            inp.k = out.k = k
+            inp.now = k * 1e-3
+            rec.write(inp, out)
+        time.sleep(4 * rec.flush_s)               # flushed: in the file
+        assert rec.status()["writer_alive"] and rec.status()["ticks_written"] >= 99
+        os.kill(rec.status()["writer_pid"], signal.SIGKILL)
+        assert _gone(rec.status()["writer_pid"], 10.0)
+        worst = 0.0
+        for k in range(100, 1100):              # the ring fills: later ticks are lost, none waits
+            inp.k = out.k = k
+            inp.now = k * 1e-3
+            t0 = time.perf_counter()
+            rec.write(inp, out)
+            rec.note_tick_us(1.0)
+            worst = max(worst, time.perf_counter() - t0)
+        st = rec.status()
+        assert not st["writer_alive"] and "ended (signal 9)" in st["error"]
+        assert st["ticks_lost"] == 1100 - 99 - 256 and rec.full
+        assert worst < 0.01, f"a tick's write took {worst * 1e3:.1f} ms with the writer gone"
+        rec.add_metadata("x", {"a": 1})         # nobody to send it to: not an error of the caller's
+    finally:
+        t0 = time.perf_counter()
+        rec.close()
+        assert time.perf_counter() - t0 < 5.0
+    assert "ended (signal 9)" in rec.write_error
+    r = open_recording(tmp_path / "orphan.mcap")
+    assert r.torn is not None and len(r.rows) >= 98
+
+
+def test_add_metadata_reads_back_by_name(tmp_path):
+    rec = McapRecorder(tmp_path / "meta.mcap", 1)
+    inp, out = TickInput.zeros(1), TickOutput.zeros(1)
+    try:
+        rec.write(inp, out)
+        measures = {"safety": {"min_distance_m": 0.0042, "violations": 0}, "tracking_rmse_m": [0.001, 0.002],
+                    "note": "end of run"}
+        rec.add_metadata("pointfence/measures", measures)
+        rec.add_metadata("pointfence/measures", {"note": "revised"})    # the newest value of a key wins
+        with pytest.raises(InputError, match="reserved|other than"):
+            rec.add_metadata("pointfence/run", {"a": 1})
+        with pytest.raises(InputError, match="'arr' is not JSON"):
+            rec.add_metadata("pointfence/measures", {"arr": np.zeros(2)})
+        with pytest.raises(InputError, match="expected a dict"):
+            rec.add_metadata("pointfence/measures", [1, 2])
+    finally:
+        rec.close()
+    with pytest.raises(InputError, match="is closed"):
+        rec.add_metadata("late", {"a": 1})
+    r = open_recording(tmp_path / "meta.mcap")
+    assert r.metadata["pointfence/measures"] == {**measures, "note": "revised"}
+    assert r.metadata["pointfence/run"] is r.meta and r.meta["ticks_recorded"] == 1
+    assert "pointfence/end" not in r.metadata
 
 
 def test_a_recording_from_a_recorded_depth_source_replays_without_the_source(tmp_path):

@@ -1,0 +1,296 @@
+"""The MCAP writer process of a recording (``python -m pointfence.service.mcap_writer``, started by
+``mcap_record.McapRecorder``): everything that costs CPU (PNG encoding of depth, colour and
+masks, CDR encoding, zstd chunks, the fixture cloud, fsync) runs here, outside the service's
+interpreter, so it never holds the service's interpreter lock.
+
+Inputs: the two shared blocks of ``mcap_shm`` (the tick ring, and the frame ring once the
+cameras are known), the recording file as an inherited file descriptor, and control messages on
+stdin (``send``/``receive``: 4-byte length, then a pickled tuple):
+
+* ``("init", dict)``: first, the recording's parameters (``McapRecorder.__init__``);
+* ``("meta", name, dict)``: a metadata record; ``pointfence/run`` accumulates (``describe``),
+  any other name is one record (``add_metadata``); written at the next flush;
+* ``("frames", path, shapes, slots, cameras, params)``: map the frame block (``attach``);
+* ``("epoch", ns)``: the wall clock at loop-clock 0;
+* ``("close",)``: write everything, the summary and footer, and exit 0.
+
+Every ``flush_s`` it writes the ticks the ring holds (first: they are cheap and the ring must
+not fill), then the snapshot entries for at most ``flush_s`` more, the fixture cloud at ``cloud_hz``, ends the chunk and
+fsyncs. End of stdin without ``close`` means the service died (``kill -9``, a crash): it writes
+what the rings hold, a ``pointfence/end`` metadata record saying so, the summary, and exits 0;
+the file is then whole up to the service's last tick. An error (disk full, ...) is one line on
+stderr and exit 1: the service reads it (``McapRecorder.status``).
+"""
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import queue
+import struct
+import sys
+import threading
+import time
+
+import numpy as np
+
+_LEN = struct.Struct("<I")
+
+
+def send(fh, msg: tuple) -> None:
+    """Write control message ``msg`` to the binary stream ``fh`` (and flush it)."""
+    data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
+    fh.write(_LEN.pack(len(data)) + data)
+    fh.flush()
+
+
+def receive(fh):
+    """The next control message of ``fh``, or None at its end (the other side is gone)."""
+    head = fh.read(_LEN.size)
+    if len(head) < _LEN.size:
+        return None
+    data = fh.read(_LEN.unpack(head)[0])
+    return pickle.loads(data) if data else None
+
+
+class _Frame:
+    """A recorded frame's images, for the fixture cloud."""
+
+    def __init__(self, depth, color, mask, T_world_cam):
+        self.depth, self.color, self.mask, self.T_world_cam = depth, color, mask, T_world_cam
+
+
+class Writer:
+    """The writer's state: the MCAP writer, the topics, the rings' read side."""
+
+    def __init__(self, init: dict, out_fh):
+        from mcap.writer import CompressionType
+        from mcap.writer import Writer as McapWriter
+
+        from . import mcap_shm
+        from .mcap_topics import ArmTopics, EventDetector, TopicWriter
+        from .tick_cdr import TickLayout
+
+        self.p = init
+        self.layout = TickLayout(int(init["n"]))
+        self.ticks = mcap_shm.TickBlock(mcap_shm.attach(init["tick_path"]), init["capacity"], self.layout.width)
+        self.hdr = self.ticks.header
+        self.frames = None
+        self.cameras, self.params = [], None
+        self.epoch_ns = int(init["epoch_ns"])
+        self.fh = out_fh
+        self.w = McapWriter(out_fh, chunk_size=4 << 20, compression=CompressionType.ZSTD)
+        self.w.start(profile="ros2", library="pointfence")
+        self.tw = TopicWriter(self.w)
+        self.arms = ArmTopics(self.layout, self.layout.n)
+        self.events = EventDetector(self.layout, self.layout.n)
+        self.run_meta: dict = {}
+        self.pending_meta: list = []      # (name, {key: JSON text})
+        self.latest: list = []
+        self.next_cloud = 0.0
+        self.flushed = int(self.hdr[mcap_shm.FLUSHED])
+        self.consumed = int(self.hdr[mcap_shm.SNAPS_CONSUMED])
+
+    # --- control -----------------------------------------------------------------------------------
+    def control(self, msg: tuple) -> bool:
+        """Apply one control message; False for ``close``."""
+        op = msg[0]
+        if op == "meta":
+            _, name, values = msg
+            enc = {k: json.dumps(v) for k, v in values.items()}
+            if name == "pointfence/run":
+                self.run_meta.update(enc)
+                enc = dict(self.run_meta)
+            self.pending_meta.append((name, enc))
+        elif op == "frames":
+            from . import mcap_shm
+
+            _, path, shapes, slots, self.cameras, self.params = msg
+            self.frames = mcap_shm.FrameBlock(mcap_shm.attach(path), shapes, slots)
+            self.latest = [None] * len(shapes)
+        elif op == "epoch":
+            self.epoch_ns = int(msg[1])
+        elif op == "close":
+            return False
+        return True
+
+    # --- one flush ---------------------------------------------------------------------------------
+    def flush(self, final: bool) -> None:
+        from . import mcap_shm
+
+        h = self.hdr
+        t0 = time.perf_counter()
+        for name, enc in self.pending_meta:
+            self.w.add_metadata(name, enc)
+        self.pending_meta = []
+        self.write_ticks(final)
+        t1 = time.perf_counter()
+        self.write_frames(None if final else t0 + self.p["flush_s"])
+        self.write_cloud()
+        t2 = time.perf_counter()
+        self.w.flush()
+        os.fsync(self.fh.fileno())
+        t3 = time.perf_counter()
+        h[mcap_shm.US_TICKS] += int((t1 - t0) * 1e6)
+        h[mcap_shm.US_FRAMES] += int((t2 - t1) * 1e6)
+        h[mcap_shm.US_SYNC] += int((t3 - t2) * 1e6)
+        h[mcap_shm.US_FLUSH_MAX] = max(int(h[mcap_shm.US_FLUSH_MAX]), int((t3 - t0) * 1e6))
+        h[mcap_shm.US_CPU] = int(time.process_time() * 1e6)
+        h[mcap_shm.BEAT] += 1
+
+    def write_ticks(self, final: bool) -> None:
+        from . import mcap_shm
+        from .ros2_schemas import TICK_INPUT, TICK_OUTPUT
+
+        written = int(self.hdr[mcap_shm.WRITTEN])
+        upto = written if final else written - 1      # (the newest row may still get its tick_us)
+        a, cap, lay = self.flushed, self.ticks.capacity, self.layout
+        while a < upto:
+            i = a % cap
+            m = min(upto - a, cap - i)
+            rows = self.ticks.rows[i: i + m].copy()
+            a += m
+            self.flushed = a
+            self.hdr[mcap_shm.FLUSHED] = a         # (the ring rows may be reused from here on)
+            ns = self.epoch_ns + np.round(rows[:, lay.cols[("in", "now")][0]] * 1e9).astype(np.int64)
+            for part, topic, schema in (("in", TICK_INPUT, "pointfence_msgs/TickInput"),
+                                        ("out", TICK_OUTPUT, "pointfence_msgs/TickOutput")):
+                for msg, t in zip(lay.encode(part, rows, ns), ns.tolist()):
+                    self.tw.raw(topic, schema, msg, t)
+            k = rows[:, lay.cols[("in", "k")][0]].astype(np.int64)
+            every = max(1, int(round(self.p["rate_hz"] / self.p["pose_hz"])))
+            sel = k % every == 0
+            self.arms.write(self.tw, rows[sel], ns[sel])
+            self.events.write(self.tw, rows, ns)
+
+    def _frame_ns(self, ts: float, cms: float) -> int:
+        return self.epoch_ns + int(round((ts + cms) * 1e9))
+
+    def write_frames(self, until) -> None:
+        """Encode the snapshot entries the ring holds, until the monotonic time ``until`` (s;
+        None: all): a writer short of CPU keeps its chunks and fsyncs every ``flush_s`` and
+        leaves the rest for its next flush (the ring then fills and drops snapshots, counted)."""
+        from . import depth_png, mcap_shm
+        from .cdr import compressed_image
+        from .mcap_topics import camera_info, stamp
+        from .ros2_schemas import SNAPSHOTS, camera_topics
+
+        fb = self.frames
+        if fb is None:
+            return
+        written = int(self.hdr[mcap_shm.SNAPS_WRITTEN])
+        tw = self.tw
+        while self.consumed < written and (until is None or time.perf_counter() < until):
+            slot = self.consumed % fb.slots
+            seq = int(fb.meta[slot, 0])
+            fseqs, findex, stamps, poses, cmss = [], [], [], [], []
+            for i, cam in enumerate(self.cameras):
+                e = fb.cam_meta(slot, i)
+                fseq, idx, ts, cms = int(e[mcap_shm.FSEQ]), int(e[mcap_shm.INDEX]), float(e[mcap_shm.STAMP]), float(e[mcap_shm.CMS])
+                pose = e[mcap_shm.POSE: mcap_shm.POSE + 16].copy()
+                fseqs.append(fseq)
+                findex.append(idx)
+                stamps.append(ts)
+                poses.append(pose)
+                cmss.append(cms)
+                if not e[mcap_shm.NEW]:
+                    continue
+                ns = self._frame_ns(ts, cms)
+                tops = camera_topics(cam.name)
+                depth = fb.depth[slot][i]
+                tw.raw(tops["depth"], "sensor_msgs/CompressedImage",
+                       compressed_image(ns, cam.name, depth_png.DEPTH_FORMAT, depth_png.encode_depth(depth)), ns, idx)
+                tw.dyn(tops["info"], "sensor_msgs/CameraInfo", camera_info(cam, ns), ns, idx)
+                color = fb.color[slot][i] if e[mcap_shm.COLOR] else None
+                mask = fb.mask[slot][i] if e[mcap_shm.MASK] else None
+                if color is not None:
+                    tw.raw(tops["color"], "sensor_msgs/CompressedImage",
+                           compressed_image(ns, cam.name, "rgb8; png compressed bgr8", depth_png.encode_color(color)),
+                           ns, idx)
+                if mask is not None:
+                    tw.raw(tops["mask"], "sensor_msgs/CompressedImage",
+                           compressed_image(ns, cam.name, "mono8; png compressed mono8", depth_png.encode_mask(mask)),
+                           ns, idx)
+                self.latest[i] = _Frame(depth.copy(), None if color is None else color.copy(),
+                                        None if mask is None else mask.copy(),
+                                        None if np.isnan(pose[0]) else pose.reshape(4, 4))
+                self.hdr[mcap_shm.FRAMES_RECORDED] += 1
+            last = int(np.argmax(stamps)) if stamps else 0
+            ns = self._frame_ns(stamps[last], cmss[last]) if stamps else self.epoch_ns
+            tw.dyn(SNAPSHOTS, "pointfence_msgs/Snapshot",
+                   {"header": stamp(ns, "world"), "seq": seq, "frame_seq": fseqs, "frame_index": findex,
+                    "frame_stamp": stamps, "t_world_cam": [float(x) for p in poses for x in p]}, ns)
+            self.consumed += 1
+            self.hdr[mcap_shm.SNAPS_CONSUMED] = self.consumed
+            self.hdr[mcap_shm.SNAPSHOTS_RECORDED] += 1
+
+    def write_cloud(self) -> None:
+        from .fixture_cloud import pointcloud2, protected_points
+        from .ros2_schemas import FIXTURES
+
+        if self.p["cloud_hz"] <= 0 or self.params is None or all(f is None for f in self.latest):
+            return
+        now = time.monotonic()
+        if now < self.next_cloud:
+            return
+        self.next_cloud = now + 1.0 / self.p["cloud_hz"]
+        pts = protected_points(self.cameras, self.latest, self.params)
+        ns = time.time_ns()
+        self.tw.dyn(FIXTURES, "sensor_msgs/PointCloud2", pointcloud2(pts, ns), ns)
+
+    def finish(self, service_died: bool) -> None:
+        if service_died:
+            self.w.add_metadata("pointfence/end", {"reason": json.dumps(
+                "the service ended without closing the recording (killed or crashed); the writer process wrote "
+                "every tick and frame the service had handed over, then closed the file")})
+        self.w.finish()
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+        self.fh.close()
+
+
+def main() -> int:
+    ctl = sys.stdin.buffer
+    init = receive(ctl)
+    if init is None or init[0] != "init":
+        print("mcap_writer: expected an ('init', {...}) message on stdin from pointfence's McapRecorder",
+              file=sys.stderr)
+        return 2
+    p = init[1]
+    if p.get("nice"):
+        os.nice(int(p["nice"]))
+    w = Writer(p, os.fdopen(p["fd"], "wb"))
+    inbox: queue.Queue = queue.Queue()
+
+    def read_control():
+        while True:
+            msg = receive(ctl)
+            inbox.put(msg)
+            if msg is None or msg[0] == "close":
+                return
+
+    threading.Thread(target=read_control, name="mcap-writer-control", daemon=True).start()
+    service_died = False
+    try:
+        running = True
+        while running:
+            deadline = time.monotonic() + p["flush_s"]
+            while running:
+                try:
+                    msg = inbox.get(timeout=max(0.0, deadline - time.monotonic()))
+                except queue.Empty:
+                    break
+                if msg is None:
+                    service_died, running = True, False
+                else:
+                    running = w.control(msg)
+            w.flush(final=not running)
+        w.finish(service_died)
+    except (OSError, ValueError) as e:
+        print(f"recording {p['path']}: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
