@@ -284,6 +284,9 @@ def test_a_writer_that_dies_is_reported_and_never_blocks_the_tick(tmp_path):
             rec.write(inp, out)
             rec.note_tick_us(1.0)
             worst = max(worst, time.perf_counter() - t0)
+        end = time.monotonic() + 5.0            # (its exit status may reach this process a moment later)
+        while rec.status()["writer_alive"] and time.monotonic() < end:
+            time.sleep(0.05)
         st = rec.status()
         assert not st["writer_alive"] and "ended (signal 9)" in st["error"]
         assert st["ticks_lost"] == 1100 - 99 - 256 and rec.full
