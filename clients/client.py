@@ -45,8 +45,8 @@ _TIMESPEC = struct.Struct("@qq")
 _ANC_SIZE = socket.CMSG_SPACE(16) if hasattr(socket, "CMSG_SPACE") else 64
 
 
-def _realtime_minus_monotonic_ns() -> int:
-    """CLOCK_REALTIME minus the monotonic clock, read between two monotonic readings; the
+def realtime_minus_perf_ns() -> int:
+    """CLOCK_REALTIME minus ``time.perf_counter_ns`` (ns), read between two perf_counter readings; the
     narrowest of a few tries. A thread preempted between two plain reads would get an offset
     wrong by the preemption, and one such early arrival time would spoil the minimum transit the
     phase lock keeps (the device loop then sends its samples far too early)."""
@@ -352,7 +352,7 @@ class Client:
                         sec, nsec = _TIMESPEC.unpack_from(raw)
                         # the stamp is CLOCK_REALTIME: move it to this process's monotonic clock
                         if rt_minus_mono is None:
-                            rt_minus_mono = _realtime_minus_monotonic_ns()
+                            rt_minus_mono = realtime_minus_perf_ns()
                         now = min(now, sec * 1_000_000_000 + nsec - rt_minus_mono)
             fb = self._accept(self._view[:n], now)
             if fb is not None:

@@ -37,6 +37,21 @@ def ptr(a: np.ndarray, dtype, name: str = "array"):
     return a.ctypes.data_as(_CTYPE[dtype])
 
 
+def as_array(a, dtype, shape) -> np.ndarray:
+    """``a`` itself if the core can read it as it is (C-contiguous, ``dtype``, ``shape``), else a
+    converted copy (broadcast to ``shape``)."""
+    dtype = np.dtype(dtype)
+    if isinstance(a, np.ndarray) and a.dtype == dtype and a.shape == shape and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype), shape))
+
+
+def ptr_to(a, dtype, shape, name: str = "array"):
+    """``ptr`` of ``as_array(a, dtype, shape)``, for one call outside the tick's bound path (the
+    pointer keeps a converted copy alive for the call)."""
+    return ptr(as_array(a, dtype, shape), dtype, name)
+
+
 class TeleopCore(Structure):
     """``pf_teleop``: see ``service/teleop.py``."""
 
@@ -104,4 +119,4 @@ def _bind(dll: ctypes.CDLL):
 #: the loaded library (built on first import: ``build.py``)
 lib = _bind(load())
 
-__all__ = ["ForcesCore", "HealthCore", "NativeBuildError", "StepCore", "TeleopCore", "lib", "ptr"]
+__all__ = ["ForcesCore", "HealthCore", "NativeBuildError", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]

@@ -44,7 +44,7 @@ import numpy as np
 from pointfence.kernels import get_backend
 from pointfence.kernels.errors import InputError, KernelError
 from pointfence.kernels.params_haptics import HapticParams
-from pointfence.native import StepCore, lib, ptr
+from pointfence.native import StepCore, as_array, lib, ptr
 
 from .devices import Devices
 from .haptic_scene import HapticScene
@@ -55,14 +55,6 @@ from .teleop import Teleop, arch_code
 from .tick_io import TickInput, TickOutput
 
 RING = 1 << 16
-
-
-def _as_core_array(a, dtype, shape) -> np.ndarray:
-    """``a`` itself if the compiled core can read it as it is, else a converted copy."""
-    dtype = np.dtype(dtype)
-    if isinstance(a, np.ndarray) and a.dtype == dtype and a.shape == shape and a.flags.c_contiguous:
-        return a
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype), shape))
 
 
 class Service:
@@ -164,7 +156,7 @@ class Service:
             return bound[1]
         n, c = self.n, self._core
         want = ((float, (n, 3)), (bool, (n,)), (bool, (n,)), (float, (n, 3)), (bool, (n,)))
-        own = [_as_core_array(a, dt, shape) for a, (dt, shape) in zip(arrays, want)]
+        own = [as_array(a, dt, shape) for a, (dt, shape) in zip(arrays, want)]
         c.master_pos, c.pedal, c.master_ok, c.robot_pos = (ptr(a, dt, name) for a, (dt, _), name in zip(
             own, want, ("master_pos", "pedal", "master_ok", "robot_pos")))
         health_in = (c.master_ok, ptr(own[4], bool, "robot_fault"))
@@ -318,7 +310,7 @@ class Service:
         tp.law_changed = False
         self._teleop_prev = inp.teleop
         health.assess(inp, self.cfg.service.max_frame_age_s, health_in)
-        proxies, states = scene.batch_pointers()
+        proxies, states = scene.batch_pointers()     # (a re-seat below keeps the batch's storage)
         # teleoperation: a held arm's X_m does not follow the master (re-coupling must not replay its
         # motion); coupling; S1: an arm that (re)couples, and every arm at a change of control law,
         # starts from where its robot is commanded; the HIP; where the proxies move
@@ -352,7 +344,6 @@ class Service:
                                f"{self.cfg.service.max_lateness_s * 1e3:g} ms")
         # force gains (ramping over force_ramp_s) and frames; robot commands: the goal by
         # architecture, rate-limited, for coupled arms; a robot that decouples stops where it is
-        proxies, states = scene.batch_pointers()
         lib.pf_step_post(self._core_ref, tp.ref, health.ref, scene.renderer.ref, proxies, states, int(inp.haptics),
                          inp.dt / self.cfg.service.force_ramp_s)
         out.hold = health.mask

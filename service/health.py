@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from pointfence.native import HealthCore, lib, ptr
+from pointfence.native import HealthCore, lib, ptr, ptr_to
 
 from .holds import LATCHED, REASONS, HoldReason
 from .tick_io import TickInput
@@ -74,7 +74,9 @@ class Health:
             self._seen[_ROW[HoldReason.OVERRUN]] = t
         if inp.frame_age > max_frame_age_s:            # S2: the newest published snapshot is too old
             self._seen[_ROW[HoldReason.STALE if inp.frames_too_old else HoldReason.INGEST]] = t
-        ok, fault = bound if bound is not None else (_b(inp.master_ok, self.n), _b(inp.robot_fault, self.n))
+        n = self.n
+        ok, fault = bound if bound is not None else (ptr_to(inp.master_ok, bool, (n,), "master_ok"),
+                                                     ptr_to(inp.robot_fault, bool, (n,), "robot_fault"))
         lib.pf_health_assess(self.ref, t, ok, fault)
 
     def seen(self, reason: HoldReason, t: float) -> None:
@@ -117,10 +119,6 @@ class Health:
     @property
     def latched_reasons(self) -> HoldReason:
         return HoldReason(self.latched & LATCHED)
-
-
-def _b(a, n: int):
-    return ptr(np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=bool), (n,))), bool, "mask")
 
 
 __all__ = ["Health"]

@@ -137,3 +137,15 @@ def region_for(cfg, sources, pipeline=None):
     if pipeline is not None:
         return SnapshotRegion(pipeline.host_snapshot())
     raise ValueError("no synthetic scene and no pipeline to measure against")
+
+
+def json_safe(o):
+    """``o`` with every non-finite float (NaN, inf) replaced by None, through dicts, lists and
+    tuples: what JSON can hold."""
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    if isinstance(o, dict):
+        return {k: json_safe(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [json_safe(v) for v in o]
+    return o

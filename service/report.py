@@ -10,7 +10,6 @@ scene, as the measures use).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Optional
 
@@ -203,16 +202,6 @@ def plot_experiment(scene: str, runs: list, path, title: Optional[str] = None) -
     plt.close(fig)
 
 
-def _clean(o):
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    return o
-
-
 def _speed(v) -> str:
     return "none up to 1.5" if v is None else f"{v:g}"
 
@@ -285,5 +274,5 @@ def write(out_dir, rows: list, probes: list, experiments: dict, meta: Optional[d
         doc["dynamic"] = {"rows": drows, "results": dynamic}
     md.append("\n" + "\n".join(f"![{f.stem}]({f.name})" for f in files if f.suffix == ".png") + "\n")
     (out / "table.md").write_text("".join(md))
-    (out / "table.json").write_text(json.dumps(_clean(doc), indent=2) + "\n")
+    (out / "table.json").write_text(json.dumps(measures.json_safe(doc), indent=2) + "\n")
     return files + [out / "table.md", out / "table.json"]

@@ -33,7 +33,6 @@ recording (``sidecar_path``: ``FILE.mcap.measures.json``, tied to the recording'
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 from typing import Optional
@@ -162,22 +161,12 @@ def _worst(arms: list) -> dict:
 # --- storing and finding them ------------------------------------------------------------------------
 def encode(summary: dict) -> dict:
     """MCAP metadata values (str -> str, each JSON) of a summary."""
-    return {key: json.dumps(_finite(v)) for key, v in summary.items()}
+    return {key: json.dumps(measures.json_safe(v)) for key, v in summary.items()}
 
 
 def decode(values: dict) -> dict:
     """The summary from MCAP metadata values (the inverse of ``encode``)."""
     return {key: json.loads(v) for key, v in values.items()}
-
-
-def _finite(o):
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_finite(v) for v in o]
-    return o
 
 
 def sidecar_path(path) -> Path:
@@ -196,7 +185,7 @@ def store(path, summary: dict, recorder=None) -> str:
     from .files import write_atomic
 
     side = sidecar_path(path)
-    doc = {"recording": Path(path).name, "recording_bytes": Path(path).stat().st_size, METADATA: _finite(summary)}
+    doc = {"recording": Path(path).name, "recording_bytes": Path(path).stat().st_size, METADATA: measures.json_safe(summary)}
     write_atomic(side, json.dumps(doc, indent=2) + "\n", keep_backups=False)
     return str(side)
 

@@ -20,6 +20,8 @@ import struct
 import sys
 import time
 
+from pointfence.clients.client import realtime_minus_perf_ns
+
 #: the receive buffer asked for (Linux doubles it for its bookkeeping): 64 KiB hold about 150
 #: STATE datagrams on loopback (about 830 bytes of kernel memory each): 75 ms of two 1 kHz
 #: devices, or 8 ms of a 20,000 datagram/s flood
@@ -29,21 +31,6 @@ SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)          # Linux: datagrams dro
 _TIMESPEC = struct.Struct("@qq")
 _U32 = struct.Struct("@I")
 _ANC = (socket.CMSG_SPACE(16) + socket.CMSG_SPACE(4)) if hasattr(socket, "CMSG_SPACE") else 64
-
-
-def realtime_minus_perf_ns() -> int:
-    """``CLOCK_REALTIME`` minus ``time.perf_counter_ns`` (ns), read between two perf_counter
-    readings; the narrowest of a few tries (a preempted try would be off by the preemption)."""
-    best_w, best = None, 0
-    for _ in range(4):
-        m0 = time.perf_counter_ns()
-        r = time.time_ns()
-        m1 = time.perf_counter_ns()
-        if best_w is None or m1 - m0 < best_w:
-            best_w, best = m1 - m0, r - (m0 + m1) // 2
-        if best_w < 20_000:
-            break
-    return best
 
 
 class StampedReader:

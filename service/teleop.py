@@ -40,7 +40,7 @@ import ctypes
 import numpy as np
 
 from pointfence.kernels.errors import InputError
-from pointfence.native import TeleopCore, lib, ptr
+from pointfence.native import TeleopCore, lib, ptr, ptr_to
 
 ARCHITECTURES = ("I", "II", "III")
 #: master motion (world frame, m, after scaling) that ends an arm's anchoring after a re-anchor
@@ -173,7 +173,9 @@ class Teleop:
         """Integrate master motion into X_m for arms whose pedal is down and whose sample is valid
         on this tick and the previous one (indexing: anything else leaves X_m where it is). An
         anchored arm's X_m stays put until its master has moved ``ANCHOR_RELEASE``."""
-        lib.pf_teleop_map_masters(self.ref, _d3(dev, self.n, "dev"), _b(pedal, self.n, "pedal"), _b(ok, self.n, "ok"))
+        n = self.n
+        lib.pf_teleop_map_masters(self.ref, ptr_to(dev, float, (n, 3), "dev"), ptr_to(pedal, bool, (n,), "pedal"),
+                                  ptr_to(ok, bool, (n,), "ok"))
 
     def proxy_hip(self) -> np.ndarray:
         """The point the proxies move towards this tick (after ``update_hip``): the HIP, except in
@@ -184,13 +186,13 @@ class Teleop:
     def update_hip(self, xr: np.ndarray) -> np.ndarray:
         """This tick's HIP: its target (X_r ``xr`` in II, X_m otherwise) plus the decaying blend
         offset (continuous across switches)."""
-        lib.pf_teleop_update_hip(self.ref, _d3(xr, self.n, "xr"))
+        lib.pf_teleop_update_hip(self.ref, ptr_to(xr, float, (self.n, 3), "xr"))
         return self.hip
 
     def command_goal(self, proxies, haptics_running: bool) -> np.ndarray:
         """X_r* before the rate limit: the proxy in III (while rendering), X_m otherwise."""
-        p = np.ascontiguousarray(proxies, dtype=np.float32).reshape(self.n, 3)
-        lib.pf_teleop_command_goal(self.ref, ptr(p, np.float32, "proxies"), int(bool(haptics_running)))
+        lib.pf_teleop_command_goal(self.ref, ptr_to(proxies, np.float32, (self.n, 3), "proxies"),
+                                   int(bool(haptics_running)))
         return self.goal
 
     def reanchor(self, mask: np.ndarray) -> None:
@@ -201,7 +203,7 @@ class Teleop:
         it was frozen while the arm held). The HIP stays continuous. The arms stay anchored
         (command held) until their master has moved ``ANCHOR_RELEASE``: after a re-anchor an arm
         follows only new master motion, not the fixture's response to depth noise."""
-        lib.pf_teleop_reanchor(self.ref, _b(mask, self.n, "mask"))
+        lib.pf_teleop_reanchor(self.ref, ptr_to(mask, bool, (self.n,), "mask"))
 
     def reanchor_all(self) -> None:
         """A change of control law (architecture, haptics or teleoperation engaged or not, new
@@ -214,15 +216,6 @@ class Teleop:
     def limit_command(self, coupled: np.ndarray) -> np.ndarray:
         """Move the command of coupled, unanchored arms towards the goal by at most
         ``max_robot_speed * dt``."""
-        lib.pf_teleop_limit_command(self.ref, _b(coupled, self.n, "coupled"))
+        lib.pf_teleop_limit_command(self.ref, ptr_to(coupled, bool, (self.n,), "coupled"))
         return self.cmd
 
-
-def _d3(a, n: int, name: str):
-    """(n, 3) float64 pointer for a call outside the tick's fused path (converts if needed)."""
-    return ptr(np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=np.float64), (n, 3))), np.float64, name)
-
-
-def _b(a, n: int, name: str):
-    """(n,) bool pointer for a call outside the tick's fused path (converts if needed)."""
-    return ptr(np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=bool), (n,))), bool, name)

@@ -24,7 +24,7 @@ from pointfence.service import run_measures
 from pointfence.service.mcap_read import open_recording
 from pointfence.service.mcap_record import McapRecorder
 from pointfence.service.tick_io import TickInput, TickOutput
-from test_mcap_record import _serve, _stop
+from test_mcap_record import served  # noqa: F401  (the recorded serve run, a module fixture)
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -33,20 +33,6 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 def _inspect(*args, timeout=300):
     return subprocess.run([sys.executable, "-m", "pointfence", "inspect", *map(str, args)], env=ENV,
                           capture_output=True, text=True, timeout=timeout)
-
-
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
-    """A recorded live serve run (numpy backend, a simulated device, a synthetic camera)."""
-    tmp = tmp_path_factory.mktemp("inspect_served")
-    rec = tmp / "run.mcap"
-    serve, dev = _serve(tmp, rec, 3.0)
-    try:
-        serve.wait(timeout=180)
-        assert serve.returncode == 0, serve.stderr.read().decode()[-2000:]
-    finally:
-        _stop(serve, dev)
-    return rec
 
 
 def test_inspect_reports_a_recorded_serve_run(served, tmp_path):
