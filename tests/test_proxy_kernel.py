@@ -1,4 +1,6 @@
 """The proxy kernel: backends agree with the reference; bad inputs; empty snapshots."""
+import zlib
+
 import numpy as np
 import pytest
 
@@ -30,7 +32,8 @@ def test_backends_agree_on_random_scenes_and_trajectories(mode, ws_capacity, ski
     """OpenCL and the NumPy reference on the same snapshot: equal within 1e-5 m (in fact to the
     bit: same float32 operations, same summation order), on the worker pool (24 proxies) and on
     the in-thread device (8)."""
-    rng = np.random.default_rng(hash((mode, ws_capacity, skin)) % 2**32)
+    # (a seed of the case itself: Python's hash of a str changes from run to run, and so did the scene)
+    rng = np.random.default_rng(zlib.crc32(repr((mode, ws_capacity, skin, B)).encode()))
     cams, frames = random_rig(rng, n_cams=2)
     pp = params_for("mask", adaptive=True, cell=0.02)
     pipe = get_backend("opencl").pipeline(cams, pp)
