@@ -22,6 +22,7 @@ COMMANDS = {
     "replay": ("pointfence.service.replay", "deterministic offline run of the whole service (scripted master or a recording): ticks.csv, summary.json"),
     "inspect": ("pointfence.service.inspect_cmd", "what an MCAP recording holds (topics, rates, cameras, arms, faults, holds) "
                 "and the run's measures; --json, --plot DIR"),
+    "ros2": ("pointfence.service.ros2.cli", "ROS 2 nodes (optional extra pointfence[ros2]): camera-node, sim-arm, ..."),
     "backends": ("pointfence.kernels.cli", "list compute backends and devices available here"),
     "calib": ("pointfence.calib.cli", "camera calibration: intrinsics, extrinsics, multi (ICP), noise; cable tension"),
     "cable": ("pointfence.service.cable.cli", "cable-driven grasper: demo, identify, calib-tension, run (simulated plant)"),
