@@ -9,6 +9,11 @@ ring buffers give tick compute time and lateness percentiles and the deadline mi
 service's own ring the proxy kernel's share of the same ticks (``kernel_us_p50``, the launch with
 its host copies, and ``tick_per_kernel`` = tick p50 / kernel p50).
 
+Beside the loop's misses (periods missed) each run gives ``loop_missed_ticks`` (the ticks that
+ended past their period: one long stall of the machine is many missed periods but one missed
+tick) and what the whole machine did over the measured seconds (``busy_pct`` of all cores,
+``steal_ms``: time the hypervisor gave a virtual core to another guest, when the VM stood still).
+
 ``--floor SECONDS`` first measures the machine's own floor in the same run: the same loop on a
 tick that only spins as long as the service's median tick, beside one busy process per core.
 """
@@ -29,6 +34,8 @@ from pointfence.service.clock import RealClock
 from pointfence.service.loop import HapticLoop
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.runner import LiveRun
+
+from .machine import cpu_times, cpu_usage
 
 
 class _Busy:
@@ -61,8 +68,10 @@ def machine_floor(cfg, seconds: float, busy_s: float, load: int = 0) -> dict:
         loop.start()
         time.sleep(0.5)
         mark = loop.mark()
+        c0 = cpu_times()
         time.sleep(seconds)
         tm = loop.timing(mark)
+        cpu = cpu_usage(c0, cpu_times())
     finally:
         loop.stop()
         for h in hogs:
@@ -72,7 +81,8 @@ def machine_floor(cfg, seconds: float, busy_s: float, load: int = 0) -> dict:
             "ticks": tm.ticks, "periods": tm.periods,
             "loop_late_us_p50": round(tm.late_us_p50, 1), "loop_late_us_p99": round(tm.late_us_p99, 1),
             "loop_late_us_max": round(tm.late_us_max, 1), "tick_us_max": round(tm.compute_us_max, 1),
-            "loop_misses": tm.misses, "loop_miss_ratio": round(tm.miss_ratio, 5), "scheduling": loop.scheduling}
+            "loop_misses": tm.misses, "loop_missed_ticks": tm.missed_ticks, "loop_miss_ratio": round(tm.miss_ratio, 5),
+            "scheduling": loop.scheduling, **cpu}
 
 
 def add_arguments(p):
@@ -119,8 +129,10 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         run.wait(warmup)
         run.mark()
         first = run.service.ticks
+        c0 = cpu_times()
         run.wait(seconds)
         tm = run.timing()
+        cpu = cpu_usage(c0, cpu_times())
         kt = run.service.kernel_timing(since=first)
         gate = run.loop.gate
         yields = (gate.waits, gate.waited_s) if gate is not None else (0, 0.0)
@@ -150,7 +162,10 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         "tick_per_kernel": round(tm.compute_us_p50 / kt["kernel_us_p50"], 2) if kt["kernel_us_p50"] else None,
         "loop_late_us_p50": round(tm.late_us_p50, 1), "loop_late_us_p99": round(tm.late_us_p99, 1),
         "loop_late_us_max": round(tm.late_us_max, 1),
-        "loop_misses": tm.misses, "loop_miss_ratio": round(tm.miss_ratio, 5), "overruns": tm.overruns,
+        "loop_misses": tm.misses, "loop_missed_ticks": tm.missed_ticks, "loop_miss_ratio": round(tm.miss_ratio, 5),
+        "overruns": tm.overruns,
+        # the machine over the measured seconds: all cores' busy share, time the hypervisor took
+        **cpu,
         "proxies_in_contact_at_end": in_contact, "camera_frames": frames,
         "ingest_ms_p50": round(float(np.median(ingest)), 2) if ingest else None,
         "hold_at_end": st["hold"], "kernel_errors": st["kernel_errors"],

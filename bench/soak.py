@@ -21,7 +21,8 @@ judged on it afterwards (``bench/soak_check.py``). The JSON has ``faults_injecte
 ``max_hold_latency_ms`` (fault detectable -> arms holding; for a hung kernel call, the tick
 watchdog's sight of it), ``max_robot_motion_during_hold_mm``, ``max_penetration_mm`` (both
 arms, against the scene's true surface), ``ticks_recorded``, ``ticks_lost``,
-``loop_miss_ratio``, and per fault kind its count, failures and worst figures.
+``loop_miss_ratio``, ``machine_busy_pct`` and ``machine_steal_ms`` (every process on the machine
+over the run: bench/machine.py), and per fault kind its count, failures and worst figures.
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ from pathlib import Path
 from pointfence.kernels.errors import InputError
 
 from .e2e import LIGHT_SCENE
+from .machine import cpu_times, cpu_usage
 from .soak_check import (AVAILABILITY, MAX_HOLD_MOTION, MAX_PENETRATION, Recording, failure_class, judge, load_only,
                          penetration)
 from .soak_faults import FAULTS, Event
@@ -108,10 +110,12 @@ def run(args) -> dict:
     rig = SoakRig(cfg, out, backend=args.backend, device=args.device, prerender=args.prerender)
     events, unexpected, t_end = [], [], None
     rig.start()
+    c0 = None
     try:
         if not rig.steady(60.0):
             raise RuntimeError(f"bench soak: the arms never coupled: {rig.svc.status()}; clients {rig.hub.status()}")
         rig.sleep(1.0)       # the devices' approach: both arms pushing into the fixture
+        c0 = cpu_times()
         t_end = time.monotonic() + 60.0 * float(args.minutes)
         stuck = False
         while not stuck:
@@ -146,6 +150,7 @@ def run(args) -> dict:
         rig.sleep(0.3)
     finally:
         timing = rig.run.timing()
+        cpu = cpu_usage(c0, cpu_times())
         ages = rig.hub.status()["state_age_ms"]
         region = _region(rig)
         link = rig.stop()
@@ -203,6 +208,8 @@ def run(args) -> dict:
         "torn_bytes": int(data.get("torn_bytes", 0)),
         "loop_miss_ratio": round(timing.miss_ratio, 6),
         "loop": timing.as_dict(),
+        # the machine over the run (every process on it: service, devices, attackers, arms)
+        "machine_busy_pct": cpu.get("busy_pct"), "machine_steal_ms": cpu.get("steal_ms"),
         "targets": {"robot_motion_during_hold_mm": MAX_HOLD_MOTION * 1e3, "penetration_mm": MAX_PENETRATION * 1e3,
                     "loop_miss_ratio": 0.001},
         "per_fault": per,

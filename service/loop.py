@@ -72,6 +72,10 @@ class LoopTiming:
     late_us_p50: float
     late_us_p99: float
     late_us_max: float
+    #: ticks that ended past the end of the period they were due in (they ran long, started
+    #: late, or both): each accounts for one or more of ``misses`` (a 100 ms stall of the whole
+    #: machine is 100 missed periods but one or two missed ticks)
+    missed_ticks: int = 0
 
     @property
     def miss_ratio(self) -> float:
@@ -260,9 +264,10 @@ class HapticLoop:
         late, comp = self.periodic.recent(t0)
         if late.size == 0:
             return LoopTiming(0, 0, 0, 0, *([0.0] * 6))
+        missed = int(np.count_nonzero(late + comp > self.period))
         c = comp * 1e6
         lt = late * 1e6
         p = np.percentile
         return LoopTiming(self.ticks - t0, self.k - k0, self.misses - m0, self.overruns - o0,
                           float(p(c, 50)), float(p(c, 99)), float(c.max()),
-                          float(p(lt, 50)), float(p(lt, 99)), float(lt.max()))
+                          float(p(lt, 50)), float(p(lt, 99)), float(lt.max()), missed)

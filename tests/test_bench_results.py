@@ -55,3 +55,18 @@ def test_the_history_is_its_own_file():
     assert len(results.splitlines()) < 150, "RESULTS.md holds the current figures only; runs go to HISTORY.md"
     for name in BENCHES:
         assert f"pointfence bench {name}" in history, name
+
+
+def test_cpu_usage_splits_busy_idle_and_stolen_time():
+    """bench/machine.py: two /proc/stat readings -> busy share of all cores and stolen time."""
+    from pointfence.bench.machine import cpu_times, cpu_usage
+
+    before = {"user": 10.0, "nice": 0.0, "system": 2.0, "idle": 20.0, "iowait": 0.0, "irq": 0.0, "softirq": 0.0,
+              "steal": 1.0, "wall": 0.0}
+    after = dict(before, user=13.0, system=3.0, idle=25.0, steal=1.5, wall=4.5)   # 9.5 s of core time
+    u = cpu_usage(before, after)
+    assert u == {"busy_pct": round(100 * 4.0 / 9.5, 1), "steal_ms": 500.0, "steal_pct": round(100 * 0.5 / 9.5, 2)}
+    assert cpu_usage(None, after) == {} and cpu_usage(before, before) == {}
+    now = cpu_times()
+    if now is not None:   # Linux
+        assert now["idle"] > 0 and set(now) >= {"user", "system", "steal", "wall"}

@@ -39,6 +39,7 @@ def test_deadlines_misses_skips_and_lateness():
     tm = loop.timing()
     assert tm.ticks == 6 and tm.periods == 8
     assert tm.misses == 4                                # tick 1 and 3 ended late, periods 4 and 5 lost
+    assert tm.missed_ticks == 3                          # ticks 1 and 3 ran long, tick 4 started 2.5 ms late
     np.testing.assert_allclose(loop.late[:6] * 1e3, [0, 0, 0.5, 0, 2.5, 0], atol=1e-9)
     np.testing.assert_allclose(loop.compute[:6] * 1e3, [0.2, 1.5, 0.2, 3.5, 0.2, 0.2], atol=1e-9)
     assert tm.overruns == 0 and not any(c[3] for c in work.calls)
@@ -131,3 +132,6 @@ def test_bench_loop_machine_floor_runs_the_same_loop_on_a_spinning_tick():
     assert f["tick_us_max"] >= 200.0
     assert f["periods"] >= f["ticks"] and 0 <= f["loop_misses"] <= f["periods"]
     assert f["loop_miss_ratio"] == round(f["loop_misses"] / f["periods"], 5)
+    assert 0 <= f["loop_missed_ticks"] <= min(f["loop_misses"], f["ticks"])
+    if f.get("busy_pct") is not None:   # Linux: the cores were busy (the spinning tick, the busy process)
+        assert 0 < f["busy_pct"] <= 100 and f["steal_ms"] >= 0
