@@ -20,6 +20,11 @@ from .sources.base import DepthSource
 
 
 class CannedSource(DepthSource):
+    """``n_frames`` frames of ``source`` read once, then served at its rate (frame ``seq`` has
+    timestamp ``seq / rate_hz``: every canned camera stamps on one clock)."""
+
+    clock_domain = "canned"
+
     def __init__(self, source: DepthSource, n_frames: int = 30, realtime: bool = True):
         if n_frames < 1:
             raise InputError(f"n_frames = {n_frames!r}; expected >= 1")

@@ -25,8 +25,11 @@ Two things tie the loop to the frames' own clock (the clock of the frame timesta
 
 * ``frame_time(t, now)``: the tick's time on the frames' clock (None while unknown). SimFrames:
   loop time t plus the first frame's timestamp (a frame arrives at its timestamp); LiveFrames:
-  the loop clock's ``now`` minus ``clock_minus_stamp`` (loop clock minus timestamp of the first
-  frame of the first camera). Motion prediction (``batch.step(hips, now=frame_time)``) and the
+  the loop clock's ``now`` minus ``clock_minus_stamp`` (loop clock minus camera 0's clock,
+  estimated online from every frame's stamp and arrival: camera_clock.py). Every other camera's
+  frames are stamped on camera 0's clock through their own camera's estimated offset and drift
+  (sources that share a clock say so with a common ``clock_domain`` and are left as they are), so
+  a snapshot's timestamps compare across cameras. Motion prediction (``batch.step(hips, now=frame_time)``) and the
   tool pose ring (``toolpose``) use it.
 * ``frame_filter``: an optional callable (``toolpose.ToolFilter``, the robot self-filter) that
   every snapshot's frames go through before ``pipeline.ingest``.
@@ -37,12 +40,28 @@ import math
 import os
 import threading
 import time
+from dataclasses import replace
 from typing import Optional, Sequence
 
 from pointfence.kernels.errors import PointfenceError
 from pointfence.kernels.yielding import checkpoint
 
+from .camera_clock import CameraClock
 from .osthread import name_this_thread
+
+
+def camera_clocks(sources) -> list:
+    """One ``CameraClock`` per source; sources that name the same ``clock_domain`` (a string;
+    None or absent: a clock of its own) share one."""
+    by_domain: dict = {}
+    out = []
+    for src in sources:
+        dom = getattr(src, "clock_domain", None)
+        if dom is None:
+            out.append(CameraClock())
+        else:
+            out.append(by_domain.setdefault(dom, CameraClock()))
+    return out
 
 
 class PublishGate:
@@ -244,9 +263,19 @@ class LiveFrames(_FeedBase):
         self._thread: Optional[threading.Thread] = None
         self.ingest_dead: Optional[str] = None   # why the ingest thread died (None: it did not)
         self.ingest_ms: list = []
-        #: clock time minus frame timestamp of the first frame of camera 0 (maps loop to frames' clock)
-        self.clock_minus_stamp: Optional[float] = None
+        #: each camera's clock against the loop's (camera_clock.py); cameras whose sources name
+        #: the same ``clock_domain`` share one
+        self.clocks = camera_clocks(self.sources)
+        #: whether camera i's latest frame is stamped on camera 0's clock yet (a camera of another
+        #: clock is mapped once camera 0's clock is known)
+        self._on_ref = [c is self.clocks[0] for c in self.clocks]
         self.scheduling = "normal"
+
+    @property
+    def clock_minus_stamp(self) -> Optional[float]:
+        """Loop clock minus camera 0's clock (s; None before its first frame): the frames' clock."""
+        c = self.clocks[0]
+        return None if c.samples == 0 else c.offset()
 
     def frame_time(self, t: float, now: float) -> Optional[float]:
         cms = self.clock_minus_stamp
@@ -254,14 +283,30 @@ class LiveFrames(_FeedBase):
 
     def _callback(self, i: int):
         def on_frame(frame, _i=i):
+            now = self.clock.now()
+            clk = self.clocks[_i]
             with self._lock:
-                self.latest[_i] = frame
-                self.arrival[_i] = self.clock.now()
-                if self.frames_in[_i] == 0 and _i == 0:
-                    self.clock_minus_stamp = self.arrival[_i] - float(frame.timestamp)
+                clk.update(frame.timestamp, now)
+                same = clk is self.clocks[0]
+                self.latest[_i] = frame if same else self._on_frames_clock(_i, frame)
+                self.arrival[_i] = now
                 self.frames_in[_i] += 1
             self._new.set()
         return on_frame
+
+    def _on_frames_clock(self, i: int, frame):
+        """Camera ``i``'s ``frame`` stamped on camera 0's clock (the frames' clock) through both
+        cameras' estimated offsets; unchanged (and noted) while camera 0's clock is unknown."""
+        ref = self.clocks[0]
+        self._on_ref[i] = ref.samples > 0
+        if not self._on_ref[i]:
+            return frame
+        t = self.clocks[i].to_service(frame.timestamp) - ref.offset()
+        return replace(frame, timestamp=t)
+
+    def clock_status(self) -> dict:
+        """Per camera: its clock's offset to the loop clock (s), drift (ppm) and frames seen."""
+        return {n: c.status() for n, c in zip(self.names, self.clocks)}
 
     def start(self) -> None:
         if self._thread is not None:
@@ -324,6 +369,7 @@ class LiveFrames(_FeedBase):
                         and not self._stop.is_set() else "running" if th is not None else "stopped")
         st["readers"] = {r.name: r.status().reason for r in self.readers}
         st["scheduling"] = self.scheduling
+        st["clocks"] = self.clock_status()
         return st
 
     def _ingest_thread(self) -> None:
@@ -342,6 +388,9 @@ class LiveFrames(_FeedBase):
             if self._stop.is_set():
                 return
             with self._lock:
+                for i, ok in enumerate(self._on_ref):
+                    if not ok and self.latest[i] is not None:   # arrived before camera 0's first
+                        self.latest[i] = self._on_frames_clock(i, self.latest[i])
                 frames = list(self.latest)
                 arrival = min(self.arrival)
             t0 = time.perf_counter()

@@ -25,7 +25,14 @@ class DepthSource(ABC):
 
     Subclasses implement ``_frame(seq)`` (the frame with counter ``seq``, or None at the end of
     a finite stream) and optionally ``_close()``.
+
+    ``clock_domain``: sources whose timestamps come from one shared clock (a synthetic scene's
+    cameras, a hardware-synchronised rig) name it alike; None (the default) is a clock of the
+    camera's own, whose offset and drift to the service clock the live service estimates
+    (service/camera_clock.py).
     """
+
+    clock_domain: Optional[str] = None
 
     def __init__(self, camera: Camera, rate_hz: float = 30.0, realtime: bool = False):
         if not isinstance(camera, Camera):

@@ -93,7 +93,10 @@ class SyntheticSource(DepthSource):
     dropout (0.01, fraction of random holes), shadows (True), color (False: add an RGB image
     with the protected object red on white), mask (False: add the protected-object mask),
     max_frames (None: endless). Any other keyword is a scene option (see ``scenes``).
+    Every synthetic camera stamps its frames on the scene's clock (``clock_domain``).
     """
+
+    clock_domain = "synthetic scene"
 
     def __init__(
         self,
