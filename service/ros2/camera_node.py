@@ -30,6 +30,7 @@ import signal
 import sys
 import threading
 import time
+from typing import Optional
 
 from pointfence.kernels.errors import InputError, PointfenceError
 
@@ -83,20 +84,23 @@ class CameraPublisher:
         self._offset = None
         self.published = 0
 
-    def stamp_of(self, capture: float) -> float:
-        """header.stamp (s) of a frame captured at ``capture`` on the source's clock."""
+    def stamp_of(self, capture: float, read_at: Optional[float] = None) -> float:
+        """header.stamp (s) of a frame captured at ``capture`` on the source's clock and read
+        from the source starting at ``read_at`` (``time.time()``; default now): ``mapped`` fixes
+        the offset of the two clocks at the first frame, before its read, so no later stamp lies
+        ahead of the moment its frame was read."""
         if self.stamp == "source":
             return capture
         now = time.time()
         if self.stamp == "now":
             return now
         if self._offset is None:
-            self._offset = now - capture
+            self._offset = (now if read_at is None else read_at) - capture
         return capture + self._offset
 
-    def publish(self, frame) -> float:
+    def publish(self, frame, read_at: Optional[float] = None) -> float:
         """Publish ``frame`` (a ``DepthFrame`` of this camera) and its CameraInfo; returns the stamp."""
-        t = self.stamp_of(float(frame.timestamp))
+        t = self.stamp_of(float(frame.timestamp), read_at)
         make = images.compressed_msg if self.compressed else images.image_msg
         msg = make(frame.depth, self.camera, self.frame_id, t)
         self._info.publish(images.info_msg(self.camera, self.frame_id, t))
@@ -143,6 +147,7 @@ def _loop(src, pub: CameraPublisher, rate: float, frames: int, stop: threading.E
     period = 1.0 / rate
     due = time.monotonic()
     last = -math.inf
+    read_at = None
     while not stop.is_set() and (frames == 0 or pub.published < frames):
         if src.realtime:   # a camera: publish as it delivers, at most ``rate``
             frame = src.read(timeout=0.2)
@@ -158,7 +163,8 @@ def _loop(src, pub: CameraPublisher, rate: float, frames: int, stop: threading.E
             if stop.wait(max(0.0, due - time.monotonic())):
                 return
             due = max(due + period, time.monotonic() - period)
+            read_at = time.time()   # a file's frame is "captured" when it is due and read
             frame = src.read()
             if frame is None:
                 return
-        pub.publish(frame)
+        pub.publish(frame, read_at)
