@@ -299,3 +299,22 @@ def test_topic_resolution():
     assert resolve_topics("/a/depth/image_raw/compressedDepth")[1:] == ("/a/depth/camera_info", "compressedDepth")
     with pytest.raises(InputError, match="transport = 'jpeg'"):
         resolve_topics("/cam0", "jpeg")
+
+
+def test_compressed_depth_32fc1_inverse_depth_decodes_and_rvl_is_refused():
+    import struct
+
+    import cv2
+
+    from pointfence.service import depth_png
+
+    a, b = 100.0, 10.0                       # ROS' defaults: inv = A / depth + B
+    depth = np.array([[0.5, 1.0], [2.0, np.nan]], np.float32)
+    inv = np.where(np.isfinite(depth), np.rint(a / np.nan_to_num(depth, nan=1.0) + b), 0).astype(np.uint16)
+    data = struct.pack("<iff", 0, a, b) + cv2.imencode(".png", inv)[1].tobytes()
+    enc, m = depth_png.decode_compressed_depth(data, "32FC1; compressedDepth png", "t")
+    assert enc == "32FC1" and np.allclose(m[:1], [[0.5, 1.0]]) and abs(m[1, 0] - 2.0) < 1e-6 and np.isnan(m[1, 1])
+    with pytest.raises(InputError, match="RVL is not read"):
+        depth_png.decode_compressed_depth(data, "16UC1; compressedDepth rvl", "t")
+    with pytest.raises(InputError, match="not a PNG"):
+        depth_png.decode_compressed_depth(data[:12] + b"garbage-garbage", "16UC1; compressedDepth png", "t")
