@@ -8,6 +8,10 @@ not quantised)} then a 16-bit grey PNG of the raw depth codes (the camera's unit
 code x ``depth_scale``, in the camera's ``CameraInfo``). Unlike ROS's encoder nothing beyond a
 maximum depth is zeroed: the codes are kept exactly. Colour is a plain ``png`` (RGB, written
 as OpenCV's BGR PNG), a selection mask a grey ``png``.
+
+``decode_compressed_depth`` reads what ROS drivers publish in that form: 16UC1 (the PNG holds
+the depth in mm) and 32FC1 (the PNG holds quantised inverse depth ``v``, depth in m =
+``depthQuantA / (v - depthQuantB)``, 0 = no reading, as ``decodeCompressedDepthImage``).
 """
 from __future__ import annotations
 
@@ -56,6 +60,36 @@ def decode_depth(data: bytes, fmt: str, where: str) -> np.ndarray:
     return img
 
 
+def decode_compressed_depth(data: bytes, fmt: str, where: str) -> tuple:
+    """(encoding, image) of a ROS ``compressedDepth`` payload (``where`` names it in errors):
+    ("16UC1", uint16 (H, W) mm) or ("32FC1", float32 (H, W) m with NaN where there is no reading).
+    A damaged, truncated or foreign payload is an ``InputError``."""
+    enc, _, rest = str(fmt).partition(";")
+    enc, rest = enc.strip(), rest.strip()
+    if enc not in ("16UC1", "32FC1") or not rest.startswith("compressedDepth") or rest not in ("compressedDepth", "compressedDepth png"):
+        raise InputError(f"{where}: CompressedImage format {fmt!r}; expected '16UC1; compressedDepth png' or "
+                         "'32FC1; compressedDepth png' (the PNG form of compressed_depth_image_transport; RVL is not read)")
+    if len(data) <= _CONFIG.size:
+        raise InputError(f"{where}: compressedDepth data of {len(data)} bytes; expected a 12-byte ConfigHeader and a PNG")
+    kind, quant_a, quant_b = _CONFIG.unpack_from(data)
+    if kind != INV_DEPTH:
+        raise InputError(f"{where}: compressedDepth ConfigHeader format {kind}; expected {INV_DEPTH} (INV_DEPTH)")
+    png = np.frombuffer(data, np.uint8, offset=_CONFIG.size)
+    if png.size < 8 or png[:8].tobytes() != b"\x89PNG\r\n\x1a\n":
+        raise InputError(f"{where}: compressedDepth payload after the 12-byte header is not a PNG")
+    img = cv2.imdecode(png, cv2.IMREAD_UNCHANGED)
+    if img is None or img.dtype != np.uint16 or img.ndim != 2:
+        raise InputError(f"{where}: the compressedDepth PNG ({png.size} bytes) does not decode to a 16-bit grey image "
+                         "(truncated or damaged in transit)")
+    if enc == "16UC1":
+        return enc, img
+    if not (np.isfinite(quant_a) and np.isfinite(quant_b) and quant_a != 0):
+        raise InputError(f"{where}: 32FC1 compressedDepth with depthQuantA = {quant_a}, depthQuantB = {quant_b}; expected finite, A != 0")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m = np.float32(quant_a) / (img.astype(np.float32) - np.float32(quant_b))
+    return enc, np.where(img > 0, m, np.float32(np.nan)).astype(np.float32)
+
+
 def encode_color(rgb: np.ndarray) -> bytes:
     """PNG data of a uint8 (H, W, 3) RGB image (stored as OpenCV's BGR PNG)."""
     return _png(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -73,4 +107,4 @@ def decode_png(data: bytes, channels: int, where: str) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB) if channels == 3 else img
 
 
-__all__ = ["DEPTH_FORMAT", "encode_depth", "decode_depth", "encode_color", "encode_mask", "decode_png"]
+__all__ = ["DEPTH_FORMAT", "encode_depth", "decode_depth", "decode_compressed_depth", "encode_color", "encode_mask", "decode_png"]

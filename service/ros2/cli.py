@@ -11,7 +11,9 @@ import sys
 from . import dds
 
 #: subcommand -> (module, one-line help)
-SUBCOMMANDS: dict = {}
+SUBCOMMANDS: dict = {
+    "camera-node": ("pointfence.service.ros2.camera_node", "publish a pointfence depth source as a ROS 2 camera (Image/compressedDepth + CameraInfo)"),
+}
 
 
 def add_arguments(p):

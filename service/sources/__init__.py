@@ -5,7 +5,8 @@
 * ``synthetic:<scene>``: an analytic scene (``scenes.SCENES``) ray-cast with Kinect-like noise;
 * ``recorded:<path>``: a folder of depth frames (layout auto-detected) or one frame file;
 * ``openni2:<device uri | any | file.oni>``: an OpenNI2 camera or recording (``openni2.py``);
-* ``depthai:<device id or empty>``: a Luxonis OAK stereo camera (``depthai_source.py``).
+* ``depthai:<device id or empty>``: a Luxonis OAK stereo camera (``depthai_source.py``);
+* ``ros2:<namespace or image topic>``: a ROS 2 camera driver's depth topics (``ros2/camera_source.py``).
 
 Options may also follow the spec as a query string, ``synthetic:sphere?radius=0.05&seed=3``;
 keyword options win over query options. The live-camera modules import their vendor library
@@ -29,6 +30,7 @@ SCHEMES: dict[str, Callable[..., DepthSource]] = {
     "recorded": lambda target, camera, **o: RecordedSource(target, camera, **o),
     "openni2": lambda target, camera, **o: _openni2_source(target, camera, **o),
     "depthai": lambda target, camera, **o: _depthai_source(target, camera, **o),
+    "ros2": lambda target, camera, **o: _ros2_source(target, camera, **o),
 }
 #: schemes announced but not implemented yet (named in error messages).
 PLANNED: tuple = ()
@@ -44,6 +46,12 @@ def _depthai_source(target, camera, **options) -> DepthSource:
     from .depthai_source import DepthAISource
 
     return DepthAISource(target, camera, **options)
+
+
+def _ros2_source(target, camera, **options) -> DepthSource:
+    from ..ros2.camera_source import RosDepthSource
+
+    return RosDepthSource(target, camera, **options)
 
 
 def _value(text: str):

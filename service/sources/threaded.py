@@ -143,6 +143,9 @@ class CameraReader:
             reason = "reader stopped"
         elif age > self.stale_after:
             reason = ("no frame yet" if not count else f"no new frame for {age:.2f} s") + f" (stale after {self.stale_after:.2f} s)"
+            problem = getattr(self.source, "problem", None)   # a source that rejects bad input says why
+            if problem:
+                reason += f": {problem}"
         return ReaderStatus(self.name, count, age, rate, bool(reason), reason, error)
 
     @property
