@@ -22,8 +22,8 @@ counted and reported (``last_error``, ``status()``) and skipped: the reader neve
 and while only bad messages come the camera goes stale and the service holds (S2).
 
 Time. ``DepthFrame.timestamp`` is the message's ``header.stamp`` in seconds (ROS time: seconds
-since 1970 on the publisher's clock); the service maps it onto its loop clock from the first frame
-(``frames.LiveFrames.clock_minus_stamp``). Camera latency: ``frame_times(seq)`` gives a
+since 1970 on the publisher's clock); the service maps it onto its loop clock with this camera's offset and
+drift, estimated online (``service/camera_clock.py``). Camera latency: ``frame_times(seq)`` gives a
 delivered frame's stamp and its arrival (``time.time()``, the clock ROS time is on when the
 publisher runs on this machine); a snapshot built from frame ``seq`` and published at
 ``time.time() = t`` is ``t - stamp`` seconds behind the camera (the bench sets
