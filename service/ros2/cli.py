@@ -11,7 +11,9 @@ import sys
 from . import dds
 
 #: subcommand -> (module, one-line help)
-SUBCOMMANDS: dict = {}
+SUBCOMMANDS: dict = {
+    "sim-master": ("pointfence.service.ros2.sim_master", "a simulated CRTK master (dVRK MTM): measured_cp and the pedal out, body/servo_cf forces in"),
+}
 
 
 def add_arguments(p):
