@@ -18,7 +18,7 @@ newest one was rejected (non-finite, a wrong ``frame_id``, out of range).
 message is a Python callback (deserialisation, the executor's wait-set, the checks) and each
 force a Python publish, all competing with the 1 kHz loop thread for the interpreter lock. On
 the 2-core development VM (shared, load about 2.4), 6 s of a live run (``LiveRun``, one proxy,
-canned frames; numpy backend; a master circling into the fixture, from a ``sim-master`` process
+canned frames; the default OpenCL backend on PoCL; a master circling into the fixture, from a ``sim-master`` process
 at 1 kHz for the two ROS runs) gave, as deadline misses and lateness p99:
 
 =====================================================  ==============  ============

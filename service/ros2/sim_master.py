@@ -18,7 +18,8 @@ It publishes what such a device publishes and listens where it listens:
   clock, s; N). A summary line goes to stderr every ``--status-every`` s; on exit (``--duration``,
   SIGTERM or Ctrl-C) the summary is printed as JSON on stdout.
 
-``--ready-file`` is written once the node's publishers and subscription exist.
+``--start-on-force`` holds the motion's first sample until the first force arrives (the service
+hears the device). ``--ready-file`` is written once the node's publishers and subscription exist.
 """
 from __future__ import annotations
 
@@ -51,6 +52,9 @@ def add_arguments(p):
                    help="decouples: a clutch pedal, released while coupled (default, the dVRK's); couples: pressed "
                         "while coupled (a dead-man pedal)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds (default: until SIGTERM)")
+    p.add_argument("--start-on-force", action="store_true",
+                   help="hold the motion's first sample until the first force arrives on body/servo_cf (the service "
+                        "hears the device), so that the motion does not run ahead of a slow start")
     p.add_argument("--loop", action="store_true", help="repeat the trajectory (default: hold its last sample)")
     p.add_argument("--forces", default=None, metavar="CSV", help="write every force received here (t,frame_id,fx,fy,fz)")
     p.add_argument("--status-every", type=float, default=1.0, help="summary line period on stderr, s (0: none)")
@@ -154,10 +158,16 @@ def run(args) -> int:
         m = sim.motion
         t0 = time.monotonic()
         nxt, last_pedal, pressed, last_status, last_flush = t0, -1.0, None, t0, t0
+        waiting = bool(args.start_on_force)
         while not stop["now"]:
             now = time.monotonic()
             if args.duration is not None and now - t0 >= args.duration:
                 break
+            if waiting:
+                if sim.forces:
+                    waiting, t0 = False, now
+                else:
+                    t0 = now          # the motion's clock starts at the first force
             s = now - t0
             m.poll(m.times[0] + (s % max(m.duration, 1e-9) if sim.loop else s))
             msg.header.stamp = n.get_clock().now().to_msg()
