@@ -272,3 +272,63 @@ def test_a_labs_rclpy_node_drives_a_live_run_and_reads_forces_and_faults_hold_th
         except subprocess.TimeoutExpired:
             lab.kill()
             lab.wait()
+
+
+# --- serve --ros2-masters ---------------------------------------------------------------------------------
+def _serve_args(*argv):
+    import argparse
+
+    from pointfence.service import serve
+
+    p = argparse.ArgumentParser()
+    serve.add_arguments(p)
+    return p.parse_args(list(argv))
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--ros2-masters", "MTMR,MTML", "--ros2-master-slots", "0"], "one distinct slot in 0..1 per namespace"),
+    (["--ros2-masters", "MTMR", "--ros2-master-slots", "2"], "one distinct slot in 0..1"),
+    (["--ros2-masters", "MTMR,MTML", "--ros2-master-slots", "1,1"], "one distinct slot"),
+    (["--ros2-masters", "MTMR", "--ros2-master-slots", "x"], "one distinct slot"),
+    (["--ros2-masters", "MTMR", "--itp", "127.0.0.1:0", "--itp-slots", "0"], "none of the ITP's [0]"),
+    (["--ros2-masters", "MTMR", "--ros2-pedal", "couples", "--ros2-clutch-button", "99"], "clutch button = 99"),
+])
+def test_serve_refuses_ros2_master_slots_it_cannot_give(argv, fragment, tmp_path):
+    from pointfence.service import serve
+
+    key = tmp_path / "pf.key"
+    serve.new_key(key)
+    with pytest.raises(InputError, match=fragment.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
+        serve.run(_serve_args("--key-file", str(key), "--port", "0", "--no-control", "--clients", "2", *argv))
+
+
+@needs_opencl
+def test_serve_with_a_ros2_master_renders_forces_back_to_the_sim_master(ros2_env, tmp_path):
+    from pointfence.service import serve
+
+    key = tmp_path / "pf.key"
+    serve.new_key(key)
+    balloon_config(tmp_path, arch="III", robot=POINT_MASS, extra="max_lateness_s = 1.0\n")   # writes scene.toml
+    traj = tmp_path / "push.csv"                                 # 12 cm down in 1 s (the robot: 6 cm)
+    traj.write_text("t,x,y,z\n0,0,0,0\n1,0,0,-0.12\n60,0,0,-0.12\n")
+    env = {**os.environ, **ros2_env, "PYTHONUNBUFFERED": "1"}
+    sim = subprocess.Popen([sys.executable, "-m", "pointfence.cli", "ros2", "sim-master", "--namespace", "MTMR",
+                            "--trajectory", str(traj), "--rate", "500", "--status-every", "0", "--start-on-force"],
+                           env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    stats = tmp_path / "stats.json"
+    try:
+        done = subprocess.run([sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key), "--port", "0",
+                               "--no-control", "--config", str(tmp_path / "scene.toml"), "--clients", "1",
+                               "--ros2-masters", "MTMR", "--timeout-ms", "200", "--duration", "6",
+                               "--status-every", "0", "--prerender", "5", "--stats-file", str(stats)],
+                              env=env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert "ROS 2 masters MTMR" in done.stderr
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        out, _ = sim.communicate(timeout=10)
+    summary = json.loads(out.strip().splitlines()[-1])
+    dev = json.loads(stats.read_text())["ros2_masters"]["devices"][0]
+    assert dev["poses"] > 100 and dev["frame_id"] == "MTMR_base" and dev["forces_published"] > 100, dev
+    assert summary["force_frames"].keys() == {"MTMR_base"}
+    assert summary["max_force_n"] > 0.5, summary                 # the fixture pushed back on the operator's hand

@@ -213,21 +213,25 @@ class CrtkMaster(Master):
         self.ok = False
 
     def status(self) -> dict:
+        """The device's topics, its counts (poses, pedal messages, rejections by reason, forces)
+        and the bridge's last rejection message (the bridge's texts and force counts only while
+        the host is open)."""
         r = self._row
         L = STATE_LAYOUT
-        blk = self.host.block
-        stats = blk.forces[self.i]
         d = self.device
-        return {"namespace": d.namespace, "pose_topic": d.pose_topic, "force_topic": d.force_topic,
-                "clutch_topic": d.clutch_topic, "clutch_button": d.clutch_button, "pedal": d.pedal,
-                "frame_id": get_text(blk.text[self.i, FRAME_TEXT]), "ok": bool(self.ok), "clutch": bool(self.clutch),
-                "poses": int(r[L.poses]), "pedals": int(r[L.pedals]),
-                "rejected": {REJECT_NAMES[k + 1]: int(v) for k, v in enumerate(r[L.rejected])},
-                "last_rejection": get_text(blk.text[self.i, ERROR_TEXT]),
-                "stale_ticks": self.stale_ticks, "invalid_ticks": self.invalid_ticks,
-                "forces_sent": self._seq, "forces_published": int(stats["published"]),
-                "forces_nonfinite": int(stats["nonfinite"]), "forces_zeroed": int(stats["zeroed"]),
-                "force_errors": int(stats["errors"])}
+        out = {"namespace": d.namespace, "pose_topic": d.pose_topic, "force_topic": d.force_topic,
+               "clutch_topic": d.clutch_topic, "clutch_button": d.clutch_button, "pedal": d.pedal,
+               "ok": bool(self.ok), "clutch": bool(self.clutch), "poses": int(r[L.poses]), "pedals": int(r[L.pedals]),
+               "rejected": {REJECT_NAMES[k + 1]: int(v) for k, v in enumerate(r[L.rejected])},
+               "stale_ticks": self.stale_ticks, "invalid_ticks": self.invalid_ticks, "forces_sent": self._seq}
+        if not self.host.closed:
+            blk = self.host.block
+            stats = blk.forces[self.i]
+            out.update({"frame_id": get_text(blk.text[self.i, FRAME_TEXT]),
+                        "last_rejection": get_text(blk.text[self.i, ERROR_TEXT]),
+                        "forces_published": int(stats["published"]), "forces_nonfinite": int(stats["nonfinite"]),
+                        "forces_zeroed": int(stats["zeroed"]), "force_errors": int(stats["errors"])})
+        return out
 
 
 class _Closed:
