@@ -102,8 +102,12 @@ def test_sim_master_drives_a_crtk_master_and_receives_its_forces(ros2_env, tmp_p
         assert st["frame_id"] == "MTMR_base" and st["forces_sent"] > 50
         # no new force for the timeout: the bridge zeroes the last one (the service stalled or died)
         assert wait_for(lambda: host.status()["devices"][0]["forces_zeroed"] >= 1, 5)
+        published = host.status()["devices"][0]["forces_published"]
+        m.send_force(np.array([0.0, 3.0, 0.0]))           # and a force the bridge holds when it is closed:
+        assert wait_for(lambda: host.status()["devices"][0]["forces_published"] > published, 5)
+        zeroed = host.status()["devices"][0]["forces_zeroed"]
     finally:
-        host.close()
+        host.close()                                     # it ends with a zero wrench, before its watchdog would
         sim.send_signal(signal.SIGTERM)
         out, _ = sim.communicate(timeout=10)
     summary = json.loads(out.strip().splitlines()[-1])
@@ -112,9 +116,10 @@ def test_sim_master_drives_a_crtk_master_and_receives_its_forces(ros2_env, tmp_p
     assert len(pushed) > 20, summary
     assert {r["frame_id"] for r in rows} == {"MTMR_base"}
     assert all((float(r["fy"]), float(r["fz"])) == (-0.5, 2.0) for r in pushed)
-    last = rows[-1]                                      # the watchdog's and the closing zero wrench
-    assert (float(last["fx"]), float(last["fy"]), float(last["fz"])) == (0.0, 0.0, 0.0)
-    assert summary["forces_received"] == len(rows) and summary["max_force_n"] == pytest.approx(math.sqrt(6.5), abs=1e-3)
+    f = [(float(r["fx"]), float(r["fy"]), float(r["fz"])) for r in rows]
+    assert (0.0, 0.0, 0.0) in f[f.index((1.5, -0.5, 2.0)):f.index((0.0, 3.0, 0.0))]    # the watchdog's zero
+    assert f[-2:] == [(0.0, 3.0, 0.0), (0.0, 0.0, 0.0)] and zeroed == 1               # the closing zero
+    assert summary["forces_received"] == len(rows) and summary["max_force_n"] == pytest.approx(3.0, abs=1e-3)
 
 
 # --- bad messages, silence and a dead bridge make the master invalid --------------------------------------
@@ -312,21 +317,31 @@ def test_serve_with_a_ros2_master_renders_forces_back_to_the_sim_master(ros2_env
     traj = tmp_path / "push.csv"                                 # 12 cm down in 1 s (the robot: 6 cm)
     traj.write_text("t,x,y,z\n0,0,0,0\n1,0,0,-0.12\n60,0,0,-0.12\n")
     env = {**os.environ, **ros2_env, "PYTHONUNBUFFERED": "1"}
+    stats, forces = tmp_path / "stats.json", tmp_path / "forces.csv"
     sim = subprocess.Popen([sys.executable, "-m", "pointfence.cli", "ros2", "sim-master", "--namespace", "MTMR",
-                            "--trajectory", str(traj), "--rate", "500", "--status-every", "0", "--start-on-force"],
-                           env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    stats = tmp_path / "stats.json"
+                            "--trajectory", str(traj), "--rate", "500", "--status-every", "0", "--start-on-force",
+                            "--forces", str(forces)], env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    srv = subprocess.Popen([sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key), "--port", "0",
+                            "--no-control", "--config", str(tmp_path / "scene.toml"), "--clients", "1",
+                            "--ros2-masters", "MTMR", "--timeout-ms", "200", "--status-every", "0", "--prerender", "5",
+                            "--stats-file", str(stats)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                           text=True)
+
+    def pushed_back():                                           # a force of more than 0.5 N has arrived
+        rows = forces.read_text().splitlines()[1:] if forces.exists() else []
+        try:
+            return any(sum(float(v) ** 2 for v in r.split(",")[2:]) > 0.25 for r in rows[:-1])   # (whole rows)
+        except ValueError:
+            return False
+
     try:
-        done = subprocess.run([sys.executable, "-m", "pointfence.service.serve", "--key-file", str(key), "--port", "0",
-                               "--no-control", "--config", str(tmp_path / "scene.toml"), "--clients", "1",
-                               "--ros2-masters", "MTMR", "--timeout-ms", "200", "--duration", "6",
-                               "--status-every", "0", "--prerender", "5", "--stats-file", str(stats)],
-                              env=env, capture_output=True, text=True, timeout=120)
-        assert done.returncode == 0, done.stderr[-2000:]
-        assert "ROS 2 masters MTMR" in done.stderr
+        assert wait_for(lambda: pushed_back() or srv.poll() is not None, 90, 0.2) and srv.poll() is None
     finally:
+        srv.send_signal(signal.SIGTERM)
+        _, err = srv.communicate(timeout=60)
         sim.send_signal(signal.SIGTERM)
         out, _ = sim.communicate(timeout=10)
+    assert srv.returncode == 0 and "ROS 2 masters MTMR" in err, err[-2000:]
     summary = json.loads(out.strip().splitlines()[-1])
     dev = json.loads(stats.read_text())["ros2_masters"]["devices"][0]
     assert dev["poses"] > 100 and dev["frame_id"] == "MTMR_base" and dev["forces_published"] > 100, dev
