@@ -3,6 +3,7 @@
     pointfence serve --new-key pf.key                      # write a fresh 32-byte key and exit
     pointfence serve --key-file pf.key [--config F] [--clients N] [--port 47800] [--bind 127.0.0.1]
                      [--timeout-ms 50] [--duration S] [--itp 127.0.0.1:36000 --itp-slots 0,1]
+                     [--ros2-masters MTMR[,MTML] [--ros2-master-slots 0,1] [--ros2-pedal decouples|couples]]
                      [--control-port 47801 [--control-token FILE] | --no-control] [--record RUN.mcap]
 
 Each client (``pointfence.clients.Client``, the C SDK, ``pointfence device-sim``) opens a
@@ -19,7 +20,9 @@ finds it there. A UDP or control port that is in use is an error naming it (neve
 another port). ``--record FILE.mcap`` streams the run to an MCAP file with ROS 2 schemas while it goes on
 (``mcap_record``: depth, camera info, poses, wrenches, events, every tick's input and output;
 S8), which ``pointfence replay --recording FILE.mcap`` replays exactly; a ``.pfrec`` name
-keeps the older format. At the end of an MCAP recording the run's measures (dissertation 6.1:
+keeps the older format. ``--ros2-masters`` makes CRTK masters on ROS 2 (a dVRK MTM, a ROS 2
+haptic-device driver; ros2/crtk_master.py) drive master slots, as ``--itp`` does for Raven II
+masters. At the end of an MCAP recording the run's measures (dissertation 6.1:
 safety, submittance, tracking) are computed from the recorded depth (``run_measures``), printed
 on stderr, stored with the recording and added to the final status (``measures``).
 """
@@ -84,6 +87,16 @@ def add_arguments(p):
                         "the camera's rate (rendering live holds Python's interpreter lock for milliseconds a frame, "
                         "which a real camera's driver does not; default 0: render live)")
     p.add_argument("--itp-checksum", choices=("sum", "none"), default="sum", help="ITP checksum rule (see service/itp.py)")
+    p.add_argument("--ros2-masters", default=None, metavar="NS[,NS...]",
+                   help="CRTK masters on ROS 2 (pose from NS/measured_cp, force on NS/body/servo_cf), e.g. MTMR,MTML; "
+                        "default off (needs pointfence[ros2]; the DDS environment is ROS 2's own)")
+    p.add_argument("--ros2-master-slots", default=None, help="master slots the ROS 2 masters drive, in order (default 0,1,...)")
+    p.add_argument("--ros2-clutch-topic", default="/footpedals/clutch",
+                   help="the foot pedal's sensor_msgs/Joy topic (default /footpedals/clutch)")
+    p.add_argument("--ros2-clutch-button", type=int, default=0, help="the pedal's index in the Joy buttons (default 0)")
+    p.add_argument("--ros2-pedal", choices=("decouples", "couples"), default="decouples",
+                   help="decouples: a clutch pedal, the master drives the robot while it is released (the dVRK's "
+                        "/footpedals/clutch; default); couples: while it is pressed (a dead-man pedal)")
 
 
 def new_key(path) -> None:
@@ -176,6 +189,15 @@ def run(args) -> int:
         for arm, i in enumerate(idx):   # the ITP arm replaces the UDP slot i (the hub keeps the rest)
             masters[i] = itp.arm_master(arm, poll_also=hub)
             hub.masters[i].session = _Reserved()
+    ros2 = None
+    if args.ros2_masters:
+        try:
+            ros2 = _ros2_masters(args, slots, masters, hub, taken=idx if itp is not None else [])
+        except BaseException:
+            if itp is not None:
+                itp.close()
+            hub.close()
+            raise
     sources = None
     if args.prerender:
         from .canned import live_sources
@@ -187,6 +209,8 @@ def run(args) -> int:
     except BaseException:
         if itp is not None:
             itp.close()
+        if ros2 is not None:
+            ros2.close()
         hub.close()
         raise
     hub.attach(run_.service)
@@ -200,14 +224,16 @@ def run(args) -> int:
     print(f"pointfence serve: {slots} master slot(s) on udp://{hub.address[0]}:{hub.address[1]} "
           f"(timeout {args.timeout_ms} ms), backend {run_.service.backend.name} on {run_.service.backend.device_name}"
           + (f"; ITP (unauthenticated) on udp://{itp.address[0]}:{itp.address[1]}" if itp else "")
-          + (f"; WARNING: {itp_warning}" if itp_warning else ""), file=sys.stderr)
+          + (f"; WARNING: {itp_warning}" if itp_warning else "")
+          + (f"; ROS 2 masters {', '.join(d.namespace for d in ros2.devices)}" if ros2 else ""), file=sys.stderr)
     t_start = time.monotonic()
     control = None
     try:
         if not args.no_control:   # bound first: a port in use fails the run before the loop starts
             from .control_api import Controller, ControlServer
 
-            extras = {"clients": hub.status, **({"itp": itp.status} if itp is not None else {})}
+            extras = {"clients": hub.status, **({"itp": itp.status} if itp is not None else {}),
+                      **({"ros2_masters": ros2.status} if ros2 is not None else {})}
             controller = Controller(run_.service, run_.loop, extras=extras)
             control = ControlServer(controller, args.control_bind, args.control_port, args.control_token).start()
             tok = f" --token-file {control.token_file}" if args.control_token else ""
@@ -252,6 +278,9 @@ def run(args) -> int:
         if itp is not None:
             status["itp"] = itp.status()
             itp.close()
+        if ros2 is not None:
+            status["ros2_masters"] = ros2.status()
+            ros2.close()
         hub.close()
         if args.record and str(args.record).endswith(".mcap"):   # the 6.1 measures from the recorded depth
             from .run_measures import after_run
@@ -265,8 +294,34 @@ def run(args) -> int:
     return 0
 
 
+def _ros2_masters(args, slots: int, masters: list, hub, taken):
+    """The CRTK masters of ``--ros2-masters`` (one bridge process for all), each replacing the UDP
+    slot ``--ros2-master-slots`` gives it (the hub keeps the rest); ``taken``: the ITP's slots."""
+    from .ros2.crtk_device import CrtkDevice
+    from .ros2.crtk_master import CrtkMasterHost
+
+    names = [s.strip() for s in args.ros2_masters.split(",") if s.strip()]
+    spec = args.ros2_master_slots
+    try:
+        idx = [int(s) for s in spec.split(",") if s.strip()] if spec else list(range(len(names)))
+    except ValueError:
+        idx = []
+    if (not names or len(idx) != len(names) or len(set(idx)) != len(idx)
+            or any(not 0 <= i < slots or i in taken for i in idx)):
+        raise InputError(f"--ros2-masters {args.ros2_masters!r} --ros2-master-slots {spec!r}: expected one distinct "
+                         f"slot in 0..{slots - 1} per namespace" + (f", none of the ITP's {list(taken)}" if taken else ""))
+    devices = [CrtkDevice(namespace=ns, clutch_topic=args.ros2_clutch_topic, clutch_button=args.ros2_clutch_button,
+                          pedal=args.ros2_pedal, timeout_ms=args.timeout_ms) for ns in names]
+    host = CrtkMasterHost(devices)
+    for i, m in zip(idx, host.masters):   # the ROS 2 master replaces the UDP slot i
+        m.poll_also = hub
+        masters[i] = m
+        hub.masters[i].session = _Reserved()
+    return host
+
+
 class _Reserved:
-    """Marks a UDP slot taken by the ITP adapter (never a real session)."""
+    """Marks a UDP slot taken by the ITP adapter or a ROS 2 master (never a real session)."""
 
     id = -1
     has_state = False

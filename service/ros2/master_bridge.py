@@ -1,0 +1,207 @@
+"""The ROS 2 side of the service's CRTK masters, in a process of its own (started by
+ros2/crtk_master.py as ``python -m pointfence.service.ros2.master_bridge SHM DEVICES PARENT``).
+
+One rclpy node (``pointfence_crtk_masters``) serves every device (ros2/crtk_device.py): its
+executor thread takes each ``measured_cp`` and pedal message, checks it and writes the device's
+state row into shared memory (ros2/master_block.py); the main thread, once a millisecond, beats
+the heartbeat, reads each device's force from shared memory and publishes a new one on
+``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame). Its own watchdog:
+when the service has written no new force for the device's timeout (its tick stalled, or it
+died) while the last force published was not zero, it publishes a zero wrench once. It ends
+when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
+publishes a zero wrench to every device before it closes: a haptic device is never left pushing.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from multiprocessing import shared_memory
+
+import numpy as np
+
+from .crtk_device import CrtkDevice
+from .master_block import COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_PEDAL, STATE_LAYOUT, MasterBlock, put_text
+
+#: the main thread's period: force forwarding and the heartbeat, s
+PERIOD_S = 0.001
+
+
+class DeviceSide:
+    """One device in the bridge: subscriptions that fill its state row, the force publisher."""
+
+    def __init__(self, blk: MasterBlock, i: int, dev: CrtkDevice, node):
+        from geometry_msgs.msg import PoseStamped, WrenchStamped
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Joy
+        from std_msgs.msg import Bool
+
+        self.dev, self.node, self.i = dev, node, i
+        self.state = blk.state[i]
+        self.cmd = blk.cmd[i]
+        self.stats = blk.forces[i:i + 1].reshape(())   # (0-d view: this device's counters)
+        self.text = blk.text[i]
+        L = STATE_LAYOUT
+        self.row = np.zeros(L.size)
+        self.row[L.pressed] = -1.0
+        self.row[L.q] = (1.0, 0.0, 0.0, 0.0)
+        self.state.write(self.row)
+        self.locked = dev.frame_id             # the frame poses must be in (None: the first valid pose's)
+        if self.locked:
+            put_text(self.text[FRAME_TEXT], self.locked)
+        self._Wrench, self._Bool = WrenchStamped, Bool
+        self.cmd_row = np.zeros(COMMAND_LAYOUT.size)
+        self.seq = 0.0                         # the last force sequence forwarded
+        self.new_at = time.monotonic()         # when it arrived (monotonic s)
+        self.nonzero = False                   # whether the last force published was not zero
+        self.told_orientation = False
+        latest = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        events = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub = node.create_publisher(WrenchStamped, dev.force_topic, events)
+        self.orient_pub = node.create_publisher(Bool, dev.cf_orientation_topic, events) if dev.orientation_absolute else None
+        node.create_subscription(PoseStamped, dev.pose_topic, self.on_pose, latest)
+        node.create_subscription(Joy, dev.clutch_topic, self.on_pedal, events)
+
+    # --- the executor thread: messages in -> the state row ---------------------------------------------
+    def _reject(self, code: int, message: str) -> None:
+        L, row = STATE_LAYOUT, self.row
+        row[L.reject] = code
+        row[L.rejected.start + code - 1] += 1
+        put_text(self.text[ERROR_TEXT], message)
+
+    def on_pose(self, msg) -> None:
+        L, row = STATE_LAYOUT, self.row
+        row[L.pose_rx] = time.monotonic()
+        pp, qq = msg.pose.position, msg.pose.orientation
+        p, q = (pp.x, pp.y, pp.z), (qq.w, qq.x, qq.y, qq.z)
+        frame = msg.header.frame_id
+        bad = self.dev.check_pose(frame, self.locked, p, q)
+        if bad is None:
+            if self.locked is None:
+                self.locked = frame
+                put_text(self.text[FRAME_TEXT], frame)
+            row[L.p] = p
+            row[L.q] = q
+            row[L.poses] += 1
+            row[L.pose_valid] = 1.0
+        else:
+            row[L.pose_valid] = 0.0
+            self._reject(*bad)
+        self.state.write(row)
+
+    def on_pedal(self, msg) -> None:
+        L, row = STATE_LAYOUT, self.row
+        buttons = list(msg.buttons)
+        state = self.dev.pedal_state(buttons)
+        row[L.pedals] += 1
+        if state is None:   # malformed: decoupled until a valid pedal message
+            row[L.pressed] = -1.0
+            self._reject(REJECT_PEDAL, f"{self.dev.clutch_topic}: buttons {buttons[:16]}; expected button "
+                                       f"{self.dev.clutch_button} to be 0 (released), 1 (pressed) or 2 (quick tap)")
+        else:
+            row[L.pressed] = float(state)
+        row[L.buttons] = float(sum(1 << k for k, v in enumerate(buttons[:52]) if v == 1))
+        self.state.write(row)
+
+    # --- the main thread: forces out ------------------------------------------------------------------
+    def _publish(self, f) -> None:
+        frame = self.dev.force_frame_id or self.locked
+        if frame is None:    # the device has not been heard from: its frame, and whether it listens, are unknown
+            return
+        m = self._Wrench()
+        m.header.stamp = self.node.get_clock().now().to_msg()
+        m.header.frame_id = frame
+        m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = f
+        try:
+            self.pub.publish(m)
+            self.stats["published"] += 1
+        except Exception as e:   # noqa: BLE001 -- counted and named; the service sees the device go on
+            self.stats["errors"] += 1
+            put_text(self.text[ERROR_TEXT], f"{self.dev.force_topic}: publishing failed: {e}")
+        self.nonzero = any(v != 0.0 for v in f)
+
+    def forward(self, now: float) -> None:
+        """Publish the service's newest force if there is one; the watchdog zeroes a force the
+        service stopped renewing."""
+        if self.orient_pub is not None and not self.told_orientation and self.locked is not None:
+            self.orient_pub.publish(self._Bool(data=True))
+            self.told_orientation = True
+        c = self.cmd_row
+        if self.cmd.read(c) and c[COMMAND_LAYOUT.seq] != self.seq:
+            self.seq = c[COMMAND_LAYOUT.seq]
+            self.new_at = now
+            f = tuple(float(v) for v in c[COMMAND_LAYOUT.f])
+            if all(math.isfinite(v) for v in f):
+                self._publish(f)
+                return
+            self.stats["nonfinite"] += 1
+            put_text(self.text[ERROR_TEXT], f"non-finite force {f} from the service; published zero instead")
+            self._publish((0.0, 0.0, 0.0))
+        elif self.nonzero and now - self.new_at > self.dev.timeout_s:
+            self.stats["zeroed"] += 1
+            self._publish((0.0, 0.0, 0.0))
+
+    def zero(self) -> None:
+        try:
+            self._publish((0.0, 0.0, 0.0))
+        except Exception:   # noqa: BLE001 -- the context may be gone already
+            pass
+
+
+def main(shm_name: str, devices: list, parent: int) -> int:
+    shm = shared_memory.SharedMemory(name=shm_name)
+    try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
+        from multiprocessing import resource_tracker
+
+        resource_tracker.unregister(shm._name, "shared_memory")
+    except Exception:
+        pass
+    blk = MasterBlock(shm.buf, len(devices))
+    ctl = blk.ctl
+    node = None
+    sides: list = []
+    try:
+        from .node import RosNode
+
+        node = RosNode("pointfence_crtk_masters")
+        sides = [DeviceSide(blk, i, CrtkDevice(**d), node.node) for i, d in enumerate(devices)]
+        node.start()
+        ctl["pid"] = os.getpid()
+        ctl["ready"] = 1
+        nxt = time.monotonic()
+        while int(ctl["stop"]) == 0 and os.getppid() == parent and node.error is None:
+            now = time.monotonic()
+            ctl["beat"] += 1
+            for s in sides:
+                s.forward(now)
+            nxt += PERIOD_S
+            delay = nxt - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                nxt = time.monotonic()
+        if node.error is not None:
+            raise RuntimeError(f"the bridge's ROS 2 node failed: {node.error}")
+        return 0
+    except BaseException as e:
+        ctl["failed"] = 1
+        if blk.n:
+            put_text(blk.text[0, ERROR_TEXT], f"CRTK master bridge: {type(e).__name__}: {e}")
+        print(f"pointfence CRTK master bridge: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+    finally:
+        for s in sides:
+            s.zero()
+        if node is not None:
+            time.sleep(0.02)   # (the zero wrenches leave before the participant goes)
+            node.close()
+        del blk, ctl, sides
+        try:
+            shm.close()
+        except BufferError:   # (a view still alive at exit: the mapping goes with the process)
+            pass
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1], json.loads(sys.argv[2]), int(sys.argv[3])))
