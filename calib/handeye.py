@@ -56,7 +56,7 @@ class HandEyeResult:
     """A hand-eye result: ``T_world_cam``; per used pose ``labels`` (log indices), ``res_mm`` and
     ``res_deg`` (None for the tip method); ``se`` the jackknife standard error (mm, deg);
     ``spread_m`` / ``span_deg`` the poses' principal extents (m) / rotation spans (deg);
-    ``dropped`` (index, why); ``extra`` method-specific figures; ``verdict``."""
+    ``dropped`` (index, why); ``extra`` method-specific figures; ``verdict``; ``tool``."""
 
     T_world_cam: np.ndarray
     method: str
@@ -69,6 +69,7 @@ class HandEyeResult:
     dropped: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
     verdict: hs.Verdict = None
+    tool: Optional[np.ndarray] = None   # the tip method's ball offset (3,) m, the marker method's T_tip_marker
 
     def report(self) -> str:
         r = self.res_mm
@@ -142,6 +143,7 @@ def calibrate_tip(log: HandEyeLog, radius: float = 0.012, tip: str = "color", lo
                          "tip offset (tip frame)": ", ".join(f"{x * 1000:.2f}" for x in o) + " mm"
                          + (" (fitted)" if fit_offset else "")})
     res.verdict = hs.judge(len(P), labels, res.res_mm, None, se, spread, span if fit_offset else None)
+    res.tool = o
     return res
 
 
@@ -212,6 +214,7 @@ def calibrate_marker(log: HandEyeLog, size: float, dictionary: str = "DICT_4X4_5
                         {"marker reprojection": f"{np.sqrt(np.mean(px ** 2)):.3f} px RMS, {px.max():.3f} px max",
                          "marker on the tool (T_tip_marker translation)": ", ".join(f"{x * 1000:.1f}" for x in Y[:3, 3]) + " mm"})
     res.verdict = hs.judge(len(C), labels, mm, deg, se, None, span, hs.MARKER_DEG)
+    res.tool = Y
     return res
 
 

@@ -96,7 +96,7 @@ def tip_log(n: int = 16, seed: int = 0, radius: float = 0.012, offset=(0.0, 0.0,
     d_cam = np.concatenate([rays, np.ones((len(rays), 1))], axis=1)
     d_world = d_cam @ X[:3, :3].T
     eye = X[:3, 3]
-    pos, turns = _positions(n, rng, pose_kind), _turns(n, rng, pose_kind, 0.0 if pose_kind == "varied" else 15.0, 30.0)
+    pos, turns = _positions(n, rng, pose_kind), _turns(n, rng, pose_kind, 15.0, 35.0)
     W, depth, color = [], [], []
     table_hits = HalfSpace((0, 0, 1), (0, 0, 0)).enter(eye, d_world)
     for p, Rt in zip(pos, turns):
@@ -115,7 +115,9 @@ def tip_log(n: int = 16, seed: int = 0, radius: float = 0.012, offset=(0.0, 0.0,
             hits[k, near] = solid.enter(eye, d_world[near])
         which = np.argmin(hits, axis=0)
         z = hits[which, np.arange(len(which))]
-        z = np.where(np.isfinite(z), z + rng.normal(0.0, 1.0, z.shape) * noise_b * z ** 2, 0.0)
+        hit = np.isfinite(z)
+        z = np.where(hit, z, 0.0)
+        z = np.where(hit, z + rng.normal(0.0, 1.0, z.shape) * noise_b * z ** 2, 0.0)
         depth.append(np.clip(np.round(z / cam.depth_scale), 0, 65535).astype(np.uint16).reshape(cam.height, cam.width))
         rgb = np.array([[235, 235, 230], [200, 30, 30], [120, 120, 125]], np.float64)[which]
         rgb = np.clip(rgb + rng.normal(0.0, 3.0, rgb.shape), 0, 255).astype(np.uint8)
@@ -137,7 +139,8 @@ def marker_log(n: int = 16, seed: int = 0, size: float = 0.05, marker_id: int = 
     d = get_dictionary(dictionary)
     W, images = [], []
     for p, Rt in zip(_positions(n, rng, pose_kind), _turns(n, rng, pose_kind)):
-        T_world_marker = make_T(Rt @ _facing(X[:3, 3] - p), p)
+        face = _facing(X[:3, 3] - (CENTER if pose_kind == "translation" else p))
+        T_world_marker = make_T(Rt @ face, p)
         W.append(T_world_marker @ inv_T(Y))
         plane = marker_plane(d, marker_id, size, T_world_marker)
         # ray cast only the image box around the marker (a camera cropped to it: the same rays)
