@@ -17,6 +17,10 @@ SUBCOMMANDS = {
                    "camera -> robot base from ArUco/AprilTag markers at known poses (low-pass filtered) or point pairs (Kabsch)"),
     "multi": ("pointfence.calib.multi", "refine one camera's pose against another by ICP on overlapping depth"),
     "noise": ("pointfence.calib.noise", "fit sigma_z = a + b Z^2 from depth captures of a plane at several distances"),
+    "hand-eye": ("pointfence.calib.handeye",
+                 "a fixed camera's T_world_cam from the robot moving a tip ball or an ArUco marker through logged poses"),
+    "master": ("pointfence.calib.master_reg",
+               "[teleop] T_world_master and scale from recorded master/robot positions (Umeyama) or a guided motion"),
     "tension": ("pointfence.service.cable.calib_tension",
                 "cable tension = a + b ln(k_e) from identification at known tensions (chapter 5)"),
 }

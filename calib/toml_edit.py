@@ -105,15 +105,18 @@ def statements(text: str) -> Iterator[tuple]:
             i = end
 
 
-def set_keys(text: str, table: str, index: int, lines: dict) -> str:
+def set_keys(text: str, table: str, index: Optional[int], lines: dict) -> str:
     """``text`` with the keys of ``lines`` (key -> its whole TOML statement, without newline)
-    set in the ``index``-th (0-based) ``[[table]]``: a key defined there (also as dotted keys
-    ``key.x = ...``) is replaced in place, a new one is added after the table's last key."""
+    set in the ``index``-th (0-based) ``[[table]]`` (``index`` None: the plain table ``[table]``):
+    a key defined there (also as dotted keys ``key.x = ...``) is replaced in place, a new one is
+    added after the table's last key."""
     stmts = list(statements(text))
     heads = [k for k, s in enumerate(stmts) if s[2] == "header"]
-    mine = [k for k in heads if stmts[k][3] == f"[[{table}]]"]
+    header = f"[{table}]" if index is None else f"[[{table}]]"
+    mine = [k for k in heads if stmts[k][3] == header]
+    index = 0 if index is None else index
     if index >= len(mine):
-        raise InputError(f"no [[{table}]] table number {index + 1} in the text ({len(mine)} found)")
+        raise InputError(f"no {header} table number {index + 1} in the text ({len(mine)} found)")
     first = mine[index]
     last = next((k for k in heads if k > first), len(stmts)) - 1
     body = [k for k in range(first + 1, last + 1) if stmts[k][2] == "key"]
