@@ -12,7 +12,7 @@ Three sides, and what each may do:
   decimated pose topics hold when the rates match) it copies the few fields telemetry needs
   (``FIELDS``) into a row of the telemetry ring (``mcap_shm.TickBlock``: the tick writes row j,
   then ``WRITTEN`` = j + 1; the child reads rows below it and sets ``CONSUMED``). Preallocated
-  views, no encoding, no lock, no allocation. A full ring (the child more than ``RING`` rows
+  views, no encoding, no lock, no allocation. A full ring (the child more than ``RING_S`` seconds of rows
   behind, or gone) drops the row and counts it (``rows_lost``); the tick never waits.
 * the frame feeder's ingest side (``offer_snapshot``, chained after the recorder's on
   ``frames._FeedBase.on_snapshot``): at most ``cloud_rate_hz`` times a second, every
@@ -45,8 +45,9 @@ from pointfence.kernels.errors import BackendUnavailable, InputError
 from .. import mcap_shm
 from ..mcap_writer import send
 
-#: ring rows (about 1 s at 60 Hz; the child reads the newest, so depth only covers its hiccups)
-RING = 64
+#: seconds of sampled ticks the ring holds (the child publishes the newest, so depth only covers
+#: its hiccups on a loaded machine)
+RING_S = 2.0
 #: pixels between two sampled pixels of a frame, both ways (the recording's fixture cloud's)
 CLOUD_STRIDE = 4
 #: frame-ring entries (the child wants the newest; two let the ingest side fill one while the
@@ -56,6 +57,8 @@ CLOUD_SLOTS = 2
 #: rows it read, rows it published, clouds published, points of the last cloud, its heartbeat
 CONSUMED = mcap_shm.FLUSHED
 ROWS_READ, PUBLISHED, CLOUDS, CLOUD_POINTS, BEAT = 7, 8, 9, 10, 11
+#: the service's: the wall clock (ns) at loop-clock 0, set before any row that uses it
+EPOCH = 12
 #: seconds ``close`` waits for the child to end
 CLOSE_TIMEOUT_S = 5.0
 #: niceness increment of the child (it yields to the service's threads on a busy machine)
@@ -108,13 +111,14 @@ class Telemetry:
     Starts the child at once; ``attach`` gives it the cameras and frames; ``close()`` ends it."""
 
     def __init__(self, table, n: int, loop_rate_hz: float, radius: float, workspace, env: Optional[dict] = None,
-                 capacity: int = RING):
+                 capacity: Optional[int] = None):
         rate = float(table.telemetry_rate_hz)
         if not 0 < rate <= loop_rate_hz:
             raise InputError(f"[ros2] telemetry_rate_hz = {rate:g}; expected 0 < rate <= the loop rate "
                              f"{loop_rate_hz:g} Hz (telemetry samples ticks)")
         self.table = table
-        self.n, self.capacity = int(n), int(capacity)
+        self.n = int(n)
+        self.capacity = int(capacity) if capacity is not None else max(16, math.ceil(rate * RING_S))
         self.every = max(1, int(round(loop_rate_hz / rate)))
         self.layout = TelemetryLayout(self.n)
         self.epoch_ns = time.time_ns()
@@ -133,32 +137,39 @@ class Telemetry:
                                                "pointfence-telemetry-")
         self._block = mcap_shm.TickBlock(buf, self.capacity, self.layout.width)
         self._hdr = self._block.header
-        # per ring slot: (field, view of that slot's columns) of the tick's two structs
-        self._views = [self._slot_views(self._block.rows[s]) for s in range(self.capacity)]
+        # a staging row the tick fills through preallocated views (arrays) and columns (scalars),
+        # then copies whole into the ring slot (as tick_cdr.TickRows: cheaper than a view per field)
+        self._stage = np.zeros(self.layout.width)
+        self._arrays, self._scalars = {"in": [], "out": []}, {"in": [], "out": []}
+        for part, name, per_arm in FIELDS:
+            c, k = self.layout.cols[name]
+            if per_arm:
+                v = self._stage[c: c + k]
+                self._arrays[part].append((name, v.reshape(self.n, 3) if per_arm == 3 else v))
+            else:
+                self._scalars[part].append((name, c))
+        self._rows = [self._block.rows[s] for s in range(self.capacity)]
+        self._hdr[EPOCH] = self.epoch_ns
         self._log = tempfile.TemporaryFile(prefix="pointfence-telemetry-log-")
-        self._proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.ros2.telemetry_node"],
-                                      stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._log,
-                                      close_fds=True, env=None if env is None else {**os.environ, **env})
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.ros2.telemetry_node"],
+                                          stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=self._log,
+                                          close_fds=True, env=None if env is None else {**os.environ, **env})
+        except OSError as e:
+            self._log.close()
+            os.unlink(self._tick_path)
+            raise InputError(f"cannot start the ROS 2 telemetry process ({e}); check that {sys.executable} runs") \
+                from None
         self._error: Optional[str] = None
         ws = workspace
         self._send(("init", {"tick_path": self._tick_path, "n": self.n, "capacity": self.capacity,
                              "cols": self.layout.cols, "width": self.layout.width, "rate_hz": rate,
                              "cloud_rate_hz": float(table.cloud_rate_hz),
                              "cloud_max_points": int(table.cloud_max_points), "frame_id": table.frame_id,
-                             "namespace": table.namespace, "epoch_ns": self.epoch_ns, "radius": float(radius),
+                             "namespace": table.namespace, "radius": float(radius),
                              "arrow_m_per_n": float(table.force_arrow_m_per_n),
                              "workspace": (tuple(map(float, ws.min)), tuple(map(float, ws.max))),
                              "nice": CHILD_NICE, "parent_pid": os.getpid()}))
-
-    def _slot_views(self, row: np.ndarray) -> tuple:
-        ins, outs = [], []
-        for part, name, per_arm in FIELDS:
-            c, k = self.layout.cols[name]
-            v = row[c: c + k]
-            if per_arm == 3:
-                v = v.reshape(self.n, 3)
-            (ins if part == "in" else outs).append((name, v))
-        return tuple(ins), tuple(outs)
 
     # --- the tick's side --------------------------------------------------------------------------
     def write(self, inp, out) -> None:
@@ -169,11 +180,13 @@ class Telemetry:
         if j - self._hdr[CONSUMED] >= self.capacity:
             self.rows_lost += 1
             return
-        ins, outs = self._views[j % self.capacity]
-        for name, view in ins:
-            view[...] = getattr(inp, name)
-        for name, view in outs:
-            view[...] = getattr(out, name)
+        st = self._stage
+        for obj, part in ((inp, "in"), (out, "out")):
+            for name, view in self._arrays[part]:
+                view[...] = getattr(obj, name)
+            for name, c in self._scalars[part]:
+                st[c] = getattr(obj, name)
+        self._rows[j % self.capacity][:] = st
         self._next = j + 1
         self._hdr[mcap_shm.WRITTEN] = j + 1     # (after the row: the child reads rows below it)
         self.rows_sent += 1
@@ -189,7 +202,7 @@ class Telemetry:
             self.epoch_ns = int(epoch_ns)
         elif clock_now is not None:
             self.epoch_ns = time.time_ns() - int(round(clock_now() * 1e9))
-        self._send(("epoch", self.epoch_ns))
+        self._hdr[EPOCH] = self.epoch_ns       # (before the loop's first row: the child stamps rows with it)
         from dataclasses import replace
 
         s = CLOUD_STRIDE
@@ -342,4 +355,4 @@ def start_telemetry(cfg, n: int, workspace=None) -> Telemetry:
                      workspace if workspace is not None else cfg.pipeline.workspace)
 
 
-__all__ = ["Telemetry", "TelemetryLayout", "start_telemetry", "strided_shape", "FIELDS", "RING", "CLOUD_STRIDE"]
+__all__ = ["Telemetry", "TelemetryLayout", "start_telemetry", "strided_shape", "FIELDS", "RING_S", "CLOUD_STRIDE"]

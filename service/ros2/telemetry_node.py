@@ -29,7 +29,7 @@ wall-clock time (the recording's):
   "invariants", "coupled", "in_contact", "pedal", "master_ok", "robot_fault", "force_gain"}]}``,
   on every change and at least once a second.
 
-Control messages on stdin (``mcap_writer.send``): ``("init", dict)`` first, ``("epoch", ns)``,
+Control messages on stdin (``mcap_writer.send``): ``("init", dict)`` first,
 ``("frames", path, shapes, slots, cameras, params)``, ``("close",)``. The end of stdin means the
 service is gone: the process exits. An error is one line on stderr and exit status 1.
 """
@@ -110,7 +110,6 @@ class Publisher:
         self.frames = None
         self.cameras, self.params = [], None
         self.snaps_consumed = 0
-        self.epoch_ns = int(p["epoch_ns"])
         self.frame_id = p["frame_id"]
         self.ros = RosNode("pointfence_telemetry", p["namespace"])
         node = self.ros.node
@@ -146,9 +145,7 @@ class Publisher:
     def control(self, msg: tuple) -> bool:
         """Apply one control message; False for ``close``."""
         op = msg[0]
-        if op == "epoch":
-            self.epoch_ns = int(msg[1])
-        elif op == "frames":
+        if op == "frames":
             _, path, shapes, slots, self.cameras, self.params = msg
             self.frames = mcap_shm.FrameBlock(mcap_shm.attach(path), shapes, slots)
             self.snaps_consumed = int(self.hdr[mcap_shm.SNAPS_CONSUMED])
@@ -174,7 +171,7 @@ class Publisher:
         self.publish_status(rows[-1])
 
     def _stamp(self, row) -> tuple:
-        ns = self.epoch_ns + int(round(self.layout.get(row, "now") * 1e9))
+        ns = int(self.hdr[T.EPOCH]) + int(round(self.layout.get(row, "now") * 1e9))
         return ns // 1_000_000_000, ns % 1_000_000_000
 
     def publish_row(self, row: np.ndarray) -> None:
