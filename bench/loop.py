@@ -99,6 +99,9 @@ def add_arguments(p):
     p.add_argument("--record", action="store_true",
                    help="record each run to an MCAP file (service/mcap_record.py) in a temporary folder, as "
                         "`serve --record` does; adds the recording's disk rate and losses to the JSON")
+    p.add_argument("--ros2-telemetry", action="store_true",
+                   help="publish ROS 2 telemetry during each run (service/ros2/telemetry.py, the [ros2] table's rates) "
+                        "on a machine-local DDS domain (loopback only); adds its counts to the JSON")
     p.add_argument("--render-live", action="store_true",
                    help="render synthetic frames on the reader threads while the loop runs (default: 30 frames "
                         "pre-rendered and served at the camera rate, as a real camera's C driver would cost)")
@@ -115,14 +118,18 @@ def circling_master(i: int, n: int, duration: float) -> ScriptedMaster:
 
 
 def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool, cache: dict,
-         record: bool = False) -> dict:
+         record: bool = False, telemetry: bool = False) -> dict:
     import tempfile
 
     masters = [circling_master(i, n, seconds + warmup + 5.0) for i in range(n)]
     sources = None if live else canned_sources(cfg, 30, cache)
     tmp = tempfile.TemporaryDirectory(prefix="pointfence-loop-") if record else None
     path = Path(tmp.name) / f"loop-{n}.mcap" if record else None
-    run = LiveRun(cfg, masters, backend=backend, device=device, sources=sources, record_path=path)
+    run = LiveRun(cfg, masters, backend=backend, device=device, sources=sources, record_path=path,
+                  ros2_telemetry=telemetry)
+    if run.telemetry is not None and not run.telemetry.wait_ready():   # (rclpy's start-up is not measured)
+        run.stop()
+        raise RuntimeError(f"ROS 2 telemetry did not start: {run.telemetry.error}")
     t_start = time.monotonic()
     run.start()
     try:
@@ -137,6 +144,7 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         gate = run.loop.gate
         yields = (gate.waits, gate.waited_s) if gate is not None else (0, 0.0)
         st = run.service.status()
+        tel = st.get("telemetry")
         ingest = list(run.frames.ingest_ms)
         frames = sum(run.frames.frames_in)
     finally:
@@ -152,6 +160,9 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
                      # the writer process's time (s): encoding ticks, frames, chunk writes and fsync, CPU
                      **({"record_writer_s": r.status()["writer_s"]} if hasattr(r, "status") else {})}
         tmp.cleanup()
+    if tel is not None:    # the publisher's counts at the end of the measured seconds
+        rec_stats["telemetry"] = {k: tel[k] for k in ("lost", "rows_sent", "rows_lost", "messages_published",
+                                                      "clouds_published", "cloud_points", "error")}
     in_contact = int((run.service.batch.states != 0).sum())
     return {**rec_stats,
         "proxies": n, "ticks": tm.ticks, "periods": tm.periods,
@@ -177,6 +188,11 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
 
 def run(args) -> dict:
     cfg = config_mod.load(args.config)
+    telemetry = getattr(args, "ros2_telemetry", False)
+    if telemetry:   # (benches keep DDS on this machine: a domain of its own, loopback only)
+        from pointfence.service.ros2 import dds
+
+        dds.apply(dds.local_env(dds.unique_domain_id()))
     counts = [int(x) for x in str(args.proxies).split(",") if x.strip()]
     cache: dict = {}
     floor = None
@@ -186,14 +202,14 @@ def run(args) -> dict:
         load = (os.cpu_count() or 1) if args.floor_load is None else args.floor_load
         floor = machine_floor(cfg, args.floor, probe["tick_us_p50"] * 1e-6, load)
     runs = [_one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache,
-                 getattr(args, "record", False)) for n in counts]
+                 getattr(args, "record", False), telemetry) for n in counts]
     from pointfence.kernels import get_backend
 
     be = get_backend(args.backend or cfg.backend, args.device or cfg.device)
     out = {"backend": be.name, "device": be.device_name, "seconds": args.seconds, "rate_hz": cfg.service.rate_hz,
            "cameras": [f"{c.source} {c.camera.width}x{c.camera.height}@{c.rate_hz:g}Hz" for c in cfg.cameras],
            "frames": "rendered live" if args.render_live else "30 pre-rendered frames served in real time",
-           "runs": runs}
+           "ros2_telemetry": bool(telemetry), "runs": runs}
     if floor is not None:
         out["machine_floor"] = floor
     last = runs[-1]

@@ -114,6 +114,9 @@ class Service:
         self.last_error: Optional[str] = None
         self.scene_time_offset = 0.0   # scene (camera) time at loop time 0
         self.recorder = make_recorder(n, record, record_path, sc.rate_hz)
+        #: a second per-tick consumer beside the recorder (``ros2.telemetry.Telemetry``: its
+        #: ``write(inp, out)`` copies into shared memory, never blocks; ``status()``), or None
+        self.telemetry = None
         self._pub_lock = threading.Lock()
         self._published = TickOutput.zeros(n)
         self._pub_core = self._bind_core(self._published)
@@ -376,6 +379,8 @@ class Service:
             p.t, p.k = out.t, out.k
         if self.recorder is not None:
             self.recorder.write(inp, out)
+        if self.telemetry is not None:
+            self.telemetry.write(inp, out)
 
     def safe_tick(self, k: int, t: float, dt: float, now: float) -> None:
         """The loop's fallback after an exception: ramp forces down, hold robots, keep stepping.
@@ -448,6 +453,8 @@ class Service:
         st["robots"] = self.devices.robot_status()
         if hasattr(self.recorder, "status"):   # MCAP: the writer process's health and losses
             st["recording"] = self.recorder.status()
+        if self.telemetry is not None:          # ROS 2 telemetry: its publisher process's health
+            st["telemetry"] = self.telemetry.status()
         return st
 
     def close(self) -> None:

@@ -28,7 +28,7 @@ from pointfence.kernels.params import PipelineParams, RadiusModel, Selection, Wo
 
 from .robot.settings import RobotConfig
 from .schema import parse_table
-from .settings import (ADAPTIVE_MARGIN, ARCHITECTURES, DEFAULT_R3, CameraTable, SceneTable, SelectTable,
+from .settings import (ADAPTIVE_MARGIN, ARCHITECTURES, DEFAULT_R3, CameraTable, Ros2Table, SceneTable, SelectTable,
                        ServiceConfig, TeleopConfig)
 
 __all__ = ["ADAPTIVE_MARGIN", "ARCHITECTURES", "DEFAULT_R3", "CameraConfig", "RobotConfig", "SceneConfig",
@@ -61,6 +61,7 @@ class SceneConfig:
     teleop: TeleopConfig = field(default_factory=TeleopConfig)
     robot: RobotConfig = field(default_factory=RobotConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
+    ros2: Ros2Table = field(default_factory=Ros2Table)     #: [ros2]: telemetry (ros2/telemetry.py)
     cell_size_given: bool = False
 
     @property
@@ -165,7 +166,7 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
                          '"point-mass"); the ideal robot ("none") has no tool to filter')
     return SceneConfig(backend=t.backend, device=t.device or None, mode=mode, pipeline=pipeline, cameras=cameras,
                        path=path, haptics=haptics, teleop=t.teleop, robot=t.robot, service=t.service,
-                       cell_size_given=t.hash.cell_size is not None)
+                       ros2=t.ros2, cell_size_given=t.hash.cell_size is not None)
 
 
 def load(path=None) -> SceneConfig:

@@ -65,6 +65,9 @@ def add_arguments(p):
     p.add_argument("--record", default=None, metavar="FILE.mcap",
                    help="record every live chapter-3 run to FILE-<scene>_<arch>.mcap (ROS 2 schemas; "
                         "`pointfence replay --recording` replays each exactly)")
+    p.add_argument("--ros2-telemetry", action="store_true",
+                   help="publish ROS 2 telemetry of every live run for RViz and Foxglove ([ros2] table; needs "
+                        "pointfence[ros2])")
     p.add_argument("--report", default="out/demo", help="report folder: PNG plots and table.md/table.json "
                                                         "(default out/demo; '' for none)")
     p.add_argument("--no-probes", action="store_true", help="skip the chapter-2 surface probes (figs. 2.12-2.15)")
@@ -98,7 +101,8 @@ def _one(cfg, scene, arch, args, viewer=None):
             record_path = base.with_name(f"{base.stem}-{scene}_{arch}.mcap")
             print(f"recording {scene} {arch} to {record_path}")
         run = LiveRun(cfg, [master], architecture=arch, backend=args.backend, device=args.device,
-                      record_s=duration + 1.0, sources=sources, record_path=record_path)
+                      record_s=duration + 1.0, sources=sources, record_path=record_path,
+                      ros2_telemetry=getattr(args, "ros2_telemetry", False) or None)
         run.start()
         try:
             run.wait(duration)

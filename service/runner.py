@@ -21,7 +21,9 @@ class LiveRun:
 
     def __init__(self, cfg, masters, *, architecture: Optional[str] = None, backend: Optional[str] = None,
                  device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None,
-                 rt_priority: Optional[int] = None, record_path=None):
+                 rt_priority: Optional[int] = None, record_path=None, ros2_telemetry: Optional[bool] = None):
+        """``ros2_telemetry``: publish ROS 2 telemetry (``ros2/telemetry.py``, the ``[ros2]``
+        table's rates and names; None: ``[ros2] telemetry``)."""
         self.cfg = cfg
         self.clock = RealClock()
         sc = cfg.service
@@ -60,6 +62,18 @@ class LiveRun:
                 from .mcap_record import config_text
 
                 rec.attach(self.frames, cfg, self.clock.now, config_text(cfg))
+        self.telemetry = None
+        if cfg.ros2.telemetry if ros2_telemetry is None else ros2_telemetry:
+            from .ros2.telemetry import start_telemetry
+
+            try:   # (after the recorder: its frames callback stays first; the same stamps as its)
+                self.telemetry = start_telemetry(cfg, self.service.n)
+                self.telemetry.attach(self.frames, cfg, self.clock.now, getattr(rec, "epoch_ns", None))
+            except BaseException:
+                self._close_telemetry()
+                self.close_robots()
+                raise
+            self.service.telemetry = self.telemetry
         self.loop = HapticLoop(self.service, self.clock, cfg.service.rate_hz, cfg.service.max_lateness_s,
                                rt_priority=cfg.service.rt_priority if rt_priority is None else rt_priority)
         self._mark = (0, 0, 0, 0)
@@ -120,6 +134,10 @@ class LiveRun:
         st["memory"] = self.memory
         return st
 
+    def _close_telemetry(self) -> None:
+        if self.telemetry is not None:
+            self.telemetry.close()
+
     def close_robots(self) -> None:
         """End the robot process of a live run with hosted robots (idempotent)."""
         if self.robot_host is not None:
@@ -129,6 +147,7 @@ class LiveRun:
         self.loop.stop()
         if self.service.recorder is not None:
             self.service.recorder.close()   # (streamed: the last rows reach the file)
+        self._close_telemetry()
         self.frames.stop()
         for s in self.sources:
             s.close()

@@ -82,6 +82,9 @@ def add_arguments(p):
                    help="stream the run to this MCAP recording (ROS 2 schemas: depth, poses, forces, events, every "
                         "tick) while it goes on (a crash or kill -9 loses at most the last 0.25 s); `pointfence replay "
                         "--recording FILE.mcap` replays it exactly (a .pfrec FILE: the older format)")
+    p.add_argument("--ros2-telemetry", action="store_true",
+                   help="publish ROS 2 telemetry for RViz and Foxglove while serving (poses, forces, fixture cloud, "
+                        "markers, status on /pointfence/...; [ros2] table; needs pointfence[ros2])")
     p.add_argument("--prerender", type=int, default=0, metavar="FRAMES",
                    help="render this many frames of each synthetic camera before starting and serve them in a loop at "
                         "the camera's rate (rendering live holds Python's interpreter lock for milliseconds a frame, "
@@ -205,7 +208,7 @@ def run(args) -> int:
         sources = live_sources(cfg, args.prerender)
     try:
         run_ = LiveRun(cfg, masters, architecture=args.architecture, backend=args.backend, device=args.device,
-                       sources=sources, record_path=args.record)
+                       sources=sources, record_path=args.record, ros2_telemetry=args.ros2_telemetry or None)
     except BaseException:
         if itp is not None:
             itp.close()

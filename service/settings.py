@@ -14,6 +14,7 @@ Units: metres, seconds, newtons; transforms are 16 numbers row-major.
 """
 from __future__ import annotations
 
+import re
 import typing
 from dataclasses import dataclass
 from typing import Literal, Optional, Tuple, Union
@@ -295,6 +296,37 @@ class MotionTable:
             raise InputError(f"[motion]: {e}") from None
 
 
+#: a ROS 2 name segment: letters, digits, underscores, not starting with a digit
+_ROS_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+@dataclass(frozen=True)
+class Ros2Table:
+    """``[ros2]``: ROS 2 telemetry for RViz and Foxglove (``service/ros2/telemetry.py``, in its
+    own process): poses, forces, the fixture cloud, markers and status on the recording's topics
+    (``/pointfence/...``) under ``namespace``."""
+
+    TABLE = "ros2"
+    telemetry: bool = setting(False, doc="publish telemetry while the service runs (serve|demo --ros2-telemetry)")
+    telemetry_rate_hz: float = setting(60.0, positive=True, hi=1000.0,
+                                       doc="poses, forces and markers per second (Hz; at most the loop rate)")
+    cloud_rate_hz: float = setting(5.0, positive=True, hi=30.0, doc="fixture clouds per second (Hz)")
+    cloud_max_points: int = setting(20000, lo=1, hi=1000000, doc="most points of one fixture cloud (downsampled)")
+    frame_id: str = setting("world", doc="frame id of the world frame (the robot base) in every header")
+    namespace: str = setting("", doc='ROS namespace of the telemetry topics ("": /pointfence/...; "/rig2": '
+                                     '/rig2/pointfence/...)')
+    force_arrow_m_per_n: float = setting(0.01, positive=True, hi=1.0, doc="length of a force marker arrow (m per N)")
+
+    def __post_init__(self):
+        if not _ROS_NAME.fullmatch(self.frame_id):
+            raise InputError(f"[ros2] frame_id = {self.frame_id!r}; expected a ROS frame name: letters, digits and "
+                             "underscores, not starting with a digit (e.g. 'world')")
+        ns = self.namespace
+        if ns and not (ns.startswith("/") and all(_ROS_NAME.fullmatch(p) for p in ns[1:].split("/"))):
+            raise InputError(f"[ros2] namespace = {ns!r}; expected '' or an absolute ROS namespace such as '/rig2' "
+                             "(segments of letters, digits and underscores, not starting with a digit)")
+
+
 def _table(cls, name: str):
     return lambda v, label: parse_table(cls, v, f"[{name}]")
 
@@ -318,13 +350,14 @@ class SceneTable:
     robot: RobotConfig = setting(factory=RobotConfig, parse=lambda v, label: parse_robot(v), doc="[robot]")
     service: ServiceConfig = setting(factory=ServiceConfig, parse=_table(ServiceConfig, "service"), doc="[service]")
     motion: MotionTable = setting(factory=MotionTable, parse=_table(MotionTable, "motion"), doc="[motion]")
+    ros2: Ros2Table = setting(factory=Ros2Table, parse=_table(Ros2Table, "ros2"), doc="[ros2]")
 
 
 #: the tables of the README's settings table, in its order: (label, dataclass)
 TABLES = (("top level", SceneTable), ("[workspace]", WorkspaceTable), ("[fixture]", FixtureTable),
           ("[fixture] select", SelectTable), ("[hash]", HashTable), ("[[camera]]", CameraTable),
           ("[[camera]] noise", NoiseTable), ("[haptics]", HapticsTable), ("[teleop]", TeleopConfig),
-          ("[service]", ServiceConfig), ("[motion]", MotionTable))
+          ("[service]", ServiceConfig), ("[motion]", MotionTable), ("[ros2]", Ros2Table))
 
 
 def table_rows() -> list:
