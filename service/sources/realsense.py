@@ -135,6 +135,9 @@ class RealSenseSource(LiveSource):
                 raise InputError(f"realsense source {target!r}: {key} = {v!r}; expected true or false")
         self._rs = rs = rsd.import_realsense()
         self._context = None
+        if device is not None and not hasattr(device, "query_sensors"):
+            raise InputError(f"realsense source {target!r}: device = {device!r}; expected a pyrealsense2 device "
+                             "(a software_device, or one from the caller's rs.context()), or leave it out")
         if device is not None:
             self.is_file = bool(device.is_playback())
             self.target = target or rsd.describe_device(rs, device)
