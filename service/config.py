@@ -114,10 +114,10 @@ def _camera(t: CameraTable) -> CameraConfig:
         target = t.source.split(":", 1)[1].split("?", 1)[0]
         base = camera_from_recording(target, name=t.name)
         camera = base if not kw else Camera(**{**base.__dict__, **kw})
-    elif scheme in ("openni2", "depthai", "ros2") and not given:
+    elif scheme in ("openni2", "depthai", "ros2", "realsense") and not given:
         from pointfence.service.sources import open_source
 
-        with open_source(t.source) as probe:  # the device, recording or CameraInfo reports its intrinsics
+        with open_source(t.source, **dict(t.options)) as probe:  # the device, recording or CameraInfo reports its intrinsics
             base = probe.camera
         camera = Camera(**{**base.__dict__, "name": t.name, **kw})
     elif scheme == "synthetic" and not given:
@@ -130,7 +130,7 @@ def _camera(t: CameraTable) -> CameraConfig:
     else:
         missing = [k for k in INTRINSIC_KEYS if getattr(t, k) is None]
         raise InputError(f"{where}: intrinsics incomplete, missing {', '.join(missing)}; give all of "
-                         f"{', '.join(INTRINSIC_KEYS)} (recorded, synthetic, openni2, depthai and ros2 sources may omit all of them)")
+                         f"{', '.join(INTRINSIC_KEYS)} (recorded, synthetic, openni2, depthai, realsense and ros2 sources may omit all of them)")
     return CameraConfig(camera, t.source, t.rate_hz, dict(t.options))
 
 

@@ -78,7 +78,7 @@ def test_defaults_load_and_run_one_frame():
     (("T_world_cam = [1, 0, 0, 0,", "T_world_cam = [2, 0, 0, 0,"), "not a rotation"),
     (("T_world_cam = [1, 0, 0, 0,  0, -1, 0, 0,", "T_world_cam = [1, 0, 0, 0,"), "expected a list of 16 numbers"),
     (('mode = "fixture"', 'mode = "fence"'), "mode = 'fence'; expected one of 'fixture', 'rendering'"),
-    (('source = "synthetic:plane"\nfx', 'source = "webcam"\nfx'), "expected 'synthetic:<scene>', 'recorded:<path>', 'openni2:<uri or file.oni>' or 'depthai:<device id>'"),
+    (('source = "synthetic:plane"\nfx', 'source = "webcam"\nfx'), "expected 'synthetic:<scene>', 'recorded:<path>', 'openni2:<uri or file.oni>', 'depthai:<device id>' or 'realsense:<serial or file.db3>'"),
     (("noise = { a = 0.0005, b = 0.002 }", "noise = { a = 0.0005, c = 0.002 }"), "unknown key 'c'"),
     (('kind = "box"', 'kind = "sphere"'), "expected one of 'all', 'box', 'color', 'mask'"),
 ])

@@ -7,6 +7,7 @@
 * ``openni2:<device uri | any | file.oni>``: an OpenNI2 camera or recording (``openni2.py``);
 * ``depthai:<device id or empty>``: a Luxonis OAK stereo camera (``depthai_source.py``);
 * ``ros2:<namespace or image topic>``: a ROS 2 camera driver's depth topics (``ros2/camera_source.py``).
+* ``realsense:<serial or empty | file.bag | file.db3>``: an Intel RealSense camera or SDK recording (``realsense.py``).
 
 Options may also follow the spec as a query string, ``synthetic:sphere?radius=0.05&seed=3``;
 keyword options win over query options. The live-camera modules import their vendor library
@@ -31,6 +32,7 @@ SCHEMES: dict[str, Callable[..., DepthSource]] = {
     "openni2": lambda target, camera, **o: _openni2_source(target, camera, **o),
     "depthai": lambda target, camera, **o: _depthai_source(target, camera, **o),
     "ros2": lambda target, camera, **o: _ros2_source(target, camera, **o),
+    "realsense": lambda target, camera, **o: _realsense_source(target, camera, **o),
 }
 #: schemes announced but not implemented yet (named in error messages).
 PLANNED: tuple = ()
@@ -52,6 +54,10 @@ def _ros2_source(target, camera, **options) -> DepthSource:
     from ..ros2.camera_source import RosDepthSource
 
     return RosDepthSource(target, camera, **options)
+def _realsense_source(target, camera, **options) -> DepthSource:
+    from .realsense import RealSenseSource
+
+    return RealSenseSource(target, camera, **options)
 
 
 def _value(text: str):
@@ -95,7 +101,7 @@ def open_source(spec: str, camera: Optional[Camera] = None, **options) -> DepthS
     if scheme not in SCHEMES:
         later = f" ({', '.join(p + ':' for p in PLANNED)} come later)" if PLANNED else ""
         raise InputError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(s + ':' for s in SCHEMES)}{later}")
-    if not target and scheme not in ("openni2", "depthai"):  # live cameras: empty = the first one attached
+    if not target and scheme not in ("openni2", "depthai", "realsense"):  # live cameras: empty = the first one attached
         raise InputError(f"source spec {spec!r} names no {'scene' if scheme == 'synthetic' else 'target'} after '{scheme}:'")
     try:
         return SCHEMES[scheme](target, camera, **{**query, **options})
