@@ -97,7 +97,7 @@ class CrtkRobot(Robot):
                        "operating_state": wire.topic(ns, "operating_state", operating_state_topic)}
         self._T_meas_ok = True             # the measured pose is taken, never computed (no kinematics here)
         self._base = np.eye(4)             # scratch: a pose in the base frame
-        self._cp_seen = self._js_seen = None
+        self._cp_seen = self._js_seen = self._bad_seen = None
         self._cp_bad: Optional[str] = None
         self._js_bad: Optional[str] = None
         self._bridge = None
@@ -130,6 +130,13 @@ class CrtkRobot(Robot):
         cp = b.cp
         if cp is None:
             return f"no measured_cp on {self.topics['measured_cp']} yet"
+        bad = b.bad_cp
+        if bad is not self._bad_seen:      # a bad sample since the last step, even if a good one followed
+            self._bad_seen = bad
+            if cp is not self._cp_seen:
+                self._cp_seen = cp
+                self._cp_bad = self._take_cp(cp)
+            return f"measured_cp on {self.topics['measured_cp']} {bad[1]}"
         if cp is not self._cp_seen:
             self._cp_seen = cp
             self._cp_bad = self._take_cp(cp)

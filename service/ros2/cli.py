@@ -11,7 +11,9 @@ import sys
 from . import dds
 
 #: subcommand -> (module, one-line help)
-SUBCOMMANDS: dict = {}
+SUBCOMMANDS: dict = {
+    "sim-arm": ("pointfence.service.ros2.sim_arm", "a simulated arm (raven2, point-mass) as a CRTK ROS 2 node"),
+}
 
 
 def add_arguments(p):

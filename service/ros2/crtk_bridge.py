@@ -39,6 +39,9 @@ class CrtkBridge:
         self.cp: Optional[tuple] = None     # (arrival, stamp ns, frame_id, x, y, z, qx, qy, qz, qw)
         self.js: Optional[tuple] = None     # (arrival, positions, velocities, efforts)
         self.state: Optional[tuple] = None  # (arrival, state name)
+        #: the newest measured_cp that was no valid pose in ``frame_id`` (arrival, why), kept even
+        #: when a good one follows before the arm's next step: one bad sample must fault the arm
+        self.bad_cp: Optional[tuple] = None
         self.received = 0                   # measured_cp messages
         self.sent = 0                       # servo_cp messages published
         self._rtt = collections.deque(maxlen=100_000)
@@ -59,7 +62,12 @@ class CrtkBridge:
     def _on_cp(self, m) -> None:
         now = time.monotonic()
         stamp = wire.stamp_ns(m.header)
-        self.cp = (now, stamp, m.header.frame_id) + wire.read_pose(m.pose)
+        pose = wire.read_pose(m.pose)
+        frame = m.header.frame_id
+        why = f"has frame_id {frame!r}; expected {self.frame_id!r}" if frame != self.frame_id else wire.pose_problem(pose)
+        if why is not None:
+            self.bad_cp = (now, why)
+        self.cp = (now, stamp, frame) + pose
         self.received += 1
         t0 = self._stamps.pop(stamp, None)
         if t0 is not None:
