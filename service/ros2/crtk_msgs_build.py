@@ -69,10 +69,6 @@ _type = None
 def _ros_prefix() -> Path:
     """The prefix the ROS 2 wheels are installed under (lib/, include/, share/)."""
     try:
-        import rosidl_runtime_py  # noqa: F401  (not always there)
-    except ImportError:
-        pass
-    try:
         import rosidl_generator_c
     except ImportError as e:
         raise BackendUnavailable(f"the rosidl generators are not installed ({e}): pip install 'pointfence[ros2]'") from None
@@ -181,9 +177,15 @@ def build(dest: Optional[Path] = None) -> Path:
         for f in py.glob("*.py"):
             shutil.copy(f, pkg / "msg" / f.name)
         (pkg / "__init__.py").write_text('"""crtk_msgs (OperatingState), built by pointfence.service.ros2.crtk_msgs_build."""\n')
-        if dest.exists():
-            shutil.rmtree(dest)
-        os.replace(work / "out", dest)
+        # one atomic rename: a process building beside this one (the robot process, a sim-arm)
+        # either finds the whole package or none; the first build in place wins
+        if dest.exists() and not (dest / PACKAGE / "msg" / "_operating_state.py").exists():
+            shutil.rmtree(dest)            # (a damaged folder)
+        try:
+            os.rename(work / "out", dest)
+        except OSError:
+            if not (dest / PACKAGE / "msg" / "_operating_state.py").exists():
+                raise
         return dest
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -204,7 +206,12 @@ def operating_state_type():
             pass
         d = cache_dir()
         if not (d / PACKAGE / "msg" / "_operating_state.py").exists():
-            build(d)
+            try:
+                build(d)
+            except BackendUnavailable as e:
+                raise BackendUnavailable(f"{e}\n(without crtk_msgs: [robot] operating_state_type = \"string\" reads the "
+                                         "state from a std_msgs/String, \"none\" goes by measured_cp alone; see "
+                                         "service/robot/README.md)") from None
         # rosidl_typesupport_c dlopens the Fast DDS type support library by its bare name: loaded
         # here first (by path, global), it is found by its soname
         for kind in ("rosidl_generator_c", "rosidl_typesupport_fastrtps_c", "rosidl_typesupport_introspection_c",
