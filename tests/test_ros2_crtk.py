@@ -115,8 +115,9 @@ def test_commands_reach_the_sim_arm_and_measured_cp_tracks_them(arm):
     assert arm.state == RobotMode.ENABLED and arm.rejected_commands == 0
     rt = arm.round_trip_us()                   # the sim-arm echoes servo_cp's stamp in measured_cp
     assert rt and all(0 < v < 5e6 for v in rt)
+    run_for(arm, 0.3)                          # settled: both topics show the same place
     js = arm.measured_js()
-    assert np.allclose(js.position, arm.measured_cp()[:3, 3], atol=1e-6)   # point mass: joints = x, y, z
+    assert np.allclose(js.position, arm.measured_cp()[:3, 3], atol=2e-5)   # point mass: joints = x, y, z
 
 
 def test_out_of_workspace_command_is_refused_and_changes_nothing(arm):
@@ -144,9 +145,9 @@ def test_a_nan_measured_cp_faults_the_arm_and_only_fresh_valid_state_clears_it(a
     assert "not finite" in arm.fault_reason
     assert np.all(np.isfinite(arm.measured_cp()))            # the NaN pose was never taken
     assert arm.servo_cp([0.0, 0.0, 0.0]) is False             # nothing is sent while faulted
-    run_for(arm, 0.1)                                         # the sim-arm's valid samples flow again
-    arm.enable()
-    assert arm.state == RobotMode.ENABLED and arm.fault_reason is None, arm.last_error
+    # the sim-arm's valid samples flow again: the clear-faults path enables it, without a jump
+    assert until(arm, lambda: (arm.enable(), arm.state == RobotMode.ENABLED)[1]), arm.last_error
+    assert arm.fault_reason is None and np.array_equal(arm.setpoint_cp(), arm.measured_cp())
 
 
 def test_a_wrong_frame_id_faults_the_arm(arm):
@@ -184,7 +185,8 @@ def test_a_state_other_than_enabled_faults_the_arm_until_enabled_again(sim_arm):
     inj = Pub(OperatingState, "/PSM1/test_state")
     r = crtk("PSM1", operating_state_topic="test_state", connect_timeout_s=0.5)
     try:
-        assert r.state == RobotMode.FAULT and "no operating_state" in r.fault_reason   # nothing said yet
+        assert r.state == RobotMode.FAULT                    # nothing said yet: never enabled
+        assert until(r, lambda: (r.enable(), "no operating_state" in (r.last_error or ""))[1]), r.last_error
         msg = OperatingState()
         msg.state = "ENABLED"
         assert inj.send(msg, r, lambda: (r.enable(), r.state == RobotMode.ENABLED)[1]), r.last_error
@@ -212,7 +214,7 @@ def test_killing_the_sim_arm_faults_the_arm_within_the_watchdog_bound(ros2_env):
         proc.wait(timeout=10)
         time.sleep(TIMEOUT + 0.02)                           # the last sample is older than the bound now
         r.step(1e-3)
-        assert r.state == RobotMode.FAULT and "no fresh measured_cp" in r.fault_reason
+        assert r.state == RobotMode.FAULT and "no fresh measured_" in r.fault_reason
         r.enable()                                           # the clear-faults path, with no arm there
         assert r.state == RobotMode.FAULT and "enable refused" in r.last_error
     finally:
@@ -247,7 +249,7 @@ def test_the_hosted_arm_runs_in_the_robot_process_end_to_end(ros2_env):
         proc.kill()
         proc.wait(timeout=10)
         assert until(arm, lambda: arm.state == RobotMode.FAULT)
-        assert "no fresh measured_cp" in (arm.fault_reason or "")
+        assert "no fresh measured_" in (arm.fault_reason or "")   # (measured_cp or measured_js: whichever aged first)
         assert arm.servo_cp(goal) is False
     finally:
         host.close()
