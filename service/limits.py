@@ -60,6 +60,10 @@ LIMITS: dict = {
                                       "FAULT (S9): an arm moving at 2 m/s goes half a metre in 0.25 s "
                                       "(robot/hosted.py WATCHDOG_MAX_S); below two of its 1 kHz steps any "
                                       "scheduling hiccup faults every arm"),
+    "robot.measured_timeout_s": Limit(0.002, 0.25, "s",
+                                      "how long a CRTK arm may go without a fresh measured_cp before it reads FAULT "
+                                      "(S9): as robot_watchdog_s, an arm moving at 2 m/s goes half a metre in 0.25 s; "
+                                      "below two 1 kHz samples one lost message faults the arm"),
     # -- [teleop] ------------------------------------------------------------------------------
     "teleop.scale": Limit(1e-3, 1.0, "",
                           "robot motion per master motion: a surgical robot scales the hand's motion down; "

@@ -45,6 +45,8 @@ def with_value(key: str, value, extra=None) -> dict:
     for k, v in {**(extra or {}), key: value}.items():
         table, name = k.split(".")
         where = doc["camera"][0] if table == "camera" else doc.setdefault(table, {})
+        if table == "robot":            # (robot limits bound options of the CRTK arm: robot/crtk.py)
+            where["model"] = "crtk"
         if table == "workspace" and not isinstance(v, list):
             v = [v] + where[name][1:]
         where[name] = v
@@ -111,11 +113,12 @@ def test_a_synthetic_camera_with_a_pose_and_no_intrinsics_loads():
 
 def test_every_limit_bounds_a_configuration_key_or_a_command_line_value():
     from pointfence.service import settings
+    from pointfence.service.robot.settings import CrtkOptions
     from pointfence.service.schema import keys
 
     known = {cls.TABLE: set(keys(cls)) for cls in (settings.ServiceConfig, settings.TeleopConfig, settings.HapticsTable,
                                                    settings.FixtureTable, settings.HashTable, settings.WorkspaceTable,
-                                                   settings.CameraTable, settings.MotionTable)}
+                                                   settings.CameraTable, settings.MotionTable, CrtkOptions)}
     for key in CONFIG_LIMITS:
         table, name = key.split(".")
         assert name in known[table], key

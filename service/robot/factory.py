@@ -47,6 +47,19 @@ name the key and suggest the closest known one)::
     T_world_base = [...]
     fault_error = 0.05
     control_rate_hz = 1000
+
+    [robot]
+    model = "crtk"                 # an arm behind CRTK over ROS 2 (robot/crtk.py)
+    namespace = "PSM1"
+    frame_id = "PSM1_base"         # header.frame_id of its poses (default "<namespace>_base")
+    dof = 6                        # joints in its measured_js
+    T_world_base = [...]           # its base frame in the world
+    workspace_min = [-0.1, -0.1, -0.2]
+    workspace_max = [0.1, 0.1, 0.0]
+    measured_timeout_s = 0.02      # watchdog (s, at most 0.25)
+    operating_state_type = "crtk"  # "crtk" | "string" | "none"
+    # servo_cp_topic, measured_cp_topic, measured_js_topic, operating_state_topic: overrides
+    connect_timeout_s = 5.0
 """
 from __future__ import annotations
 
@@ -56,12 +69,13 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
+from .crtk import CrtkRobot
 from .base import Robot, as_vector
 from .point_mass import PointMass
 from .raven2 import Raven2
 from .settings import OPTIONS, RobotConfig, option_error, parse_robot
 
-MODELS = {"raven2": Raven2, "point-mass": PointMass}
+MODELS = {"raven2": Raven2, "point-mass": PointMass, "crtk": CrtkRobot}
 
 
 def model_options(model: str) -> set:
@@ -78,10 +92,13 @@ def _model(model) -> type:
     return MODELS[model]
 
 
-def make_robot(model: str = "raven2", **options) -> Robot:
-    """A simulated robot: ``model`` is 'raven2' (the default robot) or 'point-mass'; ``options``
-    are that model's keyword options (see the module docstring). Raises InputError on an
-    unknown model or option (naming it and suggesting the closest) or a bad value."""
+def make_robot(model: str = "raven2", *, connect: bool = True, **options) -> Robot:
+    """A robot: ``model`` is 'raven2' (the default robot), 'point-mass' or 'crtk' (an arm over
+    ROS 2); ``options`` are that model's keyword options (see the module docstring).
+    ``connect=False``: a model that talks to an arm ('crtk') opens no connection (a copy for
+    geometry and checks: the service's side of an arm in the robot process); simulated models
+    ignore it. Raises InputError on an unknown model or option (naming it and suggesting the
+    closest) or a bad value."""
     cls = _model(model)
     for key in options:
         if key not in OPTIONS[model].__dataclass_fields__:
@@ -98,18 +115,21 @@ def make_robot(model: str = "raven2", **options) -> Robot:
         if T.size != 16:
             raise InputError(f"T_world_base has {T.size} numbers; expected 16 (a 4x4, row-major)")
         options["T_world_base"] = as_vector(np.asarray(T, dtype=float).ravel(), 16, "T_world_base").reshape(4, 4)
+    if cls is CrtkRobot:
+        options["connect"] = connect
     return cls(**options)
 
 
-def robot_from_config(table) -> Robot:
+def robot_from_config(table, connect: bool = True) -> Robot:
     """Build the robot of a ``[robot]`` configuration: a ``RobotConfig`` (robot/settings.py) or
     a plain TOML table (see the module docstring; checked by ``parse_robot``). The model
-    defaults to 'raven2'; "none" (the ideal robot) has no robot to build."""
+    defaults to 'raven2'; "none" (the ideal robot) has no robot to build. ``connect``: see
+    ``make_robot``."""
     cfg = parse_robot(table) if not isinstance(table, RobotConfig) else table
     if cfg.model not in MODELS:
         raise InputError(f"[robot] model = {cfg.model!r} has no robot to build (the ideal robot); "
                          f"expected one of {', '.join(repr(m) for m in MODELS)}")
     try:
-        return make_robot(cfg.model, **cfg.kwargs())
+        return make_robot(cfg.model, connect=connect, **cfg.kwargs())
     except InputError as e:
         raise InputError(f"[robot] {e}") from None

@@ -118,7 +118,8 @@ class RobotHost:
         if not (isinstance(timeout_s, (int, float)) and 0 < timeout_s <= WATCHDOG_MAX_S):
             raise InputError(f"RobotHost: timeout_s = {timeout_s!r}; expected a watchdog time > 0 and "
                              f"<= {WATCHDOG_MAX_S} s (a robot process silent for longer must read as FAULT)")
-        local = [robot_from_config(t) for t in tables]      # validates every table here, first
+        # validates every table here, first; an arm behind a connection (crtk) connects in the child only
+        local = [robot_from_config(t, connect=False) for t in tables]
         dof = max(r.dof for r in local)
         if any(r.dof != dof for r in local):
             raise InputError("RobotHost: every hosted arm must have the same number of joints")

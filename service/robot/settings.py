@@ -16,6 +16,7 @@ from typing import Literal, Optional, Tuple, Union
 from pointfence.kernels.errors import InputError
 
 from ..schema import check_value, parse_table, rows, setting, unknown_key
+from .crtk import CrtkRobot
 from .point_mass import PointMass
 from .raven2 import DEFAULTS as RAVEN2_DEFAULTS
 from .raven2 import Raven2
@@ -102,9 +103,39 @@ class PointMassOptions:
     control_rate_hz: float = setting(_default(PointMass, "control_rate_hz"), doc="the controller's rate (Hz)")
 
 
-#: the options dataclass of each simulated robot model
-OPTIONS = {"raven2": Raven2Options, "point-mass": PointMassOptions}
-Model = Literal["raven2", "point-mass", "none"]
+@dataclass(frozen=True)
+class CrtkOptions:
+    """``[robot]`` options of model "crtk" (robot/crtk.CrtkRobot): an arm behind CRTK over
+    ROS 2 (a dVRK PSM ...): setpoints out on servo_cp, state in from measured_cp, measured_js,
+    operating_state (service/robot/README.md)."""
+
+    TABLE = "robot"
+    namespace: str = setting(_default(CrtkRobot, "namespace"), doc="the arm's ROS namespace (its topics' prefix)")
+    frame_id: str = setting("", doc="header.frame_id of its poses (its base frame)", default_doc='"<namespace>_base"')
+    dof: int = setting(_default(CrtkRobot, "dof"), doc="joints in its measured_js")
+    T_world_base: Optional[Vec] = setting(None, doc="the arm's base frame in the world, 16 numbers row-major",
+                                          default_doc="identity")
+    workspace_min: Optional[Vec] = setting(None, doc="world box the tip must stay in: lower corner (m)",
+                                           default_doc="none")
+    workspace_max: Optional[Vec] = setting(None, doc="world box the tip must stay in: upper corner (m)",
+                                           default_doc="none")
+    measured_timeout_s: float = setting(_default(CrtkRobot, "measured_timeout_s"), positive=True,
+                                        doc="watchdog: FAULT without a fresh measured_cp for this long (s)")
+    operating_state_type: Literal["crtk", "string", "none"] = setting(
+        _default(CrtkRobot, "operating_state_type"),
+        doc='"crtk" (crtk_msgs/OperatingState) | "string" (std_msgs/String) | "none" (no state topic)')
+    servo_cp_topic: str = setting("", doc="command topic (relative: under namespace)", default_doc='"servo_cp"')
+    measured_cp_topic: str = setting("", doc="measured pose topic", default_doc='"measured_cp"')
+    measured_js_topic: str = setting("", doc="measured joints topic", default_doc='"measured_js"')
+    operating_state_topic: str = setting("", doc="operating state topic", default_doc='"operating_state"')
+    connect_timeout_s: float = setting(_default(CrtkRobot, "connect_timeout_s"), positive=True,
+                                       doc="wait for the arm's first valid state at start (s; then FAULT)")
+    control_rate_hz: float = setting(_default(CrtkRobot, "control_rate_hz"), doc="the rate servo_cp is streamed at (Hz)")
+
+
+#: the options dataclass of each robot model
+OPTIONS = {"raven2": Raven2Options, "point-mass": PointMassOptions, "crtk": CrtkOptions}
+Model = Literal["raven2", "point-mass", "crtk", "none"]
 
 
 @dataclass(frozen=True)
@@ -112,8 +143,8 @@ class RobotConfig:
     """``[robot]``: the simulated robot model, its options and its tool (``[robot.tool]``)."""
 
     TABLE = "robot"
-    model: Model = setting("raven2", doc='"raven2" | "point-mass" | "none" (ideal robot: X_r = X_r*)')
-    options: Union[Raven2Options, PointMassOptions, None] = setting(
+    model: Model = setting("raven2", doc='"raven2" | "point-mass" | "crtk" (ROS 2) | "none" (ideal robot: X_r = X_r*)')
+    options: Union[Raven2Options, PointMassOptions, CrtkOptions, None] = setting(
         None, doc="the model's options, beside model in [robot]", default_doc="the model's defaults")
     tool: Optional[ToolModel] = setting(None, doc="[robot.tool]: the tool the self-filter removes (robot/tool.py)",
                                         default_doc="a Raven II's instrument; none for other robots")
@@ -154,6 +185,10 @@ def parse_robot(table) -> RobotConfig:
     opts = dict(table)
     model = check_value(Model, opts.pop("model", "raven2"), "[robot] model")
     tool = opts.pop("tool", None)
+    if tool is not None and model == "crtk":
+        raise InputError("[robot.tool] with model = 'crtk': the self-filter places the tool by the arm's kinematics "
+                         "at each frame's capture time, and a CRTK arm's kinematics are its controller's; remove "
+                         "[robot.tool] (the self-filter stays off for a CRTK arm)")
     tool = None if tool is None else parse_tool(tool)
     if model == "none":
         if opts:

@@ -14,6 +14,7 @@ from . import dds
 SUBCOMMANDS: dict = {
     "camera-node": ("pointfence.service.ros2.camera_node", "publish a pointfence depth source as a ROS 2 camera (Image/compressedDepth + CameraInfo)"),
     "sim-master": ("pointfence.service.ros2.sim_master", "a simulated CRTK master (dVRK MTM): measured_cp and the pedal out, body/servo_cf forces in"),
+    "sim-arm": ("pointfence.service.ros2.sim_arm", "a simulated arm (raven2, point-mass) as a CRTK ROS 2 node"),
 }
 
 

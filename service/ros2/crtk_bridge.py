@@ -1,0 +1,114 @@
+"""The rclpy side of a CRTK arm (robot/crtk.py ``CrtkRobot``): one node with the arm's three
+subscriptions and its ``servo_cp`` publisher.
+
+The node is spun on its own thread (``RosNode``). Each callback turns its message into a tuple of
+plain floats and swaps it in as the newest (one reference assignment: no lock); the arm's
+``step`` takes the newest tuples and hands its setpoint back the same way, waking the node's
+executor with a guard condition, so the node's thread publishes ``servo_cp``: nothing of ROS runs
+in the arm's thread but that trigger.
+
+Round trip (``pointfence bench ros2``): each ``servo_cp`` carries ``header.stamp`` = the
+wall-clock time it was sent (ns, unique per send); an arm that echoes the stamp of the last
+``servo_cp`` it applied in its ``measured_cp`` (``pointfence ros2 sim-arm`` does) gives
+``round_trip_us()``: from each send to the arrival of the measured_cp that echoes it.
+"""
+from __future__ import annotations
+
+import collections
+import time
+from typing import Optional
+
+from . import crtk_wire as wire
+from .node import RosNode
+
+
+class CrtkBridge:
+    """The rclpy side of one CRTK arm: a node (``RosNode``) with the three subscriptions and the
+    ``servo_cp`` publisher. ``cp``, ``js``, ``state``: the newest message of each, as a tuple
+    whose first item is its arrival (``time.monotonic()``, s), None before the first. ``send``
+    hands a setpoint to the node's thread, which publishes it."""
+
+    def __init__(self, namespace: str, topics: dict, frame_id: str, state_kind: str):
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import JointState
+
+        self.topics, self.frame_id = topics, frame_id
+        state_cls = wire.state_type(state_kind)     # (builds crtk_msgs first, where needed)
+        self.ros = RosNode("pointfence_crtk_" + (namespace.replace("/", "_") or "arm"))
+        node = self.ros.node
+        self.cp: Optional[tuple] = None     # (arrival, stamp ns, frame_id, x, y, z, qx, qy, qz, qw)
+        self.js: Optional[tuple] = None     # (arrival, positions, velocities, efforts)
+        self.state: Optional[tuple] = None  # (arrival, state name)
+        #: the newest measured_cp that was no valid pose in ``frame_id`` (arrival, why), kept even
+        #: when a good one follows before the arm's next step: one bad sample must fault the arm
+        self.bad_cp: Optional[tuple] = None
+        self.received = 0                   # measured_cp messages
+        self.sent = 0                       # servo_cp messages published
+        self._rtt = collections.deque(maxlen=100_000)
+        self._stamps: dict = {}             # stamp (ns) -> monotonic send time, of recent sends
+        self._order: collections.deque = collections.deque()
+        self._pending: Optional[tuple] = None   # (stamp ns, pose 7-tuple), handed over by send
+        self._msg = PoseStamped()
+        self._msg.header.frame_id = frame_id
+        self._pub = node.create_publisher(PoseStamped, topics["servo_cp"], wire.qos_reliable())
+        node.create_subscription(PoseStamped, topics["measured_cp"], self._on_cp, wire.qos_stream())
+        node.create_subscription(JointState, topics["measured_js"], self._on_js, wire.qos_stream())
+        if state_cls is not None:
+            node.create_subscription(state_cls, topics["operating_state"], self._on_state, wire.qos_reliable(10))
+        self._wake = node.create_guard_condition(self._publish)
+        self.ros.start()
+
+    # --- the node's thread ----------------------------------------------------------------------
+    def _on_cp(self, m) -> None:
+        now = time.monotonic()
+        stamp = wire.stamp_ns(m.header)
+        pose = wire.read_pose(m.pose)
+        frame = m.header.frame_id
+        why = f"has frame_id {frame!r}; expected {self.frame_id!r}" if frame != self.frame_id else wire.pose_problem(pose)
+        if why is not None:
+            self.bad_cp = (now, why)
+        self.cp = (now, stamp, frame) + pose
+        self.received += 1
+        t0 = self._stamps.pop(stamp, None)
+        if t0 is not None:
+            self._rtt.append(1e6 * (now - t0))
+
+    def _on_js(self, m) -> None:
+        self.js = (time.monotonic(), tuple(m.position), tuple(m.velocity), tuple(m.effort))
+
+    def _on_state(self, m) -> None:
+        self.state = (time.monotonic(), wire.state_name(m))
+
+    def _publish(self) -> None:
+        item, self._pending = self._pending, None
+        if item is None:
+            return
+        stamp, (x, y, z, qx, qy, qz, qw) = item
+        m = self._msg
+        wire.set_stamp(m.header, stamp)
+        p, o = m.pose.position, m.pose.orientation
+        p.x, p.y, p.z, o.x, o.y, o.z, o.w = x, y, z, qx, qy, qz, qw
+        self._pub.publish(m)
+        self.sent += 1
+        self._stamps[stamp] = time.monotonic()
+        self._order.append(stamp)
+        while len(self._order) > 256:      # forget sends never echoed
+            self._stamps.pop(self._order.popleft(), None)
+
+    # --- the arm's thread -----------------------------------------------------------------------
+    def send(self, pose: tuple) -> None:
+        """Publish ``pose`` (x, y, z, qx, qy, qz, qw; base frame) on servo_cp from the node's
+        thread, stamped now (wall clock, ns). A setpoint not yet published is replaced."""
+        self._pending = (time.time_ns(), pose)
+        self._wake.trigger()
+
+    def round_trip_us(self) -> list:
+        return list(self._rtt)
+
+    @property
+    def error(self) -> Optional[str]:
+        """Why the node stopped spinning (None: it spins)."""
+        return self.ros.error
+
+    def close(self) -> None:
+        self.ros.close()
