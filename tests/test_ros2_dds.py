@@ -28,10 +28,12 @@ def test_local_profile_allows_loopback_only(tmp_path):
     assert rtps.find(f"{NS}useBuiltinTransports").text == "false"   # no SHM, no default UDP on every interface
     peers = [a.text for a in rtps.iter(f"{NS}address")]
     assert peers == ["127.0.0.1"]
-    (desc,) = root.find(f"{NS}transport_descriptors")
-    assert desc.find(f"{NS}type").text == "UDPv4"
-    assert [a.text for a in desc.iter(f"{NS}address")] == ["127.0.0.1"]
-    assert [t.text for t in rtps.find(f"{NS}userTransports")] == [desc.find(f"{NS}transport_id").text]
+    descs = {d.find(f"{NS}transport_id").text: d for d in root.find(f"{NS}transport_descriptors")}
+    types = {i: d.find(f"{NS}type").text for i, d in descs.items()}
+    assert sorted(types.values()) == ["SHM", "UDPv4"]            # shared memory never leaves the machine
+    (udp,) = [d for d in descs.values() if d.find(f"{NS}type").text == "UDPv4"]
+    assert [a.text for a in udp.iter(f"{NS}address")] == ["127.0.0.1"]
+    assert sorted(t.text for t in rtps.find(f"{NS}userTransports")) == sorted(descs)
 
 
 @pytest.mark.parametrize("bad", [-1, 233, "7a", 1.5, None])

@@ -13,9 +13,11 @@ depth driver publishes (the layout ``ros2:/cam0`` reads, ``camera_source.py``):
   ``[[camera]] T_world_cam``).
 
 ``header.frame_id`` is ``--frame-id`` (default ``<namespace>_depth_optical_frame``).
-``header.stamp`` (``--stamp``): ``mapped`` (default) is the source's capture time moved onto
-ROS time (``time.time()``) by the offset at the first frame, so the stamps keep the source's own
-spacing and sit on the clock other nodes use; ``source`` is the capture time as the source gives
+``header.stamp`` (``--stamp``): ``mapped`` (default) puts the capture on ROS time
+(``time.time()``, the clock other nodes use): a camera's capture time moved by the offset of the
+two clocks at its first frame (the stamps keep the camera's own spacing); a file's or a synthetic
+scene's frame is captured the moment it is due and read (a schedule that slips, e.g. behind a
+slow first read, never leaves the stamps behind the frames); ``source`` is the capture time as the source gives
 it (a recording's own timestamps); ``now`` is the moment the frame was published.
 
 Pacing: a live source (a camera) is published as it delivers, at most ``--rate`` Hz; a file or
@@ -86,14 +88,17 @@ class CameraPublisher:
 
     def stamp_of(self, capture: float, read_at: Optional[float] = None) -> float:
         """header.stamp (s) of a frame captured at ``capture`` on the source's clock and read
-        from the source starting at ``read_at`` (``time.time()``; default now): ``mapped`` fixes
-        the offset of the two clocks at the first frame, before its read, so no later stamp lies
-        ahead of the moment its frame was read."""
+        from the source at ``read_at`` (``time.time()``; None for a camera, which delivers on its
+        own): ``mapped`` stamps a file's frame with ``read_at``, and a camera's with its capture
+        time moved by the offset of the two clocks at its first frame, fixed before that frame's
+        read, so no later stamp lies ahead of the moment its frame was read."""
         if self.stamp == "source":
             return capture
         now = time.time()
         if self.stamp == "now":
             return now
+        if read_at is not None:
+            return read_at
         if self._offset is None:
             self._offset = (now if read_at is None else read_at) - capture
         return capture + self._offset

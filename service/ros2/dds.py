@@ -4,8 +4,9 @@ A lab's setup spans machines, so the product leaves ROS 2's own environment alon
 (``ROS_DOMAIN_ID``, ``ROS_AUTOMATIC_DISCOVERY_RANGE``, a Fast DDS profile) unless told to keep
 DDS on this machine: tests, benches and CI must never send discovery traffic to another address.
 ``local_env`` gives that environment (a domain of its own, discovery limited to localhost, and a
-Fast DDS profile whose only transport is UDP on 127.0.0.1 with 127.0.0.1 as the only initial
-peer and no built-in transports: no shared memory, no multicast on other interfaces);
+Fast DDS profile whose only transports are shared memory (depth images of 600 kB cross it without
+UDP fragmentation) and UDP on 127.0.0.1, with 127.0.0.1 as the only initial peer and no built-in
+transports: nothing on another interface);
 ``apply`` puts it into ``os.environ`` before rclpy creates its first participant, and a child
 process gets it through its ``env``.
 """
@@ -22,7 +23,7 @@ from pointfence.kernels.errors import BackendUnavailable, InputError
 MAX_DOMAIN_ID = 232
 
 PROFILE_XML = """<?xml version="1.0" encoding="UTF-8" ?>
-<!-- pointfence: DDS on this machine only (UDP over 127.0.0.1, no other transport) -->
+<!-- pointfence: DDS on this machine only (shared memory, and UDP over 127.0.0.1; no other transport) -->
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <transport_descriptors>
     <transport_descriptor>
@@ -30,10 +31,18 @@ PROFILE_XML = """<?xml version="1.0" encoding="UTF-8" ?>
       <type>UDPv4</type>
       <interfaceWhiteList><address>127.0.0.1</address></interfaceWhiteList>
     </transport_descriptor>
+    <transport_descriptor>
+      <transport_id>pointfence_shm</transport_id>
+      <type>SHM</type>
+      <segment_size>16777216</segment_size>
+    </transport_descriptor>
   </transport_descriptors>
   <participant profile_name="pointfence_loopback_only" is_default_profile="true">
     <rtps>
-      <userTransports><transport_id>pointfence_loopback</transport_id></userTransports>
+      <userTransports>
+        <transport_id>pointfence_shm</transport_id>
+        <transport_id>pointfence_loopback</transport_id>
+      </userTransports>
       <useBuiltinTransports>false</useBuiltinTransports>
       <builtin>
         <initialPeersList>

@@ -165,7 +165,7 @@ def main(shm_name: str, devices: list, parent: int) -> int:
     try:
         from .node import RosNode
 
-        node = RosNode("pointfence_crtk_masters")
+        node = RosNode("pointfence_crtk_masters", executor="events")   # poses at 1 kHz: see ros2/node.py
         sides = [DeviceSide(blk, i, CrtkDevice(**d), node.node) for i, d in enumerate(devices)]
         node.start()
         ctl["pid"] = os.getpid()

@@ -75,7 +75,7 @@ class SimArm:
         self.robot, self.echo = robot, echo
         self.frame_id = frame_id or f"{ns.replace('/', '_') or 'arm'}_base"
         self.state_cls = wire.state_type(state_type)
-        self.ros = RosNode("pointfence_sim_arm_" + (ns.replace("/", "_") or "arm"))
+        self.ros = RosNode("pointfence_sim_arm_" + (ns.replace("/", "_") or "arm"), executor="events")
         node = self.ros.node
         self._cmd = None                    # newest servo_cp: (stamp ns, frame_id, pose 7-tuple)
         self._cmd_seen = None

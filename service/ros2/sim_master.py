@@ -139,7 +139,7 @@ def run(args) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     reliable = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
-    node = RosNode(f"pointfence_sim_master_{dev.namespace.replace('/', '_')}")
+    node = RosNode(f"pointfence_sim_master_{dev.namespace.replace('/', '_')}", executor="events")
     try:
         n = node.node
         pose_pub = n.create_publisher(PoseStamped, dev.pose_topic, reliable)

@@ -1,0 +1,220 @@
+"""`pointfence bench ros2`: the ROS 2 path on this machine's loopback, beside the same loop without it.
+
+Two live runs of the same scene (the embedded defaults' camera and Raven II arm, the fixture the
+objects above the table, one circling master pressing into it, architecture III), one after the
+other in one call:
+
+* **ROS off**: ``bench loop``'s run: 30 pre-rendered frames served in real time, a scripted
+  master, the arm simulated in the robot process.
+* **ROS on**: the same 30 frames written as a recording and published by a ``ros2 camera-node``
+  process (``sensor_msgs/Image`` + ``CameraInfo``, stamps on ROS time) into a ``ros2:`` camera;
+  the master a ``ros2 sim-master`` process (``measured_cp`` and the pedal in, ``body/servo_cf``
+  out, through the CRTK master bridge process); the arm a ``ros2 sim-arm`` process (the same
+  Raven II model) driven as ``[robot] model = "crtk"`` from the robot process; telemetry on.
+
+Each run gives the loop's figures (``loop_miss_ratio``, ``loop_late_us_p99``, tick p50, missed
+ticks, the machine's busy share and stolen time). The ROS run adds ``camera_latency_ms_p50/p99``
+(a frame's ``header.stamp``, its capture on ROS time, to the moment the snapshot holding it was
+published; wall clock, one machine) and ``frames_dropped`` (frames the camera published in the
+measured seconds that no snapshot held). Then, with the service stopped, ``servo_rtt_us_p50/p99``:
+a CRTK arm (``robot/crtk.py``, its node in this process) streams ``servo_cp`` at 1 kHz to the
+sim-arm, which echoes each applied command's stamp in its ``measured_cp``
+(``CrtkRobot.round_trip_us``). DDS stays on this machine (``service/ros2/dds.py``).
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .loop import _one
+from .machine import cpu_times, cpu_usage
+from .stats import pct
+
+#: the scene of both runs: the embedded defaults with the fixture on everything above the table
+#: (a ROS depth camera carries no colour to select the red balloon by)
+SELECT = 'select = { kind = "box", min = [-0.25, -0.25, 0.005], max = [0.25, 0.25, 0.25] }'
+CAMERA_NS = "/pf_bench/cam0"
+MASTER_NS = "MTMR"
+ARM_NS = "PSM1"
+
+
+def add_arguments(p):
+    p.add_argument("--seconds", type=float, default=10.0, help="measured seconds of each live run (default 10)")
+    p.add_argument("--warmup", type=float, default=2.0, help="seconds run before measuring (default 2)")
+    p.add_argument("--rtt-seconds", type=float, default=5.0, help="seconds of servo_cp at 1 kHz for the round trip (default 5)")
+
+
+def _scene(tmp: Path):
+    """(config path, config) of both runs."""
+    from pointfence.service import config as config_mod
+
+    text = (Path(config_mod.__file__).parent / "defaults.toml").read_text()
+    old = 'select = { kind = "color", lo = [150, 0, 0], hi = [255, 90, 90] }'
+    if old not in text:
+        raise RuntimeError("bench ros2: the embedded defaults no longer select the balloon by colour; update SELECT")
+    path = tmp / "scene.toml"
+    path.write_text(text.replace(old, SELECT))
+    return path, config_mod.load(str(path))
+
+
+def _write_frames(cfg, folder: Path, n: int = 30) -> None:
+    """The scene camera's first ``n`` frames as a tsdf-layout recording (16-bit PNG, mm)."""
+    import cv2
+
+    from pointfence.service.canned import canned_sources
+
+    src = canned_sources(cfg, n)[0]
+    cam = src.camera
+    if abs(cam.depth_scale - 1e-3) > 1e-12:
+        raise RuntimeError(f"bench ros2: the scene camera's depth_scale is {cam.depth_scale}; the recording needs mm")
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, f in enumerate(src.frames):
+        cv2.imwrite(str(folder / f"frame-{i:06d}.depth.png"), f.depth.astype(np.uint16))
+    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
+    np.savetxt(folder / "camera-intrinsics.txt", K)
+
+
+def _spawn(args: list, env: dict, log: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "pointfence", "ros2", *args], env=env,
+                            stdout=subprocess.DEVNULL, stderr=open(log, "wb"))
+
+
+def _stop(procs) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: float, backend, device) -> dict:
+    from pointfence.service.ros2.crtk_device import CrtkDevice
+    from pointfence.service.ros2.crtk_master import CrtkMasterHost
+    from pointfence.service.runner import LiveRun
+    from pointfence.service.sources import open_source
+
+    frames_dir = tmp / "frames"
+    _write_frames(cfg, frames_dir)
+    rate = cfg.cameras[0].rate_hz
+    procs = [_spawn(["camera-node", "--source", f"recorded:{frames_dir}", "--namespace", CAMERA_NS, "--rate", f"{rate:g}"],
+                    env, tmp / "camera-node.log"),
+             _spawn(["sim-master", "--namespace", MASTER_NS, "--circle", "--loop"], env, tmp / "sim-master.log"),
+             _spawn(["sim-arm", "--namespace", ARM_NS, "--config", str(cfg_path)], env, tmp / "sim-arm.log")]
+    host = run = None
+    try:
+        robot = {"model": "crtk", "namespace": ARM_NS, "connect_timeout_s": 30.0}
+        cfg_on = _with_robot(cfg, robot)
+        source = open_source(f"ros2:{CAMERA_NS}", cfg.cameras[0].camera, wait=30.0)
+        host = CrtkMasterHost([CrtkDevice(namespace=MASTER_NS)], env=env)
+        run = LiveRun(cfg_on, list(host.masters), backend=backend, device=device, sources=[source],
+                      ros2_telemetry=True)
+        lat, stamps, measuring = [], set(), [False]
+        orig = run.frames.on_snapshot
+
+        def noted(seq, built, _orig=orig):
+            if measuring[0]:
+                lat.append(time.time() - float(built[0].timestamp))
+                stamps.add(round(float(built[0].timestamp) * rate))
+            if _orig is not None:
+                _orig(seq, built)
+
+        run.frames.on_snapshot = noted
+        run.start(first_frame_timeout=60.0)
+        run.wait(warmup)
+        run.mark()
+        measuring[0] = True
+        c0 = cpu_times()
+        run.wait(seconds)
+        tm = run.timing()
+        cpu = cpu_usage(c0, cpu_times())
+        measuring[0] = False
+        st = run.service.status()
+    finally:
+        if run is not None:
+            run.stop()
+        if host is not None:
+            host.close()
+        _stop(procs)
+    expected = (max(stamps) - min(stamps) + 1) if stamps else 0
+    return {"ticks": tm.ticks, "periods": tm.periods,
+            "tick_us_p50": round(tm.compute_us_p50, 1), "tick_us_p99": round(tm.compute_us_p99, 1),
+            "loop_late_us_p99": round(tm.late_us_p99, 1), "loop_miss_ratio": round(tm.miss_ratio, 5),
+            "loop_misses": tm.misses, "loop_missed_ticks": tm.missed_ticks, **cpu,
+            "camera_latency_ms_p50": round(pct(lat, 50) * 1e3, 2) if lat else None,
+            "camera_latency_ms_p99": round(pct(lat, 99) * 1e3, 2) if lat else None,
+            "camera_frames_published": int(expected), "frames_dropped": int(expected - len(stamps)),
+            "holds_at_end": st["hold"], "telemetry": st.get("telemetry")}
+
+
+def _with_robot(cfg, robot: dict):
+    """``cfg`` with its ``[robot]`` table replaced by ``robot``."""
+    from dataclasses import replace
+
+    from pointfence.service.robot.settings import parse_robot
+
+    return replace(cfg, robot=parse_robot(robot))
+
+
+def _servo_rtt(env: dict, tmp: Path, cfg_path: Path, seconds: float) -> dict:
+    """servo_cp at 1 kHz from a CRTK arm in this process to a sim-arm process and back."""
+    from pointfence.service.periodic import PeriodicLoop
+    from pointfence.service.robot.crtk import CrtkRobot
+
+    proc = _spawn(["sim-arm", "--namespace", ARM_NS, "--config", str(cfg_path)], env, tmp / "sim-arm-rtt.log")
+    arm = None
+    try:
+        arm = CrtkRobot(namespace=ARM_NS, connect_timeout_s=30.0)
+        x0 = arm.measured_cp()[:3, 3].copy()
+        loop = PeriodicLoop(1e-3)
+        t_end = time.monotonic() + seconds
+        target = np.empty(3)
+
+        def tick(k):
+            a = 2 * np.pi * k / 4000.0
+            target[:] = x0 + 0.005 * np.array([np.cos(a) - 1.0, np.sin(a), 0.0])
+            arm.servo_cp(target)
+            arm.step(1e-3)
+            if time.monotonic() >= t_end:
+                loop.stop()
+
+        loop.run(tick)
+        rtt = arm.round_trip_us()
+    finally:
+        if arm is not None:
+            arm.close()
+        _stop([proc])
+    return {"servo_rtt_us_p50": round(pct(rtt, 50), 1) if rtt else None,
+            "servo_rtt_us_p99": round(pct(rtt, 99), 1) if rtt else None, "servo_round_trips": len(rtt),
+            "servo_commands": loop.ticks}
+
+
+def run(args) -> dict:
+    from pointfence.service.ros2 import dds
+
+    with tempfile.TemporaryDirectory(prefix="pointfence-bench-ros2-") as t:
+        tmp = Path(t)
+        env = dds.local_env(dds.unique_domain_id(), tmp / "dds")
+        dds.apply(env)
+        env = {**os.environ, **env}
+        cfg_path, cfg = _scene(tmp)
+        off = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {})
+        on = _ros_run(cfg, cfg_path, tmp, env, args.seconds, args.warmup, args.backend, args.device)
+        rtt = _servo_rtt(env, tmp, cfg_path, args.rtt_seconds)
+    keys = ("tick_us_p50", "loop_late_us_p99", "loop_miss_ratio", "loop_missed_ticks", "busy_pct", "steal_ms")
+    return {"seconds": args.seconds, "rate_hz": cfg.service.rate_hz, **rtt,
+            "camera_latency_ms_p50": on["camera_latency_ms_p50"], "camera_latency_ms_p99": on["camera_latency_ms_p99"],
+            "frames_dropped": on["frames_dropped"],
+            "loop_miss_ratio": on["loop_miss_ratio"], "loop_late_us_p99": on["loop_late_us_p99"],
+            "loop_miss_ratio_ros_off": off["loop_miss_ratio"], "loop_late_us_p99_ros_off": off["loop_late_us_p99"],
+            "ros_on": on, "ros_off": {k: off.get(k) for k in keys},
+            "note": "one machine: the camera-node, sim-master and sim-arm processes share its cores with the service"}
