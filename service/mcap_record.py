@@ -108,6 +108,8 @@ class McapRecorder:
         self._joint_path: Optional[str] = None
         self._joint_fill: list = []       # (arm, the robot's measured_jp_into)
         self._joint_every = 1
+        self._joint_stage: Optional[np.ndarray] = None     # (arms, dof): joints taken for tick _joint_staged
+        self._joint_staged = -1
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             out = self.path.open("wb")
@@ -147,10 +149,15 @@ class McapRecorder:
         slot = j % self.capacity
         self._fill.fill(inp, out, self.data[slot])
         js = self._joints
-        if js is not None and inp.k % self._joint_every == 0:
-            row = js.rows[slot]
-            for b, fill in self._joint_fill:
-                fill(row[b])
+        if js is not None:
+            k = inp.k
+            if k % self._joint_every == 0:          # the joints this tick read: taken at the end of the one before
+                js.rows[slot] = self._joint_stage if self._joint_staged == k else math.nan
+            if (k + 1) % self._joint_every == 0:
+                stage = self._joint_stage
+                for b, fill in self._joint_fill:
+                    fill(stage[b])
+                self._joint_staged = k + 1
         self._next = j + 1
         self._hdr[mcap_shm.WRITTEN] = j + 1        # (after the row: the writer reads rows below it)
         self.ticks_recorded += 1
@@ -223,9 +230,13 @@ class McapRecorder:
 
     def record_joints(self, robots) -> None:
         """Record the measured joints of ``robots`` (one per arm, None: an ideal robot) as
-        ``sensor_msgs/JointState`` on ``/<arm>/measured_js`` (CRTK) at ``joint_hz``: the tick
-        copies each robot's joint positions (``measured_jp_into``, rad or m) into the joint ring
-        beside its tick row on every ``rate_hz / joint_hz``-th tick. Robots without a joint model
+        ``sensor_msgs/JointState`` on ``/<arm>/measured_js`` (CRTK) at ``joint_hz``, every
+        ``rate_hz / joint_hz``-th tick: the joints the robot reported when that tick read it, so
+        that their forward kinematics is the tick's ``/<arm>/measured_cp``. A robot's state moves
+        on in its step (in the tick's write), so the tick before takes them at its end
+        (``measured_jp_into``, rad or m, into a staging row) and the tick puts them into the joint
+        ring beside its own row; a tick whose previous tick ran no recorder write (the first, or
+        one after missed periods) has none (NaN: no message). Robots without a joint model
         are left out: an ideal robot, and the point mass, whose three prismatic "joints" are its
         tool position (``measured_cp`` already). Call before the first tick, once."""
         if self._joints is not None or self.joint_hz <= 0 or self._closed:
@@ -239,6 +250,7 @@ class McapRecorder:
         self._joint_path, buf = mcap_shm.create(mcap_shm.JointBlock.nbytes(self.capacity, self.n, dof),
                                                 "pointfence-joints-")
         self._joints = mcap_shm.JointBlock(buf, self.capacity, self.n, dof)
+        self._joint_stage = np.full((self.n, dof), math.nan)
         self._joint_fill = [(b, r.measured_jp_into) for b, r in arms]
         self._send(("joints", self._joint_path, dof, {str(b): v for b, v in names.items()}, self._joint_every))
 

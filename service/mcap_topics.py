@@ -102,10 +102,13 @@ class JointTopics:
         self.topics = {b: f"/{robot_ns(b)}/measured_js" for b in self.names}
 
     def write(self, tw: TopicWriter, k: np.ndarray, joints: np.ndarray, ns: np.ndarray) -> None:
-        """``k`` (N,) tick numbers, ``joints`` (N, arms, dof) their joint rows, ``ns`` (N,) stamps."""
+        """``k`` (N,) tick numbers, ``joints`` (N, arms, dof) their joint rows (NaN: none), ``ns``
+        (N,) stamps."""
         for i in np.flatnonzero(k % self.every == 0):
             t = int(ns[i])
             for b, names in self.names.items():
+                if np.isnan(joints[i, b, 0]):       # (none taken for this tick)
+                    continue
                 tw.dyn(self.topics[b], "sensor_msgs/JointState",
                        {"header": stamp(t, ""), "name": names,
                         "position": joints[i, b, : len(names)].tolist(), "velocity": [], "effort": []}, t)

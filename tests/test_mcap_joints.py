@@ -1,7 +1,8 @@
 """Robot joints in an MCAP recording (service/mcap_record.py ``record_joints``, mcap_topics.py
 ``JointTopics``): a Raven II arm's measured joints are recorded as ``sensor_msgs/JointState`` on
 ``/<arm>/measured_js`` (CRTK) at the configured rate, and decode with mcap-ros2-support into its
-joint names and the exact positions it had at each recorded tick; arms without a joint model (a
+joint names and the exact positions each recorded tick read (their forward kinematics is the tick's
+measured_cp); arms without a joint model (a
 point mass, an ideal robot) get no topic; a message sent before a tick reaches the file before it
 (the writer catches up on control messages before it writes ticks)."""
 from __future__ import annotations
@@ -50,13 +51,13 @@ def test_raven_joints_decode_into_joint_state_with_names_and_positions(tmp_path)
     assert "/PSM1/measured_js" in topics
     assert "/PSM2/measured_js" not in topics and "/PSM3/measured_js" not in topics   # point mass, ideal: none
     js = [m for m in msgs if m.channel.topic == "/PSM1/measured_js"]
-    assert len(js) == 30                                    # 100 Hz (the pose rate) of 300 ticks at 1 kHz
+    assert len(js) == 29                # 100 Hz (the pose rate) of 300 ticks at 1 kHz; tick 0 had no tick before it
     for i, m in enumerate(js):
         q = m.ros_msg
-        k = 10 * i
+        k = 10 * (i + 1)
         assert m.schema.name == "sensor_msgs/JointState"
         assert list(q.name) == list(JOINT_NAMES) == list(raven.joint_names)
-        assert list(q.position) == _q(k).tolist()           # rad, rad, m, rad, rad, rad: exact
+        assert list(q.position) == _q(k - 1).tolist()       # what tick k read: the state at tick k-1's end; exact
         assert len(q.velocity) == 0 and len(q.effort) == 0
         ns = rec.epoch_ns + round(k * 1e-3 * 1e9)
         assert (q.header.stamp.sec, q.header.stamp.nanosec) == (ns // 10**9, ns % 10**9) and m.message.log_time == ns
@@ -66,8 +67,8 @@ def test_joint_rate_is_configurable_and_zero_turns_it_off(tmp_path):
     raven = make_robot("raven2")
     every = _record(tmp_path / "all.mcap", [raven], 50, joint_hz=1000.0, move=lambda k, r: r[0].reset(_q(k)))
     got = [m.ros_msg for m in ros2_messages(tmp_path / "all.mcap", topics=["/PSM1/measured_js"])]
-    assert every.joint_hz == 1000.0 and len(got) == 50
-    assert [list(q.position) for q in got] == [_q(k).tolist() for k in range(50)]
+    assert every.joint_hz == 1000.0 and len(got) == 49
+    assert [list(q.position) for q in got] == [_q(k - 1).tolist() for k in range(1, 50)]
     _record(tmp_path / "off.mcap", [raven], 50, joint_hz=0.0)
     assert not list(ros2_messages(tmp_path / "off.mcap", topics=["/PSM1/measured_js"]))
     for bad in (-1.0, math.nan, math.inf):

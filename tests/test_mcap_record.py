@@ -179,13 +179,15 @@ def test_messages_decode_into_the_standard_ros2_types(served):
     from pointfence.service.robot import JOINT_NAMES, robot_from_config
 
     js = seen["/PSM1/measured_js"]
-    assert js[0].schema.name == "sensor_msgs/JointState" and len(js) == len(seen["/PSM1/measured_cp"])
+    # (a tick after missed loop periods has none: the tick before it did not take them)
+    assert js[0].schema.name == "sensor_msgs/JointState" and len(seen["/PSM1/measured_cp"]) / 2 < len(js) <= \
+        len(seen["/PSM1/measured_cp"])
     from pointfence.service.mcap_replay import recording_config
 
     raven = robot_from_config(recording_config(r).robot)        # (the recorded configuration's, mount included)
     poses = {(m.ros_msg.header.stamp.sec, m.ros_msg.header.stamp.nanosec): m.ros_msg.pose.position
              for m in seen["/PSM1/measured_cp"]}
-    for m in js[:: max(1, len(js) // 20)]:
+    for m in js:
         q = m.ros_msg
         assert list(q.name) == list(JOINT_NAMES) and len(q.position) == 6 and not len(q.velocity)
         tip = raven.forward_kinematics(np.array(q.position))[:3, 3]
