@@ -73,7 +73,7 @@ def build(path, *, recompute: bool = False, measure: bool = True, backend=None, 
                        "rate_hz": None if s.rate_hz is None else round(s.rate_hz, 2)} for s in sc.topics.values()],
            "cameras": _cameras(meta, sc), "arms": _arms(rec), **_events(sc, first)}
     ev = None
-    have = None if recompute else run_measures.stored(path, sc.metadata)
+    have = None if recompute else run_measures.stored(path, rec.metadata)   # (JSON values decoded)
     if have is not None:
         rep["measures"] = {**have[0], "stored_in": have[1]}
     if (have is None and measure) or want_traces:

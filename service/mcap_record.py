@@ -72,13 +72,18 @@ class McapRecorder:
     streaming = True
 
     def __init__(self, path, n: int = 1, keep: int = 0, capacity: int = RING, flush_s: float = 0.25,
-                 pose_hz: float = 100.0, cloud_hz: float = 2.0, rate_hz: float = 1000.0, nice: int = 0):
+                 pose_hz: float = 100.0, cloud_hz: float = 2.0, rate_hz: float = 1000.0, nice: int = 0,
+                 joint_hz: Optional[float] = None):
         if not 0 < flush_s <= 0.5:
             raise InputError(f"McapRecorder: flush_s = {flush_s!r}; expected 0 < flush_s <= 0.5 s (S8: a crash may "
                              "lose at most the last second)")
         self.path = Path(path)
         self.n, self.capacity, self.flush_s = int(n), int(capacity), float(flush_s)
         self.rate_hz, self.pose_hz, self.cloud_hz = float(rate_hz), float(pose_hz), float(cloud_hz)
+        self.joint_hz = self.pose_hz if joint_hz is None else float(joint_hz)
+        if not (self.joint_hz >= 0 and math.isfinite(self.joint_hz)):
+            raise InputError(f"McapRecorder: joint_hz = {joint_hz!r}; expected a rate >= 0 Hz (0: no joint topics; "
+                             f"the tick rate {self.rate_hz:g} Hz or more: every tick)")
         self.layout = TickLayout(self.n)
         self._fill = TickRows(self.layout)
         from .record import Recorder
@@ -97,6 +102,14 @@ class McapRecorder:
         self._snaps = 0
         self._feeder = None
         self._closed = False
+        self._sealed = False
+        self._syncs = 0
+        self._joints: Optional[mcap_shm.JointBlock] = None    # (note_start: where a robot has joints)
+        self._joint_path: Optional[str] = None
+        self._joint_fill: list = []       # (arm, the robot's measured_jp_into)
+        self._joint_every = 1
+        self._joint_stage: Optional[np.ndarray] = None     # (arms, dof): joints taken for tick _joint_staged
+        self._joint_staged = -1
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             out = self.path.open("wb")
@@ -133,7 +146,18 @@ class McapRecorder:
             self.ticks_lost += 1
             return
         self.full = False
-        self._fill.fill(inp, out, self.data[j % self.capacity])
+        slot = j % self.capacity
+        self._fill.fill(inp, out, self.data[slot])
+        js = self._joints
+        if js is not None:
+            k = inp.k
+            if k % self._joint_every == 0:          # the joints this tick read: taken at the end of the one before
+                js.rows[slot] = self._joint_stage if self._joint_staged == k else math.nan
+            if (k + 1) % self._joint_every == 0:
+                stage = self._joint_stage
+                for b, fill in self._joint_fill:
+                    fill(stage[b])
+                self._joint_staged = k + 1
         self._next = j + 1
         self._hdr[mcap_shm.WRITTEN] = j + 1        # (after the row: the writer reads rows below it)
         self.ticks_recorded += 1
@@ -195,12 +219,40 @@ class McapRecorder:
         feeder.on_snapshot = self.offer_snapshot
 
     def note_start(self, service) -> None:
-        """The state ``Service.start`` read (masters, robots, control), for a replay's start."""
+        """The state ``Service.start`` read (masters, robots, control), for a replay's start, and
+        the robots whose joints are recorded (``record_joints``). Call before the first tick."""
         inp = service.inp
         self.describe({"start": {"master_pos": inp.master_pos.tolist(), "pedal": inp.pedal.tolist(),
                                  "master_ok": inp.master_ok.tolist(), "robot_pos": inp.robot_pos.tolist(),
                                  "robot_present": inp.robot_present.tolist(), "haptics": bool(service.haptics_on),
                                  "teleop": bool(service.teleop_on), "architecture": service.architecture}})
+        self.record_joints(service.robots)
+
+    def record_joints(self, robots) -> None:
+        """Record the measured joints of ``robots`` (one per arm, None: an ideal robot) as
+        ``sensor_msgs/JointState`` on ``/<arm>/measured_js`` (CRTK) at ``joint_hz``, every
+        ``rate_hz / joint_hz``-th tick: the joints the robot reported when that tick read it, so
+        that their forward kinematics is the tick's ``/<arm>/measured_cp``. A robot's state moves
+        on in its step (in the tick's write), so the tick before takes them at its end
+        (``measured_jp_into``, rad or m, into a staging row) and the tick puts them into the joint
+        ring beside its own row; a tick whose previous tick ran no recorder write (the first, or
+        one after missed periods) has none (NaN: no message). Robots without a joint model
+        are left out: an ideal robot, and the point mass, whose three prismatic "joints" are its
+        tool position (``measured_cp`` already). Call before the first tick, once."""
+        if self._joints is not None or self.joint_hz <= 0 or self._closed:
+            return
+        arms = [(b, r) for b, r in enumerate(robots) if b < self.n and _has_joints(r)]
+        if not arms:
+            return
+        dof = max(int(r.dof) for _, r in arms)
+        names = {b: [str(x) for x in r.joint_names] for b, r in arms}
+        self._joint_every = max(1, int(round(self.rate_hz / min(self.joint_hz, self.rate_hz))))
+        self._joint_path, buf = mcap_shm.create(mcap_shm.JointBlock.nbytes(self.capacity, self.n, dof),
+                                                "pointfence-joints-")
+        self._joints = mcap_shm.JointBlock(buf, self.capacity, self.n, dof)
+        self._joint_stage = np.full((self.n, dof), math.nan)
+        self._joint_fill = [(b, r.measured_jp_into) for b, r in arms]
+        self._send(("joints", self._joint_path, dof, {str(b): v for b, v in names.items()}, self._joint_every))
 
     # --- the ingest side ------------------------------------------------------------------------------
     def _clock_minus_stamp(self) -> float:
@@ -215,6 +267,8 @@ class McapRecorder:
         before are copied into the next frame-ring entry for the writer; never blocks. A full
         ring, or a frame not of its camera's size, drops the snapshot (``snapshots_dropped``)."""
         fb = self._frames
+        if self._sealed:                 # (the run's last tick is recorded: a later snapshot served none)
+            return
         if fb is None or self._snaps - self._hdr[mcap_shm.SNAPS_CONSUMED] >= fb.slots:
             self.snapshots_dropped += 1
             return
@@ -252,6 +306,7 @@ class McapRecorder:
             return
         try:
             send(self._proc.stdin, msg)
+            self._hdr[mcap_shm.SENT] += 1       # (after the message: see mcap_shm.SENT)
         except (BrokenPipeError, OSError) as e:
             self._error = self._error or f"recording {self.path}: the writer process is gone ({e})"
 
@@ -297,6 +352,28 @@ class McapRecorder:
                     ("ticks", mcap_shm.US_TICKS), ("frames", mcap_shm.US_FRAMES), ("sync", mcap_shm.US_SYNC),
                     ("flush_max", mcap_shm.US_FLUSH_MAX), ("cpu", mcap_shm.US_CPU))}}
 
+    def seal(self, timeout: float = CLOSE_TIMEOUT_S) -> bool:
+        """The run is over (call after its last tick, never from the tick): snapshots offered from
+        now on are not recorded, and the writer writes every tick and frame handed over so far in
+        whole, fsynced chunks (a flush barrier). Returns True once it has, False if the writer is
+        gone or did not within ``timeout`` s. The file then reads whole with
+        ``mcap_read.open_recording`` while it is still open (it has no summary yet), so that
+        what is computed from it (the run's measures) can go into it with ``add_metadata``
+        before ``close()``."""
+        if self._closed:
+            return False
+        self._sealed = True
+        self._syncs += 1
+        self.describe({"ticks_recorded": self.ticks_recorded, "ticks_lost": self.ticks_lost,
+                       "snapshots_dropped": self.snapshots_dropped})
+        self._send(("sync", self._syncs))
+        end = time.monotonic() + timeout
+        while self._hdr[mcap_shm.SYNCED] < self._syncs:
+            if self._proc.poll() is not None or time.monotonic() > end:
+                return False
+            time.sleep(0.002)
+        return True
+
     def close(self) -> None:
         """Write everything recorded, the MCAP summary and footer, and end the writer process
         (idempotent; waits up to ``CLOSE_TIMEOUT_S``)."""
@@ -320,7 +397,7 @@ class McapRecorder:
         self._error = self._writer_error() or self._error
         if self._proc.stderr is not None and not self._proc.stderr.closed:
             self._proc.stderr.close()
-        for p in (self._tick_path, self._frame_path):
+        for p in (self._tick_path, self._frame_path, self._joint_path):
             if p is not None:
                 try:
                     os.unlink(p)
@@ -334,6 +411,12 @@ class McapRecorder:
             return getattr(self.memory, name)
         raise AttributeError(f"McapRecorder has no {name!r} (a run recorded only to {self.__dict__.get('path')}: "
                              "read it with pointfence.service.mcap_read)")
+
+
+def _has_joints(robot) -> bool:
+    """Whether ``robot``'s joints are recorded (see ``McapRecorder.record_joints``)."""
+    return (robot is not None and getattr(robot, "model", None) != "point-mass" and hasattr(robot, "measured_jp_into")
+            and bool(getattr(robot, "joint_names", ())) and int(getattr(robot, "dof", 0)) > 0)
 
 
 def _jsonable(name: str, values: dict) -> dict:

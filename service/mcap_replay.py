@@ -32,13 +32,12 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 from .masters import Master
-from .recorded_frames import RecordedFrames
+from .recorded_frames import FrameDecoder, RecordedFrames
+from .replay_ticks import ReplayTicks
 from .robot.base import RobotMode
-from .tick_cdr import TickRows, row_into
+from .tick_cdr import row_into
 from .tick_io import TickInput
 
-#: fields of TickOutput that are wall-clock measurements, not results
-_TIMING = ("kernel_us", "tick_us")
 _EYE = np.eye(4)
 
 
@@ -136,11 +135,15 @@ def recording_config(recording, radius: Optional[float] = None):
     return parse(doc, f"{recording.path} (recorded configuration)")
 
 
-def replay(recording, *, backend=None, device=None, architecture=None, radius=None):
+def replay(recording, *, backend=None, device=None, architecture=None, radius=None, timing: Optional[dict] = None):
     """Replay ``recording`` (``mcap_read.Recording``); returns (service, check) where ``check``
-    is the exactness report (None for a what-if run)."""
+    is the exactness report (None for a what-if run) and ``service.recorder`` holds every
+    replayed tick (``record.Recorder``). ``timing`` (a dict), where given, gets the wall-clock
+    seconds of the set-up (``setup_s``: configuration, service, kernels) and of the ticks
+    (``ticks_s``)."""
     from .app import Service
 
+    t_start = time.perf_counter()
     meta, lay, rows = recording.meta, recording.layout, recording.rows
     if not len(rows):
         raise InputError(f"{recording.path}: no whole tick recorded (the run ended, or the file was cut, before its "
@@ -160,23 +163,31 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
         robots = [Service._make_robot(cfg.robot) if present[b] else None for b in range(n)]
     else:
         robots = [RecordedRobot(start["robot_pos"][b]) if present[b] else None for b in range(n)]
-    svc = Service(cfg, masters, robots=robots, backend=backend or meta.get("backend"),
-                  device=device or (None if backend else meta.get("device_spec")), record=len(rows),
-                  architecture=architecture or start.get("architecture") or meta.get("architecture"))
+    schedule = build_schedule(recording)
+    decoder = FrameDecoder(recording, schedule)     # decoding starts now, beside the service's set-up
+    try:
+        svc = Service(cfg, masters, robots=robots, backend=backend or meta.get("backend"),
+                      device=device or (None if backend else meta.get("device_spec")), record=0,
+                      architecture=architecture or start.get("architecture") or meta.get("architecture"))
+    except BaseException:
+        decoder.close()
+        raise
     ks, ts = (rows[:, lay.cols[("in", name)][0]] for name in ("k", "t"))
-    feeder = RecordedFrames(svc.pipeline, recording, build_schedule(recording), cfg.service.stale_s,
-                            cfg.service.max_frame_age_s, tick_times=dict(zip(ks.astype(np.int64).tolist(), ts.tolist())))
+    feeder = RecordedFrames(svc.pipeline, recording, schedule, cfg.service.stale_s, cfg.service.max_frame_age_s,
+                            tick_times=dict(zip(ks.astype(np.int64).tolist(), ts.tolist())), decoder=decoder)
     svc.attach_frames(feeder)
     svc.engage_haptics(bool(start["haptics"]))
     svc.engage_teleop(bool(start["teleop"]))
-    check = None if what_if else _Check(lay, len(rows))
+    ticks = ReplayTicks(lay, len(rows))
     inp = TickInput.zeros(n)
     recorded = _Inputs(lay, rows, inp)
     arch_code = svc.teleop.arch if what_if and architecture else None
     arms = [(b, r) for b, r in enumerate(robots) if r is not None and not what_if]
     rpos, rfault = inp.robot_pos, inp.robot_fault
-    clock = time.perf_counter
+    clock, take, tick = time.perf_counter, ticks.take, svc.replay_tick
+    t_setup = clock()
     try:
+        feeder.start()
         for i in range(len(rows)):
             recorded.into(i)
             if arch_code is not None:
@@ -186,18 +197,19 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
                 r.pos[:] = rpos[b]
                 r.fault = bool(rfault[b])
             w0 = clock()
-            out = svc.replay_tick(inp)
-            svc.note_tick_us((clock() - w0) * 1e6)
-            if check is not None:
-                check.take(i, out)
+            out = tick(inp)
+            take(inp, out, (clock() - w0) * 1e6)
     finally:
         feeder.close()
-    if check is not None:
-        check.finish(rows)
+    svc.recorder = ticks.recorder()          # (what ticks.csv, inputs.npz and summary.json are written from)
+    if timing is not None:
+        timing.update(setup_s=t_setup - t_start, ticks_s=clock() - t_setup)
+    if what_if:
+        return svc, None
+    report = ticks.compare(rows)
     if feeder.missing:
-        if check is not None:
-            check.report["missing_snapshots"] = sorted(set(feeder.missing))
-    return svc, (None if check is None else check.report)
+        report["missing_snapshots"] = sorted(set(feeder.missing))
+    return svc, report
 
 
 class _Inputs:
@@ -225,40 +237,6 @@ class _Inputs:
             dst[...] = a[i]
         for name, vals in self.scalars:
             setattr(inp, name, vals[i])
-
-
-class _Check:
-    """Compares each replayed tick's output with the recorded one (timing fields aside): ``take``
-    keeps the replayed output of tick i, ``finish`` compares all of them at once."""
-
-    def __init__(self, lay, count: int):
-        self.lay = lay
-        self.fill = TickRows(lay)
-        self.got = np.zeros((count, lay.width))
-        self.taken = 0
-        self.cols = np.concatenate([np.arange(c, c + k) for (part, name), (c, k) in lay.cols.items()
-                                    if part == "out" and name not in _TIMING])
-        self.report = {"exact": True, "ticks_compared": 0, "mismatched_ticks": 0, "first_mismatch": None}
-
-    def take(self, i: int, out) -> None:
-        self.fill.fill_out(out, self.got[i])
-        self.taken = i + 1
-
-    def finish(self, rows: np.ndarray) -> None:
-        n = self.taken
-        a, b = self.got[:n][:, self.cols], rows[:n][:, self.cols]
-        same = (a == b) | (np.isnan(a) & np.isnan(b))
-        bad = np.flatnonzero(~same.all(axis=1))
-        self.report["ticks_compared"] = n
-        self.report["mismatched_ticks"] = int(len(bad))
-        if len(bad):
-            self.report["exact"] = False
-            i = int(bad[0])
-            col = int(self.cols[np.flatnonzero(~same[i])[0]])
-            name = next(nm for (part, nm), (c, k) in self.lay.cols.items() if part == "out" and c <= col < c + k)
-            kcol = self.lay.cols[("out", "k")][0]
-            self.report["first_mismatch"] = {"tick": int(self.got[i, kcol]), "field": name,
-                                             "recorded": float(rows[i, col]), "replayed": float(self.got[i, col])}
 
 
 __all__ = ["replay", "recording_config", "build_schedule", "RecordedRobot", "RecordedFrames"]

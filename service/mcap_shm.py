@@ -10,6 +10,11 @@ writer reads the rows below ``written``, then sets ``flushed``; the tick reuses 
 ``flushed``. Each side writes only its own counters, so no lock: on x86-64 (the service's
 hosts, as for ``robot/hosted_block.py``) stores are seen in program order.
 
+``JointBlock``: the robots' measured joints beside the tick ring, row for row (``capacity``
+rows of ``arms`` x ``dof`` float64; made when the robots are known, ``McapRecorder.note_start``).
+The tick fills row j before it sets ``written`` = j + 1, on the ticks whose joints are recorded;
+the writer reads it with the tick row.
+
 ``FrameBlock``: a ring of ``slots`` snapshot entries, made when the cameras are known
 (``McapRecorder.attach``). Entry i holds the snapshot's numbers (``ENTRY`` float64 per
 camera, below) and, per camera, room for a new depth (uint16 H x W), colour (uint8 H x W x 3)
@@ -29,6 +34,13 @@ WRITTEN, FLUSHED, SNAPS_WRITTEN, SNAPS_CONSUMED, FRAMES_RECORDED, SNAPSHOTS_RECO
 # the writer's timing counters (int64 us, cumulative): encoding ticks, encoding frames, chunk
 # writes and fsync, the longest flush, and the writer's CPU time
 US_TICKS, US_FRAMES, US_SYNC, US_FLUSH_MAX, US_CPU = range(7, 12)
+#: the writer's: the last ``sync`` request it has carried out (``McapRecorder.seal``: every tick
+#: and frame handed over before it is in whole chunks on disk)
+SYNCED = 12
+#: the service's: control messages sent to the writer so far (``McapRecorder._send``, counted
+#: after each): the writer carries out every message counted before it reads a tick row, so
+#: what was sent before a tick (the joint block, the frame block, the epoch) applies to it
+SENT = 13
 HEADER = 16
 #: per camera in a snapshot entry: new (1: an image in this entry), frame seq, recorded index,
 #: capture stamp (s), clock - stamp (s, NaN: none), colour (0/1), mask (0/1), 16 pose numbers (NaN: the camera's)
@@ -79,6 +91,20 @@ class TickBlock:
         return 8 * HEADER + 8 * int(capacity) * int(width)
 
 
+class JointBlock:
+    """Views of a joint block's mapping ``buf``: ``rows`` (``capacity`` x ``arms`` x ``dof``
+    float64; joint positions, rad or m)."""
+
+    def __init__(self, buf, capacity: int, arms: int, dof: int):
+        self.buf, self.capacity, self.arms, self.dof = buf, int(capacity), int(arms), int(dof)
+        self.rows = np.frombuffer(buf, np.float64, self.capacity * self.arms * self.dof).reshape(
+            self.capacity, self.arms, self.dof)
+
+    @staticmethod
+    def nbytes(capacity: int, arms: int, dof: int) -> int:
+        return 8 * int(capacity) * int(arms) * max(1, int(dof))
+
+
 class FrameBlock:
     """Views of a frame block's mapping ``buf`` for cameras of ``shapes`` [(height, width)] and
     ``slots`` entries: ``meta[slot]`` (float64: the snapshot seq, then ``ENTRY`` per camera) and
@@ -115,6 +141,6 @@ class FrameBlock:
         return self.meta[slot, 1 + ENTRY * cam: 1 + ENTRY * (cam + 1)]
 
 
-__all__ = ["TickBlock", "FrameBlock", "create", "attach", "shm_dir", "HEADER", "ENTRY", "WRITTEN", "FLUSHED",
+__all__ = ["TickBlock", "JointBlock", "FrameBlock", "SYNCED", "SENT", "create", "attach", "shm_dir", "HEADER", "ENTRY", "WRITTEN", "FLUSHED",
            "SNAPS_WRITTEN", "SNAPS_CONSUMED", "FRAMES_RECORDED", "SNAPSHOTS_RECORDED", "BEAT", "US_TICKS",
            "US_FRAMES", "US_SYNC", "US_FLUSH_MAX", "US_CPU"]

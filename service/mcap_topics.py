@@ -11,7 +11,9 @@ Per arm b (CRTK names, ``ros2_schemas.robot_ns`` / ``master_ns``), at ``pose_hz`
 X_r*, world), ``/MTMR/measured_cp`` (the master's sample, master frame), ``/MTMR/servo_cf``
 (the force sent to the master, its frame, N), and ``/pointfence/arm0/{xm,hip,proxy}``
 (PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). Orientations
-are identity: pointfence's points have none.
+are identity: pointfence's points have none. Where the arm's robot has joints (Raven II),
+``/PSM1/measured_js`` (``sensor_msgs/JointState``: its joint names, measured positions in rad or
+m; no velocity or effort) at the recorder's ``joint_hz``.
 """
 from __future__ import annotations
 
@@ -90,6 +92,28 @@ class ArmTopics:
                 tw.raw(topic, schema, buf[i * size: (i + 1) * size], ns[i])
 
 
+class JointTopics:
+    """``/<arm>/measured_js`` (``sensor_msgs/JointState``) of the arms in ``names`` (arm ->
+    joint names), from the joint rows the tick filled on every ``every``-th tick."""
+
+    def __init__(self, names: dict, every: int):
+        self.names = {int(b): list(v) for b, v in names.items()}
+        self.every = max(1, int(every))
+        self.topics = {b: f"/{robot_ns(b)}/measured_js" for b in self.names}
+
+    def write(self, tw: TopicWriter, k: np.ndarray, joints: np.ndarray, ns: np.ndarray) -> None:
+        """``k`` (N,) tick numbers, ``joints`` (N, arms, dof) their joint rows (NaN: none), ``ns``
+        (N,) stamps."""
+        for i in np.flatnonzero(k % self.every == 0):
+            t = int(ns[i])
+            for b, names in self.names.items():
+                if np.isnan(joints[i, b, 0]):       # (none taken for this tick)
+                    continue
+                tw.dyn(self.topics[b], "sensor_msgs/JointState",
+                       {"header": stamp(t, ""), "name": names,
+                        "position": joints[i, b, : len(names)].tolist(), "velocity": [], "effort": []}, t)
+
+
 def _names(mask: int) -> tuple:
     rs = [r for bit, r in REASONS.items() if int(mask) & int(bit)]
     return ",".join(r.name for r in rs), ",".join(dict.fromkeys(r.invariant for r in rs))
@@ -162,4 +186,4 @@ def camera_info(cam, ns: int) -> dict:
             "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
 
 
-__all__ = ["TopicWriter", "ArmTopics", "EventDetector", "camera_info", "stamp"]
+__all__ = ["TopicWriter", "ArmTopics", "JointTopics", "EventDetector", "camera_info", "stamp"]

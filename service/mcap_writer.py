@@ -12,9 +12,16 @@ stdin (``send``/``receive``: 4-byte length, then a pickled tuple):
   any other name is one record (``add_metadata``); written at the next flush;
 * ``("frames", path, shapes, slots, cameras, params)``: map the frame block (``attach``);
 * ``("epoch", ns)``: the wall clock at loop-clock 0;
+* ``("joints", path, dof, {arm: joint names}, every)``: map the joint block; every ``every``-th
+  tick's joints go to ``/<arm>/measured_js``;
+* ``("sync", token)``: the run is over: write every tick and frame the rings hold now (no fixture
+  cloud after it), end the chunk, fsync, then set the header's ``SYNCED`` to ``token``
+  (``McapRecorder.seal``, the flush barrier before end-of-run metadata);
 * ``("close",)``: write everything, the summary and footer, and exit 0.
 
-Every ``flush_s`` it writes the ticks the ring holds (first: they are cheap and the ring must
+Every ``flush_s`` it carries out the control messages sent before the ticks it is about to
+write (``mcap_shm.SENT``: a message reaches the file before any tick that followed it, however
+late the pipe delivers it), writes the ticks the ring holds (first: they are cheap and the ring must
 not fill), then the snapshot entries for at most ``flush_s`` more, the fixture cloud at ``cloud_hz``, ends the chunk and
 fsyncs. End of stdin without ``close`` means the service died (``kill -9``, a crash): it writes
 what the rings hold, a ``pointfence/end`` metadata record saying so, the summary, and exits 0;
@@ -35,6 +42,8 @@ import time
 import numpy as np
 
 _LEN = struct.Struct("<I")
+#: seconds a flush waits for control messages the service sent before the ticks it writes
+CATCH_UP_S = 5.0
 
 
 def send(fh, msg: tuple) -> None:
@@ -63,7 +72,7 @@ class _Frame:
 class Writer:
     """The writer's state: the MCAP writer, the topics, the rings' read side."""
 
-    def __init__(self, init: dict, out_fh):
+    def __init__(self, init: dict, out_fh, inbox: queue.Queue):
         from mcap.writer import CompressionType
         from mcap.writer import Writer as McapWriter
 
@@ -87,13 +96,23 @@ class Writer:
         self.run_meta: dict = {}
         self.pending_meta: list = []      # (name, {key: JSON text})
         self.latest: list = []
+        self.joints = None                # (JointTopics, JointBlock) once the robots are known
+        self.inbox = inbox                # control messages, in order (main's reader thread)
+        self.received = 1                 # (the init message, which main read)
+        self.sync = None                  # a sync asked for and not yet carried out
+        self.sealed = self.closing = self.service_died = False
         self.next_cloud = 0.0
         self.flushed = int(self.hdr[mcap_shm.FLUSHED])
         self.consumed = int(self.hdr[mcap_shm.SNAPS_CONSUMED])
 
     # --- control -----------------------------------------------------------------------------------
-    def control(self, msg: tuple) -> bool:
-        """Apply one control message; False for ``close``."""
+    def control(self, msg) -> None:
+        """Carry out one control message (None: the end of the pipe, the service is gone); a
+        ``sync`` or ``close`` is noted (``sync``, ``closing``) for ``main`` to act on."""
+        self.received += 1
+        if msg is None:
+            self.service_died = True
+            return
         op = msg[0]
         if op == "meta":
             _, name, values = msg
@@ -110,9 +129,32 @@ class Writer:
             self.latest = [None] * len(shapes)
         elif op == "epoch":
             self.epoch_ns = int(msg[1])
+        elif op == "joints":
+            from . import mcap_shm
+            from .mcap_topics import JointTopics
+
+            _, path, dof, names, every = msg
+            block = mcap_shm.JointBlock(mcap_shm.attach(path), self.ticks.capacity, self.layout.n, dof)
+            self.joints = (JointTopics({int(b): v for b, v in names.items()}, int(every)), block)
+        elif op == "sync":
+            self.sync = int(msg[1])
         elif op == "close":
-            return False
-        return True
+            self.closing = True
+
+    @property
+    def ended(self) -> bool:
+        return self.closing or self.service_died
+
+    def catch_up(self, sent: int) -> None:
+        """Carry out the control messages up to number ``sent`` (``mcap_shm.SENT`` as read after
+        ``WRITTEN``: every message sent before the ticks about to be written), waiting for those
+        still in the pipe (at most ``CATCH_UP_S``)."""
+        end = time.monotonic() + CATCH_UP_S
+        while self.received < sent and not self.service_died:
+            try:
+                self.control(self.inbox.get(timeout=max(0.0, end - time.monotonic())))
+            except queue.Empty:
+                return
 
     # --- one flush ---------------------------------------------------------------------------------
     def flush(self, final: bool) -> None:
@@ -120,10 +162,12 @@ class Writer:
 
         h = self.hdr
         t0 = time.perf_counter()
+        written = int(h[mcap_shm.WRITTEN])
+        self.catch_up(int(h[mcap_shm.SENT]))      # (read after WRITTEN: see mcap_shm.SENT)
         for name, enc in self.pending_meta:
             self.w.add_metadata(name, enc)
         self.pending_meta = []
-        self.write_ticks(final)
+        self.write_ticks(final, written)
         t1 = time.perf_counter()
         self.write_frames(None if final else t0 + self.p["flush_s"])
         self.write_cloud()
@@ -138,17 +182,18 @@ class Writer:
         h[mcap_shm.US_CPU] = int(time.process_time() * 1e6)
         h[mcap_shm.BEAT] += 1
 
-    def write_ticks(self, final: bool) -> None:
+    def write_ticks(self, final: bool, written: int) -> None:
+        """The tick rows below ``written`` (the newest one too where ``final``)."""
         from . import mcap_shm
         from .ros2_schemas import TICK_INPUT, TICK_OUTPUT
 
-        written = int(self.hdr[mcap_shm.WRITTEN])
         upto = written if final else written - 1      # (the newest row may still get its tick_us)
         a, cap, lay = self.flushed, self.ticks.capacity, self.layout
         while a < upto:
             i = a % cap
             m = min(upto - a, cap - i)
             rows = self.ticks.rows[i: i + m].copy()
+            joints = None if self.joints is None else self.joints[1].rows[i: i + m].copy()
             a += m
             self.flushed = a
             self.hdr[mcap_shm.FLUSHED] = a         # (the ring rows may be reused from here on)
@@ -162,6 +207,8 @@ class Writer:
             sel = k % every == 0
             self.arms.write(self.tw, rows[sel], ns[sel])
             self.events.write(self.tw, rows, ns)
+            if joints is not None:
+                self.joints[0].write(self.tw, k, joints, ns)
 
     def _frame_ns(self, ts: float, cms: float) -> int:
         return self.epoch_ns + int(round((ts + cms) * 1e9))
@@ -228,7 +275,7 @@ class Writer:
         from .fixture_cloud import pointcloud2, protected_points
         from .ros2_schemas import FIXTURES
 
-        if self.p["cloud_hz"] <= 0 or self.params is None or all(f is None for f in self.latest):
+        if self.sealed or self.p["cloud_hz"] <= 0 or self.params is None or all(f is None for f in self.latest):
             return
         now = time.monotonic()
         if now < self.next_cloud:
@@ -259,8 +306,10 @@ def main() -> int:
     p = init[1]
     if p.get("nice"):
         os.nice(int(p["nice"]))
-    w = Writer(p, os.fdopen(p["fd"], "wb"))
+    from . import mcap_shm
+
     inbox: queue.Queue = queue.Queue()
+    w = Writer(p, os.fdopen(p["fd"], "wb"), inbox)
 
     def read_control():
         while True:
@@ -270,22 +319,23 @@ def main() -> int:
                 return
 
     threading.Thread(target=read_control, name="mcap-writer-control", daemon=True).start()
-    service_died = False
     try:
-        running = True
-        while running:
+        while True:
             deadline = time.monotonic() + p["flush_s"]
-            while running:
+            while not w.ended and w.sync is None:
                 try:
-                    msg = inbox.get(timeout=max(0.0, deadline - time.monotonic()))
+                    w.control(inbox.get(timeout=max(0.0, deadline - time.monotonic())))
                 except queue.Empty:
                     break
-                if msg is None:
-                    service_died, running = True, False
-                else:
-                    running = w.control(msg)
-            w.flush(final=not running)
-        w.finish(service_died)
+            final = w.ended or w.sync is not None
+            w.flush(final=final)        # (its catch_up may note a sync or the end: acted on next round)
+            if final and w.sync is not None:
+                w.sealed = True         # (no fixture cloud after the run's end)
+                w.hdr[mcap_shm.SYNCED] = w.sync
+                w.sync = None
+            if final and w.ended:
+                break
+        w.finish(w.service_died)
     except (OSError, ValueError) as e:
         print(f"recording {p['path']}: {type(e).__name__}: {e}", file=sys.stderr)
         return 1

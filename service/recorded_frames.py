@@ -4,8 +4,9 @@ run, numbered as it was.
 
 Two things run ahead of the ticks, as in the live service, without changing what a tick sees:
 
-* PNG decoding: the frames are decoded in the order the schedule needs them, up to
-  ``DECODE_AHEAD`` ahead, in a thread pool (``cv2.imdecode`` releases the interpreter lock);
+* PNG decoding (``FrameDecoder``): the frames are decoded in the order the schedule needs them,
+  up to ``DECODE_AHEAD`` ahead, in a thread pool (``cv2.imdecode`` releases the interpreter
+  lock), from before the replay's service is set up;
 * snapshot builds, where the pipeline double-buffers its snapshots (``pipeline.buffers``: the
   OpenCL and Warp backends): a builder thread builds the next scheduled snapshot into the back
   buffer while the ticks before it run, and holds back its publication (``buffers.publish``);
@@ -31,6 +32,60 @@ DECODE_AHEAD = 12
 BUILD_TIMEOUT_S = 120.0
 
 
+class FrameDecoder:
+    """Decodes the recorded frames a replay's schedule needs (``build_at``: tick -> snapshot seqs,
+    as ``RecordedFrames`` takes it), in the order it needs them, up to ``ahead`` frames ahead,
+    in ``workers`` threads (``cv2.imdecode`` releases the interpreter lock). It starts at once:
+    made before the replay's service, it decodes while the service sets up. ``get`` hands a
+    frame over (decoded ahead, else now); ``close()`` ends the threads."""
+
+    def __init__(self, recording, build_at: dict, ahead: int = DECODE_AHEAD, workers: int = 2):
+        self.rec = recording
+        self.ahead = int(ahead)
+        jobs = [seq for k in sorted(build_at) for seq in build_at[k]]
+        self._order = _frames_in_order(recording, jobs)
+        self._futures: dict = {}          # (camera, recorded index) -> Future of its DepthFrame
+        self._next = 0
+        self._pool: Optional[ThreadPoolExecutor] = ThreadPoolExecutor(max_workers=workers,
+                                                                      thread_name_prefix="pointfence-png")
+        self._top_up()
+
+    def _top_up(self) -> None:
+        while self._pool is not None and self._next < len(self._order) and len(self._futures) < self.ahead:
+            c, x, fs, st, po = self._order[self._next]
+            self._next += 1
+            self._futures[(c, x)] = self._pool.submit(self.rec.frame, c, x, fs, st, po)
+
+    def get(self, i: int, idx: int, fseq: int, stamp: float, pose):
+        """Camera ``i``'s recorded frame ``idx`` (source seq ``fseq``, capture ``stamp`` s, pose:
+        16 numbers) as a ``DepthFrame``."""
+        fut = self._futures.pop((i, idx), None)
+        self._top_up()
+        return fut.result() if fut is not None else self.rec.frame(i, idx, fseq, stamp, pose)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        self._futures.clear()
+
+
+def _frames_in_order(rec, seqs) -> list:
+    """(camera, recorded index, frame seq, stamp, pose) of every frame that building snapshots
+    ``seqs`` (in order) decodes, in that order."""
+    order, last = [], [-1] * len(rec.cameras)
+    for seq in seqs:
+        entry = rec.snapshots.get(seq)
+        if entry is None:
+            continue
+        fseqs, findex, stamps, poses = entry
+        for i, (fseq, idx) in enumerate(zip(fseqs, findex)):
+            if last[i] != idx:
+                order.append((i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16]))
+                last[i] = idx
+    return order
+
+
 class RecordedFrames(_FeedBase):
     """Re-builds the recorded snapshots: ``build_at`` maps a tick number k to the snapshot seqs
     to build (in order) before that tick's proxy launch; ``tick_times`` maps k to its loop time
@@ -40,7 +95,7 @@ class RecordedFrames(_FeedBase):
     replay."""
 
     def __init__(self, pipeline, recording, build_at: dict, stale_s: float, max_age_s: float,
-                 tick_times: Optional[dict] = None, ahead: bool = True):
+                 tick_times: Optional[dict] = None, ahead: bool = True, decoder: Optional[FrameDecoder] = None):
         super().__init__(pipeline, [], stale_s, max_age_s)
         self.rec = recording
         self.names = list(recording.cameras)
@@ -52,10 +107,7 @@ class RecordedFrames(_FeedBase):
         self.missing: list = []
         self._index = [-1] * n            # the recorded frame each camera's latest is
         self._jobs = [(k, seq) for k in sorted(build_at) for seq in build_at[k]]
-        self._order = self._frames_in_order()
-        self._ahead: dict = {}            # (camera, recorded index) -> Future of its DepthFrame
-        self._next = 0
-        self._pool: Optional[ThreadPoolExecutor] = None
+        self.decoder = decoder if decoder is not None else FrameDecoder(recording, build_at)
         self._use_builder = bool(ahead) and tick_times is not None
         self._builder: Optional[threading.Thread] = None
         self._ready: queue.Queue = queue.Queue()      # (k, seq, held-back slot or None, built, error)
@@ -63,33 +115,6 @@ class RecordedFrames(_FeedBase):
         self._held: Optional[int] = None
         self._publish = None
         self._stop = False
-
-    # --- decoding ahead ------------------------------------------------------------------------
-    def _frames_in_order(self) -> list:
-        """(camera, recorded index, frame seq, stamp, pose) of every frame the replay decodes, in
-        the order it needs them."""
-        order, last = [], [-1] * len(self.names)
-        for _, seq in self._jobs:
-            entry = self.rec.snapshots.get(seq)
-            if entry is None:
-                continue
-            fseqs, findex, stamps, poses = entry
-            for i, (fseq, idx) in enumerate(zip(fseqs, findex)):
-                if last[i] != idx:
-                    order.append((i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16]))
-                    last[i] = idx
-        return order
-
-    def _frame(self, i: int, idx: int, fseq: int, stamp: float, pose):
-        """Camera ``i``'s recorded frame ``idx``: decoded ahead where it was scheduled, else now."""
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="pointfence-png")
-        while self._next < len(self._order) and len(self._ahead) < DECODE_AHEAD:
-            c, x, fs, st, po = self._order[self._next]
-            self._next += 1
-            self._ahead[(c, x)] = self._pool.submit(self.rec.frame, c, x, fs, st, po)
-        fut = self._ahead.pop((i, idx), None)
-        return fut.result() if fut is not None else self.rec.frame(i, idx, fseq, stamp, pose)
 
     # --- one snapshot --------------------------------------------------------------------------
     def frames_too_old(self, now: float) -> bool:
@@ -105,16 +130,21 @@ class RecordedFrames(_FeedBase):
         fseqs, findex, stamps, poses = entry
         for i, (fseq, idx) in enumerate(zip(fseqs, findex)):
             if self._index[i] != idx:
-                self.latest[i] = self._frame(i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16])
+                self.latest[i] = self.decoder.get(i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16])
                 self._index[i] = idx
                 self.frames_in[i] += 1
             self.arrival[i] = t
         self.pipeline.seq = seq - 1          # numbered as the live run numbered it
         return self._ingest(list(self.latest), t)
 
-    def poll_tick(self, k: int, t: float) -> bool:
+    def start(self) -> None:
+        """Start building ahead (where the pipeline double-buffers) before the first tick: call
+        after ``Service.attach_frames`` (its publish gate); else the first tick starts it."""
         if self._use_builder and self._builder is None:
             self._start_builder()
+
+    def poll_tick(self, k: int, t: float) -> bool:
+        self.start()
         if self._builder is not None:
             return self._publish_due(k)
         built = False
@@ -179,10 +209,7 @@ class RecordedFrames(_FeedBase):
             self._builder.join(timeout=BUILD_TIMEOUT_S)
             self._builder = None
             self._buf.publish = self._publish
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-        self._ahead.clear()
+        self.decoder.close()
 
 
-__all__ = ["RecordedFrames", "DECODE_AHEAD"]
+__all__ = ["RecordedFrames", "FrameDecoder", "DECODE_AHEAD"]

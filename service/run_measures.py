@@ -26,9 +26,13 @@ are the worst over its arms (max safety and tracking, min submittance). Not seen
 changes made through the control API while running (a new radius or selection; the recording
 holds the configuration the run started with) and ticks before the first snapshot.
 
-The result is stored as MCAP metadata named ``METADATA`` (each value JSON text) where the
-recorder offers ``add_metadata(name, values)`` before it closes, else in a JSON file beside the
-recording (``sidecar_path``: ``FILE.mcap.measures.json``, tied to the recording's size).
+The result is stored in the recording itself, as MCAP metadata named ``METADATA`` (each value
+JSON text): ``before_close`` runs at the end of a run while the recording is still open, after
+the recorder's flush barrier (``McapRecorder.seal``: every tick and frame on disk), measures the
+file as it is then and adds the record before the recorder closes it. Where that cannot be done
+(the writer process gone, a recording from a crash, an older file) ``after_run`` measures the
+closed file and keeps the result beside it (``sidecar_path``: ``FILE.mcap.measures.json``, tied to
+the recording's size); ``stored`` finds either, the file's record first.
 """
 from __future__ import annotations
 
@@ -159,16 +163,6 @@ def _worst(arms: list) -> dict:
 
 
 # --- storing and finding them ------------------------------------------------------------------------
-def encode(summary: dict) -> dict:
-    """MCAP metadata values (str -> str, each JSON) of a summary."""
-    return {key: json.dumps(measures.json_safe(v)) for key, v in summary.items()}
-
-
-def decode(values: dict) -> dict:
-    """The summary from MCAP metadata values (the inverse of ``encode``)."""
-    return {key: json.loads(v) for key, v in values.items()}
-
-
 def sidecar_path(path) -> Path:
     """The JSON file beside recording ``path`` that holds its measures: ``FILE.mcap.measures.json``."""
     p = Path(path)
@@ -180,7 +174,7 @@ def store(path, summary: dict, recorder=None) -> str:
     where a still-open recorder offers it, else in ``sidecar_path(path)`` (with the recording's
     size, so a sidecar of another file of that name is not believed). Returns where it went."""
     if recorder is not None and hasattr(recorder, "add_metadata"):
-        recorder.add_metadata(METADATA, encode(summary))
+        recorder.add_metadata(METADATA, measures.json_safe(summary))   # (each value stored as its JSON)
         return str(path)
     from .files import write_atomic
 
@@ -194,8 +188,8 @@ def stored(path, metadata: dict) -> Optional[tuple]:
     """(summary, where) of measures kept with recording ``path``: the file's ``METADATA`` record
     (``metadata``: name -> values of its metadata records), else a sidecar written for a file of
     this size; None if neither."""
-    if METADATA in metadata:
-        return decode(metadata[METADATA]), "recording"
+    if isinstance(metadata.get(METADATA), dict):     # (mcap_read decodes each value's JSON)
+        return dict(metadata[METADATA]), "recording"
     side = sidecar_path(path)
     if side.is_file():
         try:
@@ -207,10 +201,27 @@ def stored(path, metadata: dict) -> Optional[tuple]:
     return None
 
 
+def before_close(path, recorder, log=None) -> Optional[dict]:
+    """Measure the run recorded at ``path`` by ``recorder`` (an open ``McapRecorder``; call after
+    the run's last tick, before ``recorder.close()``) and store the measures in the recording
+    (``METADATA``). Returns them (``stored_in``: the recording), {"error": why} if the recording
+    cannot be measured, or None where the recorder could not flush everything first (its writer
+    gone): measure the closed file with ``after_run`` then. ``log(text)`` as for ``after_run``."""
+    seal = getattr(recorder, "seal", None)
+    if seal is None or not seal():
+        return None
+    return _measure(path, log, recorder)
+
+
 def after_run(path, log=None) -> dict:
-    """Measure the recording a run just finished (``serve --record``), store the measures
-    (``store``) and return them (with ``stored_in``); a recording that cannot be measured gives
-    {"error": why}. ``log(text)`` gets a line when it starts and when it is done."""
+    """Measure the recording a run just finished (``serve --record``) once it is closed, store the
+    measures (``store``: beside the file) and return them (with ``stored_in``); a recording that
+    cannot be measured gives {"error": why}. ``log(text)`` gets a line when it starts and when it
+    is done."""
+    return _measure(path, log, None)
+
+
+def _measure(path, log, recorder) -> dict:
     from .mcap_read import open_recording
 
     t0 = time.monotonic()
@@ -219,7 +230,7 @@ def after_run(path, log=None) -> dict:
         if log is not None:
             log(f"measuring {path} from its recorded depth ({len(rec.snapshots)} snapshots, {len(rec.rows)} ticks)")
         summary = evaluate(rec).summary
-        summary["stored_in"] = store(path, summary)
+        summary["stored_in"] = store(path, summary, recorder)
     except (PointfenceError, OSError) as e:      # the run's own status is still printed
         return {"error": str(e)}
     if log is not None:
@@ -237,5 +248,5 @@ def line(summary: dict) -> str:
             f"{mm('submittance_min_distance_m')}, tracking (rms |X_r - X_r*|) {mm('tracking_rms_m')}")
 
 
-__all__ = ["evaluate", "Evaluation", "store", "stored", "after_run", "line", "encode", "decode", "sidecar_path",
+__all__ = ["evaluate", "Evaluation", "store", "stored", "before_close", "after_run", "line", "sidecar_path",
            "METADATA", "KEYS"]

@@ -143,13 +143,17 @@ class LiveRun:
         if self.robot_host is not None:
             self.robot_host.close()
 
-    def stop(self) -> None:
+    def stop(self, before_close=None) -> None:
+        """End the run; ``before_close(recorder)`` runs after the loop, the frames and the robots
+        stopped, before the recording is closed (the run's measures go into it)."""
         self.loop.stop()
-        if self.service.recorder is not None:
-            self.service.recorder.close()   # (streamed: the last rows reach the file)
         self._close_telemetry()
         self.frames.stop()
         for s in self.sources:
             s.close()
         self.close_robots()
+        if self.service.recorder is not None:
+            if before_close is not None:
+                before_close(self.service.recorder)
+            self.service.recorder.close()   # (streamed: the last rows reach the file)
         gc.unfreeze()   # what this run kept alive may be collected again

@@ -24,7 +24,8 @@ keeps the older format. ``--ros2-masters`` makes CRTK masters on ROS 2 (a dVRK M
 haptic-device driver; ros2/crtk_master.py) drive master slots, as ``--itp`` does for Raven II
 masters. At the end of an MCAP recording the run's measures (dissertation 6.1:
 safety, submittance, tracking) are computed from the recorded depth (``run_measures``), printed
-on stderr, stored with the recording and added to the final status (``measures``).
+on stderr, stored in the recording (metadata ``pointfence/measures``, written before it closes)
+and added to the final status (``measures``).
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ from pointfence.kernels.errors import InputError
 
 from . import limits
 from .control_api import DEFAULT_CONTROL_PORT
+from .run_measures import after_run, before_close
 from .files import write_atomic
 
 DEFAULT_PORT = 47800
@@ -274,7 +276,10 @@ def run(args) -> int:
         signal.signal(signal.SIGTERM, old)
         if control is not None:
             control.close()
-        run_.stop()
+        mcap = bool(args.record) and str(args.record).endswith(".mcap")
+        log = lambda s: print(f"pointfence serve: {s}", file=sys.stderr)   # noqa: E731
+        measured: dict = {}       # the 6.1 measures from the recorded depth, stored in the recording before it closes
+        run_.stop(before_close=(lambda rec: measured.update(before_close(args.record, rec, log) or {})) if mcap else None)
         status = {"udp": hub.status(), "loop": run_.timing().as_dict(), "service": _jsonable(run_.service.status())}
         if control is not None:
             status["control"] = control.controller.counters()
@@ -285,10 +290,8 @@ def run(args) -> int:
             status["ros2_masters"] = ros2.status()
             ros2.close()
         hub.close()
-        if args.record and str(args.record).endswith(".mcap"):   # the 6.1 measures from the recorded depth
-            from .run_measures import after_run
-
-            status["measures"] = after_run(args.record, log=lambda s: print(f"pointfence serve: {s}", file=sys.stderr))
+        if mcap:                  # (a writer gone before the end: measured now, kept beside the file)
+            status["measures"] = measured or after_run(args.record, log=log)
         text = json.dumps(status)
         if args.stats_file:
             Path(args.stats_file).write_text(text + "\n")

@@ -8,9 +8,9 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -38,9 +38,12 @@ def _inspect(*args, timeout=300):
 def test_inspect_reports_a_recorded_serve_run(served, tmp_path):
     from test_mcap_record import ros2_messages
 
-    # serve measured its run from the recorded depth and kept the measures beside the file
+    # serve measured its run from the recorded depth and wrote the measures into the recording
+    # before closing it (no sidecar: inspect reads them from the file)
     side = run_measures.sidecar_path(served)
-    assert side.is_file(), "serve --record wrote no measures"
+    assert not side.exists(), "serve --record kept its measures beside the file, not in it"
+    stored = open_recording(served).metadata.get(run_measures.METADATA)
+    assert stored and stored["ticks"] > 0 and stored["from"] == "recorded depth"
     res = _inspect(served, "--json", "--plot", tmp_path / "plots")
     assert res.returncode == 0, res.stderr[-2000:]
     rep = json.loads(res.stdout)
@@ -61,7 +64,8 @@ def test_inspect_reports_a_recorded_serve_run(served, tmp_path):
     assert [(h["tick"], h["reason"]) for h in rep["holds"]] == [(int(h.tick), h.reason) for h in holds]
     assert all(h["reason"] and re.fullmatch(r"S\d(,S\d)*", h["invariant"]) for h in rep["holds"])
     m = rep["measures"]
-    assert m["stored_in"] == str(side) and m["ticks"] == len(r.rows)
+    assert m["stored_in"] == "recording" and m["ticks"] == len(r.rows) == stored["ticks"]
+    assert m["safety_max_penetration_m"] == stored["safety_max_penetration_m"]
     assert m["snapshots_rebuilt"] > 0 and m["arms"][0]["ticks_measured"] > 0
     assert m["safety_max_penetration_m"] is not None
     assert [Path(p).name for p in rep["plots"]] == ["arm0_PSM1_distances.png", "timeline.png"]
@@ -77,7 +81,10 @@ def test_a_truncated_recording_is_inspected_with_a_clear_note(served, tmp_path):
     cut = tmp_path / "cut.mcap"
     data = served.read_bytes()
     cut.write_bytes(data[: int(len(data) * 0.7)])
-    shutil.copy(run_measures.sidecar_path(served), run_measures.sidecar_path(cut))   # of the whole file: not believed
+    # the measures were in the file's end, cut off; a sidecar written for the whole file is not believed
+    whole = open_recording(served).metadata[run_measures.METADATA]
+    run_measures.sidecar_path(cut).write_text(json.dumps({"recording": cut.name, "recording_bytes": len(data),
+                                                           run_measures.METADATA: whole}))
     res = _inspect(cut)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "TRUNCATED" in res.stdout and "Everything before the cut is read" in res.stdout
@@ -112,7 +119,7 @@ model = "none"
 """
 
 
-def _flat_recording(path: Path) -> None:
+def _flat_recording(path: Path, close: bool = True):
     """A recording of a camera 0.5 m above a flat table (z = 0, every point protected, 2 cm
     fixture) and 310 ticks of one arm: 100 free ticks at z = 6 cm with the robot 2 mm from its
     command; 100 held-off ticks (master 1 cm under the surface, robot 2.5 cm above it); 100 ticks
@@ -136,7 +143,9 @@ def _flat_recording(path: Path) -> None:
         out.xm[0] = (0.0, 0.0, z_m)
         out.coupled[0] = coupled
         rec.write(inp, out)
-    rec.close()
+    if close:
+        rec.close()
+    return rec
 
 
 def test_measures_of_a_robot_pushed_into_a_flat_recorded_surface(tmp_path):
@@ -160,6 +169,32 @@ def test_measures_of_a_robot_pushed_into_a_flat_recorded_surface(tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     got = json.loads(res.stdout)["measures"]
     assert got["stored_in"] == where and got["safety_max_penetration_m"] == pytest.approx(0.030, abs=2e-4)
+
+
+def test_measures_go_into_the_open_recording_after_its_flush_barrier(tmp_path):
+    path = tmp_path / "flat.mcap"
+    rec = _flat_recording(path, close=False)
+    late = np.zeros((121, 161), np.uint16)
+    got = run_measures.before_close(path, rec)          # seal: every tick on disk, then measured and stored
+    rec.offer_snapshot(2, [DepthFrame(camera="top", depth=late, timestamp=1.0, seq=2)])   # after the run: not recorded
+    rec.close()
+    assert got["stored_in"] == str(path) and got["ticks"] == 310, got
+    assert got["safety_max_penetration_m"] == pytest.approx(0.030, abs=2e-4)
+    r = open_recording(path)
+    assert r.torn is None and len(r.rows) == 310 and sorted(r.snapshots) == [1]
+    assert r.metadata[run_measures.METADATA]["safety_max_penetration_m"] == got["safety_max_penetration_m"]
+    assert not run_measures.sidecar_path(path).exists()
+    rep = json.loads(_inspect(path, "--json").stdout)
+    assert rep["measures"]["stored_in"] == "recording" and rep["measures"]["ticks"] == 310
+    # a recorder whose writer is gone cannot seal: None (the caller measures the closed file instead)
+    path2 = tmp_path / "gone.mcap"
+    rec2 = _flat_recording(path2, close=False)
+    os.kill(rec2.status()["writer_pid"], 9)
+    end = time.monotonic() + 10
+    while rec2.status()["writer_alive"] and time.monotonic() < end:
+        time.sleep(0.01)
+    assert run_measures.before_close(path2, rec2) is None
+    rec2.close()
 
 
 def test_store_puts_the_measures_into_a_recorder_that_offers_metadata(tmp_path):

@@ -174,6 +174,25 @@ def test_messages_decode_into_the_standard_ros2_types(served):
     assert all(e.kind in ("hold", "release", "fault", "control", "architecture") for e in ev)
     holds = [e for e in ev if e.kind == "hold"]
     assert holds and all(e.reason and e.invariant.startswith("S") for e in holds)
+    # the Raven II's joints (CRTK measured_js), at the pose rate: its forward kinematics gives the
+    # tool tip of /PSM1/measured_cp at the same tick
+    from pointfence.service.robot import JOINT_NAMES, robot_from_config
+
+    js = seen["/PSM1/measured_js"]
+    # (a tick after missed loop periods has none: the tick before it did not take them)
+    assert js[0].schema.name == "sensor_msgs/JointState" and len(seen["/PSM1/measured_cp"]) / 2 < len(js) <= \
+        len(seen["/PSM1/measured_cp"])
+    from pointfence.service.mcap_replay import recording_config
+
+    raven = robot_from_config(recording_config(r).robot)        # (the recorded configuration's, mount included)
+    poses = {(m.ros_msg.header.stamp.sec, m.ros_msg.header.stamp.nanosec): m.ros_msg.pose.position
+             for m in seen["/PSM1/measured_cp"]}
+    for m in js:
+        q = m.ros_msg
+        assert list(q.name) == list(JOINT_NAMES) and len(q.position) == 6 and not len(q.velocity)
+        tip = raven.forward_kinematics(np.array(q.position))[:3, 3]
+        want = poses[(q.header.stamp.sec, q.header.stamp.nanosec)]
+        np.testing.assert_allclose(tip, [want.x, want.y, want.z], atol=1e-9)
 
 
 def _children(pid: int) -> list:
@@ -272,9 +291,12 @@ def test_a_writer_that_dies_is_reported_and_never_blocks_the_tick(tmp_path):
             inp.k = out.k = k
             inp.now = k * 1e-3
             rec.write(inp, out)
-        end = time.monotonic() + 30.0            # flushed: in the file (a loaded machine starts the writer late)
+        end = time.monotonic() + 30.0           # flushed: in the file (the writer's start-up may be slow on a busy machine)
         while rec.status()["ticks_written"] < 99 and time.monotonic() < end:
             time.sleep(rec.flush_s)
+        beat = rec.status()["flushes"]          # (and that flush's chunk is on disk: the next beat)
+        while rec.status()["flushes"] <= beat and time.monotonic() < end:
+            time.sleep(0.01)
         assert rec.status()["writer_alive"] and rec.status()["ticks_written"] >= 99
         os.kill(rec.status()["writer_pid"], signal.SIGKILL)
         assert _gone(rec.status()["writer_pid"], 10.0)
