@@ -31,7 +31,8 @@ def test_architecture_iii_keeps_a_ros2_arm_out_of_a_fixture_seen_through_a_ros2_
     bench_ros2._write_frames(cfg, tmp_path / "frames")
     arm_cfg = tmp_path / "arm.toml"     # a point mass where the scene's Raven II tip starts (cheaper to simulate)
     x0 = robot_from_config(cfg.robot).measured_cp()[:3, 3]
-    arm_cfg.write_text(f'[robot]\nmodel = "point-mass"\nx0 = [{x0[0]}, {x0[1]}, {x0[2]}]\n')
+    scene = cfg_path.read_text()
+    arm_cfg.write_text(scene[:scene.index("[robot]")] + f'[robot]\nmodel = "point-mass"\nx0 = [{x0[0]}, {x0[1]}, {x0[2]}]\n')
     cam_ns, arm_ns = f"/pf_sys{os.getpid()}/cam0", f"PSMSYS{os.getpid()}"
     procs = [_spawn(["camera-node", "--source", f"recorded:{tmp_path / 'frames'}", "--namespace", cam_ns],
                     ros2_env, tmp_path / "camera-node.log"),
@@ -43,7 +44,7 @@ def test_architecture_iii_keeps_a_ros2_arm_out_of_a_fixture_seen_through_a_ros2_
     try:
         # (a 100 ms watchdog: the sim-arm is a Python process sharing this 2-core machine with the test)
         cfg_on = bench_ros2._with_robot(cfg, {"model": "crtk", "namespace": arm_ns, "connect_timeout_s": 60.0,
-                                              "measured_timeout_s": 0.1})
+                                              "measured_timeout_s": 0.1, "dof": 3})   # (a point mass: 3 joints)
         source = open_source(f"ros2:{cam_ns}", cfg.cameras[0].camera, wait=60.0)
         run = LiveRun(cfg_on, [circling_master(0, 1, 60.0)], sources=[source])
         assert cfg_on.teleop.architecture == "III"
