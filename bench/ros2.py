@@ -26,34 +26,22 @@ sim-arm, which echoes each applied command's stamp in its ``measured_cp``
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from pointfence.service.ros2 import sim_rig
+
 from .loop import _one
 from .machine import cpu_times, cpu_usage
 from .stats import pct
 
-#: the scene of both runs: the embedded defaults with the fixture on everything above the table
-#: (a ROS depth camera carries no colour to select the red balloon by)
-SELECT = 'select = { kind = "box", min = [-0.25, -0.25, 0.005], max = [0.25, 0.25, 0.25] }'
-#: snapshot builds at normal priority in both runs: the simulated equipment keeps both cores busy
-#: in the ROS run, and PoCL's pool under SCHED_IDLE (the default) then builds no snapshot at all
-#: (the arms hold on stale snapshots: S2)
-BUILDS = """
-[service]
-build_idle = false
-build_nice = 0
-"""
-CAMERA_NS = "/pf_bench/cam0"
-MASTER_NS = "MTMR"
-ARM_NS = "PSM1"
-#: nice value of the simulated camera, master and arm processes (``--equipment-nice``)
-EQUIPMENT_NICE = 5
+#: both runs as the ROS run needs them on one machine (sim_rig: builds at normal priority) and
+#: the equipment's nice value
+BUILDS = sim_rig.SHARED_MACHINE
+EQUIPMENT_NICE = sim_rig.EQUIPMENT_NICE
 
 
 def add_arguments(p):
@@ -63,77 +51,27 @@ def add_arguments(p):
 
 
 def _scene(tmp: Path):
-    """(config path, config) of both runs."""
+    """(config path, config) of both runs: the embedded defaults for a ROS camera (sim_rig)."""
     from pointfence.service import config as config_mod
 
     text = (Path(config_mod.__file__).parent / "defaults.toml").read_text()
-    old = 'select = { kind = "color", lo = [150, 0, 0], hi = [255, 90, 90] }'
-    if old not in text:
-        raise RuntimeError("bench ros2: the embedded defaults no longer select the balloon by colour; update SELECT")
     path = tmp / "scene.toml"
-    path.write_text(text.replace(old, SELECT) + BUILDS)
+    path.write_text(sim_rig.ros_scene_text(text, BUILDS))
     return path, config_mod.load(str(path))
-
-
-def _write_frames(cfg, folder: Path, n: int = 30) -> None:
-    """The scene camera's first ``n`` frames as a tsdf-layout recording (16-bit PNG, mm)."""
-    import cv2
-
-    from pointfence.service.canned import canned_sources
-
-    src = canned_sources(cfg, n)[0]
-    cam = src.camera
-    if abs(cam.depth_scale - 1e-3) > 1e-12:
-        raise RuntimeError(f"bench ros2: the scene camera's depth_scale is {cam.depth_scale}; the recording needs mm")
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, f in enumerate(src.frames):
-        cv2.imwrite(str(folder / f"frame-{i:06d}.depth.png"), f.depth.astype(np.uint16))
-    K = np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]])
-    np.savetxt(folder / "camera-intrinsics.txt", K)
-
-
-def _spawn(args: list, env: dict, log: Path, nice: int = 0) -> subprocess.Popen:
-    """A ``pointfence ros2`` process at ``nice`` (the simulated equipment, which a lab runs on
-    its own computers: on this one it yields the cores to the service's processes first)."""
-    return subprocess.Popen([sys.executable, "-m", "pointfence", "ros2", *args], env=env,
-                            stdout=subprocess.DEVNULL, stderr=open(log, "wb"),
-                            preexec_fn=(lambda: os.nice(nice)) if nice else None)
-
-
-def _stop(procs) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: float, backend, device) -> dict:
     from pointfence.service.ros2.crtk_device import CrtkDevice
     from pointfence.service.ros2.crtk_master import CrtkMasterHost
     from pointfence.service.runner import LiveRun
-    from pointfence.service.sources import open_source
 
-    frames_dir = tmp / "frames"
-    _write_frames(cfg, frames_dir)
-    rate = cfg.cameras[0].rate_hz
-    procs = [_spawn(["camera-node", "--source", f"recorded:{frames_dir}", "--namespace", CAMERA_NS, "--rate", f"{rate:g}"],
-                    env, tmp / "camera-node.log", EQUIPMENT_NICE),
-             _spawn(["sim-master", "--namespace", MASTER_NS, "--circle", "--loop"], env, tmp / "sim-master.log",
-                    EQUIPMENT_NICE),
-             _spawn(["sim-arm", "--namespace", ARM_NS, "--config", str(cfg_path)], env, tmp / "sim-arm.log",
-                    EQUIPMENT_NICE)]
+    gear = sim_rig.SimEquipment(cfg, cfg_path, tmp, env, nice=EQUIPMENT_NICE)
+    rate = gear.rate_hz
     host = run = None
     try:
-        robot = {"model": "crtk", "namespace": ARM_NS, "connect_timeout_s": 30.0}
-        cfg_on = _with_robot(cfg, robot)
-        source = open_source(f"ros2:{CAMERA_NS}", cfg.cameras[0].camera, wait=30.0)
-        host = CrtkMasterHost([CrtkDevice(namespace=MASTER_NS)], env=env)
-        run = LiveRun(cfg_on, list(host.masters), backend=backend, device=device, sources=[source],
+        source = gear.source(cfg)
+        host = CrtkMasterHost([CrtkDevice(namespace=sim_rig.MASTER_NS)], env=env)
+        run = LiveRun(gear.arm_config(cfg), list(host.masters), backend=backend, device=device, sources=[source],
                       ros2_telemetry=True)
         lat, stamps, measuring = [], set(), [False]
         orig = run.frames.on_snapshot
@@ -161,7 +99,7 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
             run.stop()
         if host is not None:
             host.close()
-        _stop(procs)
+        gear.close()
     expected = (max(stamps) - min(stamps) + 1) if stamps else 0
     return {"ticks": tm.ticks, "periods": tm.periods,
             "tick_us_p50": round(tm.compute_us_p50, 1), "tick_us_p99": round(tm.compute_us_p99, 1),
@@ -173,24 +111,16 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
             "holds_at_end": st["hold"], "telemetry": st.get("telemetry")}
 
 
-def _with_robot(cfg, robot: dict):
-    """``cfg`` with its ``[robot]`` table replaced by ``robot``."""
-    from dataclasses import replace
-
-    from pointfence.service.robot.settings import parse_robot
-
-    return replace(cfg, robot=parse_robot(robot))
-
-
 def _servo_rtt(env: dict, tmp: Path, cfg_path: Path, seconds: float) -> dict:
     """servo_cp at 1 kHz from a CRTK arm in this process to a sim-arm process and back."""
     from pointfence.service.periodic import PeriodicLoop
     from pointfence.service.robot.crtk import CrtkRobot
 
-    proc = _spawn(["sim-arm", "--namespace", ARM_NS, "--config", str(cfg_path)], env, tmp / "sim-arm-rtt.log")
+    proc = sim_rig.spawn(["sim-arm", "--namespace", sim_rig.ARM_NS, "--config", str(cfg_path)], env,
+                         tmp / "sim-arm-rtt.log", EQUIPMENT_NICE)
     arm = None
     try:
-        arm = CrtkRobot(namespace=ARM_NS, connect_timeout_s=30.0)
+        arm = CrtkRobot(namespace=sim_rig.ARM_NS, connect_timeout_s=30.0)
         x0 = arm.measured_cp()[:3, 3].copy()
         loop = PeriodicLoop(1e-3)
         t_end = time.monotonic() + seconds
@@ -209,7 +139,7 @@ def _servo_rtt(env: dict, tmp: Path, cfg_path: Path, seconds: float) -> dict:
     finally:
         if arm is not None:
             arm.close()
-        _stop([proc])
+        sim_rig.stop([proc])
     return {"servo_rtt_us_p50": round(pct(rtt, 50), 1) if rtt else None,
             "servo_rtt_us_p99": round(pct(rtt, 99), 1) if rtt else None, "servo_round_trips": len(rtt),
             "servo_commands": loop.ticks}

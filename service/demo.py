@@ -25,6 +25,9 @@ plane rising at 0.5 m/s without and with motion prediction (live, or on the simu
 100 ms camera latency), the tool's shadow with one and two cameras, and the robot self-filter;
 its figures are a second table in table.md and ``dynamic`` in table.json.
 
+``--ros2`` runs the whole ROS 2 path instead (``ros2/demo_ros2.py``): the scene's camera, master
+and arm as ROS 2 equipment in processes of their own, the service between them.
+
 ``--viewer`` (spawn a rerun viewer, or connect to a URL) and ``--viewer-save FILE.rrd`` log every
 chapter-3 experiment after it ends, from its recording and its last snapshot: point cloud,
 proxy, HIP, force arrows, robot path (``viewer``; needs ``pip install 'pointfence[viewer]'``).
@@ -68,6 +71,10 @@ def add_arguments(p):
     p.add_argument("--ros2-telemetry", action="store_true",
                    help="publish ROS 2 telemetry of every live run for RViz and Foxglove ([ros2] table; needs "
                         "pointfence[ros2])")
+    p.add_argument("--ros2", action="store_true",
+                   help="the whole ROS 2 path instead of the chapter-3 runs: camera, master and arm as ROS 2 "
+                        "equipment in their own processes on this machine (ros2/demo_ros2.py; needs pointfence[ros2])")
+    p.add_argument("--ros2-seconds", type=float, default=15.0, help="seconds of the --ros2 run (default 15)")
     p.add_argument("--report", default="out/demo", help="report folder: PNG plots and table.md/table.json "
                                                         "(default out/demo; '' for none)")
     p.add_argument("--no-probes", action="store_true", help="skip the chapter-2 surface probes (figs. 2.12-2.15)")
@@ -132,6 +139,10 @@ def run(args) -> int:
     cfg = config_mod.load(args.config)
     if lateness is not None:
         cfg = replace(cfg, service=replace(cfg.service, max_lateness_s=lateness))
+    if args.ros2:
+        from .ros2 import demo_ros2
+
+        return demo_ros2.run(args, cfg)
     backend = get_backend(args.backend or cfg.backend, args.device or cfg.device)
     viewer = viewer_mod.from_args(args)   # before the runs: a missing rerun-sdk fails at once
     done = False
