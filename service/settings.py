@@ -129,11 +129,11 @@ class NoiseTable:
 class CameraTable:
     """One ``[[camera]]`` entry: the camera model and where its frames come from. Intrinsics
     and the camera's other parameters default to the source's (recorded, synthetic, openni2,
-    depthai, realsense), else to ``kernels.camera.Camera``'s."""
+    depthai, realsense, ros2), else to ``kernels.camera.Camera``'s."""
 
     TABLE = "camera"
     source: str = setting(doc='"synthetic:<scene>" | "recorded:<path>" | "openni2:<uri or .oni>" | "depthai:<id>" '
-                                '| "realsense:<serial or .bag/.db3>"')
+                                '| "realsense:<serial or .bag/.db3>" | "ros2:<namespace or image topic>"')
     name: Optional[str] = setting(None, doc="unique camera name", default_doc='"cam<index>"')
     fx: Optional[float] = setting(None, positive=True, doc="focal length x (px)", default_doc="the source's")
     fy: Optional[float] = setting(None, positive=True, doc="focal length y (px)", default_doc="the source's")
@@ -164,7 +164,7 @@ class CameraTable:
         if ":" not in self.source:
             raise InputError(f"[[camera]] {self.name!r}: source = {self.source!r}; expected 'synthetic:<scene>', "
                              "'recorded:<path>', 'openni2:<uri or file.oni>', 'depthai:<device id>' or "
-                             "'realsense:<serial or file.db3>'")
+                             "'realsense:<serial or file.db3>' or 'ros2:<namespace or image topic>'")
 
 
 def parse_cameras(entries, label: str = "[[camera]]") -> tuple:
