@@ -47,7 +47,7 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 from . import mcap_shm
-from .mcap_writer import send
+from .child_pipe import end, send
 from .tick_cdr import TickLayout, TickRows
 
 FORMAT = "pointfence mcap recording"
@@ -383,15 +383,7 @@ class McapRecorder:
                        "snapshots_dropped": self.snapshots_dropped})
         self._send(("close",))
         self._closed = True
-        try:
-            self._proc.stdin.close()
-        except OSError:
-            pass
-        try:
-            self._proc.wait(timeout=CLOSE_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait()
+        if end(self._proc, CLOSE_TIMEOUT_S):
             self._error = self._error or (f"recording {self.path}: the writer did not finish within "
                                           f"{CLOSE_TIMEOUT_S} s and was killed; the file ends at its last chunk")
         self._error = self._writer_error() or self._error

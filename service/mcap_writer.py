@@ -5,7 +5,7 @@ interpreter, so it never holds the service's interpreter lock.
 
 Inputs: the two shared blocks of ``mcap_shm`` (the tick ring, and the frame ring once the
 cameras are known), the recording file as an inherited file descriptor, and control messages on
-stdin (``send``/``receive``: 4-byte length, then a pickled tuple):
+stdin (``child_pipe.send``/``receive``: 4-byte length, then a pickled tuple):
 
 * ``("init", dict)``: first, the recording's parameters (``McapRecorder.__init__``);
 * ``("meta", name, dict)``: a metadata record; ``pointfence/run`` accumulates (``describe``),
@@ -32,34 +32,17 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import queue
-import struct
 import sys
 import threading
 import time
 
 import numpy as np
 
-_LEN = struct.Struct("<I")
+from .child_pipe import read_init, receive
+
 #: seconds a flush waits for control messages the service sent before the ticks it writes
 CATCH_UP_S = 5.0
-
-
-def send(fh, msg: tuple) -> None:
-    """Write control message ``msg`` to the binary stream ``fh`` (and flush it)."""
-    data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
-    fh.write(_LEN.pack(len(data)) + data)
-    fh.flush()
-
-
-def receive(fh):
-    """The next control message of ``fh``, or None at its end (the other side is gone)."""
-    head = fh.read(_LEN.size)
-    if len(head) < _LEN.size:
-        return None
-    data = fh.read(_LEN.unpack(head)[0])
-    return pickle.loads(data) if data else None
 
 
 class _Frame:
@@ -298,14 +281,9 @@ class Writer:
 
 def main() -> int:
     ctl = sys.stdin.buffer
-    init = receive(ctl)
-    if init is None or init[0] != "init":
-        print("mcap_writer: expected an ('init', {...}) message on stdin from pointfence's McapRecorder",
-              file=sys.stderr)
+    p = read_init(ctl, "mcap_writer", "McapRecorder")
+    if p is None:
         return 2
-    p = init[1]
-    if p.get("nice"):
-        os.nice(int(p["nice"]))
     from . import mcap_shm
 
     inbox: queue.Queue = queue.Queue()

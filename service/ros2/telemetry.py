@@ -43,7 +43,7 @@ import numpy as np
 from pointfence.kernels.errors import BackendUnavailable, InputError
 
 from .. import mcap_shm
-from ..mcap_writer import send
+from ..child_pipe import end, send
 
 #: seconds of sampled ticks the ring holds (the child publishes the newest, so depth only covers
 #: its hiccups on a loaded machine)
@@ -321,15 +321,7 @@ class Telemetry:
             return
         self._send(("close",))
         self._closed = True
-        try:
-            self._proc.stdin.close()
-        except OSError:
-            pass
-        try:
-            self._proc.wait(timeout=CLOSE_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait()
+        end(self._proc, CLOSE_TIMEOUT_S)
         self._log.close()
         for p in (self._tick_path, self._frame_path):
             if p is not None:

@@ -29,7 +29,7 @@ wall-clock time (the recording's):
   "invariants", "coupled", "in_contact", "pedal", "master_ok", "robot_fault", "force_gain"}]}``,
   on every change and at least once a second.
 
-Control messages on stdin (``mcap_writer.send``): ``("init", dict)`` first,
+Control messages on stdin (``child_pipe.send``): ``("init", dict)`` first,
 ``("frames", path, shapes, slots, cameras, params)``, ``("close",)``. The end of stdin means the
 service is gone: the process exits. An error is one line on stderr and exit status 1.
 """
@@ -48,7 +48,7 @@ import numpy as np
 
 from .. import mcap_shm
 from ..holds import REASONS
-from ..mcap_writer import receive
+from ..child_pipe import read_init, receive
 from ..ros2_schemas import FIXTURES
 from . import telemetry as T
 
@@ -326,14 +326,9 @@ class Publisher:
 
 def main() -> int:
     ctl = sys.stdin.buffer
-    first = receive(ctl)
-    if first is None or first[0] != "init":
-        print("telemetry_node: expected an ('init', {...}) message on stdin from pointfence's Telemetry",
-              file=sys.stderr)
+    p = read_init(ctl, "telemetry_node", "Telemetry")
+    if p is None:
         return 2
-    p = first[1]
-    if p.get("nice"):
-        os.nice(int(p["nice"]))
     inbox: queue.Queue = queue.Queue()
 
     def read_control():

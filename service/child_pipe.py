@@ -1,0 +1,58 @@
+"""The control pipe of pointfence's helper processes (the MCAP writer, the ROS 2 telemetry
+publisher): length-prefixed pickled tuples on the child's stdin, the first an ``("init", dict)``,
+and the end of a child: its stdin closed (the child's cue to finish), a bounded wait, a kill."""
+from __future__ import annotations
+
+import os
+import pickle
+import struct
+import subprocess
+import sys
+from typing import Optional
+
+_LEN = struct.Struct("<I")
+
+
+def send(fh, msg: tuple) -> None:
+    """Write control message ``msg`` to the binary stream ``fh`` (and flush it)."""
+    data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
+    fh.write(_LEN.pack(len(data)) + data)
+    fh.flush()
+
+
+def receive(fh):
+    """The next control message of ``fh``, or None at its end (the other side is gone)."""
+    head = fh.read(_LEN.size)
+    if len(head) < _LEN.size:
+        return None
+    data = fh.read(_LEN.unpack(head)[0])
+    return pickle.loads(data) if data else None
+
+
+def read_init(fh, child: str, parent: str) -> Optional[dict]:
+    """The child's side: the parameters of the first message, which must be ``("init", dict)``;
+    None (said on stderr) otherwise. Applies the parameters' ``nice`` to this process."""
+    first = receive(fh)
+    if first is None or first[0] != "init":
+        print(f"{child}: expected an ('init', {{...}}) message on stdin from pointfence's {parent}", file=sys.stderr)
+        return None
+    p = first[1]
+    if p.get("nice"):
+        os.nice(int(p["nice"]))
+    return p
+
+
+def end(proc: subprocess.Popen, timeout_s: float) -> bool:
+    """The parent's side: close the child's stdin and wait up to ``timeout_s`` for it to finish,
+    then kill it. Returns whether it had to be killed."""
+    try:
+        proc.stdin.close()
+    except OSError:
+        pass
+    try:
+        proc.wait(timeout=timeout_s)
+        return False
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        return True
