@@ -40,7 +40,7 @@ from .stats import pct
 
 #: both runs as the ROS run needs them on one machine (sim_rig: builds at normal priority) and
 #: the equipment's nice value
-BUILDS = sim_rig.SHARED_MACHINE
+BUILDS = os.environ.get("PF_BUILDS", sim_rig.SHARED_MACHINE)
 EQUIPMENT_NICE = sim_rig.EQUIPMENT_NICE
 
 

@@ -111,6 +111,8 @@ class _FeedBase:
         self.last_error: Optional[str] = None
         self.snapshot_frames: dict = {}    # snapshot seq -> tuple of frame seqs (rig order of names)
         self.snapshot_tick: dict = {}      # snapshot seq -> first tick that used it (filled by the service)
+        #: ``time.monotonic()`` when the running build began (None between builds: build_watch.py)
+        self.build_started: Optional[float] = None
         #: held while a snapshot is built (and while ``swap_pipeline`` moves ingest to another pipeline)
         self.ingest_lock = threading.Lock()
         #: frames -> frames, applied before every ingest (the robot self-filter; None: none)
@@ -164,6 +166,7 @@ class _FeedBase:
     def _ingest_locked(self, frames: list, arrival: float) -> bool:
         if any(f is None for f in frames):
             return False
+        self.build_started = time.monotonic()
         try:
             flt = self.frame_filter
             built = list(frames) if flt is None else flt(frames)
@@ -176,6 +179,8 @@ class _FeedBase:
             self.ingest_errors += 1
             self.last_error = f"ingest: {type(e).__name__}: {e}"
             return False
+        finally:
+            self.build_started = None
         self.snapshots += 1
         self.published_arrival = max(self.published_arrival, arrival)
         self.snapshot_frames[info.seq] = tuple(int(f.seq) for f in frames)
@@ -263,6 +268,8 @@ class LiveFrames(_FeedBase):
         self._thread: Optional[threading.Thread] = None
         self.ingest_dead: Optional[str] = None   # why the ingest thread died (None: it did not)
         self.ingest_ms: list = []
+        #: the watch that keeps PoCL's pool from starving (build_watch.py; set by LiveRun)
+        self.build_watch = None
         #: each camera's clock against the loop's (camera_clock.py); cameras whose sources name
         #: the same ``clock_domain`` share one
         self.clocks = camera_clocks(self.sources)
@@ -370,6 +377,8 @@ class LiveFrames(_FeedBase):
         st["readers"] = {r.name: r.status().reason for r in self.readers}
         st["scheduling"] = self.scheduling
         st["clocks"] = self.clock_status()
+        if self.build_watch is not None:
+            st["builds"] = self.build_watch.status()
         return st
 
     def _ingest_thread(self) -> None:

@@ -81,9 +81,16 @@ class LiveRun:
     def start(self, first_frame_timeout: float = 20.0) -> None:
         sc = self.cfg.service
         if self.service.backend.name == "opencl" and (sc.build_idle or sc.build_nice):
-            from pointfence.kernels.opencl.context import lower_pool_priority
+            from pointfence.kernels.opencl.context import lower_pool_priority, restore_pool_priority
 
             lower_pool_priority(sc.build_nice, idle=sc.build_idle)
+            if sc.build_idle:   # ... but never starved by a busy machine (build_watch.py)
+                from .build_watch import BuildWatch
+
+                self.frames.build_watch = BuildWatch(
+                    self.frames, raise_pool=lambda: bool(restore_pool_priority(0)),
+                    idle_pool=lambda: bool(lower_pool_priority(sc.build_nice, idle=True)),
+                    starve_s=sc.max_frame_age_s / 4).start()
         self.frames.start()
         self.frames.set_rt_priority(sc.frames_rt_priority if sc.rt_priority else 0)
         if not self.frames.wait_first_snapshot(first_frame_timeout):
@@ -148,6 +155,8 @@ class LiveRun:
         stopped, before the recording is closed (the run's measures go into it)."""
         self.loop.stop()
         self._close_telemetry()
+        if self.frames.build_watch is not None:
+            self.frames.build_watch.stop()
         self.frames.stop()
         for s in self.sources:
             s.close()

@@ -86,6 +86,23 @@ def lower_pool_priority(nice: int, idle: bool = False) -> list:
     return done
 
 
+def restore_pool_priority(nice: int = 0) -> list:
+    """Put PoCL's worker pool back under the normal scheduler at ``nice`` (undoes
+    ``lower_pool_priority(..., idle=True)``: builds then get their share of a busy machine).
+    Leaving SCHED_IDLE needs privilege or an ``RLIMIT_NICE`` that allows ``nice``; returns the
+    threads changed (none where refused)."""
+    done = []
+    for tid in pool_threads():
+        try:
+            if hasattr(os, "SCHED_OTHER"):
+                os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, tid, int(nice))
+            done.append(tid)
+        except (OSError, AttributeError):
+            pass
+    return done
+
+
 def list_devices() -> list:
     """(platform name, device name, device type) of every OpenCL device found."""
     cl = _cl()
