@@ -4,7 +4,7 @@ TOML shape (every key but ``model`` is an option of that model; unknown keys are
 name the key and suggest the closest known one)::
 
     [robot]
-    model = "raven2"              # "raven2" (default) | "point-mass"
+    model = "raven2"              # "raven2" (default) | "point-mass" | "crtk" | "raven2-itp"
     # raven2 options (SI units; per-joint lists have 6 values: shoulder, elbow, insertion,
     # tool roll, wrist, grasper yaw):
     arm = "right"                 # "right" (green) | "left" (gold)
@@ -60,6 +60,21 @@ name the key and suggest the closest known one)::
     operating_state_type = "crtk"  # "crtk" | "string" | "none"
     # servo_cp_topic, measured_cp_topic, measured_js_topic, operating_state_topic: overrides
     connect_timeout_s = 5.0
+
+    [robot]
+    model = "raven2-itp"           # a real Raven II, pointfence as its ITP master console (robot/raven_itp.py)
+    address = "192.168.0.10:36000" # the Raven's network layer (UDP)
+    arm = "right"                  # "right" (green, u_struct slot 1) | "left" (gold, slot 0)
+    T_world_base = [...]           # the arm's base frame (the Raven's "robot 0 frame") in the world
+    x0 = [0.0, 0.0, 0.1]           # start of the integrated pose (world, m; default the base origin)
+    workspace_min = [-0.1, -0.1, -0.2]
+    workspace_max = [0.1, 0.1, 0.0]
+    max_speed = 0.2                # m/s and rad/s the increments are streamed at, at most
+    max_angular_speed = 6.0
+    feedback_port = 36001          # where the Raven (built with NET_SEND) sends its v_struct; 0: none
+    feedback_timeout_s = 0.05      # watchdog on that feedback (s, at most 0.25)
+    sync_packets = 1001            # surgeon-off packets at start (the Raven's sequence rules)
+    connect_timeout_s = 5.0
 """
 from __future__ import annotations
 
@@ -73,9 +88,10 @@ from .crtk import CrtkRobot
 from .base import Robot, as_vector
 from .point_mass import PointMass
 from .raven2 import Raven2
+from .raven_itp import RavenItpRobot
 from .settings import OPTIONS, RobotConfig, option_error, parse_robot
 
-MODELS = {"raven2": Raven2, "point-mass": PointMass, "crtk": CrtkRobot}
+MODELS = {"raven2": Raven2, "point-mass": PointMass, "crtk": CrtkRobot, "raven2-itp": RavenItpRobot}
 
 
 def model_options(model: str) -> set:
@@ -93,9 +109,9 @@ def _model(model) -> type:
 
 
 def make_robot(model: str = "raven2", *, connect: bool = True, **options) -> Robot:
-    """A robot: ``model`` is 'raven2' (the default robot), 'point-mass' or 'crtk' (an arm over
-    ROS 2); ``options`` are that model's keyword options (see the module docstring).
-    ``connect=False``: a model that talks to an arm ('crtk') opens no connection (a copy for
+    """A robot: ``model`` is 'raven2' (the default robot), 'point-mass', 'crtk' (an arm over
+    ROS 2) or 'raven2-itp' (a real Raven II over ITP); ``options`` are that model's keyword options (see the module docstring).
+    ``connect=False``: a model that talks to an arm ('crtk', 'raven2-itp') opens no connection (a copy for
     geometry and checks: the service's side of an arm in the robot process); simulated models
     ignore it. Raises InputError on an unknown model or option (naming it and suggesting the
     closest) or a bad value."""
@@ -115,7 +131,7 @@ def make_robot(model: str = "raven2", *, connect: bool = True, **options) -> Rob
         if T.size != 16:
             raise InputError(f"T_world_base has {T.size} numbers; expected 16 (a 4x4, row-major)")
         options["T_world_base"] = as_vector(np.asarray(T, dtype=float).ravel(), 16, "T_world_base").reshape(4, 4)
-    if cls is CrtkRobot:
+    if cls is CrtkRobot or cls is RavenItpRobot:
         options["connect"] = connect
     return cls(**options)
 

@@ -20,6 +20,7 @@ from .crtk import CrtkRobot
 from .point_mass import PointMass
 from .raven2 import DEFAULTS as RAVEN2_DEFAULTS
 from .raven2 import Raven2
+from .raven_itp import RavenItpRobot
 from .tool import ToolModel, parse_tool
 
 Vec = Tuple[float, ...]
@@ -133,9 +134,44 @@ class CrtkOptions:
     control_rate_hz: float = setting(_default(CrtkRobot, "control_rate_hz"), doc="the rate servo_cp is streamed at (Hz)")
 
 
+@dataclass(frozen=True)
+class RavenItpOptions:
+    """``[robot]`` options of model "raven2-itp" (robot/raven_itp.RavenItpRobot): a real Raven II,
+    pointfence as its master console over the Raven's own ITP packets (UDP; clients/PROTOCOL.md)."""
+
+    TABLE = "robot"
+    address: str = setting("", doc='the Raven\'s network layer, "host:port" (UDP; it listens on 36000)',
+                           default_doc="required")
+    arm: Literal["right", "left"] = setting(_default(RavenItpRobot, "arm"),
+                                           doc='"right" (green, u_struct slot 1) or "left" (gold, slot 0)')
+    T_world_base: Optional[Vec] = setting(None, doc="the arm's base frame (Raven robot 0 frame) in the world, 16 "
+                                          "numbers row-major", default_doc="identity")
+    x0: Optional[Vec3] = setting(None, doc="start of the integrated (commanded) pose (world, m)",
+                                 default_doc="the base origin")
+    workspace_min: Optional[Vec] = setting(None, doc="world box the tip must stay in: lower corner (m)",
+                                           default_doc="none")
+    workspace_max: Optional[Vec] = setting(None, doc="world box the tip must stay in: upper corner (m)",
+                                           default_doc="none")
+    max_speed: float = setting(_default(RavenItpRobot, "max_speed"), positive=True,
+                               doc="fastest the position increments stream (m/s)")
+    max_angular_speed: float = setting(_default(RavenItpRobot, "max_angular_speed"), positive=True,
+                                       doc="fastest the rotation increments stream (rad/s)")
+    feedback_port: int = setting(_default(RavenItpRobot, "feedback_port"),
+                                 doc="UDP port the Raven's v_struct arrives on (0: no feedback)")
+    feedback_timeout_s: float = setting(_default(RavenItpRobot, "feedback_timeout_s"), positive=True,
+                                        doc="watchdog: FAULT without valid feedback for this long (s)")
+    sync_packets: int = setting(_default(RavenItpRobot, "sync_packets"),
+                                doc="surgeon-off packets sent at start (the Raven's sequence rules)")
+    connect_timeout_s: float = setting(_default(RavenItpRobot, "connect_timeout_s"), positive=True,
+                                       doc="wait for the first feedback at start (s; then FAULT)")
+    control_rate_hz: float = setting(_default(RavenItpRobot, "control_rate_hz"),
+                                     doc="the packet rate (Hz): one u_struct per step")
+
+
 #: the options dataclass of each robot model
-OPTIONS = {"raven2": Raven2Options, "point-mass": PointMassOptions, "crtk": CrtkOptions}
-Model = Literal["raven2", "point-mass", "crtk", "none"]
+OPTIONS = {"raven2": Raven2Options, "point-mass": PointMassOptions, "crtk": CrtkOptions,
+           "raven2-itp": RavenItpOptions}
+Model = Literal["raven2", "point-mass", "crtk", "raven2-itp", "none"]
 
 
 @dataclass(frozen=True)
@@ -143,8 +179,9 @@ class RobotConfig:
     """``[robot]``: the simulated robot model, its options and its tool (``[robot.tool]``)."""
 
     TABLE = "robot"
-    model: Model = setting("raven2", doc='"raven2" | "point-mass" | "crtk" (ROS 2) | "none" (ideal robot: X_r = X_r*)')
-    options: Union[Raven2Options, PointMassOptions, CrtkOptions, None] = setting(
+    model: Model = setting("raven2", doc='"raven2" | "point-mass" | "crtk" (ROS 2) | "raven2-itp" (a real Raven II) | '
+                           '"none" (ideal robot: X_r = X_r*)')
+    options: Union[Raven2Options, PointMassOptions, CrtkOptions, RavenItpOptions, None] = setting(
         None, doc="the model's options, beside model in [robot]", default_doc="the model's defaults")
     tool: Optional[ToolModel] = setting(None, doc="[robot.tool]: the tool the self-filter removes (robot/tool.py)",
                                         default_doc="a Raven II's instrument; none for other robots")
@@ -185,10 +222,10 @@ def parse_robot(table) -> RobotConfig:
     opts = dict(table)
     model = check_value(Model, opts.pop("model", "raven2"), "[robot] model")
     tool = opts.pop("tool", None)
-    if tool is not None and model == "crtk":
-        raise InputError("[robot.tool] with model = 'crtk': the self-filter places the tool by the arm's kinematics "
-                         "at each frame's capture time, and a CRTK arm's kinematics are its controller's; remove "
-                         "[robot.tool] (the self-filter stays off for a CRTK arm)")
+    if tool is not None and model in ("crtk", "raven2-itp"):
+        raise InputError(f"[robot.tool] with model = {model!r}: the self-filter places the tool by the arm's kinematics "
+                         "at each frame's capture time, and this arm's kinematics are its controller's; remove "
+                         "[robot.tool] (the self-filter stays off for this arm)")
     tool = None if tool is None else parse_tool(tool)
     if model == "none":
         if opts:
