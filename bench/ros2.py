@@ -1,8 +1,9 @@
 """`pointfence bench ros2`: the ROS 2 path on this machine's loopback, beside the same loop without it.
 
 Two live runs of the same scene (the embedded defaults' camera and Raven II arm, the fixture the
-objects above the table, one circling master pressing into it, architecture III; snapshot builds
-at normal priority, ``BUILDS``), one after the other in one call:
+objects above the table, one circling master pressing into it, architecture III), one after the
+other in one call (the service's own defaults otherwise: PoCL's pool under SCHED_IDLE, raised by
+``service/build_watch.py`` while builds starve):
 
 * **ROS off**: ``bench loop``'s run: 30 pre-rendered frames served in real time, a scripted
   master, the arm simulated in the robot process.
@@ -38,9 +39,7 @@ from .loop import _one
 from .machine import cpu_times, cpu_usage
 from .stats import pct
 
-#: both runs as the ROS run needs them on one machine (sim_rig: builds at normal priority) and
-#: the equipment's nice value
-BUILDS = os.environ.get("PF_BUILDS", sim_rig.SHARED_MACHINE)
+#: the equipment's nice value (a lab runs it on its own computers)
 EQUIPMENT_NICE = sim_rig.EQUIPMENT_NICE
 
 
@@ -56,7 +55,7 @@ def _scene(tmp: Path):
 
     text = (Path(config_mod.__file__).parent / "defaults.toml").read_text()
     path = tmp / "scene.toml"
-    path.write_text(sim_rig.ros_scene_text(text, BUILDS))
+    path.write_text(sim_rig.ros_scene_text(text))
     return path, config_mod.load(str(path))
 
 

@@ -51,7 +51,7 @@ def run(args, cfg) -> int:
         dds.apply(env)
         env = {**os.environ, **env}
         scene = tmp / "scene.toml"
-        scene.write_text(sim_rig.ros_scene_text(src_text, "" if "[service]" in src_text else sim_rig.SHARED_MACHINE))
+        scene.write_text(sim_rig.ros_scene_text(src_text))
         # the demo's lateness bound (demo --max-lateness) carries over to the ROS scene
         cfg = replace(load(str(scene)), service=replace(load(str(scene)).service, max_lateness_s=cfg.service.max_lateness_s))
         try:

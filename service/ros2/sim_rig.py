@@ -27,14 +27,6 @@ from pointfence.kernels.errors import InputError
 BOX_SELECT = 'select = { kind = "box", min = [-0.25, -0.25, 0.005], max = [0.25, 0.25, 0.25] }'
 COLOR_SELECT = 'select = { kind = "color", lo = [150, 0, 0], hi = [255, 90, 90] }'
 CAMERA_NS, MASTER_NS, ARM_NS = "/pf_sim/cam0", "MTMR", "PSM1"
-#: the scene's ``[service]`` keys for a machine that also runs the equipment: snapshot builds at
-#: normal priority (PoCL's pool under SCHED_IDLE, the default, builds nothing while the
-#: equipment keeps every core busy, and the arms hold on stale snapshots: S2)
-SHARED_MACHINE = """
-[service]
-build_idle = false
-build_nice = 0
-"""
 #: the equipment's nice value on a machine shared with the service (a lab runs it elsewhere)
 EQUIPMENT_NICE = 5
 
