@@ -252,7 +252,8 @@ class ServiceConfig:
     build_nice: int = setting(10, lo=0, hi=19, doc="nice value of PoCL's worker threads (snapshot builds); 0: normal",
                               hint="nice value of PoCL's worker threads that build the snapshots; 0 leaves them at "
                                    "normal priority")
-    build_idle: bool = setting(True, doc="PoCL's worker threads run SCHED_IDLE (false: at nice build_nice)",
+    build_idle: bool = setting(True, doc="PoCL's worker threads run SCHED_IDLE, back under the normal scheduler while "
+                                         "a build starves (false: at nice build_nice)",
                                hint="PoCL's worker threads at SCHED_IDLE; false: at nice build_nice")
     robot_process: bool = setting(True, doc="live runs step simulated robots in their own process (false: in the tick)",
                                   hint="live runs step simulated robots in their own process; false: in the haptic tick")
