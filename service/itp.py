@@ -14,8 +14,9 @@ THIS LINK IS UNAUTHENTICATED: anyone who can send a datagram to the port can mov
 (the published Raven II vulnerability). The adapter therefore binds to loopback unless told
 otherwise, and exists only so that existing masters can be used on a trusted host; use the
 authenticated protocol (``clients/PROTOCOL.md``) for anything else. It still rejects what it
-can: wrong size, bad checksum (``checksum="sum"``: the unsigned 32-bit sum of bytes 0..119; use
-``"none"`` for masters that leave the field unset), a sequence not newer than the last one
+can: wrong size, bad checksum (``checksum="raven"``, the default: the Raven II's own
+``UDPChecksum``, a sum of the fields that its masters fill in; ``"sum"``: the unsigned 32-bit sum of
+bytes 0..119; ``"none"`` for masters that leave the field unset), a sequence not newer than the last one
 (32-bit, wrapping), a sequence more than ``max_jump`` ahead of the last one (``jump``: one
 spoofed packet numbered last + 2^31 - 1 must not make every genuine packet look old), packets
 from any source other than the one the link is locked to (``source``: the address of the first
@@ -58,6 +59,8 @@ from typing import Optional
 
 import numpy as np
 
+from pointfence.kernels.errors import InputError
+
 from .age_hist import AgeHistogram
 from .masters import Master
 from .rx_stamps import RCVBUF_BYTES, StampedReader
@@ -70,20 +73,45 @@ ITP_SIZE = ITP.size   # 124
 assert ITP_SIZE == 124
 
 
-def itp_checksum(data) -> int:
-    """The adapter's checksum rule: unsigned 32-bit sum of bytes 0..119."""
-    return sum(bytes(data[:120])) & 0xFFFFFFFF
+def _i32(x: int) -> int:
+    """``x`` wrapped to a C int (two's complement, 32 bits)."""
+    x &= 0xFFFFFFFF
+    return x - 0x100000000 if x & 0x80000000 else x
+
+
+def udp_checksum(sequence: int, delx, dely, delz, buttonstate, surgeon_mode: int) -> int:
+    """The Raven II's ``UDPChecksum`` (network_layer.cpp): the C ``int`` sum of surgeon_mode, the
+    six position increments, both button states and ``(int)sequence`` (wrapping at 32 bits). The
+    Raven's masters fill the checksum field with it; the released Raven computes it but does not
+    check it."""
+    return _i32(surgeon_mode + delx[0] + dely[0] + delz[0] + delx[1] + dely[1] + delz[1]
+                + buttonstate[0] + buttonstate[1] + _i32(sequence))
+
+
+#: the checksum rules a receiver may hold masters to: the Raven's own, a byte sum, none
+CHECKSUMS = ("raven", "sum", "none")
+
+
+def itp_checksum(data, rule: str = "raven") -> int:
+    """The checksum of packet ``data`` (its first 120 bytes) by ``rule``: ``"raven"``, the Raven
+    II's ``UDPChecksum`` of the fields (what its masters send), or ``"sum"``, the unsigned 32-bit
+    sum of bytes 0..119; as the unsigned 32-bit value of the field."""
+    if rule == "sum":
+        return sum(bytes(data[:120])) & 0xFFFFFFFF
+    v = ITP.unpack_from(bytes(data[:120]) + bytes(4))
+    return udp_checksum(v[0], v[3:5], v[5:7], v[7:9], v[17:19], v[21]) & 0xFFFFFFFF
 
 
 def pack_itp(sequence, delta_um, quats, buttons=(0, 0), grasp_mrad=(0, 0), surgeon_mode=1, pactyp=0, version=0,
-             checksum=None) -> bytes:
-    """An ITP master packet: ``delta_um`` (2, 3) int, ``quats`` (2, 4) as x, y, z, w."""
+             checksum=None, rule: str = "raven") -> bytes:
+    """An ITP master packet: ``delta_um`` (2, 3) int, ``quats`` (2, 4) as x, y, z, w; its checksum
+    ``checksum``, else by ``rule`` (``itp_checksum``)."""
     d = np.asarray(delta_um, dtype=np.int64).reshape(2, 3)
     q = np.asarray(quats, dtype=float).reshape(2, 4)
     body = ITP.pack(sequence, pactyp, version, *d[:, 0].tolist(), *d[:, 1].tolist(), *d[:, 2].tolist(),
                     *q[:, 0].tolist(), *q[:, 1].tolist(), *q[:, 2].tolist(), *q[:, 3].tolist(),
                     *[int(b) for b in buttons], *[int(g) for g in grasp_mrad], int(surgeon_mode), 0)
-    c = itp_checksum(body) if checksum is None else checksum
+    c = itp_checksum(body, rule) if checksum is None else checksum
     return body[:120] + struct.pack("<I", c & 0xFFFFFFFF)
 
 
@@ -132,7 +160,8 @@ class ItpReceiver:
         host, port: where to bind (loopback unless the masters are on another host: then the
             link is exposed to anyone on that network, and a warning says so).
         timeout_ms: an arm silent this long reports ``ok = False``.
-        checksum: "sum" or "none" (see ``itp_checksum``).
+        checksum: "raven" (the Raven II's own ``UDPChecksum``, what its masters send), "sum" or
+            "none" (see ``itp_checksum``).
         max_step_um: largest increment per packet and axis, micrometres.
         max_jump: largest sequence advance accepted from one packet to the next (packets).
         lock_timeout_s: the source lock is released after this long without an accepted packet, s
@@ -145,7 +174,7 @@ class ItpReceiver:
             milliseconds of packets, not seconds).
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 36000, timeout_ms: int = 50, checksum: str = "sum",
+    def __init__(self, host: str = "127.0.0.1", port: int = 36000, timeout_ms: int = 50, checksum: str = "raven",
                  max_step_um: int = 10000, max_jump: int = 1000, lock_timeout_s: float = 1.0, receiver: bool = True,
                  limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES):
         if not 1 <= int(max_jump) < 0x80000000:
@@ -161,6 +190,8 @@ class ItpReceiver:
         self.max_age_ns = int(round(self.timeout_s * 1e9))   # a sample older at the tick is not used
         self.ages = AgeHistogram()       # ages of the samples the ticks used (kernel arrival -> tick)
         self.stale_ticks = 0
+        if checksum not in CHECKSUMS:
+            raise InputError(f"ITP checksum rule {checksum!r}; expected one of {', '.join(CHECKSUMS)}")
         self.checksum = checksum
         self.max_step_um = int(max_step_um)
         self.max_jump = int(max_jump)
@@ -267,7 +298,7 @@ class ItpReceiver:
             self.counters["size"] += 1
             return False
         v = ITP.unpack_from(data, 0)
-        if self.checksum == "sum" and (v[22] & 0xFFFFFFFF) != itp_checksum(data):
+        if self.checksum != "none" and (v[22] & 0xFFFFFFFF) != itp_checksum(data, self.checksum):
             self.counters["checksum"] += 1
             return False
         seq = v[0]

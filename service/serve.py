@@ -91,7 +91,9 @@ def add_arguments(p):
                    help="render this many frames of each synthetic camera before starting and serve them in a loop at "
                         "the camera's rate (rendering live holds Python's interpreter lock for milliseconds a frame, "
                         "which a real camera's driver does not; default 0: render live)")
-    p.add_argument("--itp-checksum", choices=("sum", "none"), default="sum", help="ITP checksum rule (see service/itp.py)")
+    p.add_argument("--itp-checksum", choices=("raven", "sum", "none"), default="raven",
+                   help="ITP checksum rule: raven (the Raven II's UDPChecksum, default), sum (bytes 0..119), none "
+                        "(service/itp.py)")
     p.add_argument("--ros2-masters", default=None, metavar="NS[,NS...]",
                    help="CRTK masters on ROS 2 (pose from NS/measured_cp, force on NS/body/servo_cf), e.g. MTMR,MTML; "
                         "default off (needs pointfence[ros2]; the DDS environment is ROS 2's own)")

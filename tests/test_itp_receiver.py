@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from pointfence.kernels.errors import InputError
 from pointfence.service import itp
 from pointfence.service.itp import ItpReceiver, pack_itp
 from pointfence.service.udp_ratelimit import SourceLimiter
@@ -32,9 +33,9 @@ class ParseCounter:
             counter.count(True)
             return real_handle(rx, *a, **k)
 
-        def checksum(data):
+        def checksum(data, *rule):
             counter.count()
-            return real_sum(data)
+            return real_sum(data, *rule)
 
         class Struct:
             size = real_struct.size
@@ -212,3 +213,37 @@ def test_a_spoofed_flood_from_another_process_never_changes_the_genuine_masters_
         th.join(5)
         genuine.close()
         r.close()
+
+
+def test_a_raven_master_s_own_checksum_is_accepted_and_others_refused():
+    """The receiver holds ITP masters to the Raven II's own UDPChecksum by default (a sum of the
+    fields, what the Raven's master consoles send: service/robot/raven_itp_wire.py builds its
+    packets from the Raven's C source), not to a byte sum a genuine console never sends."""
+    from pointfence.service.itp import itp_checksum
+    from pointfence.service.robot.raven_itp_wire import pack_u
+
+    def console_packet(seq):
+        buf = bytearray(124)
+        pack_u(buf, seq, 1, (120, -40, 7), (0.0, 0.0, 0.0, 1.0), 30, 1)
+        return bytes(buf)
+
+    src = ("127.0.0.1", 40001)
+    r = ItpReceiver("127.0.0.1", 0, receiver=False)
+    try:
+        assert r.checksum == "raven"
+        assert r.handle(console_packet(1), 0.001, src)                   # a genuine console's packet
+        assert r.counters["checksum"] == 0
+        byte_sum = pack_itp(2, [[0, 0, 0], [120, -40, 7]], Q, rule="sum")
+        assert itp_checksum(byte_sum, "sum") != itp_checksum(byte_sum, "raven")
+        assert not r.handle(byte_sum, 0.002, src) and r.counters["checksum"] == 1
+        assert r.handle(pack_itp(3, [[0, 0, 0], [1, 0, 0]], Q), 0.003, src)   # pack_itp: the Raven's rule
+    finally:
+        r.close()
+    legacy = ItpReceiver("127.0.0.1", 0, receiver=False, checksum="sum")
+    try:
+        assert legacy.handle(pack_itp(1, [[0, 0, 0], [1, 0, 0]], Q, rule="sum"), 0.001, src)
+        assert not legacy.handle(console_packet(2), 0.002, src)
+    finally:
+        legacy.close()
+    with pytest.raises(InputError, match="checksum rule"):
+        ItpReceiver("127.0.0.1", 0, receiver=False, checksum="crc")

@@ -17,7 +17,7 @@ import struct
 
 import numpy as np
 
-from ..itp import ITP, ITP_SIZE
+from ..itp import ITP, ITP_SIZE, udp_checksum
 
 #: v_struct: uint32 sequence, last_sequence, pactyp, version; int32 fx[2], fy[2], fz[2], runlevel;
 #: uint32 jointflags; int32 checksum
@@ -49,20 +49,6 @@ ITP_TO_BASE = {
     "left": np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),    # ITP2Gold
     "right": np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),   # ITP2Green
 }
-
-
-def _i32(x: int) -> int:
-    """``x`` wrapped to a C int (two's complement, 32 bits)."""
-    x &= 0xFFFFFFFF
-    return x - 0x100000000 if x & 0x80000000 else x
-
-
-def udp_checksum(sequence: int, delx, dely, delz, buttonstate, surgeon_mode: int) -> int:
-    """network_layer.cpp ``UDPChecksum``: the C ``int`` sum of surgeon_mode, the six position
-    increments, both button states and ``(int)sequence`` (wrapping at 32 bits). The released Raven
-    computes it but does not check it (the comparison is commented out); a master fills it."""
-    return _i32(surgeon_mode + delx[0] + dely[0] + delz[0] + delx[1] + dely[1] + delz[1]
-                + buttonstate[0] + buttonstate[1] + _i32(sequence))
 
 
 def pack_u(buf: bytearray, sequence: int, slot: int, d_itp, q_itp, grasp: int, surgeon_mode: int) -> None:
