@@ -81,21 +81,26 @@ class LiveRun:
     def start(self, first_frame_timeout: float = 20.0) -> None:
         sc = self.cfg.service
         if self.service.backend.name == "opencl" and (sc.build_idle or sc.build_nice):
-            from pointfence.kernels.opencl.context import lower_pool_priority, restore_pool_priority
+            from pointfence.kernels.opencl.context import lower_pool_priority
 
             lower_pool_priority(sc.build_nice, idle=sc.build_idle)
-            if sc.build_idle:   # ... but never starved by a busy machine (build_watch.py)
-                from .build_watch import BuildWatch
-
-                self.frames.build_watch = BuildWatch(
-                    self.frames, raise_pool=lambda: bool(restore_pool_priority(0)),
-                    idle_pool=lambda: bool(lower_pool_priority(sc.build_nice, idle=True)),
-                    starve_s=sc.max_frame_age_s / 4).start()
         self.frames.start()
         self.frames.set_rt_priority(sc.frames_rt_priority if sc.rt_priority else 0)
         if not self.frames.wait_first_snapshot(first_frame_timeout):
             self.stop()
             raise RuntimeError(f"no snapshot within {first_frame_timeout} s: {self.frames.status(self.clock.now())}")
+        if self.service.backend.name == "opencl" and sc.build_idle:
+            # ... but never starved by a busy machine (build_watch.py); watched from the first
+            # snapshot on: the first builds compile the kernels, slow by nature, and raising the
+            # pool for them only takes the cores from the rest of the start-up
+            from pointfence.kernels.opencl.context import lower_pool_priority, restore_pool_priority
+
+            from .build_watch import BuildWatch
+
+            self.frames.build_watch = BuildWatch(
+                self.frames, raise_pool=lambda: bool(restore_pool_priority(0)),
+                idle_pool=lambda: bool(lower_pool_priority(sc.build_nice, idle=True)),
+                starve_s=sc.max_frame_age_s / 4).start()
         self.service.start()
         if hasattr(self.service.recorder, "note_start"):
             self.service.recorder.note_start(self.service)
