@@ -56,9 +56,9 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 from ..masters import Master
+from ..robot.hosted_block import get_text
 from .crtk_device import CrtkDevice
-from .master_block import (COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_NAMES, STATE_LAYOUT, MasterBlock,
-                           get_text)
+from .master_block import COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_NAMES, STATE_LAYOUT, MasterBlock
 
 #: how long the bridge may take to create its node and topics (rclpy's import included), s
 START_TIMEOUT_S = 30.0

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..robot.hosted_block import TEXT, Channel, RowLayout, get_text, put_text  # noqa: F401 (texts: here too)
+from ..robot.hosted_block import TEXT, Channel, RowLayout
 
 #: control words: stop request (service -> bridge), the bridge's heartbeat (polling periods), its
 #: pid, ready (its node and every device's topics exist), an error code (1: the bridge failed)

@@ -23,7 +23,8 @@ from multiprocessing import shared_memory
 import numpy as np
 
 from .crtk_device import CrtkDevice
-from .master_block import COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_PEDAL, STATE_LAYOUT, MasterBlock, put_text
+from ..robot.hosted_block import put_text
+from .master_block import COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_PEDAL, STATE_LAYOUT, MasterBlock
 
 #: the main thread's period: force forwarding and the heartbeat, s
 PERIOD_S = 0.001
