@@ -84,5 +84,5 @@ class GrasperBlock:
         return block_dtype().itemsize
 
 
-__all__ = ["GrasperBlock", "FAULT_CODES", "CONTROL", "COMMAND", "STATE", "INJECT_NONE", "INJECT_NAN", "FAULT_TEXT", "ALERT_TEXT",
-           "get_text", "put_text"]
+__all__ = ["GrasperBlock", "FAULT_CODES", "CONTROL", "COMMAND", "STATE", "INJECT_NONE", "INJECT_NAN", "FAULT_TEXT",
+           "ALERT_TEXT", "get_text", "put_text"]

@@ -180,6 +180,7 @@ def test_the_tension_estimate_and_its_alert_are_published():
     b = Bench(tension=True, tension_min_g=900.0, tension_max_g=1400.0)     # the plant is at 743 g
     for _ in range(1200):
         g = b.tick(0.2)
+    assert g.loop.fault is None
     S = b.blk.state_layout
     row = np.zeros(S.size)
     assert b.blk.state.read(row)

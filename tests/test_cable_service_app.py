@@ -9,7 +9,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pytest
 
 from pointfence.service.cable_grasper import RECORD_FIELDS, GrasperHost
 from pointfence.service.cable_settings import CableTable
