@@ -124,6 +124,15 @@ class Service:
         self.kernel_us = np.zeros(RING)         # the kernel's wall-clock time per tick (us), a ring
         self.ticks = 0
         self._started = False
+        #: the cable-driven grasper controller of ``[cable]`` (``cable_grasper.GrasperHost``, its own
+        #: process), commanded each tick with its arm's jaw; its fault holds that arm (as a robot fault)
+        self.grasper = None
+        if cfg.cable is not None:
+            from .cable_grasper import GrasperHost
+
+            cfg.cable.check_arms(n)
+            self.grasper = GrasperHost(cfg.cable)
+            self.grasper.start()
 
     # --- construction helpers -----------------------------------------------------------------
     @staticmethod
@@ -238,6 +247,8 @@ class Service:
                                  "release the pedal(s) or disengage teleoperation first, then clear the faults "
                                  "(SAFETY.md S3)")
             self.devices.clear_robot_faults()
+            if self.grasper is not None:
+                self.grasper.clear_fault()
             self.health.clear()
             self.last_error = None
             restart = getattr(self.scene.feeder, "restart_ingest", None)
@@ -297,6 +308,8 @@ class Service:
             inp.haptics, inp.teleop = self.haptics_on, self.teleop_on
         self.devices.read_masters(inp)
         self.devices.read_robots(inp, self.teleop.cmd)
+        if self.grasper is not None and self.grasper.faulted:     # (recorded: a replay holds as the run did)
+            inp.robot_fault[self.grasper.arm] = True
         self.scene.sense(inp)
 
     def step(self, inp: TickInput) -> TickOutput:
@@ -368,6 +381,13 @@ class Service:
                 out.command[b] = dev.kept[b]
                 self.health.robot_seen(int(b), out.t)
             self.last_error = f"tick {out.k}: {dev.last_refusal}"
+        g = self.grasper
+        if g is not None:           # the jaw follows the grasp while the arm is coupled (never waits)
+            if out.coupled[g.arm]:
+                jaw = getattr(out, "jaw", None)
+                g.command(float(jaw[g.arm]) if jaw is not None else getattr(dev.masters[g.arm], "grasp", 0.0))
+            else:
+                g.watch()
 
     def publish(self, inp: TickInput, out: TickOutput) -> None:
         """A copy of the tick's output for other threads (``snapshot``, ``status``); the recording."""
@@ -455,11 +475,15 @@ class Service:
             st["recording"] = self.recorder.status()
         if self.telemetry is not None:          # ROS 2 telemetry: its publisher process's health
             st["telemetry"] = self.telemetry.status()
+        if self.grasper is not None:            # [cable]: the grasper's estimate, alerts, fault
+            st["grasper"] = self.grasper.snapshot().as_dict()
         return st
 
     def close(self) -> None:
         if self.recorder is not None:
             self.recorder.close()   # (streamed: the last rows reach the file)
+        if self.grasper is not None:
+            self.grasper.close()
         self.scene.close()
 
     # --- the components' parts, by their old names (tools and tests read them) ---------------------

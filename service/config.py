@@ -62,6 +62,7 @@ class SceneConfig:
     robot: RobotConfig = field(default_factory=RobotConfig)
     service: ServiceConfig = field(default_factory=ServiceConfig)
     ros2: Ros2Table = field(default_factory=Ros2Table)     #: [ros2]: telemetry (ros2/telemetry.py)
+    cable: Optional[Any] = None            #: [cable]: the grasper controller (cable_settings.CableTable), or None
     cell_size_given: bool = False
 
     @property
@@ -166,7 +167,7 @@ def parse(doc: dict, path: Optional[str] = None) -> SceneConfig:
                          '"point-mass"); the ideal robot ("none") has no tool to filter')
     return SceneConfig(backend=t.backend, device=t.device or None, mode=mode, pipeline=pipeline, cameras=cameras,
                        path=path, haptics=haptics, teleop=t.teleop, robot=t.robot, service=t.service,
-                       ros2=t.ros2, cell_size_given=t.hash.cell_size is not None)
+                       ros2=t.ros2, cable=t.cable, cell_size_given=t.hash.cell_size is not None)
 
 
 def load(path=None) -> SceneConfig:

@@ -265,6 +265,8 @@ class Controller:
                         "frames": fr.get("frames"), "ingest_errors": fr.get("ingest_errors")},
             "control": self.counters(),
         }
+        if "grasper" in st:        # [cable]: the grasper's estimate, misses, alerts and fault
+            out["grasper"] = st["grasper"]
         for name in self.extras:
             v = c[name]
             if isinstance(v, dict) and "sessions" in v:   # a UdpHub's status: counts

@@ -110,6 +110,8 @@ class McapRecorder:
         self._joint_every = 1
         self._joint_stage: Optional[np.ndarray] = None     # (arms, dof): joints taken for tick _joint_staged
         self._joint_staged = -1
+        self._grasper = None              # (record_grasper: the GrasperHost, its ring, every how many ticks)
+        self._grasper_path: Optional[str] = None
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             out = self.path.open("wb")
@@ -158,6 +160,9 @@ class McapRecorder:
                 for b, fill in self._joint_fill:
                     fill(stage[b])
                 self._joint_staged = k + 1
+        g = self._grasper
+        if g is not None and inp.k % g[2] == 0:    # the grasper's latest estimate (a copy, no allocation)
+            g[0].copy_into(g[1].rows[slot, 0])
         self._next = j + 1
         self._hdr[mcap_shm.WRITTEN] = j + 1        # (after the row: the writer reads rows below it)
         self.ticks_recorded += 1
@@ -227,6 +232,8 @@ class McapRecorder:
                                  "robot_present": inp.robot_present.tolist(), "haptics": bool(service.haptics_on),
                                  "teleop": bool(service.teleop_on), "architecture": service.architecture}})
         self.record_joints(service.robots)
+        if getattr(service, "grasper", None) is not None:
+            self.record_grasper(service.grasper)
 
     def record_joints(self, robots) -> None:
         """Record the measured joints of ``robots`` (one per arm, None: an ideal robot) as
@@ -253,6 +260,23 @@ class McapRecorder:
         self._joint_stage = np.full((self.n, dof), math.nan)
         self._joint_fill = [(b, r.measured_jp_into) for b, r in arms]
         self._send(("joints", self._joint_path, dof, {str(b): v for b, v in names.items()}, self._joint_every))
+
+    def record_grasper(self, grasper) -> None:
+        """Record the ``[cable]`` grasper's estimate (``cable_grasper.GrasperHost``: jaw, torques,
+        tension, faults; ``mcap_topics.GrasperTopics``) at ``joint_hz``: every ``rate_hz /
+        joint_hz``-th tick copies its latest values (``copy_into``) into a ring beside its row.
+        Call before the first tick, once."""
+        from .cable_grasper import RECORD_FIELDS
+
+        if self._grasper is not None or self.joint_hz <= 0 or self._closed:
+            return
+        every = max(1, int(round(self.rate_hz / min(self.joint_hz, self.rate_hz))))
+        self._grasper_path, buf = mcap_shm.create(mcap_shm.JointBlock.nbytes(self.capacity, 1, len(RECORD_FIELDS)),
+                                                  "pointfence-grasper-")
+        block = mcap_shm.JointBlock(buf, self.capacity, 1, len(RECORD_FIELDS))
+        block.rows[:] = math.nan
+        self._grasper = (grasper, block, every)
+        self._send(("grasper", self._grasper_path, int(grasper.arm), every, tuple(RECORD_FIELDS)))
 
     # --- the ingest side ------------------------------------------------------------------------------
     def _clock_minus_stamp(self) -> float:
@@ -389,7 +413,7 @@ class McapRecorder:
         self._error = self._writer_error() or self._error
         if self._proc.stderr is not None and not self._proc.stderr.closed:
             self._proc.stderr.close()
-        for p in (self._tick_path, self._frame_path, self._joint_path):
+        for p in (self._tick_path, self._frame_path, self._joint_path, self._grasper_path):
             if p is not None:
                 try:
                     os.unlink(p)

@@ -13,7 +13,8 @@ X_r*, world), ``/MTMR/measured_cp`` (the master's sample, master frame), ``/MTMR
 (PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). Orientations
 are identity: pointfence's points have none. Where the arm's robot has joints (Raven II),
 ``/PSM1/measured_js`` (``sensor_msgs/JointState``: its joint names, measured positions in rad or
-m; no velocity or effort) at the recorder's ``joint_hz``.
+m; no velocity or effort) at the recorder's ``joint_hz``. With a ``[cable]`` grasper, its jaw estimate,
+setpoint and health (``GrasperTopics``).
 """
 from __future__ import annotations
 
@@ -114,6 +115,75 @@ class JointTopics:
                         "position": joints[i, b, : len(names)].tolist(), "velocity": [], "effort": []}, t)
 
 
+class GrasperTopics:
+    """The cable-driven grasper of arm ``arm`` (``[cable]``, ``cable_grasper.GrasperHost``), from
+    the rows (``cable_grasper.RECORD_FIELDS``) the tick took on every ``every``-th tick:
+
+    * ``/<arm>/jaw/measured_js`` (``sensor_msgs/JointState``, joint ``jaw``): the estimated jaw
+      angle (rad), velocity (rad/s) and, as effort, the estimated external torque on the jaw (N m:
+      the contact, section 4.5);
+    * ``/<arm>/jaw/setpoint_js``: the controller's setpoint (rad) and, as effort, the motor torque
+      it applied (N m; 0 while faulted);
+    * ``/pointfence/arm<b>/grasper`` (``diagnostic_msgs/DiagnosticArray``) on every ``diag_every``-th
+      row and whenever the fault or the tension alert changes: level OK, WARN (tension out of its
+      range) or ERROR (a fault, named by kind), with the tension, stiffness, torques and lateness.
+    """
+
+    LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
+
+    def __init__(self, arm: int, every: int, fields: tuple, diag_every: int = 10):
+        from .cable_block import FAULT_CODES
+
+        self.arm, self.every, self.diag_every = int(arm), max(1, int(every)), max(1, int(diag_every))
+        self.col = {f: i for i, f in enumerate(fields)}
+        r = robot_ns(self.arm)
+        self.measured, self.setpoint = f"/{r}/jaw/measured_js", f"/{r}/jaw/setpoint_js"
+        self.diag = f"/pointfence/arm{self.arm}/grasper"
+        self.hardware = f"{r} jaw"
+        self.fault_names = FAULT_CODES
+        self.rows = 0
+        self.prev = (0, 0)
+
+    def write(self, tw: TopicWriter, k: np.ndarray, rows: np.ndarray, ns: np.ndarray) -> None:
+        """``k`` (N,) tick numbers, ``rows`` (N, fields) their grasper rows, ``ns`` (N,) stamps."""
+        c = self.col
+        for i in np.flatnonzero(k % self.every == 0):
+            row = rows[i]
+            if np.isnan(row[c["jaw"]]):          # (the record did not read on that tick)
+                continue
+            t = int(ns[i])
+            tw.dyn(self.measured, "sensor_msgs/JointState",
+                   {"header": stamp(t, ""), "name": ["jaw"], "position": [float(row[c["jaw"]])],
+                    "velocity": [float(row[c["jaw_velocity"]])], "effort": [float(row[c["link_torque"]])]}, t)
+            tw.dyn(self.setpoint, "sensor_msgs/JointState",
+                   {"header": stamp(t, ""), "name": ["jaw"], "position": [float(row[c["setpoint"]])],
+                    "velocity": [], "effort": [float(row[c["motor_torque"]])]}, t)
+            state = (int(row[c["fault_code"]]), int(row[c["tension_alert"]]))
+            if self.rows % self.diag_every == 0 or state != self.prev:
+                self._diagnostic(tw, t, row, state)
+            self.prev = state
+            self.rows += 1
+
+    def _diagnostic(self, tw: TopicWriter, t: int, row: np.ndarray, state: tuple) -> None:
+        c = self.col
+        fault, alert = state
+        if fault:
+            level, msg = self.LEVEL_ERROR, f"fault: {self.fault_names.get(fault, fault)}; grasper torque is zero"
+        elif alert:
+            level, msg = self.LEVEL_WARN, f"cable tension {'below' if alert == 1 else 'above'} its safe range"
+        else:
+            level, msg = self.LEVEL_OK, "ok"
+        tension = row[c["tension_g"]]
+        values = [("tension_g", "" if np.isnan(tension) else f"{tension:.1f}"), ("k_e", f"{row[c['k_e']]:.6g}"),
+                  ("motor_torque", f"{row[c['motor_torque']]:.6g}"), ("link_torque", f"{row[c['link_torque']]:.6g}"),
+                  ("jaw", f"{row[c['jaw']]:.6g}"), ("late_ms", f"{row[c['late']] * 1e3:.3f}"),
+                  ("fault", self.fault_names.get(fault, "") if fault else "")]
+        tw.dyn(self.diag, "diagnostic_msgs/DiagnosticArray",
+               {"header": stamp(t, ""), "status": [{"level": level, "name": "pointfence/grasper", "message": msg,
+                                                    "hardware_id": self.hardware,
+                                                    "values": [{"key": k, "value": v} for k, v in values]}]}, t)
+
+
 def _names(mask: int) -> tuple:
     rs = [r for bit, r in REASONS.items() if int(mask) & int(bit)]
     return ",".join(r.name for r in rs), ",".join(dict.fromkeys(r.invariant for r in rs))
@@ -186,4 +256,4 @@ def camera_info(cam, ns: int) -> dict:
             "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}
 
 
-__all__ = ["TopicWriter", "ArmTopics", "JointTopics", "EventDetector", "camera_info", "stamp"]
+__all__ = ["TopicWriter", "ArmTopics", "JointTopics", "GrasperTopics", "EventDetector", "camera_info", "stamp"]

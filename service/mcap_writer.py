@@ -14,6 +14,8 @@ stdin (``child_pipe.send``/``receive``: 4-byte length, then a pickled tuple):
 * ``("epoch", ns)``: the wall clock at loop-clock 0;
 * ``("joints", path, dof, {arm: joint names}, every)``: map the joint block; every ``every``-th
   tick's joints go to ``/<arm>/measured_js``;
+* ``("grasper", path, arm, every, fields)``: map the grasper block (``[cable]``); every
+  ``every``-th tick's grasper row goes to ``mcap_topics.GrasperTopics``;
 * ``("sync", token)``: the run is over: write every tick and frame the rings hold now (no fixture
   cloud after it), end the chunk, fsync, then set the header's ``SYNCED`` to ``token``
   (``McapRecorder.seal``, the flush barrier before end-of-run metadata);
@@ -80,6 +82,7 @@ class Writer:
         self.pending_meta: list = []      # (name, {key: JSON text})
         self.latest: list = []
         self.joints = None                # (JointTopics, JointBlock) once the robots are known
+        self.grasper = None               # (GrasperTopics, JointBlock) with a [cable] grasper
         self.inbox = inbox                # control messages, in order (main's reader thread)
         self.received = 1                 # (the init message, which main read)
         self.sync = None                  # a sync asked for and not yet carried out
@@ -119,6 +122,13 @@ class Writer:
             _, path, dof, names, every = msg
             block = mcap_shm.JointBlock(mcap_shm.attach(path), self.ticks.capacity, self.layout.n, dof)
             self.joints = (JointTopics({int(b): v for b, v in names.items()}, int(every)), block)
+        elif op == "grasper":
+            from . import mcap_shm
+            from .mcap_topics import GrasperTopics
+
+            _, path, arm, every, fields = msg
+            block = mcap_shm.JointBlock(mcap_shm.attach(path), self.ticks.capacity, 1, len(fields))
+            self.grasper = (GrasperTopics(arm, every, fields), block)
         elif op == "sync":
             self.sync = int(msg[1])
         elif op == "close":
@@ -177,6 +187,7 @@ class Writer:
             m = min(upto - a, cap - i)
             rows = self.ticks.rows[i: i + m].copy()
             joints = None if self.joints is None else self.joints[1].rows[i: i + m].copy()
+            grasper = None if self.grasper is None else self.grasper[1].rows[i: i + m, 0].copy()
             a += m
             self.flushed = a
             self.hdr[mcap_shm.FLUSHED] = a         # (the ring rows may be reused from here on)
@@ -192,6 +203,8 @@ class Writer:
             self.events.write(self.tw, rows, ns)
             if joints is not None:
                 self.joints[0].write(self.tw, k, joints, ns)
+            if grasper is not None:
+                self.grasper[0].write(self.tw, k, grasper, ns)
 
     def _frame_ns(self, ts: float, cms: float) -> int:
         return self.epoch_ns + int(round((ts + cms) * 1e9))

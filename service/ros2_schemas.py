@@ -5,7 +5,8 @@ The standard types are written out here, with every type they depend on, so a re
 in ``ros2 bag``, Foxglove and Rerun without a ROS installation: ``std_msgs/Header``,
 ``builtin_interfaces/Time``, ``geometry_msgs/PoseStamped`` / ``WrenchStamped`` (``Pose``,
 ``Point``, ``Quaternion``, ``Wrench``, ``Vector3``), ``sensor_msgs/CompressedImage``,
-``CameraInfo`` (``RegionOfInterest``), ``JointState``, ``PointCloud2`` (``PointField``).
+``CameraInfo`` (``RegionOfInterest``), ``JointState``, ``PointCloud2`` (``PointField``),
+``diagnostic_msgs/DiagnosticArray`` (``DiagnosticStatus``, ``KeyValue``; the grasper's health).
 pointfence's own: ``pointfence_msgs/Event`` (a fault, a hold and its reason, a change of
 control), ``pointfence_msgs/Snapshot`` (which camera frames built snapshot ``seq``) and
 ``pointfence_msgs/TickInput`` / ``TickOutput`` (every field of ``tick_io.TickInput`` /
@@ -32,6 +33,9 @@ _DEPS = {
     "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/Wrench": "Vector3 force\nVector3 torque\n",
     "sensor_msgs/RegionOfInterest": "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n",
+    "diagnostic_msgs/KeyValue": "string key\nstring value\n",
+    "diagnostic_msgs/DiagnosticStatus": ("byte OK=0\nbyte WARN=1\nbyte ERROR=2\nbyte STALE=3\nbyte level\nstring name\n"
+                                         "string message\nstring hardware_id\nKeyValue[] values\n"),
     "sensor_msgs/PointField": ("uint8 INT8    = 1\nuint8 UINT8   = 2\nuint8 INT16   = 3\nuint8 UINT16  = 4\n"
                                "uint8 INT32   = 5\nuint8 UINT32  = 6\nuint8 FLOAT32 = 7\nuint8 FLOAT64 = 8\n"
                                "string name\nuint32 offset\nuint8 datatype\nuint32 count\n"),
@@ -55,6 +59,9 @@ _MAIN = {
     "sensor_msgs/PointCloud2": ("std_msgs/Header header\nuint32 height\nuint32 width\nsensor_msgs/PointField[] fields\n"
                                 "bool is_bigendian\nuint32 point_step\nuint32 row_step\nuint8[] data\nbool is_dense\n",
                                 ["std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/PointField"]),
+    "diagnostic_msgs/DiagnosticArray": ("std_msgs/Header header\ndiagnostic_msgs/DiagnosticStatus[] status\n",
+                                        ["std_msgs/Header", "builtin_interfaces/Time", "diagnostic_msgs/DiagnosticStatus",
+                                         "diagnostic_msgs/KeyValue"]),
     # pointfence's own
     "pointfence_msgs/Event": (
         "# something that changed the run: kind is one of fault, hold, release, control, architecture\n"

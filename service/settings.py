@@ -27,6 +27,7 @@ from pointfence.kernels.motion import MotionModel
 from pointfence.kernels.params import RadiusModel, Workspace
 from pointfence.kernels.params_haptics import HapticParams
 
+from .cable_settings import CableTable
 from .robot.settings import RobotConfig, parse_robot, robot_rows
 from .schema import parse_table, rows, setting
 
@@ -354,13 +355,16 @@ class SceneTable:
     service: ServiceConfig = setting(factory=ServiceConfig, parse=_table(ServiceConfig, "service"), doc="[service]")
     motion: MotionTable = setting(factory=MotionTable, parse=_table(MotionTable, "motion"), doc="[motion]")
     ros2: Ros2Table = setting(factory=Ros2Table, parse=_table(Ros2Table, "ros2"), doc="[ros2]")
+    cable: Optional[CableTable] = setting(None, parse=_table(CableTable, "cable"), doc="[cable]",
+                                          default_doc="none: no grasper controller")
 
 
 #: the tables of the README's settings table, in its order: (label, dataclass)
 TABLES = (("top level", SceneTable), ("[workspace]", WorkspaceTable), ("[fixture]", FixtureTable),
           ("[fixture] select", SelectTable), ("[hash]", HashTable), ("[[camera]]", CameraTable),
           ("[[camera]] noise", NoiseTable), ("[haptics]", HapticsTable), ("[teleop]", TeleopConfig),
-          ("[service]", ServiceConfig), ("[motion]", MotionTable), ("[ros2]", Ros2Table))
+          ("[service]", ServiceConfig), ("[motion]", MotionTable), ("[ros2]", Ros2Table),
+          ("[cable]", CableTable))
 
 
 def table_rows() -> list:
