@@ -1,0 +1,119 @@
+"""The Warp backend's GPU-shaped paths against the NumPy reference: the neighbour query (a block
+a query, buffers kept from call to call) and the proxy tick's working-set passes.
+
+They run on Warp's CPU device here (one thread a block) and on CUDA where there is one (the
+device machine runs this file too); they skip where warp is not installed.
+"""
+import numpy as np
+import pytest
+
+wp = pytest.importorskip("warp", reason="warp-lang is not installed: pip install 'pointfence[warp]'")
+
+from pointfence.kernels import get_backend  # noqa: E402
+from pointfence.kernels.errors import InputError  # noqa: E402
+from pointfence.kernels.reference.neighbors import neighbors as reference_neighbors  # noqa: E402
+from pointfence.kernels.warp.tuning import WarpTuning  # noqa: E402
+
+from kernel_cases import params_for, random_rig  # noqa: E402
+
+
+def assert_same(nb, ref):
+    """Every field equal to the reference's, bit for bit: the hits in scan order, the nearest
+    (ties to the earlier point) and its float32 distance."""
+    np.testing.assert_array_equal(nb.count, ref.count)
+    np.testing.assert_array_equal(nb.index, ref.index)
+    np.testing.assert_array_equal(nb.nearest, ref.nearest)
+    np.testing.assert_array_equal(nb.nearest_dist, ref.nearest_dist)
+    for a in (nb.count, nb.index, nb.nearest):
+        assert a.dtype == np.int32
+    assert nb.nearest_dist.dtype == np.float32
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(31)
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = get_backend("warp").pipeline(cams, params_for("mask", cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    idx = rng.integers(0, snap.n_points, 48)
+    q = (snap.points[idx, :3] + rng.normal(0, 0.006, (48, 3))).astype(np.float32)
+    q[0] = snap.points[3, :3]          # exactly on a point
+    q[1] = [5.0, 5.0, 5.0]             # far outside the grid
+    q[2] = snap.points[idx[2], :3] + [0.0, 0.0, 0.021]   # one cell above a point
+    return pipe, snap, q
+
+
+@pytest.mark.parametrize("radius", [0.003, 0.01, 0.02, 0.045])   # below, at and above the 2 cm cells
+@pytest.mark.parametrize("protected_only", [False, True])
+def test_neighbors_equal_the_reference_bit_for_bit(scene, radius, protected_only):
+    pipe, snap, q = scene
+    nb = pipe.neighbors(q, radius, max_neighbors=5000, protected_only=protected_only)
+    ref = reference_neighbors(snap, q, radius, 5000, protected_only)
+    assert_same(nb, ref)
+    assert ref.count.sum() > 0 and (radius < 0.01 or (ref.count > 0).sum() > 10)
+
+
+def test_truncated_rows_hold_the_first_hits_in_scan_order(scene):
+    """K below the counts: each row holds the first K hits of the reference's scan (a wrong
+    rank across the warps or rows of a block shows up as another subset or order)."""
+    pipe, snap, q = scene
+    for K in (1, 7, 33, 300):
+        nb = pipe.neighbors(q, 0.03, max_neighbors=K)
+        ref = reference_neighbors(snap, q, 0.03, K)
+        assert nb.truncated.any() or K == 300
+        assert_same(nb, ref)
+
+
+def test_buffers_are_reused_and_results_are_the_callers_own(scene):
+    """Calls that grow and shrink B and K reuse the query buffers; a result stays as it was
+    after later calls (they write the same buffers)."""
+    pipe, snap, q = scene
+    first = pipe.neighbors(q[:5], 0.01, max_neighbors=16)
+    keep = [a.copy() for a in (first.count, first.index, first.nearest, first.nearest_dist)]
+    for B, K in ((48, 4000), (3, 2), (48, 64), (1, 1), (20, 9000)):
+        assert_same(pipe.neighbors(q[:B], 0.012, max_neighbors=K), reference_neighbors(snap, q[:B], 0.012, K))
+    for a, b in zip((first.count, first.index, first.nearest, first.nearest_dist), keep):
+        np.testing.assert_array_equal(a, b)
+    again = pipe.neighbors(q[:5], 0.01, max_neighbors=16)
+    assert_same(again, reference_neighbors(snap, q[:5], 0.01, 16))
+
+
+def test_no_queries_give_empty_results(scene):
+    pipe, snap, q = scene
+    nb = pipe.neighbors(np.zeros((0, 3), np.float32), 0.01, max_neighbors=5)
+    assert nb.count.shape == (0,) and nb.index.shape == (0, 5) and nb.nearest_dist.shape == (0,)
+
+
+def test_bad_queries_raise_before_anything_runs(scene):
+    pipe, snap, q = scene
+    bad = q.copy()
+    bad[4, 1] = np.nan
+    with pytest.raises(InputError, match="query 4"):
+        pipe.neighbors(bad, 0.01)
+    with pytest.raises(InputError, match="radius"):
+        pipe.neighbors(q, -0.01)
+    # the buffers still serve the next call
+    assert_same(pipe.neighbors(q, 0.01, max_neighbors=64), reference_neighbors(snap, q, 0.01, 64))
+
+
+@pytest.mark.parametrize("value", [48, 0, 2048, True, 256.0])
+def test_query_block_dim_is_checked(value):
+    with pytest.raises(InputError, match="query_block_dim"):
+        WarpTuning(query_block_dim=value)
+
+
+@pytest.mark.parametrize("bd", [32, 128, 1024])
+def test_every_query_block_size_gives_the_same_results(scene, bd):
+    """(On CUDA: 1, 4 and 32 warps a query, so rows split into pieces of every size; on the
+    CPU device the block is one thread whatever the tuning says.)"""
+    pipe0, snap, q = scene
+    backend = get_backend("warp")
+    from pointfence.kernels.warp.backend import WarpBackend
+
+    b = WarpBackend(backend.device.alias, tuning=WarpTuning(query_block_dim=bd))
+    rng = np.random.default_rng(31)
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = b.pipeline(cams, params_for("mask", cell=0.02))
+    pipe.ingest(frames)
+    assert_same(pipe.neighbors(q, 0.02, max_neighbors=200), reference_neighbors(snap, q, 0.02, 200))
