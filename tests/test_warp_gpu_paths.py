@@ -117,3 +117,52 @@ def test_every_query_block_size_gives_the_same_results(scene, bd):
     pipe = b.pipeline(cams, params_for("mask", cell=0.02))
     pipe.ingest(frames)
     assert_same(pipe.neighbors(q, 0.02, max_neighbors=200), reference_neighbors(snap, q, 0.02, 200))
+
+
+def _run_ticks(pipe, start, hips, p, tuning):
+    batch = pipe.proxies(start, p, tuning=tuning)
+    out = []
+    for h in hips:
+        batch.step(h)
+        out.append((batch.positions.copy(), batch.states.copy(), batch.steps.copy(), batch.nearest.copy()))
+    batch.close()
+    return out
+
+
+@pytest.mark.parametrize("mode", ["rendering", "fixture"])
+def test_near_points_as_masks_or_lists_move_proxies_alike(mode):
+    """The clip passes take the near points from a thread's bit mask (a working set of at most
+    31 points a thread: every CUDA block, and here sets of up to 31 points) or from the warps'
+    lists (the CPU device's larger sets): the same step lengths either way. On the CPU device,
+    where both sum in one order, the trajectories agree bit for bit; on CUDA (other threads,
+    other sums) within the parity tests' 1e-5 m. The sparse rig keeps many sets under 31
+    points, so the mask path is taken."""
+    from pointfence.kernels.haptics import HapticParams
+    from pointfence.kernels.warp.tuning import ANY
+
+    rng = np.random.default_rng(41)
+    cams, frames = random_rig(rng, n_cams=1, w=80, h=60)
+    pipe = get_backend("warp").pipeline(cams, params_for("mask", adaptive=True, cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    p = HapticParams(mode=mode, max_steps=40)
+    B = 12
+    surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
+    start = surf + rng.normal(0, 0.004, (B, 3)) + [0, 0, -0.012]
+    hips = start[None] + np.cumsum(rng.normal(0, 0.0015, (25, B, 3)) + [0, 0, 0.0009], axis=0)
+    counts = pipe.neighbors(start, p.reach() + 0.0015, max_neighbors=1).count
+    assert np.any((counts > 0) & (counts <= 31))
+    masks = _run_ticks(pipe, start, hips, p, WarpTuning(ws_caps=((ANY, 31),), gather_skin=0.0015))
+    lists = _run_ticks(pipe, start, hips, p, WarpTuning(ws_caps=((ANY, 4096),), gather_skin=0.0015))
+    exact = not pipe.device.is_cuda
+    moved = 0
+    for (xa, sa, na, ea), (xb, sb, nb, eb) in zip(masks, lists):
+        if exact:
+            np.testing.assert_array_equal(xa, xb)
+            np.testing.assert_array_equal(sa, sb)
+            np.testing.assert_array_equal(na, nb)
+            np.testing.assert_array_equal(ea, eb)
+        else:
+            np.testing.assert_allclose(xa, xb, atol=1e-5, rtol=0)
+        moved += int(na.sum())
+    assert moved > 100
