@@ -166,3 +166,29 @@ def test_near_points_as_masks_or_lists_move_proxies_alike(mode):
             np.testing.assert_allclose(xa, xb, atol=1e-5, rtol=0)
         moved += int(na.sum())
     assert moved > 100
+
+
+def test_queries_from_several_threads_each_get_their_own_results(scene):
+    """The query buffers are shared by the pipeline's calls: callers on other threads wait for
+    one another instead of reading each other's results."""
+    import threading
+
+    pipe, snap, q = scene
+    cases = [(q[i::4], 0.004 + 0.004 * i, 50 + 100 * i) for i in range(4)]
+    expect = [reference_neighbors(snap, qq, r, K) for qq, r, K in cases]
+    errors = []
+
+    def worker(j):
+        try:
+            for _ in range(15):
+                qq, r, K = cases[j]
+                assert_same(pipe.neighbors(qq, r, max_neighbors=K), expect[j])
+        except Exception as e:  # collected: a failure on a thread would not fail the test
+            errors.append(e)
+
+    threads = [threading.Thread(target=worker, args=(j,)) for j in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors[0]

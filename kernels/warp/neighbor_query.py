@@ -10,7 +10,9 @@ exclusive scan of the warps' hit counts, which gives each warp where its hits go
 result row (only while fewer than K have been written: the write pass tests the candidates
 again, from L1). Count and nearest need no order: each thread keeps its own (squared
 distance, index) minimum, reduced over the block once at the end, ties going to the smaller
-index as in the reference's ``argmin``. Points are read from ``sorted_pts`` (coalesced, the
+index as in the reference's ``argmin``. Squared distances are rounded as the reference rounds
+them (no fused multiply-adds), so the hits, the nearest and its distance are the reference's bit
+for bit. Points are read from ``sorted_pts`` (coalesced, the
 same floats as ``pts[order[i]]``); ``order`` is read only for ``protected_only``.
 
 The block size is a constant of the generated code (``neighbor_kernel(bd)``); Warp's CPU
@@ -91,6 +93,20 @@ def block_argmin(key: wp.vec2i, bd: int) -> wp.vec2i:
     ...
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __fadd_rn(__fadd_rn(__fmul_rn(dx, dx), __fmul_rn(dy, dy)), __fmul_rn(dz, dz));
+#else
+    return dx * dx + dy * dy + dz * dz;
+#endif
+""")
+def dist2(dx: float, dy: float, dz: float) -> float:
+    """dx^2 + dy^2 + dz^2 rounded after every operation, in the reference's order (CUDA would
+    otherwise fuse the products into the sums, and a point within rounding of the radius could
+    go the other way)."""
+    ...
+
+
 @wp.func
 def is_hit(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), i: int, q: wp.vec3, r2: float,
            protected_only: int):
@@ -103,7 +119,7 @@ def is_hit(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), i: int, q:
         dx = p[0] - q[0]
         dy = p[1] - q[1]
         dz = p[2] - q[2]
-        d2 = dx * dx + dy * dy + dz * dz
+        d2 = dist2(dx, dy, dz)
         if d2 <= r2:
             hit = 1
     return hit, d2
@@ -122,16 +138,19 @@ def _make_kernel(bd: int):
     BD = bd
     WL = 32 if BD >= 32 else 1   # lanes a warp
     NW = BD // WL                # warps a block
+    # a register cap that lets a block of BD threads run (65,536 registers an SM)
+    opts = {"cuda_max_registers": (65536 // BD) & ~7} if BD > 256 else {}
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", **opts)
     def neighbor_query(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
                        g: GridArgs, queries: wp.array(dtype=wp.vec3), radius: float, span: int, K: int,
-                       protected_only: int, count: wp.array(dtype=int), index: wp.array(dtype=int),
-                       nearest: wp.array(dtype=int), nearest_d: wp.array(dtype=float)):
-        """Query b (one block): ``count[b]``, the first min(count, K) hits in scan order into
-        ``index[b K : b K + K]`` (-1 after), the nearest hit and its distance (m; -1 and inf if
-        none)."""
+                       protected_only: int, res: wp.array(dtype=int)):
+        """Query b of B (one block) into ``res``: ``res[b]`` the count, ``res[B + b]`` the nearest
+        hit (-1 if none), ``res[2 B + b]`` the bits of its distance (m, float32; inf if none),
+        and the first min(count, K) hits in scan order from ``res[3 B + b K]`` on, -1 after."""
         b, lane = wp.tid()
+        B = queries.shape[0]
+        row = 3 * B + b * K
         w = lane // WL
         l = lane % WL
         q = queries[b]
@@ -182,19 +201,19 @@ def _make_kernel(bd: int):
                                 hit, d2 = is_hit(spts, order, i, q, r2, protected_only)
                             rk = warp_rank(hit)
                             if hit != 0 and at + rk[0] < K:
-                                index[b * K + at + rk[0]] = i
+                                res[row + at + rk[0]] = i
                             at += rk[1]
                     n += sc[1]
         best = block_argmin(best, BD)
         for j in range(n + lane, K, BD):
-            index[b * K + j] = -1
+            res[row + j] = -1
         if lane == 0:
-            count[b] = n
+            res[b] = n
             if n > 0:
-                nearest[b] = best[1]
-                nearest_d[b] = wp.sqrt(bits_float(best[0]))
+                res[B + b] = best[1]
+                res[2 * B + b] = float_bits(wp.sqrt(bits_float(best[0])))
             else:
-                nearest[b] = -1
-                nearest_d[b] = float(wp.inf)
+                res[B + b] = -1
+                res[2 * B + b] = float_bits(float(wp.inf))
 
     return neighbor_query

@@ -10,6 +10,8 @@ memory) spares the ingest its one host copy.
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 
@@ -105,7 +107,8 @@ class WarpPipeline(FramePipeline):
         sa.r_base, sa.k_sigma, sa.r_max, sa.adaptive = r.r_base, r.k_sigma, r.r_max, int(r.adaptive)
         ch = self._cams_host.numpy()
         ch["offset"], ch["n"], ch["max_code"], ch["index"] = (rig.ints[:, j] for j in range(4))
-        self._nq_cap = self._nq_index_cap = 0
+        self._nq_cap = self._nq_res_cap = 0
+        self._nq_lock = threading.Lock()
 
     def depth_staging(self, camera):
         i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
@@ -233,56 +236,53 @@ class WarpPipeline(FramePipeline):
 
     # --- queries -------------------------------------------------------------------------
     def _ensure_query_capacity(self, B, K):
-        """The query buffers for ``B`` queries of ``K`` neighbours: device arrays the kernel
-        writes and pinned host arrays they are copied into, grown (doubling) when a call needs
-        more and reused by every call that fits."""
-        if B <= self._nq_cap and B * K <= self._nq_index_cap:
-            return
+        """The query buffers for ``B`` queries of ``K`` neighbours, grown (doubling) when a call
+        needs more and reused by every call that fits: the queries in pinned host memory (read by
+        the kernel over the bus on CUDA), and the packed results (counts, nearest, distance bits,
+        then the index rows: kernels/warp/neighbor_query.py) on the device with their pinned host
+        copy."""
         dev, pinned = self.device, self.cuda
-        cap = max(B, 2 * self._nq_cap, 16) if B > self._nq_cap else self._nq_cap
-        icap = max(B * K, 2 * self._nq_index_cap, 1024)
         if B > self._nq_cap:
+            cap = max(B, 2 * self._nq_cap, 16)
             self._q_host = wp.zeros(cap, dtype=wp.vec3, device="cpu", pinned=pinned)
             self._q_np = self._q_host.numpy()
-            self._q = wp.zeros(cap, dtype=wp.vec3, device=dev) if self.cuda else self._q_host
-            self._nq_out = {}
-            for name, dtype in (("count", int), ("nearest", int), ("nearest_d", float)):
-                host = wp.zeros(cap, dtype=dtype, device="cpu", pinned=pinned)
-                self._nq_out[name] = (wp.zeros(cap, dtype=dtype, device=dev) if self.cuda else host, host, host.numpy())
-        if B * K > self._nq_index_cap:
-            host = wp.zeros(icap, dtype=int, device="cpu", pinned=pinned)
-            self._nq_index = (wp.zeros(icap, dtype=int, device=dev) if self.cuda else host, host, host.numpy())
-            self._nq_index_cap = icap
-        self._nq_cap = cap
+            self._nq_cap = cap
+        need = 3 * B + B * K
+        if need > self._nq_res_cap:
+            cap = max(need, 2 * self._nq_res_cap, 1024)
+            host = wp.zeros(cap, dtype=int, device="cpu", pinned=pinned)
+            self._nq_res = wp.zeros(cap, dtype=int, device=dev) if self.cuda else host
+            self._nq_res_host, self._nq_res_np = host, host.numpy()
+            self._nq_res_cap = cap
 
     def _neighbors(self, q, radius, max_neighbors, protected_only):
         """One launch (a thread block a query, kernels/warp/neighbor_query.py) into buffers kept
-        from call to call; the queries go up and the results come down through pinned memory,
-        with one wait for the stream. The returned arrays are the caller's own copies."""
+        from call to call, one copy of the packed results into pinned memory and one wait for
+        the stream. The returned arrays are the caller's own copies."""
         B, K = q.shape[0], max_neighbors
         if B == 0:
             return Neighbors(np.zeros(0, np.int32), np.zeros((0, K), np.int32), np.zeros(0, np.int32),
                              np.zeros(0, np.float32))
-        self._ensure_query_capacity(B, K)
         bd = self.backend.tuning.query_block_dim if self.cuda else 1
-        out, index = self._nq_out, self._nq_index
-        self._q_np[:B] = q
+        n = 3 * B + B * K
         try:
-            with self.buffers.read() as slot, self._stream(self.query_stream):
-                if self.cuda:
-                    wp.copy(self._q, self._q_host, count=B)
+            # (the buffers serve one call at a time: callers on other threads wait here)
+            with self._nq_lock, self.buffers.read() as slot, self._stream(self.query_stream):
+                self._ensure_query_capacity(B, K)
+                self._q_np[:B] = q
+                # the queries as the kernel sees them: the pinned host memory itself (CUDA)
+                qa = wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device)
                 wp.launch_tiled(neighbor_kernel(bd), dim=[B], block_dim=bd, device=self.device,
-                                inputs=[slot.sorted_pts, slot.order, slot.start, self.grid_args, self._q, float(radius),
-                                        search_span(radius, self.grid.h), K, int(protected_only), out["count"][0],
-                                        index[0], out["nearest"][0], out["nearest_d"][0]])
+                                inputs=[slot.sorted_pts, slot.order, slot.start, self.grid_args, qa, float(radius),
+                                        search_span(radius, self.grid.h), K, int(protected_only), self._nq_res])
                 if self.cuda:
-                    for dev_arr, host, _ in (*out.values(), index):
-                        wp.copy(host, dev_arr, count=B * K if host is index[1] else B)
+                    wp.copy(self._nq_res_host, self._nq_res, count=n)
                     wp.synchronize_stream(self.query_stream)
+                r = self._nq_res_np
+                return Neighbors(r[:B].copy(), r[3 * B: n].reshape(B, K).copy(), r[B: 2 * B].copy(),
+                                 r[2 * B: 3 * B].view(np.float32).copy())
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp neighbour query failed on {self.backend.device_name}: {e}") from e
-        return Neighbors(out["count"][2][:B].astype(np.int32), index[2][: B * K].reshape(B, K).astype(np.int32),
-                         out["nearest"][2][:B].astype(np.int32), out["nearest_d"][2][:B].astype(np.float32))
 
     def proxies(self, positions, params=None, **options):
         """A batch of proxies on this pipeline, one launch per tick (``kernels/warp/proxy.py``)."""

@@ -78,7 +78,7 @@ class WarpTuning:
     ws_cache_max: int = 4096
     resident_max: int = 32
     run_pixels: int = 16
-    query_block_dim: int = 256
+    query_block_dim: int = 512
 
     def __post_init__(self):
         object.__setattr__(self, "block_dims", _table("block_dims", self.block_dims))
