@@ -109,6 +109,7 @@ class WarpPipeline(FramePipeline):
         ch["offset"], ch["n"], ch["max_code"], ch["index"] = (rig.ints[:, j] for j in range(4))
         self._nq_cap = self._nq_res_cap = 0
         self._nq_lock = threading.Lock()
+        self._nq_cmds = {}   # recorded query launches: (slot, block size) -> [launch, buffer, B, values]
 
     def depth_staging(self, camera):
         i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
@@ -237,10 +238,9 @@ class WarpPipeline(FramePipeline):
     # --- queries -------------------------------------------------------------------------
     def _ensure_query_capacity(self, B, K):
         """The query buffers for ``B`` queries of ``K`` neighbours, grown (doubling) when a call
-        needs more and reused by every call that fits: the queries in pinned host memory (read by
-        the kernel over the bus on CUDA), and the packed results (counts, nearest, distance bits,
-        then the index rows: kernels/warp/neighbor_query.py) on the device with their pinned host
-        copy."""
+        needs more and reused by every call that fits, both in pinned host memory that the
+        kernel reads and writes over the bus on CUDA: the queries, and the packed results
+        (counts, nearest, distance bits, then the index rows: kernels/warp/neighbor_query.py)."""
         dev, pinned = self.device, self.cuda
         if B > self._nq_cap:
             cap = max(B, 2 * self._nq_cap, 16)
@@ -251,32 +251,55 @@ class WarpPipeline(FramePipeline):
         if need > self._nq_res_cap:
             cap = max(need, 2 * self._nq_res_cap, 1024)
             host = wp.zeros(cap, dtype=int, device="cpu", pinned=pinned)
-            self._nq_res = wp.zeros(cap, dtype=int, device=dev) if self.cuda else host
+            # the kernel writes the host memory itself (CUDA: over the bus, while other blocks
+            # still run), so a call has no copy to wait for
+            self._nq_res = wp.array(ptr=host.ptr, dtype=int, shape=cap, device=dev) if self.cuda else host
             self._nq_res_host, self._nq_res_np = host, host.numpy()
             self._nq_res_cap = cap
 
+    def _query_launch(self, slot, bd: int, B: int, values: tuple):
+        """The query kernel's recorded launch on ``slot`` for ``B`` queries, its parameters set to
+        ``values`` (radius, span, K, protected_only): recorded once per slot and block size (and
+        again when the result buffer grows), then only the changed parameters are set (a
+        ``wp.launch`` packs every argument again, tens of microseconds of Python)."""
+        key = (id(slot), bd)
+        rec = self._nq_cmds.get(key)
+        if rec is None or rec[1] is not self._nq_res:
+            qa = wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device)
+            cmd = wp.launch_tiled(neighbor_kernel(bd), dim=[B], block_dim=bd, device=self.device, record_cmd=True,
+                                  inputs=[slot.sorted_pts, slot.order, slot.start, self.grid_args, qa, *values,
+                                          self._nq_res])
+            rec = self._nq_cmds[key] = [cmd, self._nq_res, B, values]
+        cmd = rec[0]
+        if rec[2] != B:   # the queries as the kernel sees them: the pinned host memory itself
+            cmd.set_param_at_index(4, wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device))
+            cmd.set_dim([B, bd])
+            rec[2] = B
+        if rec[3] != values:
+            for j, (v, old) in enumerate(zip(values, rec[3])):
+                if v != old:
+                    cmd.set_param_at_index(5 + j, v)
+            rec[3] = values
+        return cmd
+
     def _neighbors(self, q, radius, max_neighbors, protected_only):
-        """One launch (a thread block a query, kernels/warp/neighbor_query.py) into buffers kept
-        from call to call, one copy of the packed results into pinned memory and one wait for
-        the stream. The returned arrays are the caller's own copies."""
+        """One launch (a thread block a query, kernels/warp/neighbor_query.py) on buffers kept
+        from call to call in pinned memory, and one wait for the stream. The returned arrays are
+        the caller's own copies."""
         B, K = q.shape[0], max_neighbors
         if B == 0:
             return Neighbors(np.zeros(0, np.int32), np.zeros((0, K), np.int32), np.zeros(0, np.int32),
                              np.zeros(0, np.float32))
         bd = self.backend.tuning.query_block_dim if self.cuda else 1
         n = 3 * B + B * K
+        values = (float(radius), search_span(radius, self.grid.h), K, int(protected_only))
         try:
             # (the buffers serve one call at a time: callers on other threads wait here)
-            with self._nq_lock, self.buffers.read() as slot, self._stream(self.query_stream):
+            with self._nq_lock, self.buffers.read() as slot:
                 self._ensure_query_capacity(B, K)
                 self._q_np[:B] = q
-                # the queries as the kernel sees them: the pinned host memory itself (CUDA)
-                qa = wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device)
-                wp.launch_tiled(neighbor_kernel(bd), dim=[B], block_dim=bd, device=self.device,
-                                inputs=[slot.sorted_pts, slot.order, slot.start, self.grid_args, qa, float(radius),
-                                        search_span(radius, self.grid.h), K, int(protected_only), self._nq_res])
+                self._query_launch(slot, bd, B, values).launch(self.query_stream)
                 if self.cuda:
-                    wp.copy(self._nq_res_host, self._nq_res, count=n)
                     wp.synchronize_stream(self.query_stream)
                 r = self._nq_res_np
                 return Neighbors(r[:B].copy(), r[3 * B: n].reshape(B, K).copy(), r[B: 2 * B].copy(),
