@@ -190,3 +190,19 @@ def test_queries_from_several_threads_each_get_their_own_results(scene):
     for t in threads:
         t.join()
     assert not errors, errors[0]
+
+
+def test_each_snapshot_slots_query_follows_grown_buffers():
+    """A query on one snapshot slot after the buffers grew for a query on the other slot reads
+    the new buffers (each slot's launch is recorded once; a stale query buffer would give the
+    earlier call's queries' results)."""
+    rng = np.random.default_rng(8)
+    cams, frames = random_rig(rng, n_cams=1)
+    pipe = get_backend("warp").pipeline(cams, params_for("all"))
+    for round_ in range(3):
+        pipe.ingest(frames)   # the slots alternate
+        snap = pipe.host_snapshot()
+        B = (5, 150, 5)[round_]
+        q = (snap.points[rng.integers(0, snap.n_points, B), :3] + rng.normal(0, 0.003, (B, 3))).astype(np.float32)
+        K = (8, 1, 8)[round_]   # (the results fit the first buffer: only the queries grow)
+        assert_same(pipe.neighbors(q, 0.01, max_neighbors=K), reference_neighbors(snap, q, 0.01, K))

@@ -109,7 +109,8 @@ class WarpPipeline(FramePipeline):
         ch["offset"], ch["n"], ch["max_code"], ch["index"] = (rig.ints[:, j] for j in range(4))
         self._nq_cap = self._nq_res_cap = 0
         self._nq_lock = threading.Lock()
-        self._nq_cmds = {}   # recorded query launches: (slot, block size) -> [launch, buffer, B, values]
+        # recorded query launches: (slot, block size) -> [launch, results, (queries, B), values]
+        self._nq_cmds = {}
 
     def depth_staging(self, camera):
         i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
@@ -260,7 +261,8 @@ class WarpPipeline(FramePipeline):
     def _query_launch(self, slot, bd: int, B: int, values: tuple):
         """The query kernel's recorded launch on ``slot`` for ``B`` queries, its parameters set to
         ``values`` (radius, span, K, protected_only): recorded once per slot and block size (and
-        again when the result buffer grows), then only the changed parameters are set (a
+        again when the result buffer grows), then only the changed parameters are set, the
+        queries' view whenever B or the query buffer changed (a
         ``wp.launch`` packs every argument again, tens of microseconds of Python)."""
         key = (id(slot), bd)
         rec = self._nq_cmds.get(key)
@@ -269,12 +271,14 @@ class WarpPipeline(FramePipeline):
             cmd = wp.launch_tiled(neighbor_kernel(bd), dim=[B], block_dim=bd, device=self.device, record_cmd=True,
                                   inputs=[slot.sorted_pts, slot.order, slot.start, self.grid_args, qa, *values,
                                           self._nq_res])
-            rec = self._nq_cmds[key] = [cmd, self._nq_res, B, values]
+            rec = self._nq_cmds[key] = [cmd, self._nq_res, (self._q_host, B), values]
         cmd = rec[0]
-        if rec[2] != B:   # the queries as the kernel sees them: the pinned host memory itself
+        if rec[2][0] is not self._q_host or rec[2][1] != B:
+            # the queries as the kernel sees them: the pinned host memory itself (grown since
+            # this slot's last query, or another B)
             cmd.set_param_at_index(4, wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device))
             cmd.set_dim([B, bd])
-            rec[2] = B
+            rec[2] = (self._q_host, B)
         if rec[3] != values:
             for j, (v, old) in enumerate(zip(values, rec[3])):
                 if v != old:
