@@ -223,55 +223,6 @@ def gather_sorted(order: wp.array(dtype=int), start: wp.array(dtype=int), n_cell
 
 
 @wp.kernel
-def neighbors(pts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs,
-              queries: wp.array(dtype=wp.vec3), radius: float, span: int, K: int, protected_only: int,
-              count: wp.array(dtype=int), index: wp.array2d(dtype=int), nearest: wp.array(dtype=int),
-              nearest_d: wp.array(dtype=float)):
-    b = wp.tid()
-    q = queries[b]
-    cx = int(wp.clamp(wp.floor((q[0] - g.origin[0]) * g.inv_h), float(-span - 1), float(g.nx + span)))
-    cy = int(wp.clamp(wp.floor((q[1] - g.origin[1]) * g.inv_h), float(-span - 1), float(g.ny + span)))
-    cz = int(wp.clamp(wp.floor((q[2] - g.origin[2]) * g.inv_h), float(-span - 1), float(g.nz + span)))
-    x0 = wp.max(cx - span, 0)
-    x1 = wp.min(cx + span, g.nx - 1)
-    y0 = wp.max(cy - span, 0)
-    y1 = wp.min(cy + span, g.ny - 1)
-    z0 = wp.max(cz - span, 0)
-    z1 = wp.min(cz + span, g.nz - 1)
-    r2 = radius * radius
-    n = int(0)
-    best = int(-1)
-    best_d2 = float(1.0e30)
-    for iz in range(z0, z1 + 1):
-        for iy in range(y0, y1 + 1):
-            base = (iz * g.ny + iy) * g.nx
-            for i in range(start[base + x0], start[base + x1 + 1]):
-                entry = order[i]
-                if protected_only != 0 and entry >= 0:
-                    continue
-                p = pts[entry & 2147483647]
-                dx = p[0] - q[0]
-                dy = p[1] - q[1]
-                dz = p[2] - q[2]
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 <= r2:
-                    if n < K:
-                        index[b, n] = i
-                    n += 1
-                    if d2 < best_d2:
-                        best_d2 = d2
-                        best = i
-    for j in range(n, K):
-        index[b, j] = -1
-    count[b] = n
-    nearest[b] = best
-    if best >= 0:
-        nearest_d[b] = wp.sqrt(best_d2)
-    else:
-        nearest_d[b] = float(wp.inf)
-
-
-@wp.kernel
 def cell_moments(sorted_pts: wp.array(dtype=wp.vec4), start: wp.array(dtype=int), g: GridArgs,
                  mom: wp.array2d(dtype=float)):
     """Motion estimation (kernels/motion.py): per cell the number of points, the sums of x, y, z

@@ -10,6 +10,8 @@ memory) spares the ingest its one host copy.
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 
@@ -20,6 +22,7 @@ from ..motion import N_MOMENTS
 from ..neighbors import Neighbors, search_span
 from ..snapshot import HostSnapshot
 from . import frames as k
+from .neighbor_query import neighbor_kernel
 
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
 
@@ -104,7 +107,10 @@ class WarpPipeline(FramePipeline):
         sa.r_base, sa.k_sigma, sa.r_max, sa.adaptive = r.r_base, r.k_sigma, r.r_max, int(r.adaptive)
         ch = self._cams_host.numpy()
         ch["offset"], ch["n"], ch["max_code"], ch["index"] = (rig.ints[:, j] for j in range(4))
-        self._nq_cap = self._nq_K = 0
+        self._nq_cap = self._nq_res_cap = 0
+        self._nq_lock = threading.Lock()
+        # recorded query launches: (slot, block size) -> [launch, results, (queries, B), values]
+        self._nq_cmds = {}
 
     def depth_staging(self, camera):
         i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
@@ -232,30 +238,78 @@ class WarpPipeline(FramePipeline):
 
     # --- queries -------------------------------------------------------------------------
     def _ensure_query_capacity(self, B, K):
-        if B <= self._nq_cap and K <= self._nq_K:
-            return
-        dev = self.device
-        cap, Kc = max(B, 2 * self._nq_cap, 16), max(K, self._nq_K)
-        self._q = wp.zeros(cap, dtype=wp.vec3, device=dev)
-        self._count = wp.zeros(cap, dtype=int, device=dev)
-        self._near = wp.zeros(cap, dtype=int, device=dev)
-        self._near_d = wp.zeros(cap, dtype=float, device=dev)
-        self._nq_cap, self._nq_K = cap, Kc
+        """The query buffers for ``B`` queries of ``K`` neighbours, grown (doubling) when a call
+        needs more and reused by every call that fits, both in pinned host memory that the
+        kernel reads and writes over the bus on CUDA: the queries, and the packed results
+        (counts, nearest, distance bits, then the index rows: kernels/warp/neighbor_query.py)."""
+        dev, pinned = self.device, self.cuda
+        if B > self._nq_cap:
+            cap = max(B, 2 * self._nq_cap, 16)
+            self._q_host = wp.zeros(cap, dtype=wp.vec3, device="cpu", pinned=pinned)
+            self._q_np = self._q_host.numpy()
+            self._nq_cap = cap
+        need = 3 * B + B * K
+        if need > self._nq_res_cap:
+            cap = max(need, 2 * self._nq_res_cap, 1024)
+            host = wp.zeros(cap, dtype=int, device="cpu", pinned=pinned)
+            # the kernel writes the host memory itself (CUDA: over the bus, while other blocks
+            # still run), so a call has no copy to wait for
+            self._nq_res = wp.array(ptr=host.ptr, dtype=int, shape=cap, device=dev) if self.cuda else host
+            self._nq_res_host, self._nq_res_np = host, host.numpy()
+            self._nq_res_cap = cap
+
+    def _query_launch(self, slot, bd: int, B: int, values: tuple):
+        """The query kernel's recorded launch on ``slot`` for ``B`` queries, its parameters set to
+        ``values`` (radius, span, K, protected_only): recorded once per slot and block size (and
+        again when the result buffer grows), then only the changed parameters are set, the
+        queries' view whenever B or the query buffer changed (a
+        ``wp.launch`` packs every argument again, tens of microseconds of Python)."""
+        key = (id(slot), bd)
+        rec = self._nq_cmds.get(key)
+        if rec is None or rec[1] is not self._nq_res:
+            qa = wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device)
+            cmd = wp.launch_tiled(neighbor_kernel(bd), dim=[B], block_dim=bd, device=self.device, record_cmd=True,
+                                  inputs=[slot.sorted_pts, slot.order, slot.start, self.grid_args, qa, *values,
+                                          self._nq_res])
+            rec = self._nq_cmds[key] = [cmd, self._nq_res, (self._q_host, B), values]
+        cmd = rec[0]
+        if rec[2][0] is not self._q_host or rec[2][1] != B:
+            # the queries as the kernel sees them: the pinned host memory itself (grown since
+            # this slot's last query, or another B)
+            cmd.set_param_at_index(4, wp.array(ptr=self._q_host.ptr, dtype=wp.vec3, shape=B, device=self.device))
+            cmd.set_dim([B, bd])
+            rec[2] = (self._q_host, B)
+        if rec[3] != values:
+            for j, (v, old) in enumerate(zip(values, rec[3])):
+                if v != old:
+                    cmd.set_param_at_index(5 + j, v)
+            rec[3] = values
+        return cmd
 
     def _neighbors(self, q, radius, max_neighbors, protected_only):
+        """One launch (a thread block a query, kernels/warp/neighbor_query.py) on buffers kept
+        from call to call in pinned memory, and one wait for the stream. The returned arrays are
+        the caller's own copies."""
         B, K = q.shape[0], max_neighbors
-        self._ensure_query_capacity(B, K)
-        # The neighbour primitive is not on the 1 kHz path: a fresh (B, K) result array per call.
-        qa = wp.array(q, dtype=wp.vec3, device="cpu")
-        index = wp.zeros((B, K), dtype=int, device=self.device)
-        with self.buffers.read() as slot, self._stream(self.query_stream):
-            wp.copy(self._q, qa, count=B)
-            wp.launch(k.neighbors, dim=B, inputs=[slot.pts, slot.order, slot.start, self.grid_args, self._q,
-                      float(radius), search_span(radius, self.grid.h), K, int(protected_only),
-                      self._count, index, self._near, self._near_d])
-            out = Neighbors(self._count.numpy()[:B].copy(), index.numpy(), self._near.numpy()[:B].copy(),
-                            self._near_d.numpy()[:B].copy())
-        return out
+        if B == 0:
+            return Neighbors(np.zeros(0, np.int32), np.zeros((0, K), np.int32), np.zeros(0, np.int32),
+                             np.zeros(0, np.float32))
+        bd = self.backend.tuning.query_block_dim if self.cuda else 1
+        n = 3 * B + B * K
+        values = (float(radius), search_span(radius, self.grid.h), K, int(protected_only))
+        try:
+            # (the buffers serve one call at a time: callers on other threads wait here)
+            with self._nq_lock, self.buffers.read() as slot:
+                self._ensure_query_capacity(B, K)
+                self._q_np[:B] = q
+                self._query_launch(slot, bd, B, values).launch(self.query_stream)
+                if self.cuda:
+                    wp.synchronize_stream(self.query_stream)
+                r = self._nq_res_np
+                return Neighbors(r[:B].copy(), r[3 * B: n].reshape(B, K).copy(), r[B: 2 * B].copy(),
+                                 r[2 * B: 3 * B].view(np.float32).copy())
+        except Exception as e:  # Warp raises plain RuntimeError on launch failures
+            raise KernelError(f"Warp neighbour query failed on {self.backend.device_name}: {e}") from e
 
     def proxies(self, positions, params=None, **options):
         """A batch of proxies on this pipeline, one launch per tick (``kernels/warp/proxy.py``)."""

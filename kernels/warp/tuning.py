@@ -65,6 +65,8 @@ class WarpTuning:
         (kernels/warp/resident.py), 0 (never) to ``RESIDENT_CAP``.
     run_pixels: pixels per counting thread of the frame build (one atomic per run of same-cell
         pixels instead of one a pixel).
+    query_block_dim: threads per query of the neighbour query on CUDA (one block each,
+        kernels/warp/neighbor_query.py), a multiple of 32 from 32 to 1024.
     """
 
     block_dims: tuple = ((64, 256), (4096, 128), (ANY, 32))
@@ -76,6 +78,7 @@ class WarpTuning:
     ws_cache_max: int = 4096
     resident_max: int = 32
     run_pixels: int = 16
+    query_block_dim: int = 512
 
     def __post_init__(self):
         object.__setattr__(self, "block_dims", _table("block_dims", self.block_dims))
@@ -84,6 +87,9 @@ class WarpTuning:
             if bd % 32 or not 32 <= bd <= 1024:
                 raise InputError(f"WarpTuning block_dims = {self.block_dims}: {bd} threads; expected multiples "
                                  "of 32 from 32 to 1024")
+        q = self.query_block_dim
+        if isinstance(q, bool) or not isinstance(q, int) or q % 32 or not 32 <= q <= 1024:
+            raise InputError(f"WarpTuning query_block_dim = {q!r}; expected a multiple of 32 from 32 to 1024")
         bd = self.block_dim
         if bd is not None and (isinstance(bd, bool) or not isinstance(bd, int) or bd % 32 or not 32 <= bd <= 1024):
             raise InputError(f"WarpTuning block_dim = {bd!r}; expected None or a multiple of 32 from 32 to 1024")

@@ -11,9 +11,13 @@ HapticParams.skin for a set that would not fit in ``cap`` points; a set that doe
 then is not gathered (-1) and the steps scan the hash (kernels/warp/points.py). Results do not
 depend on the working set.
 
-The evaluation pass also lists, per warp, the points close enough to shorten a step (clearance
-below ``ProxyArgs.rclip``); the clip passes scan only those (the same step lengths, see
-kernels/warp/steps.py). ``cap`` and the block size ``bd`` are constants of the generated code,
+The evaluation pass also notes the points close enough to shorten a step (clearance below
+``ProxyArgs.rclip``); the clip passes scan only those (the same step lengths, see
+kernels/warp/steps.py). Where a thread holds at most 31 of the set's points (every CUDA block
+size) it keeps them as a bit mask of its own points, and clips them itself: the evaluation
+loop has no collective in it, and takes two points an iteration. Elsewhere (Warp's CPU device,
+one thread a block) each warp lists its near points in shared memory. A minimum is exact in any
+order, so both give the same step lengths. ``cap`` and the block size ``bd`` are constants of the generated code,
 so ``make_working_set`` makes one set of functions per pair.
 """
 from __future__ import annotations
@@ -26,6 +30,18 @@ from .args import ProxyArgs
 from .frames import GridArgs
 from .points import away_point, cell_of, clip_point, eval_point_e, point_at
 from .primitives import ROWS_CAP, block_scan, block_sync, rows
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __ffs(m) - 1;
+#else
+    return __builtin_ctz((unsigned)m);
+#endif
+""")
+def lowest_bit(m: int) -> int:
+    """Index of the lowest set bit of m (m != 0)."""
+    ...
 
 
 @wp.func
@@ -63,8 +79,8 @@ class WorkingSet(NamedTuple):
     threads a warp (32 on CUDA, the block's one thread on the CPU), ``nj`` entries a warp."""
 
     ws: object        # ws(op, i, q): point i of the set in shared memory; op 1 writes q
-    ws_eval: object   # step 1 over the set: normal sum, smallest clearance, the warp's near list
-    ws_clip: object   # step 3 over the warp's near list: this thread's step limit
+    ws_eval: object   # step 1 over the set: normal sum, smallest clearance, the near points
+    ws_clip: object   # step 3 over the near points: this thread's step limit
     ws_away: object   # the push away from the points at the limit, over the set
     gather: object    # gather the set around X0: (points or -1, next par, skin used)
     wl: int
@@ -78,6 +94,10 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
     WL = 32 if BD >= 32 else 1
     # near-list entries per warp: every point a warp's threads hold
     NJ = WL * ((cap + BD - 1) // BD)
+    # near points as a bit mask a thread (each thread clips its own points) where a thread holds
+    # at most 31 points (the CUDA blocks), else the warp's near list (the CPU device's one thread
+    # a block, unless the set is that small)
+    MASK = (cap + BD - 1) // BD <= 31
     ws_src = f"""
 #if defined(__CUDA_ARCH__)
     __shared__ float4 ws[{cap}];
@@ -124,7 +144,7 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
 
     # passes over the working set in shared memory
     @wp.func
-    def ws_eval(X: wp.vec3, a: ProxyArgs, n: int, lane: int, wbase: int):
+    def ws_eval_list(X: wp.vec3, a: ProxyArgs, n: int, lane: int, wbase: int):
         """Normal sum and smallest clearance of this thread's points (every BD-th), and the warp's
         list of the points with clearance below rclip (its length)."""
         ns = wp.vec3(0.0)
@@ -142,13 +162,52 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
         return ns, me, cnt
 
     @wp.func
-    def ws_clip(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, cnt: int, lane: int, wbase: int) -> float:
+    def ws_clip_list(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, cnt: int, lane: int, wbase: int) -> float:
         """This thread's share of the step limit, over the warp's near list (the other points
         cannot shorten any step: kernels/warp/steps.py)."""
         tm = float(wp.inf)
         for i in range(lane % WL, cnt, WL):
             tm = clip_point(X, u, ws(0, near(0, wbase, i, 0, 0), wp.vec4(0.0)), a, off, tm)
         return tm
+
+    @wp.func
+    def ws_eval_mask(X: wp.vec3, a: ProxyArgs, n: int, lane: int, wbase: int):
+        """Normal sum and smallest clearance of this thread's points (lane, lane + BD, ...:
+        summed in that order), and the bit mask of its points with clearance below rclip (bit j:
+        point lane + j BD). Two points an iteration, the second's load and square root in flight
+        with the first's; no collective in the loop."""
+        ns = wp.vec3(0.0)
+        me = float(wp.inf)
+        m = int(0)
+        j = int(0)
+        for k0 in range(lane, n, 2 * BD):
+            k1 = k0 + BD
+            q0 = ws(0, k0, wp.vec4(0.0))
+            q1 = ws(0, wp.min(k1, n - 1), wp.vec4(0.0))
+            ns, me, e0 = eval_point_e(X, q0, a, ns, me)
+            ns1, me1, e1 = eval_point_e(X, q1, a, ns, me)
+            if e0 < a.rclip:
+                m = m | (1 << j)
+            if k1 < n:
+                ns = ns1
+                me = me1
+                if e1 < a.rclip:
+                    m = m | (1 << (j + 1))
+            j += 2
+        return ns, me, m
+
+    @wp.func
+    def ws_clip_mask(X: wp.vec3, u: wp.vec3, a: ProxyArgs, off: float, m: int, lane: int, wbase: int) -> float:
+        """This thread's share of the step limit, over its points in the mask (the other points
+        cannot shorten any step: kernels/warp/steps.py)."""
+        tm = float(wp.inf)
+        while m != 0:
+            j = lowest_bit(m)
+            m = m & (m - 1)
+            tm = clip_point(X, u, ws(0, lane + j * BD, wp.vec4(0.0)), a, off, tm)
+        return tm
+
+    ws_eval, ws_clip = (ws_eval_mask, ws_clip_mask) if MASK else (ws_eval_list, ws_clip_list)
 
     @wp.func
     def ws_away(X: wp.vec3, a: ProxyArgs, off: float, n: int, lane: int, bd: int) -> wp.vec3:
