@@ -71,7 +71,8 @@ class OpenCLProxies(ProxyBatch):
         self.shape = resolve_shape(check_shape(kernel_shape), pipeline.backend.device, self.cl)
         self.sizing = sizing if sizing is not None else GroupSizing()
         self.group_size = None
-        self._inline_allowed = pipeline.inline_ctx is not None and inline is not False
+        # (the in-thread device is PoCL's: the CPU shape's)
+        self._inline_allowed = pipeline.inline_ctx is not None and inline is not False and self.shape == "cpu"
         self._inline = None
         self.kernel = None
         self._spans = None
