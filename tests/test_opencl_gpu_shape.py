@@ -80,8 +80,8 @@ def plane_frame(cam, z):
 @pytest.mark.parametrize("mode", ["rendering", "fixture"])
 def test_gpu_shape_buried_proxy_matches_reference(mode):
     """Proxies pressed onto a plane, then a frame lifts the plane 4.5 mm into them: buried, they
-    take the push-out, the contact rule's direction and the push away from their deepest points
-    (the third try). Every tick equal to the reference's, before and after the lift."""
+    take the push-out and, where it is blocked, the contact rule's direction or the push away
+    from their deepest points. Every tick equal to the reference's, before and after the lift."""
     p = HapticParams(mode=mode)
     cam = small_camera()
     pp = fixture_params(r_base=p.r1, r_max=p.r1, selection=Selection()) if mode == "fixture" else \
@@ -105,7 +105,11 @@ def test_gpu_shape_buried_proxy_matches_reference(mode):
         dev.step(hips)
         ref.step(hips)
         assert_same(dev, ref)
-    assert np.all(dev.positions[:, 2] > 0.0045 + p.r1 - p.slack - 1e-6)   # out, on the near side
+    snap = pipe.host_snapshot()
+    pts = snap.points[:, :3].astype(np.float64)
+    rho = snap.points[:, 3] if mode == "fixture" else np.full(len(pts), p.r1)
+    d = np.linalg.norm(dev.positions[:, None, :].astype(np.float64) - pts[None], axis=2) - rho[None]
+    assert np.all(d.min(axis=1) >= -p.slack - 2e-7)   # every proxy out (no deeper than the slack)
 
 
 def test_auto_shape_is_cpu_on_cpu_devices_and_overrides_work():
