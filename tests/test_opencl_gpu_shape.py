@@ -141,11 +141,11 @@ def test_group_sizing_fits_local_memory():
     w, cap, tb = s.plan(1, 4096, 48 * 1024, 1024)
     assert w == 128 and tb % w == 0 and tb % 8 == 0 and cap % 8 == 0
     assert 4096 + 16 * cap + 12 * tb <= 48 * 1024 and cap >= 2000   # small batches: the largest set that fits
-    assert s.plan(1 << 16, 4096, 48 * 1024, 1024)[:2] == (32, 768)
+    assert s.plan(1 << 16, 4096, 48 * 1024, 1024)[:2] == (64, 1536)
     assert s.plan(1, 48, 48 * 1024, 1024)[1] == 48                   # never above the requested capacity
     assert s.plan(10, 4096, 1 << 20, 48)[0] == 48                    # the kernel's own work-group limit
     assert s.plan(10, 4096, 1 << 20, 40)[1] <= 64 * 40               # the clip's near bits: 64 a work-item
     with pytest.raises(InputError, match="kernel_shape='cpu'"):
         s.plan(10, 4096, 1 << 20, 16)
     with pytest.raises(InputError, match="local memory"):
-        s.plan(10, 4096, 8 * 1024, 256)
+        s.plan(10, 4096, 6 * 1024, 256)

@@ -174,10 +174,13 @@ inline int wg_gather(__global const float4 *pts, __global const float4 *vel, flo
     int k0 = min(lid * C, total), k1 = min(k0 + C, total);
     int r0 = 0;
     while (r0 < nrows && rowp[r0 + 1] <= k0) ++r0;
-    int cnt = 0, rr = r0;
-    for (int k = k0; k < k1; ++k) {
-        while (k >= rowp[rr + 1]) ++rr;
-        cnt += in_set(pts, vel, dt, order, rowa[rr] + k - rowp[rr], fixture, X0, r2, &q);
+    // (row by row: the inner loop's loads do not depend on one another, so the compiler can
+    // have several in flight)
+    int cnt = 0;
+    for (int rr = r0; rr < nrows && rowp[rr] < k1; ++rr) {
+        int ia = rowa[rr] - rowp[rr];
+        int kb = min(k1, rowp[rr + 1]);
+        for (int k = max(k0, rowp[rr]); k < kb; ++k) cnt += in_set(pts, vel, dt, order, ia + k, fixture, X0, r2, &q);
     }
     // inclusive scan of the counts over the work-items (Hillis-Steele, double-buffered)
     scan[lid] = cnt;
@@ -207,11 +210,12 @@ inline int wg_gather(__global const float4 *pts, __global const float4 *vel, flo
         rowp[0] = n;
     }
     if (!serial && n <= cap) {
-        rr = r0;
-        for (int k = k0; k < k1; ++k) {
-            while (k >= rowp[rr + 1]) ++rr;
-            if (in_set(pts, vel, dt, order, rowa[rr] + k - rowp[rr], fixture, X0, r2, &q))
-                ws[at++] = (float4)(q.x, q.y, q.z, fixture ? q.w : r1);
+        for (int rr = r0; rr < nrows && rowp[rr] < k1; ++rr) {
+            int ia = rowa[rr] - rowp[rr];
+            int kb = min(k1, rowp[rr + 1]);
+            for (int k = max(k0, rowp[rr]); k < kb; ++k)
+                if (in_set(pts, vel, dt, order, ia + k, fixture, X0, r2, &q))
+                    ws[at++] = (float4)(q.x, q.y, q.z, fixture ? q.w : r1);
         }
     }
     barrier(CLK_LOCAL_MEM_FENCE);
