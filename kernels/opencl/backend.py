@@ -6,6 +6,7 @@ import os
 
 from ..backend import Backend
 from .context import _cl, inline_device, select_device
+from .kernel_shape import check_shape, shape_from_environment
 
 
 class OpenCLBackend(Backend):
@@ -13,9 +14,13 @@ class OpenCLBackend(Backend):
 
     name = "opencl"
 
-    def __init__(self, device: str | None = None, inline: bool | None = None):
+    def __init__(self, device: str | None = None, inline: bool | None = None, kernel_shape: str | None = None):
         """``inline``: run small proxy batches on PoCL's in-thread device (``context.inline_device``);
-        None reads ``POINTFENCE_OPENCL_INLINE`` (default on; "0" turns it off)."""
+        None reads ``POINTFENCE_OPENCL_INLINE`` (default on; "0" turns it off). ``kernel_shape``:
+        the proxy kernel, "auto" (GPU-shaped on GPU devices), "gpu" or "cpu"
+        (``kernels/opencl/kernel_shape.py``); None reads ``POINTFENCE_OPENCL_KERNEL_SHAPE``
+        (default "auto")."""
+        self.kernel_shape = shape_from_environment() if kernel_shape is None else check_shape(kernel_shape)
         cl = self.cl = _cl()
         self.device = select_device(device)
         self.context = cl.Context([self.device])

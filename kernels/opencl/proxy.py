@@ -12,6 +12,10 @@ worker hand-off, no wait behind a frame build); larger batches run on the worker
 the HIPs and the outputs are host arrays the kernel addresses directly, and a tick makes no
 blocking call: the calling thread keeps Python's interpreter lock from the HIP write to the
 unpacking (the haptic loop relies on this, ``service/loop.py``).
+
+Two kernels give the same results bit for bit (``kernels/opencl/kernel_shape.py``): the
+CPU-shaped ``proxy_tick`` (a work-item a proxy, working sets in global memory) and, on GPUs, the
+GPU-shaped ``proxy_tick_wg`` (a work-group a proxy, its working set in local memory).
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ from ..motion import extra_span
 from ..neighbors import search_span
 from ..proxy import LANES, WS_CAPACITY, ProxyBatch
 from .context import build
+from .kernel_shape import GroupSizing, check_shape, resolve_shape
 
 #: device memory the working sets of a batch may take together (bytes)
 WS_BUDGET = 512 << 20
@@ -31,11 +36,13 @@ INLINE_MAX = 16
 _COMPLETE = 0   # CL_COMPLETE
 
 
-def _program(pipeline, inline: bool):
+def _program(pipeline, inline: bool, shape: str):
     progs = pipeline.__dict__.setdefault("_proxy_programs", {})
-    if inline not in progs:
-        progs[inline] = build(pipeline.inline_ctx if inline else pipeline.ctx, "proxy.cl")
-    return progs[inline]
+    key = (inline, shape)
+    if key not in progs:
+        files = ("proxy.cl", "proxy_gpu.cl") if shape == "gpu" else ("proxy.cl",)
+        progs[key] = build(pipeline.inline_ctx if inline else pipeline.ctx, *files)
+    return progs[key]
 
 
 class OpenCLProxies(ProxyBatch):
@@ -47,14 +54,25 @@ class OpenCLProxies(ProxyBatch):
     ``inline``: run on PoCL's in-thread device while the batch has at most ``INLINE_MAX``
     proxies (None: whenever the pipeline has one; False: never). ``device_kind`` says where the
     batch runs now ("in-thread" or "pool").
+    ``kernel_shape``: "cpu", "gpu" or "auto" (None: the backend's ``kernel_shape``, see
+    ``kernels/opencl/kernel_shape.py``); ``shape`` says which kernel runs. ``sizing``: the
+    GPU-shaped kernel's ``GroupSizing`` (``local_size`` is the CPU-shaped kernel's alone); for the
+    GPU shape ``ws_cap`` is the local working set of the current batch size, ``group_size`` the
+    work-items a proxy.
     """
 
     def __init__(self, pipeline, positions, params=None, ws_capacity: int = WS_CAPACITY, local_size=None,
-                 inline=None):
+                 inline=None, kernel_shape=None, sizing: GroupSizing | None = None):
         self.cl = pipeline.cl
         self._ws_request = max(VW, int(ws_capacity) // VW * VW)
         self.local_size = local_size
-        self._inline_allowed = pipeline.inline_ctx is not None and inline is not False
+        if kernel_shape is None:
+            kernel_shape = getattr(pipeline.backend, "kernel_shape", "auto")
+        self.shape = resolve_shape(check_shape(kernel_shape), pipeline.backend.device, self.cl)
+        self.sizing = sizing if sizing is not None else GroupSizing()
+        self.group_size = None
+        # (the in-thread device is PoCL's: the CPU shape's)
+        self._inline_allowed = pipeline.inline_ctx is not None and inline is not False and self.shape == "cpu"
         self._inline = None
         self.kernel = None
         self._spans = None
@@ -70,7 +88,8 @@ class OpenCLProxies(ProxyBatch):
         self._inline = inline
         self.ctx = pipeline.inline_ctx if inline else pipeline.ctx
         self.queue = pipeline.inline_queue if inline else pipeline.query_queue
-        self.kernel = k = cl.Kernel(_program(pipeline, inline), "proxy_tick")  # own instance: per-batch arguments
+        name = "proxy_tick_wg" if self.shape == "gpu" else "proxy_tick"
+        self.kernel = k = cl.Kernel(_program(pipeline, inline, self.shape), name)  # own instance: per-batch arguments
         p = self.params
         gather_r = self.reach + p.skin
         self.prm_host = np.array([p.r1, p.band, p.r3 - p.r1, p.step, p.tolerance, p.slack, p.skin, gather_r,
@@ -104,10 +123,15 @@ class OpenCLProxies(ProxyBatch):
         if inline != self._inline:
             self._bind(inline)
         cl, ctx, mf = self.cl, self.ctx, self.cl.mem_flags
-        self.ws_cap = int(max(256, min(self._ws_request, WS_BUDGET // (16 * cap) // VW * VW)))
         self._pos = cl.Buffer(ctx, mf.READ_WRITE, 16 * cap)
-        self._ws = cl.Buffer(ctx, mf.READ_WRITE, 16 * self.ws_cap * cap)
-        self._near = cl.Buffer(ctx, mf.READ_WRITE, 4 * (self.ws_cap // VW) * cap)   # clip's chunk lists
+        if self.shape == "gpu":   # working sets in local memory: sized per batch size (_size_groups)
+            self.ws_cap = 0
+            self._ws = cl.Buffer(ctx, mf.READ_WRITE, 16)
+            self._near = cl.Buffer(ctx, mf.READ_WRITE, 16)
+        else:
+            self.ws_cap = int(max(256, min(self._ws_request, WS_BUDGET // (16 * cap) // VW * VW)))
+            self._ws = cl.Buffer(ctx, mf.READ_WRITE, 16 * self.ws_cap * cap)
+            self._near = cl.Buffer(ctx, mf.READ_WRITE, 4 * (self.ws_cap // VW) * cap)   # clip's chunk lists
         self._pos_host = np.zeros((cap, 4), np.float32)
         if self._inline:   # shared with the in-thread kernel: no copies in a tick
             from .shared_host import aligned_zeros, host_buffer
@@ -134,9 +158,26 @@ class OpenCLProxies(ProxyBatch):
         k.set_arg(10, np.int32(self.ws_cap))
         k.set_arg(18, self._near)
         self._n_arg = None
+        self._sized_for = None
+
+    def _size_groups(self, n: int):
+        """The GPU-shaped kernel's work-group size, local working set and term buffer for a
+        batch of ``n`` proxies (local memory arguments 19 and 20, ``ws_cap``)."""
+        if self.shape != "gpu" or self._sized_for == n:
+            return
+        cl, dev = self.cl, self.queue.device
+        max_group = self.kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, dev)
+        w, cap, tb = self.sizing.plan(max(n, 1), self._ws_request, dev.local_mem_size, max_group)
+        k = self.kernel
+        k.set_arg(10, np.int32(cap))
+        k.set_arg(19, cl.LocalMemory(16 * cap))
+        k.set_arg(20, cl.LocalMemory(12 * tb))
+        k.set_arg(21, np.int32(tb))
+        self.group_size, self.ws_cap, self._sized_for = w, cap, n
 
     def _upload_positions(self):
         n = self.n
+        self._size_groups(n)
         self._pos_host[:n, :3] = self._positions[:n]
         self.cl.enqueue_copy(self.queue, self._pos, self._pos_host[:n], is_blocking=True)
 
@@ -149,9 +190,13 @@ class OpenCLProxies(ProxyBatch):
         if self._n_arg != n:
             k.set_arg(5, np.int32(n))
             self._n_arg = n
-            ls = self.local_size
-            self._gsize = (n if ls is None else (n + ls - 1) // ls * ls,)
-            self._lsize = None if ls is None else (ls,)
+            if self.shape == "gpu":   # a work-group a proxy
+                self._size_groups(n)
+                self._gsize, self._lsize = (n * self.group_size,), (self.group_size,)
+            else:
+                ls = self.local_size
+                self._gsize = (n if ls is None else (n + ls - 1) // ls * ls,)
+                self._lsize = None if ls is None else (ls,)
         q = self.queue
         out = self._out_host
         buf = self.pipeline.buffers
