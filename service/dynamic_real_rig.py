@@ -111,14 +111,15 @@ def _robot(start, max_velocity: float):
 
 def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, start_out: float = 0.03,
               push: float = 0.03, speed: float = 0.1, hold: float = 0.5, max_robot_speed: float = 0.5,
-              tool=TOOL, tool_axis=None, shade: str = "A", shaping: bool | None = None, backend: str = "opencl",
+              tool=TOOL, tool_axis=None, shade: str = "A", slip_lift: bool = False, backend: str = "opencl",
               device: str | None = None, trace: bool = False) -> RigRun:
     """Architecture III on the real rig: the master starts ``start_out`` m outside the surface
     (normal distance) on the line through the protected point along ``direction`` (the push,
     default -normal), moves along it at ``speed`` m/s until it is ``push`` m beneath the
     surface (normal depth), and holds there for ``hold`` s. ``cameras``: 2 (A and B fused) or 1 (A only). ``tool``: the tool's parts
     (``TOOL``; None: no tool rendered), along ``tool_axis`` (default: -direction, up out of the
-    surface). ``shaping``: the teleop command shaping (None: the Teleop default)."""
+    surface), rendered into the cameras named in ``shade`` ("A", "B", "AB"). ``slip_lift``: the
+    teleop's slip lift at the fixture radius (``Teleop``), the proxies' normals bound."""
     site = R.site
     n_dir = -site.normal if direction is None else np.asarray(direction, np.float64)
     n_dir = n_dir / np.linalg.norm(n_dir)
@@ -136,8 +137,10 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
     hs = HapticScene([c.camera for c in cams], [start], p, pp, backend=backend, device=device)
     filt = SelfFilter([c.camera for c in cams], margin=0.003)
     robot = _robot(start, max_robot_speed)
-    kw = {} if shaping is None else {"shaping": shaping}
-    tp = Teleop(1, scale=1.0, max_robot_speed=max_robot_speed, dt=1.0 / TICK_HZ, architecture="III", **kw)
+    tp = Teleop(1, scale=1.0, max_robot_speed=max_robot_speed, dt=1.0 / TICK_HZ, architecture="III",
+                slip_lift=r_f if slip_lift else 0.0)
+    if slip_lift:
+        tp.bind_normals(hs.normals)
     dev = start[None].copy()
     tp.start(dev, robot.measured_cp_position()[None])
     pedal, ok, coupled = np.ones(1, bool), np.ones(1, bool), np.ones(1, bool)
@@ -147,7 +150,8 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
     worst = np.zeros(4)  # proxy raw, robot raw, proxy mean, robot mean: max of r_f - signed distance
     dmin_r = np.inf
     truth = mean = None
-    tr = {k: [] for k in ("t", "master", "proxy", "robot", "cmd", "d_proxy", "d_robot")} if trace else None
+    keys = ("t", "master", "proxy", "robot", "cmd", "normal", "d_proxy", "d_robot", "m_proxy", "m_cmd", "m_robot")
+    tr = {k: [] for k in keys} if trace else None
     xr = robot.measured_cp_position()
     for k in range(n_ticks):
         t = k / TICK_HZ
@@ -179,8 +183,10 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
         np.maximum(worst, (r_f - dp, r_f - dr, r_f - mean.signed_distance(hs.proxies[0]),
                            r_f - mean.signed_distance(xr)), out=worst)
         if trace:
-            for key, val in (("t", t), ("master", dev[0].copy()), ("proxy", hs.proxies[0].astype(float)),
-                             ("robot", xr.copy()), ("cmd", tp.cmd[0].copy()), ("d_proxy", dp), ("d_robot", dr)):
+            vals = (t, dev[0].copy(), hs.proxies[0].astype(float), xr.copy(), tp.cmd[0].copy(),
+                    hs.normals[0].astype(float), dp, dr, mean.signed_distance(hs.proxies[0]),
+                    mean.signed_distance(tp.cmd[0]), mean.signed_distance(xr))
+            for key, val in zip(keys, vals):
                 tr[key].append(val)
     if trace:
         tr = {k: np.asarray(v) for k, v in tr.items()}

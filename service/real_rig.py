@@ -319,14 +319,19 @@ class Surface:
         return -dist if d[near].mean(axis=0) @ self.outward > 0 else dist
 
 
-def denoise(points: np.ndarray, radius: float) -> np.ndarray:
-    """Every point projected onto the least-squares plane of the points within ``radius`` (m) of
-    it (at least 6 of them; fewer: left as it is), float64 world m."""
+def denoise(points: np.ndarray, radius: float, k: int = 64) -> np.ndarray:
+    """Every point projected onto the least-squares plane of its ``k`` nearest points within
+    ``radius`` (m) (fewer than 6 of them: left as it is), float64 world m."""
     from scipy.spatial import cKDTree
 
-    out = points.copy()
-    for i, nb in enumerate(cKDTree(points).query_ball_point(points, radius)):
-        if len(nb) >= 6:
-            m, n, _ = plane_fit(points[nb])
-            out[i] -= ((points[i] - m) @ n) * n
-    return out
+    k = min(k, len(points))
+    dist, idx = cKDTree(points).query(points, k)
+    w = (dist <= radius)[..., None]                      # neighbours beyond radius weigh nothing
+    cnt = w.sum(axis=1)
+    nb = points[idx]
+    m = (nb * w).sum(axis=1) / np.maximum(cnt, 1)
+    c = (nb - m[:, None]) * w
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    n = vt[:, 2, :]
+    h = np.einsum("ij,ij->i", points - m, n)
+    return np.where(cnt >= 6, points - h[:, None] * n, points)
