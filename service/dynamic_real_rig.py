@@ -147,16 +147,27 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
     travel = (start_out + push) / depth_rate
     n_ticks = int(round((travel / speed + hold) * TICK_HZ))
     seq = -1
-    worst = np.zeros(4)  # proxy raw, robot raw, proxy mean, robot mean: max of r_f - signed distance
-    dmin_r = np.inf
     truth = mean = None
-    keys = ("t", "master", "proxy", "robot", "cmd", "normal", "d_proxy", "d_robot", "m_proxy", "m_cmd", "m_robot")
-    tr = {k: [] for k in keys} if trace else None
     xr = robot.measured_cp_position()
+    # the tick's positions, measured against the frame's true surfaces when the frame ends (the
+    # surfaces are constant over it: every tick is measured, in one query per frame)
+    pos = np.zeros((n_ticks, 3, 3))  # proxy, robot, command per tick
+    dist = np.zeros((n_ticks, 4))    # signed distances: proxy, robot (raw); proxy, robot (mean)
+    first = 0
+
+    def measure(end):
+        if end > first:
+            p = pos[first:end, :2].reshape(-1, 3)
+            dist[first:end, :2] = truth.signed_distance(p).reshape(-1, 2)
+            dist[first:end, 2:] = mean.signed_distance(p).reshape(-1, 2)
+
+    normals = np.zeros((n_ticks, 3)) if trace else None
     for k in range(n_ticks):
         t = k / TICK_HZ
         s = int(np.floor(t * RATE_HZ + 1e-9))
         if s != seq:  # a frame of every camera, the tool where the robot is now
+            measure(k)
+            first = k
             seq = s
             caps = tool_capsules(xr, axis, tool) if tool else []
             frames = []
@@ -177,17 +188,97 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
         robot.servo_cp(tp.cmd[0])
         robot.step(1.0 / TICK_HZ)
         xr = robot.measured_cp_position()
-        dp = truth.signed_distance(hs.proxies[0])
-        dr = truth.signed_distance(xr)
-        dmin_r = min(dmin_r, dr)
-        np.maximum(worst, (r_f - dp, r_f - dr, r_f - mean.signed_distance(hs.proxies[0]),
-                           r_f - mean.signed_distance(xr)), out=worst)
+        pos[k, 0], pos[k, 1], pos[k, 2] = hs.proxies[0], xr, tp.cmd[0]
         if trace:
-            vals = (t, dev[0].copy(), hs.proxies[0].astype(float), xr.copy(), tp.cmd[0].copy(),
-                    hs.normals[0].astype(float), dp, dr, mean.signed_distance(hs.proxies[0]),
-                    mean.signed_distance(tp.cmd[0]), mean.signed_distance(xr))
-            for key, val in zip(keys, vals):
-                tr[key].append(val)
+            normals[k] = hs.normals[0]
+    measure(n_ticks)
+    worst = np.max(r_f - dist, axis=0)
+    dmin_r = float(dist[:, 1].min())
+    tr = None
     if trace:
-        tr = {k: np.asarray(v) for k, v in tr.items()}
+        t = np.arange(n_ticks) / TICK_HZ
+        tr = {"t": t, "master": start + np.minimum(speed * t, travel)[:, None] * n_dir, "proxy": pos[:, 0],
+              "robot": pos[:, 1], "cmd": pos[:, 2], "normal": normals, "d_proxy": dist[:, 0], "d_robot": dist[:, 1],
+              "m_proxy": dist[:, 2], "m_robot": dist[:, 3]}
     return RigRun(cameras, r_f, *np.maximum(worst, 0.0).tolist(), dmin_r, n_ticks, tr)
+
+
+# --- the figures for `pointfence bench dynamic --real` --------------------------------------------------
+
+def occlusion_figures(*, quick: bool = False, **options) -> dict:
+    """The tool's shadow on the real rig (``arch3_run`` with ``TOOL`` along camera A's line of
+    sight, pushed along it 3 cm into the surface at 5 cm/s, robot rate limit 5 cm/s as the
+    synthetic ``occlusion_run``): camera A alone, A and B fused (the tool rendered into A, B
+    seeing the surface), and A and B both shaded (the tool rendered into both: what this rig's
+    4.4 degree parallax leaves B)."""
+    R = rig(1, options.pop("data", None))
+    kw = dict(r_f=0.01, direction=-R.site.view, speed=0.05, max_robot_speed=0.05, hold=0.5)
+    if quick:  # from closer, faster, shorter
+        kw.update(start_out=0.015, push=0.02, speed=0.2, max_robot_speed=0.2, hold=0.1)
+    kw.update(options)
+    out = {"one_camera": arch3_run(R, cameras=1, **kw).mm(), "two_cameras": arch3_run(R, cameras=2, **kw).mm()}
+    if not quick:
+        out["two_cameras_both_shaded"] = arch3_run(R, cameras=2, shade="AB", **kw).mm()
+    return out
+
+
+def push_figures(*, quick: bool = False, **options) -> dict:
+    """The master pushing 3 cm into the point both cameras see (architecture III, point-mass
+    robot, rate limit 0.5 m/s, master at 0.1 m/s along camera A's line of sight, 69 degrees from
+    the surface normal, so the proxy slides), without and with the teleop's slip lift: on the
+    rigid rig (each camera on one real frame) and, in full, on the hand-held sequence (each
+    camera playing 8 consecutive real frames with their own poses)."""
+    data = options.pop("data", None)
+    out = {}
+    for label, window in (("rigid_rig", 1),) + ((() if quick else (("handheld_8_frames", 8),))):
+        R = rig(window, data)
+        kw = dict(r_f=0.01, tool=None, direction=-R.site.view, speed=0.1, max_robot_speed=0.5,
+                  hold=0.0 if quick else 1.0, **options)
+        out[label] = {"command_as_is": arch3_run(R, **kw).mm(), "slip_lift": arch3_run(R, slip_lift=True, **kw).mm()}
+    return out
+
+
+def rig_figures(backend: str = "opencl", device: str | None = None, quick: bool = False, data=None) -> dict:
+    """Chapter 6 on real frames: the rig's site, the occlusion and push runs, the noise fit and
+    the fixed vs adaptive radius study (``dynamic_real_noise``). ``quick``: fewer and shorter
+    runs (seconds, for tests). All in simulated time: the same frames give the same figures."""
+    from pointfence.service import dynamic_real_noise as drn
+
+    R = rig(1, data)
+    s = R.site
+    out = {"backend": backend, "frame_rate_hz": RATE_HZ, "tick_rate_hz": TICK_HZ,
+           "rig": {"recording": "7scenes_kitchen_50f", "frames": "first (A) and last (B)",
+                   "baseline_m": round(float(np.linalg.norm(R.a.poses[0][:3, 3] - R.b.poses[-1][:3, 3])), 3),
+                   "site_distance_m": round(float(np.linalg.norm(s.point - R.a.poses[0][:3, 3])), 3),
+                   "parallax_deg": s.parallax_deg, "incidence_deg": round(float(np.degrees(np.arccos(s.view @ s.normal))), 1),
+                   "registration_offset_mm": s.offset_mm, "local_rms_mm": s.rms_mm}}
+    kw = dict(backend=backend, device=device, data=data)
+    out["occlusion"] = occlusion_figures(quick=quick, **kw)
+    out["push"] = push_figures(quick=quick, **kw)
+    every = 25 if quick else 5
+    kitchen = drn.fit_noise(drn.recording_frames("7scenes_kitchen_50f", data=data, every=every))
+    out["noise_model"] = {"built_in_kinect": {"a_mm": drn.kinect_model().a * 1e3, "b_per_m": drn.kinect_model().b},
+                          "fitted_7scenes_kinect_v1": kitchen.summary()}
+    if not quick:
+        apc = drn.fit_noise(drn.recording_frames("apc_shelfbin_50f", data=data, every=every), bin_width=0.05,
+                            min_blocks=10)
+        out["noise_model"]["fitted_apc_close_range"] = apc.summary()
+    rows = drn.radius_real_study(kitchen, noise_scales=(1.0,) if quick else (1.0, 2.0), data=data,
+                                 duration=0.3 if quick else 0.5, backend=backend, device=device)
+    out["radius_study"] = rows
+    out["radius_summary"] = drn.summarize(rows)
+    return out
+
+
+def main() -> dict:
+    """``python -m pointfence.service.dynamic_real_rig [--quick]``: print ``rig_figures`` as JSON."""
+    import json
+    import sys
+
+    fig = rig_figures(quick="--quick" in sys.argv[1:])
+    print(json.dumps(fig, indent=1, default=float))
+    return fig
+
+
+if __name__ == "__main__":
+    main()

@@ -272,6 +272,7 @@ def _ray_capsule(d: np.ndarray, a, b, r) -> np.ndarray:
         disc = B * B - 4 * A * C
         ok = (disc >= 0) & (A > 1e-15)
         s = np.where(ok, (-B - np.sqrt(np.where(ok, disc, 0.0))) / (2 * np.where(A > 1e-15, A, 1.0)), np.inf)
+        s = np.where(ok, s, 0.0)
         along = s * (d @ w) - a @ w
         ok &= (s > 0) & (along >= 0) & (along <= L)
         best = np.minimum(best, np.where(ok, s, np.inf))
@@ -310,13 +311,19 @@ class Surface:
             self.points = denoise(self.points, smooth)
         self.outward = np.asarray(outward, np.float64) / np.linalg.norm(outward)
         self.k = int(k)
+        from scipy.spatial import cKDTree
 
-    def signed_distance(self, x) -> float:
-        d = self.points - np.asarray(x, np.float64)
-        d2 = np.einsum("ij,ij->i", d, d)
-        near = np.argpartition(d2, self.k)[: self.k]
-        dist = float(np.sqrt(d2[near].min()))
-        return -dist if d[near].mean(axis=0) @ self.outward > 0 else dist
+        self._tree = cKDTree(self.points)
+
+    def signed_distance(self, x):
+        """Signed distance (m) of a point (3,) (a float) or of points (M, 3) (an array)."""
+        x = np.asarray(x, np.float64)
+        one = x.ndim == 1
+        xs = np.atleast_2d(x)
+        dist, near = self._tree.query(xs, self.k)
+        behind = (self.points[near].mean(axis=1) - xs) @ self.outward > 0
+        d = np.where(behind, -dist[:, 0], dist[:, 0])
+        return float(d[0]) if one else d
 
 
 def denoise(points: np.ndarray, radius: float, k: int = 64) -> np.ndarray:
