@@ -40,17 +40,17 @@ def test_tool_render_is_exact_for_a_capsule_in_front_of_a_wall():
 
 def test_shadow_hides_the_protected_point_from_camera_a_only(kitchen):
     """The tool at contact, along camera A's line of sight: after rendering and the self-filter,
-    A has no point within 2 cm of the protected point; B (not shaded) still sees it."""
+    A has no point within the 1 cm fixture radius of the protected point; B (not shaded) has."""
     s = kitchen.site
     tip = s.point + 0.01 * s.view / (s.view @ s.normal)
     caps = tool_capsules(tip, s.view, drr.TOOL)
     a, b = kitchen.a, kitchen.b
     filt = SelfFilter([a.camera, b.camera])
     fa = filt.apply([a.frame(0, 0.0, render_tool(a.camera, a.depths[0], a.poses[0], caps))], caps)[0]
-    near = lambda p: np.sum(np.linalg.norm(p - s.point, axis=1) < 0.02)  # noqa: E731
-    assert near(a.points(0)) > 30                                       # A sees it without the tool
+    near = lambda p: np.sum(np.linalg.norm(p - s.point, axis=1) < 0.01)  # noqa: E731
+    assert near(a.points(0)) >= 8                                       # A sees it without the tool
     assert near(cloud(a.camera, fa.depth, a.poses[0])) == 0           # the tool hides it from A
-    assert near(b.points(0)) > 30                                       # B sees it
+    assert near(b.points(0)) >= 8                                       # B sees it
 
 
 def test_one_camera_lets_the_tool_in_two_cameras_hold(kitchen):
