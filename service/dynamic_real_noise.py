@@ -15,7 +15,9 @@ up to 5 mm between consecutive frames), so differences of aligned frames would m
 pose error along with the noise; a single frame's plane residual sees only the sensor (its
 random error and its depth quantisation, which is part of what a fixture must absorb).
 
-Radius study (``radius_real_run``): a real frame's surface, denoised (``truth_depth``: the
+Radius study (``radius_real_run``), on the recorded frames themselves (the kitchen's first 8,
+each with its recorded pose: the sensor's real noise and the tracker's real pose error, the true
+surface their denoised union), and with modelled noise: a real frame's surface, denoised (``truth_depth``: the
 plane fit's value at each pixel, a box mean of inverse depth), is the true surface; every 30 Hz
 frame is that surface plus fresh zero-mean noise drawn from the fitted model (times
 ``noise_scale``), rounded to the sensor's millimetres; no bias. A fixture proxy is pressed 3 cm
@@ -199,7 +201,7 @@ def _noisy_frame(truth: np.ndarray, cam: Camera, noise: NoiseModel, rng) -> np.n
 
 def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.02, k_sigma: float = 2.0,
                     half: float = 0.06, duration: float = 0.5, backend: str = "opencl", device: str | None = None,
-                    seed: int = 0) -> list:
+                    seed: int = 0, sequence=None) -> list:
     """Fixture proxies pressed 3 cm into real ``sites`` of one frame (same camera), one proxy per
     site along its normal (each HIP comes down from r_f + 5 cm outside at 0.8 m/s, then
     presses), with fresh frames of the true depth plus ``noise`` at 30 Hz. Every point of the
@@ -209,7 +211,14 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
     the true surface within ``half`` of the site (safety, mm), the proxy's closest approach to
     that surface (mm), the median gap outside it in the
     second half of the run (submittance, mm), sigma_z there and the mean and spread of all the
-    frame's radii (mm)."""
+    frame's radii (mm).
+
+    ``sequence`` (a ``real_rig.RigCamera`` whose first frame the sites were picked on): the
+    frames are instead the recording's own consecutive frames with their own poses, played back
+    and forth (real noise, real pose error), and the true surface is the union of all of them
+    denoised over ``SMOOTH`` (their mean surface); ``noise`` then only sets the adaptive radius."""
+    from pointfence.service.dynamic_real_rig import SMOOTH
+
     cam = replace(sites[0].camera, noise=noise)
     P = np.array([s.point for s in sites])
     N = np.array([s.normal for s in sites])
@@ -217,7 +226,14 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
     params = HapticParams(mode="fixture")
     rng = np.random.default_rng([seed, 1])
     truth_img = sites[0].depth
-    first = DepthFrame(cam.name, _noisy_frame(truth_img, cam, noise, rng), 0.0, 0)
+
+    def frame_at(seq):
+        if sequence is not None:
+            i = sequence.index(seq)
+            return DepthFrame(cam.name, sequence.depths[i], seq / RATE_HZ, seq, T_world_cam=sequence.poses[i])
+        return DepthFrame(cam.name, _noisy_frame(truth_img, cam, noise, rng), seq / RATE_HZ, seq)
+
+    first = frame_at(0)
     r_max = r_f + 0.04
     if adaptive:  # r_base for the same mean radius: the mean k sigma over the first frame's points
         probe = RadiusModel(r_base=0.0, adaptive=True, k_sigma=k_sigma, r_max=r_max)
@@ -234,8 +250,12 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
     pp = haptic_pipeline_params(params, PipelineParams(workspace=ws, radius=radius))
     start = P + (r_f + 0.05) * N
     hs = HapticScene([cam], start, params, pp, backend=backend, device=device)
-    exact = np.round(truth_img / cam.depth_scale).astype(np.uint16)
-    truths = [Surface(cloud(cam, exact, cam.T_world_cam, (p - half, p + half)), n) for p, n in zip(P, N)]
+    if sequence is None:
+        exact = np.round(truth_img / cam.depth_scale).astype(np.uint16)
+        truths = [Surface(cloud(cam, exact, cam.T_world_cam, (p - half, p + half)), n) for p, n in zip(P, N)]
+    else:
+        truths = [Surface(np.vstack([sequence.points(i, (p - half, p + half)) for i in range(len(sequence.depths))]),
+                          n, smooth=SMOOTH) for p, n in zip(P, N)]
     pen = np.full(len(sites), -np.inf)
     closest = np.full(len(sites), np.inf)
     gaps = [[] for _ in sites]
@@ -246,8 +266,7 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
         s = int(k / TICK_HZ * RATE_HZ)
         if s != seq:
             seq = s
-            frame = first if seq == 0 else DepthFrame(cam.name, _noisy_frame(truth_img, cam, noise, rng),
-                                                      seq / RATE_HZ, seq)
+            frame = first if seq == 0 else frame_at(seq)
             hs.ingest([frame])
             if radii is None:
                 radii = hs.pipeline.host_snapshot().points[:, 3].astype(np.float64)
@@ -315,11 +334,20 @@ def real_sites(data=None) -> list:
     return out
 
 
-def radius_real_study(fit: NoiseFit, *, noise_scales=(1.0, 2.0), data=None, **options) -> list:
-    """Rows of ``radius_real_run`` over the kitchen's sites (``real_sites``), fixed and adaptive,
-    with the noise ``fit`` (fitted on the kitchen's own frames) times each scale."""
+def radius_real_study(fit: NoiseFit, *, noise_scales=(1.0, 2.0), data=None, window: int = 8, **options) -> list:
+    """Rows of ``radius_real_run`` over the kitchen's sites (``real_sites``), fixed and adaptive:
+    with the recording's own first ``window`` frames (``noise_scale`` "recorded"; 0: skipped),
+    and with the noise ``fit`` (fitted on the kitchen's own frames) times each scale."""
+    from pointfence.service.real_rig import load_rig
+
     sites = real_sites(data)
     rows = []
+    if window:
+        seq = load_rig(window=window, data=data)[0]
+        for adaptive in (False, True):
+            for r in radius_real_run(sites, fit.model(), adaptive, sequence=seq, **options):
+                r["noise_scale"] = "recorded"
+                rows.append(r)
     for m in noise_scales:
         model = NoiseModel(fit.a * m, fit.b * m)
         for adaptive in (False, True):
@@ -334,12 +362,12 @@ def summarize(rows: list) -> dict:
     the nominal r_f region over the sites, and the worst (smallest) closest approach to the
     true surface over the sites (mm; the larger, the safer)."""
     out = {}
-    for m in sorted({r["noise_scale"] for r in rows}):
+    for m in dict.fromkeys(r["noise_scale"] for r in rows):
         d = {}
         for adaptive, key in ((False, "fixed"), (True, "adaptive")):
             rs = [r for r in rows if r["noise_scale"] == m and r["adaptive"] == adaptive]
             d[key] = {"worst_penetration_mm": max(r["safety_penetration_mm"] for r in rs),
                       "worst_closest_approach_mm": min(r["closest_approach_mm"] for r in rs),
                       "mean_gap_mm": round(float(np.mean([r["submittance_gap_mm"] for r in rs])), 3)}
-        out[f"noise_x{m:g}"] = d
+        out["recorded_frames" if m == "recorded" else f"noise_x{m:g}"] = d
     return out
