@@ -59,7 +59,8 @@ class TeleopCore(Structure):
                 ("dt", c_double), ("anchor_release", c_double), ("arch", c_int32), ("rebase", c_int32),
                 ("blending", c_int32), ("anchoring", c_int32),
                 ("dev_prev", _D), ("X_m", _D), ("hip", _D), ("e_hip", _D), ("target", _D), ("cmd", _D),
-                ("goal", _D), ("moved", _D), ("live", _U8), ("anchored", _U8)]
+                ("goal", _D), ("moved", _D), ("live", _U8), ("anchored", _U8), ("slip_lift", c_double),
+                ("normals", _F)]
 
 
 class HealthCore(Structure):

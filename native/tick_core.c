@@ -88,6 +88,8 @@ typedef struct {
     double *moved;          /* (B,) master motion since the arm was anchored, m */
     uint8_t *live;          /* (B,) sample valid and pedal down on the last tick */
     uint8_t *anchored;      /* (B,) re-anchored arms whose command stays put */
+    double slip_lift;       /* III: radius of the slip lift, m (the fixture radius; 0: no lift) */
+    const float *normals;   /* (B,3) the proxies' surface normals (zero: none), or NULL */
 } pf_teleop;
 
 void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const uint8_t *pedal, const uint8_t *ok) {
@@ -141,10 +143,31 @@ void pf_teleop_update_hip(pf_teleop *tp, const double *xr) {
 /* where the proxies move: the target itself in III (the proxy is the robot's goal), the HIP otherwise */
 const double *pf_teleop_proxy_hip(const pf_teleop *tp) { return tp->arch == 3 ? tp->target : tp->hip; }
 
-/* X_r* before the rate limit: the proxy in III while rendering, X_m otherwise */
+/* X_r* before the rate limit: the proxy in III while rendering, X_m otherwise.
+ * III's slip lift (slip_lift > 0 and normals bound): a proxy that slips over a noisy cloud jumps
+ * sideways faster than the rate-limited command follows, and the straight path from the command
+ * to it cuts through the bumps between them. The goal is raised along the proxy's surface normal
+ * n by min(L^2 / slip_lift, slip_lift), L the command's distance to the proxy across n: nothing
+ * while the command keeps up with the proxy (L ~ 0), up to one fixture radius over a slip, so the
+ * command lifts off, crosses, and lands on the proxy as L shrinks. */
 void pf_teleop_command_goal(pf_teleop *tp, const float *proxies, int32_t haptics_running) {
     if (tp->arch == 3 && haptics_running) {
-        for (int64_t i = 0; i < tp->n; i++) copy3f(tp->goal + 3 * i, proxies + 3 * i);
+        for (int64_t i = 0; i < tp->n; i++) {
+            double *g = tp->goal + 3 * i;
+            copy3f(g, proxies + 3 * i);
+            if (tp->slip_lift <= 0.0 || tp->normals == NULL) continue;
+            double nv[3] = {tp->normals[3 * i], tp->normals[3 * i + 1], tp->normals[3 * i + 2]};
+            double nn = norm3(nv);
+            if (!(nn > 0.5)) continue;                    /* no surface estimate: no lift */
+            nv[0] /= nn; nv[1] /= nn; nv[2] /= nn;
+            const double *c = tp->cmd + 3 * i;
+            double e[3] = {g[0] - c[0], g[1] - c[1], g[2] - c[2]};
+            double en = e[0] * nv[0] + e[1] * nv[1] + e[2] * nv[2];
+            double t0 = e[0] - en * nv[0], t1 = e[1] - en * nv[1], t2 = e[2] - en * nv[2];
+            double h = (t0 * t0 + t1 * t1 + t2 * t2) / tp->slip_lift;
+            if (h > tp->slip_lift) h = tp->slip_lift;
+            g[0] += h * nv[0]; g[1] += h * nv[1]; g[2] += h * nv[2];
+        }
     } else {
         memcpy(tp->goal, tp->X_m, sizeof(double) * 3 * (size_t)tp->n);
     }

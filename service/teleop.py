@@ -28,6 +28,12 @@ All quantities are world-frame positions (m) in (B, 3) arrays updated in place e
   the commanded point X_r* moves at most ``max_robot_speed * dt`` per tick towards its goal
   (this is architecture III's limit against the proxy jumping at edges; it also makes switching
   I <-> III smooth, and bounds I and II as a safety limit).
+* Slip lift (III, ``slip_lift`` > 0 with the proxies' normals bound, ``bind_normals``): a proxy
+  pressed into a noisy cloud slips sideways across its bumps faster than the rate-limited
+  command follows, and the straight path to it cuts through them. The command's goal is then
+  raised along the proxy's surface normal by min(L^2 / slip_lift, slip_lift), L the command's
+  distance to the proxy across the normal: zero while the command keeps up, at most
+  ``slip_lift`` (the fixture radius) over a slip.
 
 The arithmetic runs in the compiled tick core (``native/tick_core.c``, ``pf_teleop_*``) on this
 class's arrays; ``Service.step`` calls it there directly, the methods here call the same
@@ -67,6 +73,8 @@ class Teleop:
         max_robot_speed: bound on the command's (and the HIP blend's) speed, m/s.
         dt: tick period, s.
         architecture: initial architecture.
+        slip_lift: III's slip lift radius, m (0: off; the fixture radius turns it on, with
+            ``bind_normals``).
 
     State, (B, 3) world-frame arrays updated in place: ``X_m`` (mapped master point), ``hip``
     (this tick's HIP), ``cmd`` (robot command X_r*), ``goal`` (the command's goal before the
@@ -77,7 +85,7 @@ class Teleop:
     """
 
     def __init__(self, n: int, T_world_master=None, scale: float = 0.5, max_robot_speed: float = 0.05,
-                 dt: float = 1e-3, architecture="III"):
+                 dt: float = 1e-3, architecture="III", slip_lift: float = 0.0):
         T = np.eye(4) if T_world_master is None else np.asarray(T_world_master, dtype=float)
         self.n = int(n)
         self.R = np.ascontiguousarray(T[:3, :3])
@@ -106,6 +114,8 @@ class Teleop:
         c.moved = ptr(self._moved, np.float64, "moved")
         c.live, c.anchored = ptr(self.live, bool, "live"), ptr(self.anchored, bool, "anchored")
         self.ref = ctypes.byref(c)
+        self.slip_lift = slip_lift
+        self._normals = None                     # the bound normals array (kept alive for the core)
         self.arch = arch_code(architecture)
         self.rebase = True                       # next HIP update keeps the HIP continuous
         self.law_changed = False                 # set by set_architecture, taken by the service
@@ -128,6 +138,31 @@ class Teleop:
     @rebase.setter
     def rebase(self, on: bool) -> None:
         self.core.rebase = int(bool(on))
+
+    @property
+    def slip_lift(self) -> float:
+        """III's slip lift radius, m (0: off); see the module docstring."""
+        return self.core.slip_lift
+
+    @slip_lift.setter
+    def slip_lift(self, radius: float) -> None:
+        r = float(radius)
+        if not (np.isfinite(r) and 0.0 <= r <= 0.1):
+            raise InputError(f"slip_lift = {radius!r} m; expected 0 (off) to 0.1 m (the fixture radius)")
+        self.core.slip_lift = r
+
+    def bind_normals(self, normals) -> None:
+        """The proxies' surface normals, a (B, 3) float32 C-contiguous array the proxy batch
+        updates in place every tick (``HapticScene.normals``); None unbinds (no slip lift).
+        Bind once, when the batch is made; the array is kept alive here."""
+        if normals is None:
+            self._normals, self.core.normals = None, None
+            return
+        if not isinstance(normals, np.ndarray) or normals.shape != (self.n, 3):
+            raise InputError(f"normals: expected a ({self.n}, 3) float32 array; got "
+                             f"{getattr(normals, 'shape', type(normals).__name__)}")
+        self.core.normals = ptr(normals, np.float32, "normals")
+        self._normals = normals
 
     # --- set-up ---------------------------------------------------------------------------------
     def register(self, dev, out) -> np.ndarray:
@@ -190,7 +225,8 @@ class Teleop:
         return self.hip
 
     def command_goal(self, proxies, haptics_running: bool) -> np.ndarray:
-        """X_r* before the rate limit: the proxy in III (while rendering), X_m otherwise."""
+        """X_r* before the rate limit: the proxy in III (while rendering; raised by the slip
+        lift when it is on), X_m otherwise."""
         lib.pf_teleop_command_goal(self.ref, ptr_to(proxies, np.float32, (self.n, 3), "proxies"),
                                    int(bool(haptics_running)))
         return self.goal
