@@ -32,11 +32,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pointfence.kernels import DepthFrame, PipelineParams, RadiusModel, Selection, Workspace
+from pointfence.kernels import DepthFrame, PipelineParams, RadiusModel, Workspace
 from pointfence.kernels.camera import KINECT_NOISE_A, KINECT_NOISE_B, Camera, NoiseModel
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.haptics import HapticParams, HapticScene, haptic_pipeline_params
-from pointfence.service.real_rig import Surface, cloud, data_folder
+from pointfence.service.real_rig import SMOOTH, Surface, cloud, data_folder
 
 RATE_HZ = 30.0
 TICK_HZ = 1000.0
@@ -217,8 +217,6 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
     frames are instead the recording's own consecutive frames with their own poses, played back
     and forth (real noise, real pose error), and the true surface is the union of all of them
     denoised over ``SMOOTH`` (their mean surface); ``noise`` then only sets the adaptive radius."""
-    from pointfence.service.dynamic_real_rig import SMOOTH
-
     cam = replace(sites[0].camera, noise=noise)
     P = np.array([s.point for s in sites])
     N = np.array([s.normal for s in sites])

@@ -36,7 +36,7 @@ from pointfence.kernels.errors import InputError
 from pointfence.kernels import PipelineParams, RadiusModel, Selection, Workspace
 from pointfence.kernels.haptics import HapticParams, HapticScene, haptic_pipeline_params
 from pointfence.kernels.selffilter import SelfFilter
-from pointfence.service.real_rig import RigCamera, Site, Surface, load_rig, pick_site, render_tool, tool_capsules
+from pointfence.service.real_rig import SMOOTH, RigCamera, Site, Surface, load_rig, pick_site, render_tool, tool_capsules
 from pointfence.service.teleop import Teleop
 
 RATE_HZ = 30.0
@@ -82,8 +82,6 @@ def rig(window: int = 1, data=None) -> Rig:
     return _RIGS[key]
 
 
-#: the radius (m) over which the true surface is denoised for the second measure
-SMOOTH = 0.015
 
 
 @dataclass

@@ -28,6 +28,9 @@ from pointfence.kernels.selffilter import Capsule
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 KITCHEN = "7scenes_kitchen_50f"
 
+#: the radius (m) over which the true surface is denoised for the second measure
+SMOOTH = 0.015
+
 
 def data_folder(name: str, data=None) -> Path:
     """``data / name`` (default: ``../shared/data``), or InputError saying where it was looked for."""
