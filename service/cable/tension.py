@@ -176,8 +176,8 @@ class TensionGate:
     ~8 % low). The filter therefore learns only while the jaw moves faster than ``min_speed`` in
     free motion, and a tension is reported only from ``window`` consecutive free-motion samples,
     each taken while the jaw moved so for at least half of it, that agree within
-    ``max_spread_g`` with a filter standard deviation below ``max_rel_std`` of k_e; otherwise it
-    is unknown (NaN) and no alert changes.
+    ``max_spread_g`` with a filter standard deviation below ``max_rel_std`` of k_e, the last
+    moving one at most ``window`` samples ago; otherwise it is unknown (NaN) and no alert changes.
     """
 
     window: int = 20              # consecutive free, moving samples needed (one per 0.1 s: 2 s)
@@ -213,11 +213,12 @@ class OnlineTension:
 
     def restart(self) -> None:
         """The stiffness filter restarted: the tension is unknown until a new window; the alert stays."""
-        self._n = 0
+        self._n = self._still = 0
         self.tension = math.nan
 
     def sample(self, k_e: float, k_e_std: float, free: bool, moving: bool) -> float:
-        """One sample; returns the tension [g] or NaN (unknown)."""
+        """One sample; returns the tension [g] or NaN (unknown). A jaw that stopped keeps its
+        tension for one ``window`` of samples (a grasp pauses at its ends), then reads unknown."""
         g = self.gate
         ok = free and math.isfinite(k_e) and k_e > 0 and math.isfinite(k_e_std) and k_e_std < g.max_rel_std * k_e
         if not ok:
@@ -227,7 +228,10 @@ class OnlineTension:
         if moving:
             self._ring[self._n % g.window] = self.monitor.curve.estimate(k_e)
             self._n += 1
-        if self._n < g.window or float(np.ptp(self._ring)) > g.max_spread_g:
+            self._still = 0
+        else:
+            self._still += 1
+        if self._n < g.window or self._still >= g.window or float(np.ptp(self._ring)) > g.max_spread_g:
             self.tension = math.nan
             return self.tension
         self.tension, self.alert = self.monitor.judge(float(self._ring.mean()))
