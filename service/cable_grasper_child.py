@@ -11,8 +11,10 @@ heartbeat ``ctl["ticks"]`` counts periods.
 Each tick: the newest command (``cable_block.COMMAND``), the jaw setpoint (the command, clamped to
 ``[jaw_min, jaw_max]`` and moved towards it at most ``JAW_SPEED`` rad/s, so that a start or a
 cleared fault never makes the jaw jump to a command far from where it is: SAFETY.md S1), the
-encoder, one ``CableLoop.tick``, the torque to the plant, every 100th tick the tension estimate,
-and the state row. Faults latch zero torque (``CableLoop.fault``) until the service clears them:
+encoder, a step of the stiffness filter (``TENSION_UKF``: k_e, learnt only while the jaw moves fast
+in free motion), one ``CableLoop.tick`` (states and external torque), the torque to the plant,
+every 100th tick a tension sample through the gate (``cable.tension.OnlineTension``: a tension, or
+NaN for unknown), and the state row. Faults latch zero torque (``CableLoop.fault``) until the service clears them:
 the loop's own (a non-finite encoder reading, estimate or torque, a parameter out of range), a tick
 that started more than ``max_lateness_s`` after its deadline, and a hold the service asked for.
 """
