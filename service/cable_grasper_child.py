@@ -11,8 +11,10 @@ heartbeat ``ctl["ticks"]`` counts periods.
 Each tick: the newest command (``cable_block.COMMAND``), the jaw setpoint (the command, clamped to
 ``[jaw_min, jaw_max]`` and moved towards it at most ``JAW_SPEED`` rad/s, so that a start or a
 cleared fault never makes the jaw jump to a command far from where it is: SAFETY.md S1), the
-encoder, one ``CableLoop.tick``, the torque to the plant, every 100th tick the tension estimate,
-and the state row. Faults latch zero torque (``CableLoop.fault``) until the service clears them:
+encoder, a step of the stiffness filter (``TENSION_UKF``: k_e, learnt only while the jaw moves fast
+in free motion), one ``CableLoop.tick`` (states and external torque), the torque to the plant,
+every 100th tick a tension sample through the gate (``cable.tension.OnlineTension``: a tension, or
+NaN for unknown), and the state row. Faults latch zero torque (``CableLoop.fault``) until the service clears them:
 the loop's own (a non-finite encoder reading, estimate or torque, a parameter out of range), a tick
 that started more than ``max_lateness_s`` after its deadline, and a hold the service asked for.
 """
@@ -27,32 +29,45 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
-from .cable.loop import ONLINE_UKF, ONLINE_UKF_TENSION, CableLoop
+from .cable.loop import ONLINE_UKF, CableLoop
 from .cable.params import DT, GrasperParams, true_params_at_tension
 from .cable.plant import HuntCrossley, SimulatedPlant
-from .cable.tension import TensionMonitor
+from .cable.tension import OnlineTension, TensionGate, TensionMonitor, sim_filter_curve
+from .cable.ukf import UKF, UKFConfig
 from .cable_block import ALERT_TEXT, CONTROLLER, FAULT_TEXT, HELD, INJECT_NONE, LATE, GrasperBlock, put_text
-from .cable_settings import CableTable, load_curve, load_params, sim_curve
+from .cable_settings import CableTable, load_curve, load_params
 from .clock import RealClock
 from .periodic import PeriodicLoop
 
 #: fastest jaw setpoint motion (rad/s): a grasp command far from the jaw is reached in a ramp
 JAW_SPEED = 4.0
-#: ticks between two tension estimates
+#: ticks between two tension samples
 TENSION_EVERY = 100
+#: the stiffness filter of the tension estimate: states and k_e, the external link torque taken from
+#: the control filter (estimating both in one filter lets k_e and tau_l trade off against each other
+#: in contact); a low link-velocity process noise so that the cable mode, not a velocity jump,
+#: explains the encoder
+TENSION_UKF = UKFConfig(estimate=("k_e",), q_param=(1e-8,), p0_param=(0.5,), q_state=(1e-10, 1e-10, 2e-3, 1e-4))
+#: ticks after a contact ends before the stiffness filter learns again (the contact estimate settles)
+CONTACT_HOLDOFF = 200
 
 
 def build(table: CableTable):
-    """(plant, loop, tension monitor or None) of ``table``; compiles the UKF and MPC (cached)."""
+    """(plant, loop, stiffness filter or None, online tension or None) of ``table``; compiles the
+    UKFs and the MPC (cached). The control loop estimates the states and the external link torque
+    with the stiffness of ``params`` (chapter 5: the on-line filter runs on the off-line
+    parameters); the tension comes from a second filter that estimates k_e in free motion only."""
     params = GrasperParams() if table.params == "nominal" else load_params(table.params)
     contact = None if table.sim_contact_rad is None else HuntCrossley(q_contact=table.sim_contact_rad)
     plant = SimulatedPlant(true_params_at_tension(table.sim_tension_g), contact=contact)
-    loop = CableLoop(params, ONLINE_UKF_TENSION if table.tension else ONLINE_UKF)
-    monitor = None
+    loop = CableLoop(params, ONLINE_UKF)
+    stiffness = online = None
     if table.tension:
-        curve = sim_curve() if table.tension_curve is None else load_curve(table.tension_curve)
-        monitor = TensionMonitor(curve, table.tension_min_g, table.tension_max_g, axis="grasp")
-    return plant, loop, monitor
+        curve = sim_filter_curve() if table.tension_curve is None else load_curve(table.tension_curve)
+        stiffness = UKF(params, TENSION_UKF)
+        online = OnlineTension(TensionMonitor(curve, table.tension_min_g, table.tension_max_g, axis="grasp"),
+                               TensionGate())
+    return plant, loop, stiffness, online
 
 
 class ChildGrasper:
@@ -60,7 +75,7 @@ class ChildGrasper:
 
     def __init__(self, blk: GrasperBlock, table: CableTable):
         self.blk, self.table = blk, table
-        self.plant, self.loop, self.monitor = build(table)
+        self.plant, self.loop, self.stiffness, self.online = build(table)
         self.S, self.C = blk.state_layout, blk.command_layout
         self.row = np.zeros(self.S.size)
         self.row_mv = memoryview(self.row)
@@ -74,15 +89,28 @@ class ChildGrasper:
         self.tension = math.nan
         self.alert_code = 0
         self.late_max = self.compute_max = 0.0
+        self.free_for = 0               # ticks since the last contact (the stiffness filter learns past CONTACT_HOLDOFF)
+        self.contact_ticks = self.moving_ticks = 0      # over the current tension interval
         self.degraded = 1.0 if "interpreted" in (self.loop.ukf.how, self.loop.mpc.how) else 0.0
-        self.loop.reset(self.plant.measure())
+        self.reset_estimates()
         self.setpoint = self.target = float(self.loop.ukf.x[1])
         self.publish(0.0, 0.0, None)
+
+    def reset_estimates(self) -> None:
+        """Both filters restart at rest on the encoder; the tension is unknown until it is seen again
+        (an alert stays until a confident estimate clears it)."""
+        y = self.plant.measure()
+        self.loop.reset(y)
+        if self.stiffness is not None:
+            self.stiffness.reset(y)
+            self.online.restart()
+            self.tension = math.nan
+        self.free_for = self.contact_ticks = self.moving_ticks = 0
 
     def clear(self) -> None:
         """The service cleared the fault: the estimator restarts at rest on the encoder, the
         setpoint at the jaw (no jump: it ramps to the command)."""
-        self.loop.reset(self.plant.measure())
+        self.reset_estimates()
         self.fault_code = 0
         self.setpoint = float(self.loop.ukf.x[1])
 
@@ -111,15 +139,51 @@ class ChildGrasper:
         self.setpoint = sp
         loop.qd.fill(sp)
         y = self.plant.measure() if blk.ctl["inject"] == INJECT_NONE else math.nan
+        if self.stiffness is not None and loop.fault is None and math.isfinite(y):
+            self.track_stiffness(y)
         u = loop.tick(y)
         self.plant.actuate(u)
-        if self.monitor is not None and sched.ticks % TENSION_EVERY == 0 and loop.fault is None:
-            k_e = loop.k_e_estimate
-            if math.isfinite(k_e) and k_e > 0:
-                self.tension, alert = self.monitor.check(k_e)
-                self.alert_code = 0 if alert is None else (1 if alert.direction == "increase" else 2)
-                self.show_alert(None if alert is None else alert.message)
+        if self.stiffness is not None and sched.ticks % TENSION_EVERY == 0 and loop.fault is None:
+            self.sample_tension()
         self.publish(late, time.perf_counter() - sched.started, sched)
+
+    def track_stiffness(self, y: float) -> None:
+        """One step of the stiffness filter on the torque of the last period and encoder ``y``, with
+        the control filter's external torque; it learns k_e only in free motion (``CONTACT_HOLDOFF``
+        ticks after a contact), where the model has every load the link feels."""
+        loop, gate = self.loop, self.online.gate
+        tau_l = loop.tau_l_estimate
+        if abs(tau_l) > gate.contact_nm:
+            self.free_for = 0
+            self.contact_ticks += 1
+        else:
+            self.free_for += 1
+        moving = abs(loop.ukf.x[3]) > gate.min_speed
+        if moving:
+            self.moving_ticks += 1
+        st = self.stiffness
+        st.set_fixed("tau_l", tau_l)
+        st.step(loop.u_prev, y, learn=moving and self.free_for > CONTACT_HOLDOFF)
+        if not st.healthy():            # a diverged stiffness filter restarts; control is unaffected
+            st.reset(y)
+            self.online.restart()
+
+    def sample_tension(self) -> None:
+        """Every ``TENSION_EVERY`` ticks: the stiffness estimate through the gate
+        (``cable.tension.OnlineTension``) to the tension (NaN: unknown) and the alert."""
+        k_e, k_std = self.stiffness.estimate(0), self.stiffness.estimate_std()["k_e"]
+        free = self.contact_ticks == 0 and self.free_for > CONTACT_HOLDOFF
+        moving = self.moving_ticks * 2 >= TENSION_EVERY
+        self.contact_ticks = self.moving_ticks = 0
+        self.tension = self.online.sample(k_e, k_std, free, moving)
+        alert = self.online.alert
+        self.alert_code = 0 if alert is None else (1 if alert.direction == "increase" else 2)
+        self.show_alert(None if alert is None else alert.message)
+
+    @property
+    def k_e(self) -> float:
+        """Cable stiffness [N/m]: the stiffness filter's estimate, or the control model's."""
+        return self.loop.k_e_estimate if self.stiffness is None else self.stiffness.estimate(0)
 
     def show_alert(self, text) -> None:
         if text != self.alert_shown:
@@ -144,7 +208,7 @@ class ChildGrasper:
             r[S.ticks], r[S.periods], r[S.misses] = sched.ticks + 1, sched.periods + 1, sched.misses
         r[S.cmd_seq], r[S.clear_seq], r[S.setpoint] = self.seq, self.clears, self.setpoint
         r[S.motor_angle], r[S.jaw], r[S.jaw_velocity] = x[0], x[1], x[3]
-        r[S.motor_torque], r[S.link_torque], r[S.k_e] = loop.u_prev, loop.tau_l_estimate, loop.k_e_estimate
+        r[S.motor_torque], r[S.link_torque], r[S.k_e] = loop.u_prev, loop.tau_l_estimate, self.k_e
         r[S.tension_g], r[S.tension_alert] = self.tension, self.alert_code
         r[S.late], r[S.late_max], r[S.compute], r[S.compute_max] = late, self.late_max, compute, self.compute_max
         r[S.faulted], r[S.degraded] = 0.0 if fault is None else 1.0, self.degraded

@@ -45,7 +45,7 @@ class CableTable:
                                                default_doc="no tissue")
     tension: bool = setting(True, doc="estimate the cable stiffness online and the tension from it (chapter 5)")
     tension_curve: Optional[str] = setting(None, doc="tension calibration JSON (`pointfence calib tension --out FILE`)",
-                                           default_doc="the sim plant's law (cable/params.py)")
+                                           default_doc="the sim plant's law as the 1 ms filter sees it (cable/tension.py)")
     tension_min_g: float = setting(600.0, positive=True, doc="alert below this estimated tension (g)")
     tension_max_g: float = setting(1400.0, positive=True, doc="alert above this estimated tension (g)")
     jaw_min: float = setting(-1.2, lo=-1.5, hi=1.5, doc="smallest jaw angle commanded (rad); commands are clamped")

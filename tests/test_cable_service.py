@@ -177,14 +177,20 @@ def test_a_late_tick_and_a_hold_from_the_service_latch_named_faults():
 
 
 def test_the_tension_estimate_and_its_alert_are_published():
+    """Unknown (NaN) while the jaw is held (a held jaw does not show the cable); known once it is
+    worked open and closed, and out of the range [900, 1400] g asked here: "tighten". The accuracy,
+    the gate and the alerts: tests/test_cable_tension_online.py."""
     b = Bench(tension=True, tension_min_g=900.0, tension_max_g=1400.0)     # the plant is at 743 g
-    for _ in range(1200):
-        g = b.tick(0.2)
-    assert g.loop.fault is None
     S = b.blk.state_layout
     row = np.zeros(S.size)
+    for _ in range(1200):
+        g = b.tick(0.2)
+    assert b.blk.state.read(row) and math.isnan(row[S.tension_g]) and row[S.tension_alert] == 0
+    for k in range(6000):
+        g = b.tick(0.3 * math.sin(2 * math.pi * 1.5 * k * DT))
+    assert g.loop.fault is None
     assert b.blk.state.read(row)
-    assert 500.0 < row[S.tension_g] < 900.0 and row[S.tension_alert] == 1
+    assert 670.0 < row[S.tension_g] < 820.0 and row[S.tension_alert] == 1
     from pointfence.service.cable_block import ALERT_TEXT, get_text
 
     assert "axis 'grasp': cable tension" in get_text(b.blk.text[ALERT_TEXT]) and "tighten" in \
@@ -225,7 +231,7 @@ def test_the_process_tracks_a_held_grasp_and_publishes_its_estimate(host):
     assert s.jaw_command == 0.3 and s.setpoint == pytest.approx(0.3)
     assert abs(s.sim_jaw - 0.3) < 0.01 and abs(s.jaw - s.sim_jaw) < 0.01     # tracked; the estimate agrees
     assert s.ticks > 500 and s.periods >= s.ticks and math.isfinite(s.link_torque)
-    assert s.tension_g is not None and 300 < s.tension_g < 1200 and s.k_e > 0
+    assert s.tension_g is None and s.k_e > 0        # a held jaw does not show the cable: unknown, not a guess
     host.command(math.nan)
     assert host.rejected == 1 and host.snapshot().jaw_command == 0.3
 

@@ -16,6 +16,7 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 from ..files import write_atomic
+from .params import DT, GrasperParams, true_params_at_tension
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +87,36 @@ def fit_tension_curve(tensions_g, k_e, robust: bool = False) -> TensionCurve:
     return TensionCurve(float(a), float(b), tuple(k.tolist()), tuple(t.tolist()))
 
 
+def k_e_seen(params: GrasperParams, dt: float = DT) -> float:
+    """The stiffness [N/m] a filter whose model steps at ``dt`` with the implicit trapezoidal rule
+    (``model.implicit_step_expr``) finds on a continuous cable of stiffness ``params.k_e``.
+
+    The trapezoidal rule maps a mode of angular frequency w to (2/dt) atan(w dt/2): it runs slow,
+    so the model needs a stiffer cable, by (tan(x)/x)^2 with x = w dt/2, to ring at the cable's
+    frequency. w is the cable mode of eq. 4.4 linearised at rest, w^2 = 2 k_e (r_m^2/J_m + r_l^2/J_l)
+    (spring force k_e (e^d - e^-d) ~ 2 k_e d). On the nominal grasper: +4.6 % at 743 g, +8.8 % at
+    1929 g (the identification of service/cable/README.md measured +4.6 % and +8.4 %).
+    """
+    p = params
+    w = math.sqrt(2.0 * p.k_e * (p.r_m ** 2 / p.J_m + p.r_l ** 2 / p.J_l))
+    x = 0.5 * w * dt
+    if not x < 0.5 * math.pi:
+        raise InputError(f"cable mode {w / (2 * math.pi):.0f} Hz is beyond what a {dt * 1e3:g} ms model step resolves")
+    return p.k_e * (math.tan(x) / x) ** 2
+
+
+def sim_filter_curve(base: GrasperParams | None = None, lo_g: float = 300.0, hi_g: float = 2500.0) -> TensionCurve:
+    """Tension of the simulated plant against the stiffness the 1 ms filter sees on it
+    (``k_e_seen`` of ``params.true_params_at_tension``), fitted as tension = a + b ln(k_e) over
+    [lo_g, hi_g]: what `pointfence calib tension` (identification through the same 1 ms model)
+    finds on the simulated plant, without its identification scatter. Within 15 g of the exact
+    mapping over the range; the plant's own law (``cable_settings.sim_curve``) would read the
+    filter's stiffness 90 g (743 g) to 170 g (1929 g) high."""
+    t = np.linspace(lo_g, hi_g, 45)
+    k = np.array([k_e_seen(true_params_at_tension(x, base)) for x in t])
+    return fit_tension_curve(t, k)
+
+
 @dataclasses.dataclass(frozen=True)
 class TensionAlert:
     axis: str
@@ -124,9 +155,84 @@ class TensionMonitor:
 
     def check(self, k_e: float) -> tuple[float, TensionAlert | None]:
         """Estimated tension [g] for stiffness ``k_e`` and an alert if it is outside the range."""
-        t = self.curve.estimate(k_e)
+        return self.judge(self.curve.estimate(k_e))
+
+    def judge(self, t: float) -> tuple[float, TensionAlert | None]:
+        """Tension ``t`` [g] and an alert if it is outside the range."""
         if t < self.safe_min_g:
             return t, TensionAlert(self.axis, "increase", t, self.safe_min_g, self.safe_max_g)
         if t > self.safe_max_g:
             return t, TensionAlert(self.axis, "decrease", t, self.safe_min_g, self.safe_max_g)
         return t, None
+
+
+@dataclasses.dataclass(frozen=True)
+class TensionGate:
+    """When an online stiffness estimate may be read as a tension (units: samples, g, N m, rad/s).
+
+    The cable stiffness is seen from the motor encoder only through the cable mode, which a slow
+    grasp hardly excites, and only while the link feels no load the model lacks (tissue): the
+    estimate is then a wrong number, not a noisy one (the fig. 4.8 ramps at 0.25-0.4 rad/s pulled it
+    ~8 % low). The filter therefore learns only while the jaw moves faster than ``min_speed`` in
+    free motion, and a tension is reported only from ``window`` consecutive free-motion samples,
+    each taken while the jaw moved so for at least half of it, that agree within
+    ``max_spread_g`` with a filter standard deviation below ``max_rel_std`` of k_e, the last
+    moving one at most ``window`` samples ago; otherwise it is unknown (NaN) and no alert changes.
+    """
+
+    window: int = 20              # consecutive free, moving samples needed (one per 0.1 s: 2 s)
+    max_spread_g: float = 60.0    # largest max - min of the window's tension samples [g]
+    max_rel_std: float = 0.03     # largest filter std of k_e, relative to k_e
+    contact_nm: float = 0.01      # |estimated external link torque| above this: contact [N m]
+    min_speed: float = 1.0        # |estimated jaw velocity| above this: excited [rad/s]
+
+    def __post_init__(self):
+        if not (isinstance(self.window, int) and self.window >= 2):
+            raise InputError(f"tension gate window={self.window!r} must be an integer >= 2 samples")
+        for n in ("max_spread_g", "max_rel_std", "contact_nm", "min_speed"):
+            v = getattr(self, n)
+            if not (math.isfinite(v) and v > 0):
+                raise InputError(f"tension gate {n}={v!r} must be a finite number > 0")
+
+
+class OnlineTension:
+    """The tension reported online: ``sample`` every ~0.1 s with the stiffness estimate, its
+    std and whether the jaw was in free motion and moving over the interval; ``tension`` (g,
+    NaN: unknown) and ``alert`` (latched: changed only by a confident estimate, so that an alert
+    neither flickers nor disappears while the jaw rests or grasps) follow ``gate``."""
+
+    def __init__(self, monitor: TensionMonitor, gate: TensionGate | None = None):
+        self.monitor, self.gate = monitor, gate or TensionGate()
+        self._ring = np.zeros(self.gate.window)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything, the alert included."""
+        self.restart()
+        self.alert: TensionAlert | None = None
+
+    def restart(self) -> None:
+        """The stiffness filter restarted: the tension is unknown until a new window; the alert stays."""
+        self._n = self._still = 0
+        self.tension = math.nan
+
+    def sample(self, k_e: float, k_e_std: float, free: bool, moving: bool) -> float:
+        """One sample; returns the tension [g] or NaN (unknown). A jaw that stopped keeps its
+        tension for one ``window`` of samples (a grasp pauses at its ends), then reads unknown."""
+        g = self.gate
+        ok = free and math.isfinite(k_e) and k_e > 0 and math.isfinite(k_e_std) and k_e_std < g.max_rel_std * k_e
+        if not ok:
+            self._n = 0                     # contact (or no estimate) breaks the window
+            self.tension = math.nan
+            return self.tension
+        if moving:
+            self._ring[self._n % g.window] = self.monitor.curve.estimate(k_e)
+            self._n += 1
+            self._still = 0
+        else:
+            self._still += 1
+        if self._n < g.window or self._still >= g.window or float(np.ptp(self._ring)) > g.max_spread_g:
+            self.tension = math.nan
+            return self.tension
+        self.tension, self.alert = self.monitor.judge(float(self._ring.mean()))
+        return self.tension

@@ -163,8 +163,21 @@ class UKF:
         self._Q[:NX] = self.config.q_state
         self._Q[NX:] = self.config.q_param
         self._R[0] = self.config.r_meas
+        nz = len(self.est_idx)
+        # (learn=False: the parameter block and its copy, preallocated views)
+        self._xz, self._Pzz = self._xa[NX:], self._P[NX:, NX:]
+        self._Pxz, self._Pzx = self._P[:NX, NX:], self._P[NX:, :NX]
+        self._zkeep, self._Pzz_keep = np.zeros(nz), np.zeros((nz, nz))
         self.set_params(params)
         self.reset()
+
+    def set_fixed(self, name: str, value: float) -> None:
+        """Set a parameter the filter does not estimate (e.g. the external torque ``tau_l`` [N m]
+        from another filter) for the following steps; allocation-free."""
+        i = IDX[name]
+        if i in self.est_idx:
+            raise InputError(f"parameter {name!r} is estimated by this filter; set_fixed applies to fixed ones")
+        self._p[i] = value
 
     def set_params(self, params: GrasperParams) -> None:
         """Fixed parameters (and the starting values of the estimated ones)."""
@@ -185,13 +198,26 @@ class UKF:
         d = np.array([1e-6, 1e-2, 1e-2, 1e-1] + [s * s for s in self.config.p0_param])
         np.fill_diagonal(self._P, d)
 
-    def step(self, u_prev: float, y: float) -> None:
-        """Time update with the torque applied over the last period, measurement update with y."""
+    def step(self, u_prev: float, y: float, learn: bool = True) -> None:
+        """Time update with the torque applied over the last period, measurement update with y.
+
+        With ``learn`` False the estimated parameters are held for this step (treated as known: the
+        states update, the parameters and their variance do not, and their correlation with the
+        states is dropped), e.g. while a load the model lacks would push them off.
+        """
         self._u[0] = u_prev
         self._y[0] = y
+        if not learn:
+            self._zkeep[:] = self._xz
+            self._Pzz_keep[:] = self._Pzz
         self._call()
         self._xa[:] = self._xo
         self._P[:] = self._Po
+        if not learn:
+            self._xz[:] = self._zkeep
+            self._Pzz[:] = self._Pzz_keep
+            self._Pxz.fill(0.0)
+            self._Pzx.fill(0.0)
 
     @property
     def x(self) -> np.ndarray:
@@ -205,6 +231,11 @@ class UKF:
     def estimates(self) -> dict:
         """Estimated parameters in physical units."""
         return {n: float(self._xa[NX + j] * self._sc[j]) for j, n in enumerate(self.config.estimate)}
+
+    def estimate(self, j: int) -> float:
+        """The ``j``-th estimated parameter (order of ``config.estimate``) in physical units, without
+        building a dict (for the 1 kHz path)."""
+        return float(self._xa[NX + j] * self._sc[j])
 
     def estimate_std(self) -> dict:
         return {n: float(math.sqrt(max(self._P[NX + j, NX + j], 0.0)) * self._sc[j])
