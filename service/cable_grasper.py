@@ -82,7 +82,7 @@ class GrasperSnapshot:
     motor_torque: float         # applied (N m); 0 while faulted
     link_torque: float          # estimated external torque on the jaw (contact) (N m)
     k_e: float                  # cable stiffness used / estimated (N/m)
-    tension_g: Optional[float]  # estimated cable tension (g); None: unknown (jaw in contact, too slow or at rest, or not converged)
+    tension_g: Optional[float]  # estimated cable tension (g); None: unknown (in contact, too slow, at rest)
     alerts: tuple               # human-readable alerts (tension, misses, degraded)
     fault: Optional[str]        # the latched fault, None if none
     late_ms: float              # lateness of the last tick (ms)
