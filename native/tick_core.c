@@ -4,7 +4,8 @@
  * struct and function below; keep the two in step). The Python classes own the arrays
  * (NumPy, allocated once) and hold one of these structs with pointers into them:
  *
- *   pf_teleop  service/teleop.py    Teleop: clutch, indexing, architectures, speed limit
+ *   pf_teleop  service/teleop.py    Teleop: clutch, indexing, architectures, speed limit,
+ *                                   orientation (unit quaternions w x y z) and jaw
  *   pf_health  service/health.py    Health: which arms hold this tick and why
  *   pf_forces  kernels/forces.py    ForceRenderer: spring, damping, FIR, saturation
  *   pf_step    service/app.py       Service.step: couples the three around the proxy kernel
@@ -64,6 +65,108 @@ static void shrink3(double *v, double length) {
     v[0] *= f; v[1] *= f; v[2] *= f;
 }
 
+/* --- unit quaternions (w, x, y, z): orientations of masters, commands and robots ------------- */
+
+/* how far a master's quaternion norm may stray from 1 before its sample is invalid */
+#define PF_QUAT_TOL 1e-3
+
+/* out = a b (Hamilton product; out may alias neither a nor b) */
+static void qmul(const double *a, const double *b, double *out) {
+    out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+    out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+    out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+    out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+static void qconj(const double *a, double *out) { out[0] = a[0]; out[1] = -a[1]; out[2] = -a[2]; out[3] = -a[3]; }
+
+static void copy4(double *dst, const double *src) { dst[0] = src[0]; dst[1] = src[1]; dst[2] = src[2]; dst[3] = src[3]; }
+
+/* q scaled to unit norm, with w >= 0 (one representative of each rotation); identity if q is ~0 */
+static void qunit(double *q) {
+    double n = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (!(n > PF_TINY)) { q[0] = 1.0; q[1] = 0.0; q[2] = 0.0; q[3] = 0.0; return; }
+    double f = q[0] < 0.0 ? -1.0 / n : 1.0 / n;
+    q[0] *= f; q[1] *= f; q[2] *= f; q[3] *= f;
+}
+
+/* the rotation angle (rad, [0, pi]) of unit quaternion q */
+static double qangle(const double *q) {
+    double v = sqrt(q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    return 2.0 * atan2(v, fabs(q[0]));
+}
+
+/* the angle (rad) between unit quaternions a and b */
+static double qdist(const double *a, const double *b) {
+    double c[4], d[4];
+    qconj(b, c);
+    qmul(a, c, d);
+    return qangle(d);
+}
+
+/* the unit quaternion of rotation matrix R (row-major 3x3, rows `stride` doubles apart:
+ * 3 for a 3x3, 4 for the rotation of a 4x4 pose); Shepperd's method */
+static void quat_of_matrix(const double *T, int64_t stride, double *q) {
+    const double r00 = T[0], r01 = T[1], r02 = T[2];
+    const double r10 = T[stride], r11 = T[stride + 1], r12 = T[stride + 2];
+    const double r20 = T[2 * stride], r21 = T[2 * stride + 1], r22 = T[2 * stride + 2];
+    const double tr = r00 + r11 + r22;
+    if (tr >= r00 && tr >= r11 && tr >= r22) {
+        double s = 2.0 * sqrt(1.0 + tr);
+        q[0] = 0.25 * s; q[1] = (r21 - r12) / s; q[2] = (r02 - r20) / s; q[3] = (r10 - r01) / s;
+    } else if (r00 >= r11 && r00 >= r22) {
+        double s = 2.0 * sqrt(1.0 + r00 - r11 - r22);
+        q[0] = (r21 - r12) / s; q[1] = 0.25 * s; q[2] = (r01 + r10) / s; q[3] = (r02 + r20) / s;
+    } else if (r11 >= r22) {
+        double s = 2.0 * sqrt(1.0 + r11 - r00 - r22);
+        q[0] = (r02 - r20) / s; q[1] = (r01 + r10) / s; q[2] = 0.25 * s; q[3] = (r12 + r21) / s;
+    } else {
+        double s = 2.0 * sqrt(1.0 + r22 - r00 - r11);
+        q[0] = (r10 - r01) / s; q[1] = (r02 + r20) / s; q[2] = (r12 + r21) / s; q[3] = 0.25 * s;
+    }
+    qunit(q);
+}
+
+/* the rotation matrix of unit quaternion q into rows `stride` doubles apart */
+static void matrix_of_quat(const double *q, double *T, int64_t stride) {
+    const double w = q[0], x = q[1], y = q[2], z = q[3];
+    T[0] = 1.0 - 2.0 * (y * y + z * z); T[1] = 2.0 * (x * y - w * z); T[2] = 2.0 * (x * z + w * y);
+    T += stride;
+    T[0] = 2.0 * (x * y + w * z); T[1] = 1.0 - 2.0 * (x * x + z * z); T[2] = 2.0 * (y * z - w * x);
+    T += stride;
+    T[0] = 2.0 * (x * z - w * y); T[1] = 2.0 * (y * z + w * x); T[2] = 1.0 - 2.0 * (x * x + y * y);
+}
+
+/* n unit quaternions (n, 4) of n rotations: 4x4 poses (stride 4, 16 doubles each) or 3x3 (stride 3) */
+void pf_quats_of_matrices(const double *T, int64_t stride, int64_t n, double *q) {
+    const int64_t step = stride == 4 ? 16 : 9;
+    for (int64_t i = 0; i < n; i++) quat_of_matrix(T + step * i, stride, q + 4 * i);
+}
+
+/* n 4x4 poses (n, 16) from positions (n, 3) and unit quaternions (n, 4) */
+void pf_poses_of(const double *p, const double *q, int64_t n, double *T) {
+    for (int64_t i = 0; i < n; i++) {
+        double *t = T + 16 * i;
+        double u[4];
+        copy4(u, q + 4 * i);
+        qunit(u);
+        matrix_of_quat(u, t, 4);
+        t[3] = p[3 * i]; t[7] = p[3 * i + 1]; t[11] = p[3 * i + 2];
+        t[12] = 0.0; t[13] = 0.0; t[14] = 0.0; t[15] = 1.0;
+    }
+}
+
+/* A master sample is valid only if the device says so and its position, orientation (a unit
+ * quaternion within PF_QUAT_TOL) and grasp are finite: ok[i] is cleared otherwise (S2). */
+void pf_masters_valid(const double *pos, const double *quat, const double *grasp, int64_t n, uint8_t *ok) {
+    for (int64_t i = 0; i < n; i++) {
+        const double *p = pos + 3 * i, *q = quat + 4 * i;
+        int finite = isfinite(p[0]) && isfinite(p[1]) && isfinite(p[2]) && isfinite(grasp[i]);
+        double qn = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        if (!finite || !(fabs(qn - 1.0) <= PF_QUAT_TOL)) ok[i] = 0;   /* (a NaN fails the compare) */
+    }
+}
+
 /* --- teleoperation (service/teleop.py) ---------------------------------------------------- */
 
 typedef struct {
@@ -88,9 +191,26 @@ typedef struct {
     double *moved;          /* (B,) master motion since the arm was anchored, m */
     uint8_t *live;          /* (B,) sample valid and pedal down on the last tick */
     uint8_t *anchored;      /* (B,) re-anchored arms whose command stays put */
+    /* orientation (unit quaternions w, x, y, z) and the jaw */
+    double wmax;            /* orientation command speed bound, rad/s */
+    double jaw_vmax;        /* jaw command speed bound, rad/s */
+    double anchor_release_rad;   /* master rotation (rad) that ends an anchoring */
+    double qR[4];           /* registration: world <- master rotation */
+    double *q_last;         /* (B,4) last valid master orientation, master frame */
+    double *q_off;          /* (B,4) indexing offset: q_m = qR q_dev q_off */
+    double *q_m;            /* (B,4) mapped master orientation, world */
+    double *q_cmd;          /* (B,4) commanded tool orientation, world */
+    double *ang_moved;      /* (B,) master rotation since the arm was anchored, rad */
+    double *grasp;          /* (B,) last valid master grasp, rad */
+    double *jaw_cmd;        /* (B,) jaw command, rad (NaN: the jaw's angle is unknown: not commanded) */
+    const double *jaw_lo;   /* (B,) the robot's jaw range, rad */
+    const double *jaw_hi;
+    double *jaw_side;       /* (B,) sign of (grasp - jaw) while the jaw waits, 0: not known yet */
+    uint8_t *jaw_wait;      /* (B,) the jaw waits for the grasp to reach it (after a re-anchor) */
 } pf_teleop;
 
-void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const uint8_t *pedal, const uint8_t *ok) {
+void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const double *quat, const double *grasp,
+                           const uint8_t *pedal, const uint8_t *ok) {
     int any = 0;
     for (int64_t i = 0; i < tp->n; i++) {
         const double *d_now = dev + 3 * i;
@@ -102,15 +222,43 @@ void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const uint8_t *peda
         if (both) { d[0] = d_now[0] - d_prev[0]; d[1] = d_now[1] - d_prev[1]; d[2] = d_now[2] - d_prev[2]; }
         rot3(tp->R, d, w);
         w[0] *= tp->scale; w[1] *= tp->scale; w[2] *= tp->scale;
+        /* orientation: the registered master orientation qw = qR q_dev, the mapped one qw q_off */
+        double qd[4], qw[4], q_new[4], ang = 0.0;
+        double *qm = tp->q_m + 4 * i, *qo = tp->q_off + 4 * i;
+        if (act) {
+            copy4(qd, quat + 4 * i);
+            qunit(qd);
+            qmul(tp->qR, qd, qw);
+            qmul(qw, qo, q_new);
+            qunit(q_new);
+            if (both) ang = qdist(q_new, qm);
+        }
         if (tp->anchoring) {     /* an anchored arm's X_m stays on its command; its motion only counts */
             tp->moved[i] += norm3(w);
-            tp->anchored[i] = (uint8_t)(tp->anchored[i] && tp->moved[i] < tp->anchor_release);
+            tp->ang_moved[i] += ang;
+            tp->anchored[i] = (uint8_t)(tp->anchored[i] && tp->moved[i] < tp->anchor_release &&
+                                        tp->ang_moved[i] < tp->anchor_release_rad);
             if (tp->anchored[i]) { w[0] = 0.0; w[1] = 0.0; w[2] = 0.0; }
             any |= tp->anchored[i];
         }
         double *x = tp->X_m + 3 * i;
         x[0] += w[0]; x[1] += w[1]; x[2] += w[2];
-        if (ok[i]) copy3(d_prev, d_now);
+        if (act) {
+            if (both && !tp->anchored[i]) {
+                copy4(qm, q_new);
+            } else {             /* indexing: q_m stays, the offset takes up the master's rotation */
+                double c[4];
+                qconj(qw, c);
+                qmul(c, qm, qo);
+                qunit(qo);
+            }
+        }
+        if (ok[i]) {
+            copy3(d_prev, d_now);
+            copy4(tp->q_last + 4 * i, quat + 4 * i);
+            qunit(tp->q_last + 4 * i);
+            tp->grasp[i] = grasp[i];
+        }
     }
     if (tp->anchoring) tp->anchoring = any;
 }
@@ -150,16 +298,34 @@ void pf_teleop_command_goal(pf_teleop *tp, const float *proxies, int32_t haptics
     }
 }
 
+/* arm i's orientation re-seated on its command: q_m = q_cmd, and the offset such that the
+ * master's last sample maps onto it; its jaw waits for the grasp to reach it */
+static void seat_orientation(pf_teleop *tp, int64_t i) {
+    double *qm = tp->q_m + 4 * i, *qo = tp->q_off + 4 * i;
+    double qw[4], c[4];
+    copy4(qm, tp->q_cmd + 4 * i);
+    qmul(tp->qR, tp->q_last + 4 * i, qw);
+    qconj(qw, c);
+    qmul(c, qm, qo);
+    qunit(qo);
+    tp->jaw_wait[i] = 1;
+    tp->jaw_side[i] = 0.0;
+}
+
 static void anchor(pf_teleop *tp, const uint8_t *mask) {
     int any = 0;
     for (int64_t i = 0; i < tp->n; i++) {
-        if (mask == NULL || mask[i]) { tp->anchored[i] = 1; tp->moved[i] = 0.0; }
+        if (mask == NULL || mask[i]) {
+            tp->anchored[i] = 1; tp->moved[i] = 0.0; tp->ang_moved[i] = 0.0;
+            seat_orientation(tp, i);
+        }
         any |= tp->anchored[i];
     }
     tp->anchoring = any;
 }
 
-/* indexing for the arms in mask: X_m shifts by (command - goal); the goal becomes the command */
+/* indexing for the arms in mask: X_m shifts by (command - goal); the goal becomes the command;
+ * the orientation offset is re-seated so that the mapped orientation is the commanded one */
 void pf_teleop_reanchor(pf_teleop *tp, const uint8_t *mask) {
     for (int64_t i = 0; i < tp->n; i++) {
         if (!mask[i]) continue;
@@ -173,7 +339,7 @@ void pf_teleop_reanchor(pf_teleop *tp, const uint8_t *mask) {
     tp->rebase = 1;
 }
 
-/* a change of control law: every arm's X_m and goal move onto its command */
+/* a change of control law: every arm's X_m and goal move onto its command, its orientation too */
 void pf_teleop_reanchor_all(pf_teleop *tp) {
     memcpy(tp->X_m, tp->cmd, sizeof(double) * 3 * (size_t)tp->n);
     memcpy(tp->goal, tp->cmd, sizeof(double) * 3 * (size_t)tp->n);
@@ -181,15 +347,56 @@ void pf_teleop_reanchor_all(pf_teleop *tp) {
     tp->rebase = 1;
 }
 
-/* the command of coupled, unanchored arms moves towards the goal by at most vmax * dt */
+/* arm i's jaw towards the master's grasp (clamped to the jaw's range) by at most jaw_vmax * dt,
+ * once the grasp has reached the jaw after a re-anchor (it crossed it, or came within a step) */
+static void limit_jaw(pf_teleop *tp, int64_t i) {
+    double j = tp->jaw_cmd[i], g = tp->grasp[i];
+    if (!isfinite(j) || !isfinite(g)) return;
+    if (g < tp->jaw_lo[i]) g = tp->jaw_lo[i];
+    if (g > tp->jaw_hi[i]) g = tp->jaw_hi[i];
+    double diff = g - j, step = tp->jaw_vmax * tp->dt;
+    if (tp->jaw_wait[i]) {
+        double side = tp->jaw_side[i];
+        if (fabs(diff) <= step || (side != 0.0 && diff * side < 0.0)) tp->jaw_wait[i] = 0;
+        else { tp->jaw_side[i] = diff > 0.0 ? 1.0 : -1.0; return; }
+    }
+    if (diff > step) diff = step;
+    if (diff < -step) diff = -step;
+    tp->jaw_cmd[i] = j + diff;
+}
+
+/* arm i's commanded orientation towards q_m by at most wmax * dt (rad) */
+static void limit_orientation(pf_teleop *tp, int64_t i) {
+    double *qc = tp->q_cmd + 4 * i;
+    double c[4], d[4];
+    qconj(qc, c);
+    qmul(tp->q_m + 4 * i, c, d);        /* the rotation from the command to the goal (world) */
+    qunit(d);
+    double v = sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3]);
+    double ang = 2.0 * atan2(v, d[0]), lim = tp->wmax * tp->dt;
+    if (ang > lim) {
+        double f = sin(0.5 * lim) / v;
+        d[0] = cos(0.5 * lim); d[1] *= f; d[2] *= f; d[3] *= f;
+    }
+    double out[4];
+    qmul(d, qc, out);
+    qunit(out);
+    copy4(qc, out);
+}
+
+/* the command of coupled, unanchored arms moves towards the goal by at most vmax * dt, their
+ * orientation towards q_m by at most wmax * dt; the jaw of coupled arms follows the grasp */
 void pf_teleop_limit_command(pf_teleop *tp, const uint8_t *coupled) {
     for (int64_t i = 0; i < tp->n; i++) {
-        if (!coupled[i] || tp->anchored[i]) continue;
+        if (!coupled[i]) continue;
+        limit_jaw(tp, i);
+        if (tp->anchored[i]) continue;
         double *c = tp->cmd + 3 * i;
         const double *g = tp->goal + 3 * i;
         double d[3] = {g[0] - c[0], g[1] - c[1], g[2] - c[2]};
         clamp3(d, tp->vmax * tp->dt);
         c[0] += d[0]; c[1] += d[1]; c[2] += d[2];
+        limit_orientation(tp, i);
     }
 }
 
@@ -350,6 +557,14 @@ typedef struct {
     int32_t *state;
     uint8_t *coupled, *engage, *release;
     int64_t *arm_hold;
+    /* orientation and jaw: the tick's input (TickInput) */
+    const double *master_quat;   /* (B,4) master frame, w x y z */
+    const double *grasp;         /* (B,) rad */
+    const double *robot_quat;    /* (B,4) measured, world */
+    const double *robot_jaw;     /* (B,) measured, rad (NaN: unknown) */
+    /* ... and its output (TickOutput) */
+    double *orientation;         /* (B,4) commanded tool orientation, world */
+    double *jaw;                 /* (B,) jaw command, rad */
 } pf_step;
 
 /* Before the kernel: teleoperation, coupling and re-anchoring, the HIP and the proxy targets.
@@ -358,7 +573,7 @@ int32_t pf_step_pre(pf_step *s, pf_teleop *tp, const pf_health *h, const float *
                     int32_t teleop_on) {
     const int64_t n = s->n;
     const uint8_t *ok = h->arm_ok;
-    pf_teleop_map_masters(tp, s->master_pos, s->pedal, ok);
+    pf_teleop_map_masters(tp, s->master_pos, s->master_quat, s->grasp, s->pedal, ok);
     int engaged = 0;
     for (int64_t i = 0; i < n; i++) {
         s->coupled[i] = (uint8_t)(teleop_on && ok[i] && s->pedal[i]);
@@ -417,8 +632,12 @@ void pf_step_post(pf_step *s, pf_teleop *tp, const pf_health *h, const pf_forces
     pf_teleop_limit_command(tp, s->coupled);
     for (int64_t i = 0; i < n; i++) {
         s->release[i] = (uint8_t)(s->coupled_prev[i] && !s->coupled[i]);
-        if (s->release[i] && s->present[i])        /* a robot that decouples stops where it is */
+        if (s->release[i] && s->present[i]) {      /* a robot that decouples stops where it is */
             copy3(tp->cmd + 3 * i, s->robot_pos_out + 3 * i);
+            copy4(tp->q_cmd + 4 * i, s->robot_quat + 4 * i);
+            qunit(tp->q_cmd + 4 * i);
+            tp->jaw_cmd[i] = s->robot_jaw[i];
+        }
         if (s->coupled[i] && !s->present[i])
             copy3(s->robot_pos_out + 3 * i, tp->cmd + 3 * i);
         s->engage[i] = (uint8_t)(s->coupled[i] && !s->coupled_prev[i]);
@@ -430,6 +649,8 @@ void pf_step_post(pf_step *s, pf_teleop *tp, const pf_health *h, const pf_forces
     memcpy(s->xm, tp->X_m, sizeof(double) * 3 * (size_t)n);
     memcpy(s->hip, tp->hip, sizeof(double) * 3 * (size_t)n);
     memcpy(s->command, tp->cmd, sizeof(double) * 3 * (size_t)n);
+    memcpy(s->orientation, tp->q_cmd, sizeof(double) * 4 * (size_t)n);
+    memcpy(s->jaw, tp->jaw_cmd, sizeof(double) * (size_t)n);
 }
 
 /* The output's positions, forces and states into another step's output (the copy other threads
@@ -443,4 +664,6 @@ void pf_step_publish(const pf_step *s, pf_step *dst) {
     memcpy(dst->robot_pos_out, s->robot_pos_out, b3);
     memcpy(dst->force, s->force, b3);
     memcpy(dst->state, s->state, sizeof(int32_t) * (size_t)s->n);
+    memcpy(dst->orientation, s->orientation, sizeof(double) * 4 * (size_t)s->n);
+    memcpy(dst->jaw, s->jaw, sizeof(double) * (size_t)s->n);
 }
