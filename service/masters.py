@@ -52,7 +52,8 @@ class Master(ABC):
 class ScriptedMaster(Master):
     """Trajectory playback: ``times`` (N,) s increasing, ``positions`` (N, 3) m, ``clutch`` (N,)
     optional (pedal state, held from each sample to the next), ``orientations`` (N, 4) optional
-    (w, x, y, z, master frame; interpolated linearly along the shorter arc and normalised) and
+    (w, x, y, z, master frame; interpolated linearly along the shorter arc and scaled to the
+    samples' interpolated norm: unit between unit samples) and
     ``grasps`` (N,) optional (rad, interpolated). Before the first and after the last sample the
     end values hold. ``t0`` shifts the script in loop time. Non-finite or non-unit values are
     passed through (the loop must treat them as a device fault)."""
@@ -126,11 +127,13 @@ class ScriptedMaster(Master):
         self.ok = math.isfinite(x + y + z)
         if self._ql is not None:
             a = self._ql[i]
-            if w >= 0.0:                     # normalised linear interpolation (nlerp)
+            if w >= 0.0:                     # normalised linear interpolation (nlerp), to the samples' norms
                 b = self._ql[i + 1]
                 q = [a[j] + (b[j] - a[j]) * w for j in range(4)]
                 n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-                q = [v / n for v in q] if n > 0.0 else q
+                na, nb = math.sqrt(sum(v * v for v in a)), math.sqrt(sum(v * v for v in b))
+                f = (na + (nb - na) * w) / n if n > 0.0 else 1.0
+                q = [v * f for v in q]
             else:
                 q = a
             o = self._ori

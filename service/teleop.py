@@ -89,8 +89,8 @@ def quat_mul(a, b) -> np.ndarray:
 
 def quat_angle(a, b) -> np.ndarray:
     """The angle (rad) between orientations ``a`` and ``b`` (unit quaternions w, x, y, z)."""
-    d = np.abs(np.sum(np.asarray(a, float) * np.asarray(b, float), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    d = quat_mul(a, np.asarray(b, float) * (1.0, -1.0, -1.0, -1.0))       # a b^-1
+    return 2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0]))
 
 
 def _unit_rows(q) -> np.ndarray:
