@@ -58,6 +58,9 @@ class Devices:
         #: arms whose robot takes jaw commands (``servo_jaw``) and reports its jaw (``measured_jaw``)
         self.jawed = [(b, r) for b, r in self.real if callable(getattr(r, "servo_jaw", None))
                       and getattr(r, "jaw_limits", None) is not None]
+        #: arms whose robot reports its orientation as a quaternion itself (``measured_orientation``:
+        #: a recording's, taken as recorded, bit for bit, rather than through its rotation matrix)
+        self.quat_direct = [(b, r) for b, r in self.real if callable(getattr(r, "measured_orientation", None))]
         self.tx_lock = threading.Lock()   #: held while forces are sent (the tick, the watchdog)
         #: arms whose robot refused this tick's command, and the setpoint it kept (world, m)
         self.refused = np.zeros(n, bool)
@@ -124,6 +127,8 @@ class Devices:
             for b, _ in self.real:
                 inp.robot_pos[b] = self._tip_rows[b]
                 quat[b] = self._q4[b]
+        for b, r in self.quat_direct:
+            quat[b] = r.measured_orientation()
         for b, r in self.jawed:
             jaw[b] = r.measured_jaw()
 

@@ -10,8 +10,12 @@ Per arm b (CRTK names, ``ros2_schemas.robot_ns`` / ``master_ns``), at ``pose_hz`
 ``/PSM1/measured_cp`` (the robot's measured tool tip, world), ``/PSM1/servo_cp`` (the command
 X_r*, world), ``/MTMR/measured_cp`` (the master's sample, master frame), ``/MTMR/servo_cf``
 (the force sent to the master, its frame, N), and ``/pointfence/arm0/{xm,hip,proxy}``
-(PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). Orientations
-are identity: pointfence's points have none. Where the arm's robot has joints (Raven II),
+(PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). The robot's
+poses and the master's carry their orientations (the measured tool orientation, the commanded
+one, the master's sample); the proxy points' are identity. The jaw and the grasp
+(``sensor_msgs/JointState``, one position, rad): ``/PSM1/jaw/servo_jp`` (the jaw command),
+``/PSM1/jaw/measured_js`` (the robot's jaw, where known) and ``/MTMR/gripper/measured_js`` (the
+master's grasp). Where the arm's robot has joints (Raven II),
 ``/PSM1/measured_js`` (``sensor_msgs/JointState``: its joint names, measured positions in rad or
 m; no velocity or effort) at the recorder's ``joint_hz``.
 """
@@ -66,30 +70,50 @@ class ArmTopics:
 
     def __init__(self, layout, n: int):
         self.layout, self.n = layout, n
-        self.topics = []   # (topic, schema, layout, (part, field), record field)
+        self.topics = []   # (topic, schema, layout, (part, field), record field, (part, orientation field))
         for b in range(n):
             r, m, pf = robot_ns(b), master_ns(b), f"/pointfence/arm{b}"
-            self.topics += [(f"/{r}/measured_cp", "geometry_msgs/PoseStamped", pose_layout("world"), ("in", "robot_pos"), "p"),
-                            (f"/{r}/servo_cp", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "command"), "p"),
-                            (f"/{m}/measured_cp", "geometry_msgs/PoseStamped", pose_layout(f"{m}_base"), ("in", "master_pos"), "p"),
-                            (f"/{m}/servo_cf", "geometry_msgs/WrenchStamped", wrench_layout(f"{m}_base"), ("out", "force_master"), "f"),
-                            (f"{pf}/xm", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "xm"), "p"),
-                            (f"{pf}/hip", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "hip"), "p"),
-                            (f"{pf}/proxy", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "proxy"), "p"),
-                            (f"{pf}/force", "geometry_msgs/WrenchStamped", wrench_layout("world"), ("out", "force"), "f")]
+            P, W = "geometry_msgs/PoseStamped", "geometry_msgs/WrenchStamped"
+            self.topics += [(f"/{r}/measured_cp", P, pose_layout("world"), ("in", "robot_pos"), "p", ("in", "robot_orientation")),
+                            (f"/{r}/servo_cp", P, pose_layout("world"), ("out", "command"), "p", ("out", "orientation")),
+                            (f"/{m}/measured_cp", P, pose_layout(f"{m}_base"), ("in", "master_pos"), "p",
+                             ("in", "master_orientation")),
+                            (f"/{m}/servo_cf", W, wrench_layout(f"{m}_base"), ("out", "force_master"), "f", None),
+                            (f"{pf}/xm", P, pose_layout("world"), ("out", "xm"), "p", None),
+                            (f"{pf}/hip", P, pose_layout("world"), ("out", "hip"), "p", None),
+                            (f"{pf}/proxy", P, pose_layout("world"), ("out", "proxy"), "p", None),
+                            (f"{pf}/force", W, wrench_layout("world"), ("out", "force"), "f", None)]
         self.arm_of = [b for b in range(n) for _ in range(8)]
+        #: (topic, frame id, joint name, (part, field), arm) of the jaw and grasp JointStates
+        self.angles = [t for b in range(n) for t in (
+            (f"/{robot_ns(b)}/jaw/servo_jp", "", "jaw", ("out", "jaw"), b),
+            (f"/{robot_ns(b)}/jaw/measured_js", "", "jaw", ("in", "robot_jaw"), b),
+            (f"/{master_ns(b)}/gripper/measured_js", "", "gripper", ("in", "grasp"), b))]
 
     def write(self, tw: TopicWriter, rows: np.ndarray, ns: np.ndarray) -> None:
-        for (topic, schema, lay, key, fld), b in zip(self.topics, self.arm_of):
-            c, _ = self.layout.cols[key]
+        cols = self.layout.cols
+        for (topic, schema, lay, key, fld, qkey), b in zip(self.topics, self.arm_of):
+            c, _ = cols[key]
             rec = lay.blank(len(rows))
             stamp_fields(rec, ns)
             rec[fld] = rows[:, c + 3 * b: c + 3 * b + 3]
             if fld == "p":
-                rec["q"][:, 3] = 1.0
+                if qkey is None:
+                    rec["q"][:, 3] = 1.0
+                else:                                  # (w, x, y, z) -> ROS's (x, y, z, w)
+                    cq, _ = cols[qkey]
+                    q = rows[:, cq + 4 * b: cq + 4 * b + 4]
+                    rec["q"][:, :3], rec["q"][:, 3] = q[:, 1:], q[:, 0]
             buf, size = rec.tobytes(), lay.size
             for i in range(len(rows)):
                 tw.raw(topic, schema, buf[i * size: (i + 1) * size], ns[i])
+        for topic, frame, name, key, b in self.angles:
+            c, _ = cols[key]
+            for i, v in enumerate(rows[:, c + b].tolist()):
+                if v == v:                             # (NaN: no value this tick)
+                    t = int(ns[i])
+                    tw.dyn(topic, "sensor_msgs/JointState", {"header": stamp(t, frame), "name": [name], "position": [v],
+                                                             "velocity": [], "effort": []}, t)
 
 
 class JointTopics:
