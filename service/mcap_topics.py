@@ -25,7 +25,7 @@ import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap_ros2._dynamic import serialize_dynamic
 
-from .cdr import pose_layout, stamp_fields, wrench_layout
+from .cdr import FixedLayout, pose_layout, stamp_fields, wrench_layout
 from .holds import REASONS, ROBOT
 from .ros2_schemas import EVENTS, master_ns, msgdef, robot_ns
 
@@ -84,11 +84,11 @@ class ArmTopics:
                             (f"{pf}/proxy", P, pose_layout("world"), ("out", "proxy"), "p", None),
                             (f"{pf}/force", W, wrench_layout("world"), ("out", "force"), "f", None)]
         self.arm_of = [b for b in range(n) for _ in range(8)]
-        #: (topic, frame id, joint name, (part, field), arm) of the jaw and grasp JointStates
+        #: (topic, layout, (part, field), arm) of the jaw and grasp JointStates (one position, rad)
         self.angles = [t for b in range(n) for t in (
-            (f"/{robot_ns(b)}/jaw/servo_jp", "", "jaw", ("out", "jaw"), b),
-            (f"/{robot_ns(b)}/jaw/measured_js", "", "jaw", ("in", "robot_jaw"), b),
-            (f"/{master_ns(b)}/gripper/measured_js", "", "gripper", ("in", "grasp"), b))]
+            (f"/{robot_ns(b)}/jaw/servo_jp", _angle_layout("jaw"), ("out", "jaw"), b),
+            (f"/{robot_ns(b)}/jaw/measured_js", _angle_layout("jaw"), ("in", "robot_jaw"), b),
+            (f"/{master_ns(b)}/gripper/measured_js", _angle_layout("gripper"), ("in", "grasp"), b))]
 
     def write(self, tw: TopicWriter, rows: np.ndarray, ns: np.ndarray) -> None:
         cols = self.layout.cols
@@ -107,13 +107,22 @@ class ArmTopics:
             buf, size = rec.tobytes(), lay.size
             for i in range(len(rows)):
                 tw.raw(topic, schema, buf[i * size: (i + 1) * size], ns[i])
-        for topic, frame, name, key, b in self.angles:
+        for topic, lay, key, b in self.angles:
             c, _ = cols[key]
-            for i, v in enumerate(rows[:, c + b].tolist()):
-                if v == v:                             # (NaN: no value this tick)
-                    t = int(ns[i])
-                    tw.dyn(topic, "sensor_msgs/JointState", {"header": stamp(t, frame), "name": [name], "position": [v],
-                                                             "velocity": [], "effort": []}, t)
+            v = rows[:, c + b]
+            keep = np.flatnonzero(np.isfinite(v))     # (NaN: no value this tick)
+            rec = lay.blank(len(keep))
+            stamp_fields(rec, ns[keep])
+            rec["position"] = v[keep, None]
+            buf, size = rec.tobytes(), lay.size
+            for j, i in enumerate(keep.tolist()):
+                tw.raw(topic, "sensor_msgs/JointState", buf[j * size: (j + 1) * size], ns[i])
+
+
+def _angle_layout(name: str):
+    """``sensor_msgs/JointState`` of one joint ``name``: its ``position`` (rad), no velocity or effort."""
+    return FixedLayout().header("").u32(1).string(name).array("position", "f8", 1).array("velocity", "f8", 0) \
+        .array("effort", "f8", 0)
 
 
 class JointTopics:

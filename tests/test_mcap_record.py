@@ -452,5 +452,7 @@ def test_a_recorded_opencl_run_replays_exactly(tmp_path):
         serve.wait(timeout=120)
     finally:
         _stop(serve, dev)
-    _, check = replay(open_recording(rec))
+    r = open_recording(rec)
+    _, check = replay(r)
+    print("DEBUG", {k: v for k, v in check.items() if k != "first_mismatch"}, r.meta.get("recording"), len(r.snapshots))
     assert check["exact"], check
