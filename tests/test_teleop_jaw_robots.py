@@ -138,3 +138,32 @@ def test_a_crtk_arm_gets_the_full_pose_and_the_jaw(sim_arm):
     finally:
         arm.close()
         node.close()
+
+
+def test_a_hosted_arm_takes_the_jaw_across_the_robot_process():
+    """The robot process (robot/hosted.py): the jaw setpoint crosses the shared block to the
+    child's arm (here a Raven II over ITP: the receiver integrates the grasp) and the child's jaw
+    comes back as ``measured_jaw``; out of range it is refused on this side, nothing sent."""
+    from pointfence.service.robot.hosted import RobotHost
+
+    rx = RavenReceiver()
+    host = RobotHost([{"model": "raven2-itp", "address": f"127.0.0.1:{rx.port}", "sync_packets": 3,
+                       "x0": [0.0, 0.0, 0.1], "workspace_min": [-0.3, -0.3, -0.3], "workspace_max": [0.3, 0.3, 0.3]}])
+    arm = host.robots[0]
+    try:
+        assert arm.jaw_limits is not None and arm.jaw_limits[0] < 0.3 < arm.jaw_limits[1]
+        arm.resume()
+        T = arm.measured_cp()
+
+        def go():
+            arm.servo_cp(T)
+            arm.servo_jaw(0.3)
+            return rx.grasp == 300 and arm.measured_jaw() == pytest.approx(0.3)
+
+        assert _until(arm, go, 10.0), (rx.grasp, arm.measured_jaw())
+        with pytest.raises(InputError, match="servo_jaw"):
+            arm.servo_jaw(5.0)
+        assert rx.problems == []
+    finally:
+        host.close()
+        rx.close()

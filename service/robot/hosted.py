@@ -148,7 +148,6 @@ class RobotHost:
         self._servo_seq_at = [b * self._blk.C + self._blk.command_layout.servo_seq for b in range(n)]
         self._jaw_at = [(b * self._blk.C + self._blk.command_layout.jaw_seq, b * self._blk.C + self._blk.command_layout.jaw)
                         for b in range(n)]
-        self._jaw_sent = [0] * n
         self._spawn(None)
         self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
         self.sync()
@@ -159,6 +158,7 @@ class RobotHost:
         self._cmds.rec[:] = 0
         self._servo_sent = [0] * self.n            # setpoints and mode commands sent (the record's counts)
         self._modes_sent = [0] * self.n
+        self._jaw_sent = [0] * self.n              # jaw setpoints sent
         self._staged = False
         self._versions = [(0.0, 0.0)] * self.n
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
