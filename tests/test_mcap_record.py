@@ -452,7 +452,5 @@ def test_a_recorded_opencl_run_replays_exactly(tmp_path):
         serve.wait(timeout=120)
     finally:
         _stop(serve, dev)
-    r = open_recording(rec)
-    _, check = replay(r)
-    print("DEBUG", {k: v for k, v in check.items() if k != "first_mismatch"}, r.meta.get("recording"), len(r.snapshots))
+    _, check = replay(open_recording(rec))
     assert check["exact"], check
