@@ -280,3 +280,68 @@ def test_a_recording_carries_orientation_grasp_and_jaw_and_replays_them_exactly(
     assert quat_angle(col("in", "robot_orientation"), cmd[0]).max() > 0.1      # the tool turned too
     _, check = replay(r)
     assert check["exact"], check
+
+
+def _unit(q):
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def test_the_core_s_orientation_and_jaw_match_a_numpy_reference_on_random_sequences():
+    """The compiled core (q_m, q_off, q_cmd, the jaw) against the module docstring written as NumPy,
+    on 600 ticks of random master orientations (random walks and jumps), pedal and validity."""
+    rng = np.random.default_rng(7)
+    T = np.eye(4)
+    qR = _unit(rng.normal(size=4))
+    T[:3, :3] = np.array(
+        [[1 - 2 * (qR[2] ** 2 + qR[3] ** 2), 2 * (qR[1] * qR[2] - qR[0] * qR[3]), 2 * (qR[1] * qR[3] + qR[0] * qR[2])],
+         [2 * (qR[1] * qR[2] + qR[0] * qR[3]), 1 - 2 * (qR[1] ** 2 + qR[3] ** 2), 2 * (qR[2] * qR[3] - qR[0] * qR[1])],
+         [2 * (qR[1] * qR[3] - qR[0] * qR[2]), 2 * (qR[2] * qR[3] + qR[0] * qR[1]), 1 - 2 * (qR[1] ** 2 + qR[2] ** 2)]])
+    n, wmax, jmax, lo, hi = 3, 2.0, 1.5, 0.1, 1.2
+    tp = Teleop(n, T, max_angular_speed=wmax, max_jaw_speed=jmax, jaw_range=(lo, hi))
+    q0 = np.array([_unit(rng.normal(size=4)) for _ in range(n)])
+    tp.start(np.zeros((n, 3)), np.zeros((n, 3)), q0, np.full(n, 0.5), q0, np.full(n, 0.5))
+    ref = {"live": np.zeros(n, bool), "q_last": q0.copy(), "q_cmd": q0.copy(), "q_m": q0.copy(),
+           "q_off": np.array([_unit(quat_mul(conj(quat_mul(qR, q)), q)) for q in q0]), "grasp": np.full(n, 0.5),
+           "jaw": np.full(n, 0.5), "wait": np.ones(n, bool), "side": np.zeros(n)}
+    assert np.allclose(ref["q_off"], tp.q_off, atol=1e-12)
+    q = q0.copy()
+    for k in range(600):
+        q = np.array([_unit(quat_mul(qaxis(rng.normal(size=3), rng.choice([0.002, 0.02, 0.8], p=[.8, .15, .05])), x))
+                      for x in q])
+        pedal, ok = rng.random(n) > 0.1, rng.random(n) > 0.05
+        grasp = np.clip(ref["grasp"] + rng.normal(0, 0.02, n), -0.5, 2.0)
+        coupled = pedal & ok
+        tp.map_masters(np.zeros((n, 3)), pedal, ok, q, grasp)
+        tp.limit_command(coupled)
+        for b in range(n):
+            act, both = coupled[b], coupled[b] and ref["live"][b]
+            ref["live"][b] = act
+            if act:
+                qw = _unit(quat_mul(qR, q[b]))
+                if both:
+                    ref["q_m"][b] = _unit(quat_mul(qw, ref["q_off"][b]))
+                else:
+                    ref["q_off"][b] = _unit(quat_mul(conj(qw), ref["q_m"][b]))
+            if ok[b]:
+                ref["q_last"][b], ref["grasp"][b] = q[b], grasp[b]
+            if coupled[b]:
+                g = min(max(ref["grasp"][b], lo), hi)
+                d = g - ref["jaw"][b]
+                if ref["wait"][b]:
+                    if abs(d) <= jmax * DT or ref["side"][b] * d < 0:
+                        ref["wait"][b] = False
+                    else:
+                        ref["side"][b] = np.sign(d)
+                if not ref["wait"][b]:
+                    ref["jaw"][b] += np.clip(d, -jmax * DT, jmax * DT)
+                dq = _unit(quat_mul(ref["q_m"][b], conj(ref["q_cmd"][b])))
+                ang = 2 * math.atan2(np.linalg.norm(dq[1:]), dq[0])
+                if ang > wmax * DT:
+                    dq = np.concatenate([[math.cos(wmax * DT / 2)], dq[1:] / np.linalg.norm(dq[1:]) * math.sin(wmax * DT / 2)])
+                ref["q_cmd"][b] = _unit(quat_mul(dq, ref["q_cmd"][b]))
+        np.testing.assert_allclose(tp.q_m, ref["q_m"], atol=1e-12, err_msg=f"tick {k}")
+        np.testing.assert_allclose(tp.q_cmd, ref["q_cmd"], atol=1e-12, err_msg=f"tick {k}")
+        np.testing.assert_allclose(tp.jaw_cmd, ref["jaw"], atol=1e-12, err_msg=f"tick {k}")
+    assert quat_angle(tp.q_cmd, q0).min() > 0.1          # they went somewhere
