@@ -14,7 +14,7 @@ from pointfence.kernels.errors import InputError
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.replay import simulate
 from pointfence.service.robot.base import RobotMode
-from pointfence.service.teleop import quat_angle, quat_mul
+from pointfence.service.teleop import quat_angle
 
 from service_cases import balloon_config, needs_opencl
 from test_robot_raven_itp import RavenReceiver, make, quat_mat
