@@ -59,8 +59,10 @@ class TeleopCore(Structure):
                 ("dt", c_double), ("anchor_release", c_double), ("arch", c_int32), ("rebase", c_int32),
                 ("blending", c_int32), ("anchoring", c_int32),
                 ("dev_prev", _D), ("X_m", _D), ("hip", _D), ("e_hip", _D), ("target", _D), ("cmd", _D),
-                ("goal", _D), ("moved", _D), ("live", _U8), ("anchored", _U8), ("slip_lift", c_double),
-                ("normals", _F)]
+                ("goal", _D), ("moved", _D), ("live", _U8), ("anchored", _U8), ("slip_lift", c_double), ("normals", _F),
+                ("wmax", c_double), ("jaw_vmax", c_double), ("anchor_release_rad", c_double), ("qR", c_double * 4),
+                ("q_last", _D), ("q_off", _D), ("q_m", _D), ("q_cmd", _D), ("ang_moved", _D), ("grasp", _D),
+                ("jaw_cmd", _D), ("jaw_lo", _D), ("jaw_hi", _D), ("jaw_side", _D), ("jaw_wait", _U8)]
 
 
 class HealthCore(Structure):
@@ -87,12 +89,13 @@ class StepCore(Structure):
                 ("coupled_prev", _U8), ("reseat", _U8), ("present", _U8), ("gain", _D), ("phip", _D),
                 ("xm", _D), ("hip", _D), ("proxy", _D), ("force", _D), ("force_master", _D), ("gain_out", _D),
                 ("command", _D), ("robot_pos_out", _D), ("state", _I32), ("coupled", _U8), ("engage", _U8),
-                ("release", _U8), ("arm_hold", _I64)]
+                ("release", _U8), ("arm_hold", _I64), ("master_quat", _D), ("grasp", _D), ("robot_quat", _D),
+                ("robot_jaw", _D), ("orientation", _D), ("jaw", _D)]
 
 
 _T, _H, _FC, _S = POINTER(TeleopCore), POINTER(HealthCore), POINTER(ForcesCore), POINTER(StepCore)
 _SIGNATURES = {
-    "pf_teleop_map_masters": (None, [_T, _D, _U8, _U8]),
+    "pf_teleop_map_masters": (None, [_T, _D, _D, _D, _U8, _U8]),
     "pf_teleop_update_hip": (None, [_T, _D]),
     "pf_teleop_proxy_hip": (c_void_p, [_T]),
     "pf_teleop_command_goal": (None, [_T, _F, c_int32]),
@@ -107,6 +110,9 @@ _SIGNATURES = {
     "pf_step_scale_forces": (None, [_S, _T, _FC]),
     "pf_step_post": (None, [_S, _T, _H, _FC, _F, _I32, c_int32, c_double]),
     "pf_step_publish": (None, [_S, _S]),
+    "pf_quats_of_matrices": (None, [_D, c_int64, c_int64, _D]),
+    "pf_poses_of": (None, [_D, _D, c_int64, _D]),
+    "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
 }
 
 

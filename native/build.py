@@ -22,6 +22,8 @@ import tempfile
 from pathlib import Path
 
 SOURCE = Path(__file__).with_name("tick_core.c")
+#: the headers tick_core.c includes (part of the source: hashed with it), found in this folder
+HEADERS = (Path(__file__).with_name("tick_quat.h"),)
 #: -ffp-contract=off: every expression is evaluated as written (no fused multiply-add), so the
 #: results do not depend on the compiler's choices
 CFLAGS = ("-O2", "-fPIC", "-shared", "-std=c99", "-ffp-contract=off", "-fno-fast-math")
@@ -58,7 +60,7 @@ def _compiler() -> str:
 
 def library_path() -> Path:
     """The compiled library for this source and platform, built now if it is not cached."""
-    src = SOURCE.read_bytes()
+    src = SOURCE.read_bytes() + b"".join(h.read_bytes() for h in HEADERS)
     tag = hashlib.sha256(src + " ".join(CFLAGS).encode() + platform.machine().encode()).hexdigest()[:16]
     out = _cache_dir() / f"libpf_tick_core-{tag}.so"
     if out.exists():
@@ -68,7 +70,8 @@ def library_path() -> Path:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
-        r = subprocess.run([cc, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], capture_output=True, text=True)
+        r = subprocess.run([cc, *CFLAGS, "-I", str(HEADERS[0].parent), "-o", tmp, str(SOURCE), "-lm"],
+                           capture_output=True, text=True)
         if r.returncode != 0:
             raise NativeBuildError(f"compiling {SOURCE} with {cc} failed (exit {r.returncode}):\n{r.stderr.strip()}")
         os.replace(tmp, out)

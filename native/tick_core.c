@@ -4,7 +4,8 @@
  * struct and function below; keep the two in step). The Python classes own the arrays
  * (NumPy, allocated once) and hold one of these structs with pointers into them:
  *
- *   pf_teleop  service/teleop.py    Teleop: clutch, indexing, architectures, speed limit
+ *   pf_teleop  service/teleop.py    Teleop: clutch, indexing, architectures, speed limit,
+ *                                   orientation (unit quaternions w x y z) and jaw
  *   pf_health  service/health.py    Health: which arms hold this tick and why
  *   pf_forces  kernels/forces.py    ForceRenderer: spring, damping, FIR, saturation
  *   pf_step    service/app.py       Service.step: couples the three around the proxy kernel
@@ -64,6 +65,8 @@ static void shrink3(double *v, double length) {
     v[0] *= f; v[1] *= f; v[2] *= f;
 }
 
+#include "tick_quat.h"
+
 /* --- teleoperation (service/teleop.py) ---------------------------------------------------- */
 
 typedef struct {
@@ -90,9 +93,26 @@ typedef struct {
     uint8_t *anchored;      /* (B,) re-anchored arms whose command stays put */
     double slip_lift;       /* III: radius of the slip lift, m (the fixture radius; 0: no lift) */
     const float *normals;   /* (B,3) the proxies' surface normals (zero: none), or NULL */
+    /* orientation (unit quaternions w, x, y, z) and the jaw */
+    double wmax;            /* orientation command speed bound, rad/s */
+    double jaw_vmax;        /* jaw command speed bound, rad/s */
+    double anchor_release_rad;   /* master rotation (rad) that ends an anchoring */
+    double qR[4];           /* registration: world <- master rotation */
+    double *q_last;         /* (B,4) last valid master orientation, master frame */
+    double *q_off;          /* (B,4) indexing offset: q_m = qR q_dev q_off */
+    double *q_m;            /* (B,4) mapped master orientation, world */
+    double *q_cmd;          /* (B,4) commanded tool orientation, world */
+    double *ang_moved;      /* (B,) master rotation since the arm was anchored, rad */
+    double *grasp;          /* (B,) last valid master grasp, rad */
+    double *jaw_cmd;        /* (B,) jaw command, rad (NaN: the jaw's angle is unknown: not commanded) */
+    const double *jaw_lo;   /* (B,) the robot's jaw range, rad */
+    const double *jaw_hi;
+    double *jaw_side;       /* (B,) sign of (grasp - jaw) while the jaw waits, 0: not known yet */
+    uint8_t *jaw_wait;      /* (B,) the jaw waits for the grasp to reach it (after a re-anchor) */
 } pf_teleop;
 
-void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const uint8_t *pedal, const uint8_t *ok) {
+void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const double *quat, const double *grasp,
+                           const uint8_t *pedal, const uint8_t *ok) {
     int any = 0;
     for (int64_t i = 0; i < tp->n; i++) {
         const double *d_now = dev + 3 * i;
@@ -104,15 +124,43 @@ void pf_teleop_map_masters(pf_teleop *tp, const double *dev, const uint8_t *peda
         if (both) { d[0] = d_now[0] - d_prev[0]; d[1] = d_now[1] - d_prev[1]; d[2] = d_now[2] - d_prev[2]; }
         rot3(tp->R, d, w);
         w[0] *= tp->scale; w[1] *= tp->scale; w[2] *= tp->scale;
+        /* orientation: the registered master orientation qw = qR q_dev, the mapped one qw q_off */
+        double qd[4], qw[4], q_new[4], ang = 0.0;
+        double *qm = tp->q_m + 4 * i, *qo = tp->q_off + 4 * i;
+        if (act) {
+            copy4(qd, quat + 4 * i);
+            qunit(qd);
+            qmul(tp->qR, qd, qw);
+            qmul(qw, qo, q_new);
+            qunit(q_new);
+            if (both) ang = qdist(q_new, qm);
+        }
         if (tp->anchoring) {     /* an anchored arm's X_m stays on its command; its motion only counts */
             tp->moved[i] += norm3(w);
-            tp->anchored[i] = (uint8_t)(tp->anchored[i] && tp->moved[i] < tp->anchor_release);
+            tp->ang_moved[i] += ang;
+            tp->anchored[i] = (uint8_t)(tp->anchored[i] && tp->moved[i] < tp->anchor_release &&
+                                        tp->ang_moved[i] < tp->anchor_release_rad);
             if (tp->anchored[i]) { w[0] = 0.0; w[1] = 0.0; w[2] = 0.0; }
             any |= tp->anchored[i];
         }
         double *x = tp->X_m + 3 * i;
         x[0] += w[0]; x[1] += w[1]; x[2] += w[2];
-        if (ok[i]) copy3(d_prev, d_now);
+        if (act) {
+            if (both && !tp->anchored[i]) {
+                copy4(qm, q_new);
+            } else {             /* indexing: q_m stays, the offset takes up the master's rotation */
+                double c[4];
+                qconj(qw, c);
+                qmul(c, qm, qo);
+                qunit(qo);
+            }
+        }
+        if (ok[i]) {
+            copy3(d_prev, d_now);
+            copy4(tp->q_last + 4 * i, quat + 4 * i);
+            qunit(tp->q_last + 4 * i);
+            tp->grasp[i] = grasp[i];
+        }
     }
     if (tp->anchoring) tp->anchoring = any;
 }
@@ -173,16 +221,34 @@ void pf_teleop_command_goal(pf_teleop *tp, const float *proxies, int32_t haptics
     }
 }
 
+/* arm i's orientation re-seated on its command: q_m = q_cmd, and the offset such that the
+ * master's last sample maps onto it; its jaw waits for the grasp to reach it */
+static void seat_orientation(pf_teleop *tp, int64_t i) {
+    double *qm = tp->q_m + 4 * i, *qo = tp->q_off + 4 * i;
+    double qw[4], c[4];
+    copy4(qm, tp->q_cmd + 4 * i);
+    qmul(tp->qR, tp->q_last + 4 * i, qw);
+    qconj(qw, c);
+    qmul(c, qm, qo);
+    qunit(qo);
+    tp->jaw_wait[i] = 1;
+    tp->jaw_side[i] = 0.0;
+}
+
 static void anchor(pf_teleop *tp, const uint8_t *mask) {
     int any = 0;
     for (int64_t i = 0; i < tp->n; i++) {
-        if (mask == NULL || mask[i]) { tp->anchored[i] = 1; tp->moved[i] = 0.0; }
+        if (mask == NULL || mask[i]) {
+            tp->anchored[i] = 1; tp->moved[i] = 0.0; tp->ang_moved[i] = 0.0;
+            seat_orientation(tp, i);
+        }
         any |= tp->anchored[i];
     }
     tp->anchoring = any;
 }
 
-/* indexing for the arms in mask: X_m shifts by (command - goal); the goal becomes the command */
+/* indexing for the arms in mask: X_m shifts by (command - goal); the goal becomes the command;
+ * the orientation offset is re-seated so that the mapped orientation is the commanded one */
 void pf_teleop_reanchor(pf_teleop *tp, const uint8_t *mask) {
     for (int64_t i = 0; i < tp->n; i++) {
         if (!mask[i]) continue;
@@ -196,7 +262,7 @@ void pf_teleop_reanchor(pf_teleop *tp, const uint8_t *mask) {
     tp->rebase = 1;
 }
 
-/* a change of control law: every arm's X_m and goal move onto its command */
+/* a change of control law: every arm's X_m and goal move onto its command, its orientation too */
 void pf_teleop_reanchor_all(pf_teleop *tp) {
     memcpy(tp->X_m, tp->cmd, sizeof(double) * 3 * (size_t)tp->n);
     memcpy(tp->goal, tp->cmd, sizeof(double) * 3 * (size_t)tp->n);
@@ -204,15 +270,56 @@ void pf_teleop_reanchor_all(pf_teleop *tp) {
     tp->rebase = 1;
 }
 
-/* the command of coupled, unanchored arms moves towards the goal by at most vmax * dt */
+/* arm i's jaw towards the master's grasp (clamped to the jaw's range) by at most jaw_vmax * dt,
+ * once the grasp has reached the jaw after a re-anchor (it crossed it, or came within a step) */
+static void limit_jaw(pf_teleop *tp, int64_t i) {
+    double j = tp->jaw_cmd[i], g = tp->grasp[i];
+    if (!isfinite(j) || !isfinite(g)) return;
+    if (g < tp->jaw_lo[i]) g = tp->jaw_lo[i];
+    if (g > tp->jaw_hi[i]) g = tp->jaw_hi[i];
+    double diff = g - j, step = tp->jaw_vmax * tp->dt;
+    if (tp->jaw_wait[i]) {
+        double side = tp->jaw_side[i];
+        if (fabs(diff) <= step || (side != 0.0 && diff * side < 0.0)) tp->jaw_wait[i] = 0;
+        else { tp->jaw_side[i] = diff > 0.0 ? 1.0 : -1.0; return; }
+    }
+    if (diff > step) diff = step;
+    if (diff < -step) diff = -step;
+    tp->jaw_cmd[i] = j + diff;
+}
+
+/* arm i's commanded orientation towards q_m by at most wmax * dt (rad) */
+static void limit_orientation(pf_teleop *tp, int64_t i) {
+    double *qc = tp->q_cmd + 4 * i;
+    double c[4], d[4];
+    qconj(qc, c);
+    qmul(tp->q_m + 4 * i, c, d);        /* the rotation from the command to the goal (world) */
+    qunit(d);
+    double v = sqrt(d[1] * d[1] + d[2] * d[2] + d[3] * d[3]);
+    double ang = 2.0 * atan2(v, d[0]), lim = tp->wmax * tp->dt;
+    if (ang > lim) {
+        double f = sin(0.5 * lim) / v;
+        d[0] = cos(0.5 * lim); d[1] *= f; d[2] *= f; d[3] *= f;
+    }
+    double out[4];
+    qmul(d, qc, out);
+    qunit(out);
+    copy4(qc, out);
+}
+
+/* the command of coupled, unanchored arms moves towards the goal by at most vmax * dt, their
+ * orientation towards q_m by at most wmax * dt; the jaw of coupled arms follows the grasp */
 void pf_teleop_limit_command(pf_teleop *tp, const uint8_t *coupled) {
     for (int64_t i = 0; i < tp->n; i++) {
-        if (!coupled[i] || tp->anchored[i]) continue;
+        if (!coupled[i]) continue;
+        limit_jaw(tp, i);
+        if (tp->anchored[i]) continue;
         double *c = tp->cmd + 3 * i;
         const double *g = tp->goal + 3 * i;
         double d[3] = {g[0] - c[0], g[1] - c[1], g[2] - c[2]};
         clamp3(d, tp->vmax * tp->dt);
         c[0] += d[0]; c[1] += d[1]; c[2] += d[2];
+        limit_orientation(tp, i);
     }
 }
 
@@ -373,6 +480,14 @@ typedef struct {
     int32_t *state;
     uint8_t *coupled, *engage, *release;
     int64_t *arm_hold;
+    /* orientation and jaw: the tick's input (TickInput) */
+    const double *master_quat;   /* (B,4) master frame, w x y z */
+    const double *grasp;         /* (B,) rad */
+    const double *robot_quat;    /* (B,4) measured, world */
+    const double *robot_jaw;     /* (B,) measured, rad (NaN: unknown) */
+    /* ... and its output (TickOutput) */
+    double *orientation;         /* (B,4) commanded tool orientation, world */
+    double *jaw;                 /* (B,) jaw command, rad */
 } pf_step;
 
 /* Before the kernel: teleoperation, coupling and re-anchoring, the HIP and the proxy targets.
@@ -381,7 +496,7 @@ int32_t pf_step_pre(pf_step *s, pf_teleop *tp, const pf_health *h, const float *
                     int32_t teleop_on) {
     const int64_t n = s->n;
     const uint8_t *ok = h->arm_ok;
-    pf_teleop_map_masters(tp, s->master_pos, s->pedal, ok);
+    pf_teleop_map_masters(tp, s->master_pos, s->master_quat, s->grasp, s->pedal, ok);
     int engaged = 0;
     for (int64_t i = 0; i < n; i++) {
         s->coupled[i] = (uint8_t)(teleop_on && ok[i] && s->pedal[i]);
@@ -440,8 +555,12 @@ void pf_step_post(pf_step *s, pf_teleop *tp, const pf_health *h, const pf_forces
     pf_teleop_limit_command(tp, s->coupled);
     for (int64_t i = 0; i < n; i++) {
         s->release[i] = (uint8_t)(s->coupled_prev[i] && !s->coupled[i]);
-        if (s->release[i] && s->present[i])        /* a robot that decouples stops where it is */
+        if (s->release[i] && s->present[i]) {      /* a robot that decouples stops where it is */
             copy3(tp->cmd + 3 * i, s->robot_pos_out + 3 * i);
+            copy4(tp->q_cmd + 4 * i, s->robot_quat + 4 * i);
+            qunit(tp->q_cmd + 4 * i);
+            tp->jaw_cmd[i] = s->robot_jaw[i];
+        }
         if (s->coupled[i] && !s->present[i])
             copy3(s->robot_pos_out + 3 * i, tp->cmd + 3 * i);
         s->engage[i] = (uint8_t)(s->coupled[i] && !s->coupled_prev[i]);
@@ -453,6 +572,8 @@ void pf_step_post(pf_step *s, pf_teleop *tp, const pf_health *h, const pf_forces
     memcpy(s->xm, tp->X_m, sizeof(double) * 3 * (size_t)n);
     memcpy(s->hip, tp->hip, sizeof(double) * 3 * (size_t)n);
     memcpy(s->command, tp->cmd, sizeof(double) * 3 * (size_t)n);
+    memcpy(s->orientation, tp->q_cmd, sizeof(double) * 4 * (size_t)n);
+    memcpy(s->jaw, tp->jaw_cmd, sizeof(double) * (size_t)n);
 }
 
 /* The output's positions, forces and states into another step's output (the copy other threads
@@ -466,4 +587,6 @@ void pf_step_publish(const pf_step *s, pf_step *dst) {
     memcpy(dst->robot_pos_out, s->robot_pos_out, b3);
     memcpy(dst->force, s->force, b3);
     memcpy(dst->state, s->state, sizeof(int32_t) * (size_t)s->n);
+    memcpy(dst->orientation, s->orientation, sizeof(double) * 4 * (size_t)s->n);
+    memcpy(dst->jaw, s->jaw, sizeof(double) * (size_t)s->n);
 }

@@ -51,7 +51,7 @@ from .haptic_scene import HapticScene
 from .health import Health
 from .holds import EXCEPTION, KERNEL, REASONS, WATCHDOG, HoldReason, describe, reason_names
 from .recorders import make_recorder
-from .teleop import Teleop, arch_code
+from .teleop import DEFAULT_JAW_RANGE, Teleop, arch_code, quat_mul
 from .tick_io import TickInput, TickOutput
 
 RING = 1 << 16
@@ -90,7 +90,8 @@ class Service:
                                  self.devices.robots, n)
         tc = cfg.teleop
         self.teleop = Teleop(n, tc.T_world_master, tc.scale, tc.max_robot_speed, self.dt,
-                             architecture or tc.architecture)
+                             architecture or tc.architecture, tc.max_angular_speed, tc.max_jaw_speed,
+                             self.devices.jaw_ranges(DEFAULT_JAW_RANGE))
         self.health = Health(n, sc.recover_s)
         self.inp = TickInput.zeros(n)
         self.out = TickOutput.zeros(n)
@@ -157,20 +158,25 @@ class Service:
         for name in ("coupled", "engage", "release"):
             setattr(c, name, ptr(getattr(out, name), bool, f"TickOutput.{name}"))
         c.arm_hold = ptr(out.arm_hold, np.int64, "TickOutput.arm_hold")
+        c.orientation, c.jaw = ptr(out.orientation, float, "TickOutput.orientation"), ptr(out.jaw, float, "TickOutput.jaw")
         return c
 
     def _bind_input(self, inp: TickInput) -> tuple:
         """Point the compiled step at ``inp``'s arrays (again only when they are other arrays than
         last tick's: ``replay_tick`` and tests bring their own); returns the health's pointers."""
-        arrays = (inp.master_pos, inp.pedal, inp.master_ok, inp.robot_pos, inp.robot_fault)
+        arrays = (inp.master_pos, inp.pedal, inp.master_ok, inp.robot_pos, inp.robot_fault, inp.master_orientation,
+                  inp.grasp, inp.robot_orientation, inp.robot_jaw)
         bound = self._bound_inp
         if bound and bound[0] and all(a is b for a, b in zip(arrays, bound[0])):
             return bound[1]
         n, c = self.n, self._core
-        want = ((float, (n, 3)), (bool, (n,)), (bool, (n,)), (float, (n, 3)), (bool, (n,)))
+        want = ((float, (n, 3)), (bool, (n,)), (bool, (n,)), (float, (n, 3)), (bool, (n,)), (float, (n, 4)),
+                (float, (n,)), (float, (n, 4)), (float, (n,)))
         own = [as_array(a, dt, shape) for a, (dt, shape) in zip(arrays, want)]
         c.master_pos, c.pedal, c.master_ok, c.robot_pos = (ptr(a, dt, name) for a, (dt, _), name in zip(
             own, want, ("master_pos", "pedal", "master_ok", "robot_pos")))
+        c.master_quat, c.grasp, c.robot_quat, c.robot_jaw = (ptr(a, float, name) for a, name in zip(
+            own[5:], ("master_orientation", "grasp", "robot_orientation", "robot_jaw")))
         health_in = (c.master_ok, ptr(own[4], bool, "robot_fault"))
         # a converted copy is not the input's own array: bind again next tick (its values may
         # change); the copies live until then (the core's struct holds addresses, not arrays)
@@ -187,12 +193,16 @@ class Service:
         inp, tp = self.inp, self.teleop
         self.devices.read_masters(inp)
         dev = inp.master_pos.copy()
-        xr = None
+        quat = np.where(inp.master_ok[:, None], inp.master_orientation, (1.0, 0.0, 0.0, 0.0))
+        grasp = np.where(inp.master_ok, inp.grasp, 0.0)
+        xr = qr = jr = None
         if self.devices.present.any():
             reg = tp.register(np.nan_to_num(dev), np.zeros((self.n, 3)))
-            self.devices.read_robots(inp, reg)
-            xr = inp.robot_pos.copy()
-        tp.start(dev, xr)
+            ideal_q = quat_mul(tp.qR, quat)
+            ideal_j = np.clip(grasp, tp.jaw_lo, tp.jaw_hi)
+            self.devices.read_robots(inp, reg, ideal_q, ideal_j)
+            xr, qr, jr = inp.robot_pos.copy(), inp.robot_orientation.copy(), inp.robot_jaw.copy()
+        tp.start(dev, xr, quat, grasp, qr, jr)
         np.copyto(self.out.robot_pos, tp.cmd)
         self.scene.start(tp.hip, self.haptics_on)
         self.devices.hold_all_robots()   # until the arm couples (pedal down, teleoperation engaged, healthy)
@@ -289,7 +299,7 @@ class Service:
         the snapshots are this process's (``HapticScene.sense_recorded``)."""
         if not self._started:
             self.start()
-        self.devices.read_robots(inp, self.teleop.cmd)
+        self.devices.read_robots(inp, self.teleop.cmd, self.teleop.q_cmd, self.teleop.jaw_cmd)
         self.scene.sense_recorded(inp)
         out = self.step(inp)
         self.write(out, inp.dt)
@@ -307,7 +317,7 @@ class Service:
             self._pending_arch = None
             inp.haptics, inp.teleop = self.haptics_on, self.teleop_on
         self.devices.read_masters(inp)
-        self.devices.read_robots(inp, self.teleop.cmd)
+        self.devices.read_robots(inp, self.teleop.cmd, self.teleop.q_cmd, self.teleop.jaw_cmd)
         if self.grasper is not None and self.grasper.faulted:     # (recorded: a replay holds as the run did)
             inp.robot_fault[self.grasper.arm] = True
         self.scene.sense(inp)
@@ -376,16 +386,18 @@ class Service:
         dev = self.devices
         dev.send_forces(out.force_master)
         if dev.command_robots(out, dt):          # (True: an arm refused its command)
+            tp = self.teleop
             for b in np.flatnonzero(dev.refused):
-                self.teleop.cmd[b] = dev.kept[b]
+                tp.cmd[b] = dev.kept[b]
                 out.command[b] = dev.kept[b]
+                tp.q_cmd[b] = dev.kept_orientation[b]
+                out.orientation[b] = dev.kept_orientation[b]
                 self.health.robot_seen(int(b), out.t)
             self.last_error = f"tick {out.k}: {dev.last_refusal}"
         g = self.grasper
         if g is not None:           # the jaw follows the grasp while the arm is coupled (never waits)
-            if out.coupled[g.arm]:
-                jaw = getattr(out, "jaw", None)
-                g.command(float(jaw[g.arm]) if jaw is not None else getattr(dev.masters[g.arm], "grasp", 0.0))
+            if out.coupled[g.arm]:                 # (NaN, a jaw not yet known, is refused and counted)
+                g.command(float(out.jaw[g.arm]))
             else:
                 g.watch()
 
@@ -395,7 +407,8 @@ class Service:
         self.ticks += 1
         p = self._published
         with self._pub_lock:
-            lib.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state
+            lib.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state,
+            #                                                       orientation, jaw
             p.t, p.k = out.t, out.k
         if self.recorder is not None:
             self.recorder.write(inp, out)
@@ -413,7 +426,8 @@ class Service:
         np.maximum(self.gain, 0.0, out=self.gain)
         self._scale_forces(out)
         self.devices.send_forces(out.force_master)
-        self.devices.hold_robots(dt, self._coupled_prev, self.teleop.cmd)
+        tp = self.teleop
+        self.devices.hold_robots(dt, self._coupled_prev, tp.cmd, tp.q_cmd, tp.jaw_cmd)
         out.coupled[:] = False
         self._coupled_prev[:] = False
         out.hold = self.health.mask
@@ -446,7 +460,7 @@ class Service:
             p = self._published
             out = {"xm": p.xm.copy(), "hip": p.hip.copy(), "proxy": p.proxy.copy(), "cmd": p.command.copy(),
                    "xr": p.robot_pos.copy(), "force": p.force.copy(), "state": p.state.copy(), "t": p.t,
-                   "tick": p.k}
+                   "tick": p.k, "orientation": p.orientation.copy(), "jaw": p.jaw.copy()}
         return out
 
     def kernel_timing(self, since: int = 0) -> dict:

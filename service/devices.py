@@ -1,9 +1,11 @@
-"""The service's devices: B haptic masters (position and pedal in, force out) and B robots
-(measured pose in, command out), read into a ``TickInput`` and written from a ``TickOutput``.
+"""The service's devices: B haptic masters (position, orientation, grasp and pedal in, force out)
+and B robots (measured pose and jaw in, pose and jaw commands out), read into a ``TickInput`` and
+written from a ``TickOutput``.
 
 CHAI3D's device abstraction: the tick never talks to a device but through ``read`` and ``write``.
 A robot is any object of the ``service.robot`` interface (``measured_cp``, ``servo_cp``, ``hold``,
-``resume``, ``step``, ``state``), in the loop's process or hosted in its own (``robot.hosted``);
+``resume``, ``step``, ``state``; a robot with a jaw adds ``jaw_limits``, ``measured_jaw`` and
+``servo_jaw``), in the loop's process or hosted in its own (``robot.hosted``);
 ``None`` is an ideal robot (X_r = X_r*: its position is its last command).
 
 The masters' force sends are serialised by a lock: the tick sends, and so does the tick
@@ -18,6 +20,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.errors import InputError
+from pointfence.native import lib, ptr
 
 from .robot.base import RobotMode
 from .tick_io import TickInput, TickOutput
@@ -44,42 +47,98 @@ class Devices:
         self._tips = self._T4[:, :3, 3]           # (n, 3) view: each measured pose's position
         self._tip_rows = list(self._tips)
         self._zero3 = np.zeros(3)
+        self._T4p = ptr(self._T4, np.float64, "poses")
+        #: the tick's commanded poses (n, 4, 4), world: the command's position and orientation
+        self._cmd4 = np.zeros((n, 4, 4))
+        self._cmd4_rows = list(self._cmd4)
+        self._cmd4p = ptr(self._cmd4, np.float64, "command poses")
+        self._q4 = np.zeros((n, 4))                # the measured orientations, before the ideal arms'
+        self._q4p = ptr(self._q4, np.float64, "orientations")
+        self._ptrs: dict = {}                      # name -> (array, pointer): ``_bound``
+        #: arms whose robot takes jaw commands (``servo_jaw``) and reports its jaw (``measured_jaw``)
+        self.jawed = [(b, r) for b, r in self.real if callable(getattr(r, "servo_jaw", None))
+                      and getattr(r, "jaw_limits", None) is not None]
+        #: arms whose robot reports its orientation as a quaternion itself (``measured_orientation``:
+        #: a recording's, taken as recorded, bit for bit, rather than through its rotation matrix)
+        self.quat_direct = [(b, r) for b, r in self.real if callable(getattr(r, "measured_orientation", None))]
         self.tx_lock = threading.Lock()   #: held while forces are sent (the tick, the watchdog)
         #: arms whose robot refused this tick's command, and the setpoint it kept (world, m)
         self.refused = np.zeros(n, bool)
         self._refused_any = False
         self.kept = np.zeros((n, 3))
+        self.kept_orientation = np.zeros((n, 4))
         self.refusals = 0
         self.last_refusal: Optional[str] = None
 
+    def jaw_ranges(self, default) -> np.ndarray:
+        """(n, 2) each arm's jaw range (rad): its robot's ``jaw_limits``, ``default`` for arms
+        whose robot has no jaw (or no robot)."""
+        out = np.tile(np.asarray(default, dtype=float), (self.n, 1))
+        for b, r in self.jawed:
+            out[b] = r.jaw_limits
+        return out
+
     # --- in ------------------------------------------------------------------------------------------
     def read_masters(self, inp: TickInput) -> None:
-        """Poll every master at loop time ``inp.t``: position (master frame), pedal, validity."""
-        t, pos, pedal, ok = inp.t, inp.master_pos, inp.pedal, inp.master_ok
+        """Poll every master at loop time ``inp.t``: position (master frame), orientation (w x y z,
+        master frame), grasp (rad), pedal, validity. A sample is valid only if the device says so
+        and its position, orientation and grasp are finite, the orientation a unit quaternion (S2)."""
+        t, pos, quat, grasp, pedal, ok = inp.t, inp.master_pos, inp.master_orientation, inp.grasp, inp.pedal, inp.master_ok
         for b, m in enumerate(self.masters):
             m.poll(t)
             pos[b] = m.position
+            quat[b] = m.orientation
+            grasp[b] = m.grasp
             pedal[b] = m.clutch
             ok[b] = m.ok
-        isfinite = math.isfinite                 # valid: the device says so and every coordinate is finite
-        for b, (x, y, z) in enumerate(pos.tolist()):
-            if not (isfinite(x) and isfinite(y) and isfinite(z)):
-                ok[b] = False
+        bound = self._bound
+        okp = self._ptrs.get("master_ok")
+        if okp is None or okp[0] is not ok:
+            okp = self._ptrs["master_ok"] = (ok, ptr(ok, bool, "master_ok"))
+        lib.pf_masters_valid(bound(pos, "master_pos"), bound(quat, "master_orientation"), bound(grasp, "grasp"),
+                             self.n, okp[1])
 
-    def read_robots(self, inp: TickInput, ideal_pos: np.ndarray) -> None:
-        """Every robot's measured tool tip (world) and fault state; an ideal robot's position is
-        ``ideal_pos`` (its command)."""
+    def read_robots(self, inp: TickInput, ideal_pos: np.ndarray, ideal_quat: np.ndarray = None,
+                    ideal_jaw: np.ndarray = None) -> None:
+        """Every robot's measured tool pose (world: tip and orientation), jaw (rad, NaN: unknown
+        or none) and fault state; an ideal robot's are ``ideal_pos``, ``ideal_quat`` and
+        ``ideal_jaw`` (its commands; identity orientation and NaN jaw where not given)."""
         np.copyto(inp.robot_present, self.present)
         fault, T4 = inp.robot_fault, self._T4_rows
         for b, r in self.real:
             r.measured_cp(out=T4[b])
             fault[b] = r.state == _FAULT
+        jaw, quat = inp.robot_jaw, inp.robot_orientation
+        if ideal_jaw is None:
+            jaw.fill(math.nan)
+        else:                                    # (a robot without a jaw: its jaw is ideal, the command)
+            np.copyto(jaw, ideal_jaw)
+        qp = self._bound(quat, "robot_orientation")
         if self._all_real:
             np.copyto(inp.robot_pos, self._tips)
+            lib.pf_quats_of_matrices(self._T4p, 4, self.n, qp)
         else:
             np.copyto(inp.robot_pos, ideal_pos)
+            lib.pf_quats_of_matrices(self._T4p, 4, self.n, self._q4p)
+            if ideal_quat is None:
+                quat[:] = (1.0, 0.0, 0.0, 0.0)
+            else:
+                np.copyto(quat, ideal_quat)
             for b, _ in self.real:
                 inp.robot_pos[b] = self._tip_rows[b]
+                quat[b] = self._q4[b]
+        for b, r in self.quat_direct:
+            quat[b] = r.measured_orientation()
+        for b, r in self.jawed:
+            jaw[b] = r.measured_jaw()
+
+    def _bound(self, a: np.ndarray, name: str):
+        """The core's pointer to float64 array ``a`` (made again only for another array than last
+        time's under ``name``: the tick's own arrays are bound once)."""
+        got = self._ptrs.get(name)
+        if got is None or got[0] is not a:
+            got = self._ptrs[name] = (a, ptr(a, np.float64, name))
+        return got[1]
 
     def read_pedals(self, t: float, pedal: np.ndarray) -> None:
         """Only the pedals (the safe path): a master that cannot be read counts as pedal down."""
@@ -119,36 +178,63 @@ class Devices:
             self.refused[:] = False
             self._refused_any = False
         coupled, engage, release = out.coupled.tolist(), out.engage.tolist(), out.release.tolist()
-        command = out.command
+        lib.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
+                        self.n, self._cmd4p)
+        poses = self._cmd4_rows
         for b, r in self.real:
             if coupled[b]:
                 if engage[b]:
                     r.resume()
                 try:
-                    r.servo_cp(command[b])
+                    r.servo_cp(poses[b])
                 except InputError as e:     # unreachable: the robot keeps its setpoint
                     self.refusals += 1
                     self.last_refusal = f"robot {b}: {e}"
                     r.setpoint_cp(out=self._T4[b])
                     self.kept[b] = self._T4[b, :3, 3]
+                    lib.pf_quats_of_matrices(ptr(self._T4[b], np.float64, "setpoint"), 4, 1,
+                                             ptr(self.kept_orientation[b], np.float64, "kept"))
                     self.refused[b] = True
                     self._refused_any = True
             elif release[b]:
                 r.hold()
+        if self.jawed:
+            jaw = out.jaw.tolist()
+            for b, r in self.jawed:
+                if coupled[b] and not self.refused[b] and math.isfinite(jaw[b]):
+                    try:
+                        r.servo_jaw(jaw[b])
+                    except InputError as e:     # (outside its range: the jaw keeps its setpoint, the arm holds)
+                        self.refusals += 1
+                        self.last_refusal = f"robot {b} jaw: {e}"
+                        r.setpoint_cp(out=self._T4[b])
+                        self.kept[b] = self._T4[b, :3, 3]
+                        lib.pf_quats_of_matrices(ptr(self._T4[b], np.float64, "setpoint"), 4, 1,
+                                                 ptr(self.kept_orientation[b], np.float64, "kept"))
+                        self.refused[b] = True
+                        self._refused_any = True
         for b, r in self.real:
             r.step(dt)
         return self._refused_any
 
-    def hold_robots(self, dt: float, coupled: np.ndarray, command: np.ndarray) -> None:
-        """The safe path: every robot holds where it is and keeps stepping; the command of an arm
-        that was coupled moves onto its measured position."""
+    def hold_robots(self, dt: float, coupled: np.ndarray, command: np.ndarray, orientation: np.ndarray = None,
+                    jaw: np.ndarray = None) -> None:
+        """The safe path: every robot holds where it is and keeps stepping; the command (position,
+        and orientation and jaw where given) of an arm that was coupled moves onto its measured one."""
         for b, r in self.real:
             if coupled[b]:
                 r.hold()
                 r.measured_cp(out=self._T4[b])
                 command[b] = self._T4[b, :3, 3]
+                if orientation is not None:
+                    lib.pf_quats_of_matrices(ptr(self._T4[b], np.float64, "measured"), 4, 1,
+                                             ptr(orientation[b], np.float64, "orientation"))
             r.hold()
             r.step(dt)
+        if jaw is not None:
+            for b, r in self.jawed:
+                if coupled[b]:
+                    jaw[b] = r.measured_jaw()
 
     def hold_all_robots(self) -> None:
         for _, r in self.real:

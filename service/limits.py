@@ -71,6 +71,13 @@ LIMITS: dict = {
     "teleop.max_robot_speed": Limit(1e-4, 2.0, "m/s",
                                     "the bound on every command increment: 2 m/s is above any surgeon's hand "
                                     "(peaks near 1 m/s) at scale 1; beyond it the bound bounds nothing"),
+    "teleop.max_angular_speed": Limit(1e-3, 10.0, "rad/s",
+                                      "the bound on every orientation command increment: a surgeon's wrist turns "
+                                      "at up to a few rad/s; beyond 10 rad/s a tool swings its jaws faster than "
+                                      "anyone can watch and the bound bounds nothing"),
+    "teleop.max_jaw_speed": Limit(1e-3, 20.0, "rad/s",
+                                  "the bound on every jaw command increment: a grasp closes in a few tenths of a "
+                                  "second (a few rad/s); beyond 20 rad/s the jaw snaps shut on tissue"),
     # -- [haptics] -----------------------------------------------------------------------------
     "haptics.max_force": Limit(1e-3, 20.0, "N",
                                "the force saturation on the operator's hand: 20 N is above the peak of the "

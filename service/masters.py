@@ -1,14 +1,16 @@
-"""Master devices: what the haptic loop reads (position, clutch, buttons) and drives (force).
+"""Master devices: what the haptic loop reads (position, orientation, grasp, clutch, buttons) and
+drives (force).
 
 A ``Master`` is polled once per haptic tick with ``poll(t)``; afterwards ``position`` (3,),
-``clutch`` (True while the foot pedal is pressed: the master drives the robot), ``buttons`` (a
+``orientation`` (4,: a unit quaternion w, x, y, z in the master's frame; identity for a device
+without one), ``grasp`` (rad: the gripper's opening, 0 for a device without one), ``clutch`` (True while the foot pedal is pressed: the master drives the robot), ``buttons`` (a
 bit mask) and ``ok`` (False when the device is absent or silent) describe it. The loop hands
 the force for the operator to ``send_force(f)`` (N, master frame). Positions are in the
 master's own frame (m); the service maps them to the world with ``[teleop] T_world_master``
 and ``scale``. Networked masters (UDP clients, issue 6) implement the same four members.
 
-``ScriptedMaster`` plays a trajectory (times, positions, optional clutch) with linear
-interpolation: the dissertation's "master device simulated by a computer program" (fig. 3.8).
+``ScriptedMaster`` plays a trajectory (times, positions, optional clutch, orientations and
+grasps) with linear interpolation (normalised, for the quaternions): the dissertation's "master device simulated by a computer program" (fig. 3.8).
 """
 from __future__ import annotations
 
@@ -30,6 +32,8 @@ class Master(ABC):
 
     def __init__(self):
         self.position = np.zeros(3)   #: master frame, m (written in place by poll)
+        self.orientation = np.array([1.0, 0.0, 0.0, 0.0])   #: master frame, unit quaternion w, x, y, z
+        self.grasp = 0.0              #: gripper opening, rad
         self.clutch = True            #: pedal pressed: teleoperation coupled
         self.buttons = 0
         self.ok = True                #: False: no valid sample (device absent, silent or faulty)
@@ -37,7 +41,8 @@ class Master(ABC):
 
     @abstractmethod
     def poll(self, t: float) -> None:
-        """Refresh ``position``, ``clutch``, ``buttons`` and ``ok`` for loop time ``t`` (s)."""
+        """Refresh ``position``, ``orientation``, ``grasp``, ``clutch``, ``buttons`` and ``ok`` for
+        loop time ``t`` (s)."""
 
     def send_force(self, f: np.ndarray) -> None:
         """Display force ``f`` (3,) N (master frame) to the operator."""
@@ -46,13 +51,17 @@ class Master(ABC):
 
 class ScriptedMaster(Master):
     """Trajectory playback: ``times`` (N,) s increasing, ``positions`` (N, 3) m, ``clutch`` (N,)
-    optional (pedal state, held from each sample to the next). Before the first and after the
-    last sample the end positions hold. ``t0`` shifts the script in loop time.
-    Non-finite positions are passed through (the loop must treat them as a device fault)."""
+    optional (pedal state, held from each sample to the next), ``orientations`` (N, 4) optional
+    (w, x, y, z, master frame; interpolated linearly along the shorter arc and scaled to the
+    samples' interpolated norm: unit between unit samples) and
+    ``grasps`` (N,) optional (rad, interpolated). Before the first and after the last sample the
+    end values hold. ``t0`` shifts the script in loop time. Non-finite or non-unit values are
+    passed through (the loop must treat them as a device fault)."""
 
     name = "scripted"
 
-    def __init__(self, times, positions, clutch=None, t0: float = 0.0, name: str = "scripted"):
+    def __init__(self, times, positions, clutch=None, t0: float = 0.0, name: str = "scripted", orientations=None,
+                 grasps=None):
         super().__init__()
         t = np.asarray(times, dtype=float).reshape(-1)
         p = np.asarray(positions, dtype=float)
@@ -63,8 +72,24 @@ class ScriptedMaster(Master):
         c = np.ones(t.size, bool) if clutch is None else np.asarray(clutch).astype(bool).reshape(-1)
         if c.shape != t.shape:
             raise InputError(f"scripted master: {c.size} clutch values for {t.size} samples")
+        q = None if orientations is None else np.asarray(orientations, dtype=float)
+        if q is not None and q.shape != (t.size, 4):
+            raise InputError(f"scripted master: orientations of shape {q.shape} for {t.size} samples; expected (N, 4) "
+                             "quaternions w, x, y, z")
+        g = None if grasps is None else np.asarray(grasps, dtype=float).reshape(-1)
+        if g is not None and g.shape != t.shape:
+            raise InputError(f"scripted master: {g.size} grasps for {t.size} samples")
+        if q is not None:                    # each sample on the same hemisphere as the one before it
+            q = q.copy()
+            for i in range(1, len(q)):
+                if np.dot(q[i], q[i - 1]) < 0:
+                    q[i] = -q[i]
+        self.orientations, self.grasps = q, g
+        self._ql = None if q is None else q.tolist()
+        self._gl = None if g is None else g.tolist()
         self.name = name
-        self._pos = memoryview(self.position)   # (poll writes floats through it: no NumPy call)
+        self._pos = memoryview(self.position)
+        self._ori = memoryview(self.orientation)   # (poll writes floats through it: no NumPy call)
         self.times = t
         self.positions = p
         self.clutches = c
@@ -85,6 +110,7 @@ class ScriptedMaster(Master):
         s = t - self.t0
         tl = self._tl
         i = bisect.bisect_right(tl, s) - 1
+        w = -1.0
         if i < 0:
             x, y, z = self._pl[0]
             i = 0
@@ -99,6 +125,22 @@ class ScriptedMaster(Master):
         pos = self._pos
         pos[0], pos[1], pos[2] = x, y, z
         self.ok = math.isfinite(x + y + z)
+        if self._ql is not None:
+            a = self._ql[i]
+            if w >= 0.0:                     # normalised linear interpolation (nlerp), to the samples' norms
+                b = self._ql[i + 1]
+                q = [a[j] + (b[j] - a[j]) * w for j in range(4)]
+                n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+                na, nb = math.sqrt(sum(v * v for v in a)), math.sqrt(sum(v * v for v in b))
+                f = (na + (nb - na) * w) / n if n > 0.0 else 1.0
+                q = [v * f for v in q]
+            else:
+                q = a
+            o = self._ori
+            o[0], o[1], o[2], o[3] = q[0], q[1], q[2], q[3]
+        if self._gl is not None:
+            g = self._gl
+            self.grasp = g[i] + (g[i + 1] - g[i]) * w if w >= 0.0 else g[i]
 
     # --- files ---------------------------------------------------------------------------------
     @classmethod

@@ -227,10 +227,16 @@ class McapRecorder:
         """The state ``Service.start`` read (masters, robots, control), for a replay's start, and
         the robots whose joints are recorded (``record_joints``). Call before the first tick."""
         inp = service.inp
+        jaw = [None if j != j else j for j in inp.robot_jaw.tolist()]          # (NaN: unknown)
+        jawed = dict(service.devices.jawed)
         self.describe({"start": {"master_pos": inp.master_pos.tolist(), "pedal": inp.pedal.tolist(),
                                  "master_ok": inp.master_ok.tolist(), "robot_pos": inp.robot_pos.tolist(),
                                  "robot_present": inp.robot_present.tolist(), "haptics": bool(service.haptics_on),
-                                 "teleop": bool(service.teleop_on), "architecture": service.architecture}})
+                                 "teleop": bool(service.teleop_on), "architecture": service.architecture,
+                                 "master_orientation": inp.master_orientation.tolist(), "grasp": inp.grasp.tolist(),
+                                 "robot_orientation": inp.robot_orientation.tolist(), "robot_jaw": jaw,
+                                 "jaw_range": [list(jawed[b].jaw_limits) if b in jawed else None
+                                               for b in range(service.n)]}})
         self.record_joints(service.robots)
         if getattr(service, "grasper", None) is not None:
             self.record_grasper(service.grasper)

@@ -24,6 +24,7 @@ one of them stops being exact there, and ``replay.first_mismatch`` shows where.
 """
 from __future__ import annotations
 
+import math
 import time
 from typing import Optional
 
@@ -47,13 +48,15 @@ class StartMaster(Master):
 
     name = "recorded"
 
-    def __init__(self, pos, pedal, ok):
+    def __init__(self, pos, pedal, ok, orientation=(1.0, 0.0, 0.0, 0.0), grasp=0.0):
         super().__init__()
-        self._sample = (np.array(pos, float), bool(pedal), bool(ok))
+        self._sample = (np.array(pos, float), bool(pedal), bool(ok), np.array(orientation, float), float(grasp))
 
     def poll(self, t: float) -> None:
         self.position[:] = self._sample[0]
         self.clutch, self.ok = self._sample[1], self._sample[2]
+        self.orientation[:] = self._sample[3]
+        self.grasp = self._sample[4]
 
 
 class RecordedRobot:
@@ -64,8 +67,12 @@ class RecordedRobot:
     fault_reason = None
     hosted = False
 
-    def __init__(self, pos):
+    def __init__(self, pos, orientation=(1.0, 0.0, 0.0, 0.0), jaw=None, jaw_limits=None):
         self.pos = np.array(pos, float)
+        self.quat = np.array(orientation, float)        # w, x, y, z
+        self.jaw = math.nan if jaw is None else float(jaw)
+        #: the recorded arm's jaw range, where it had a jaw (then ``servo_jaw`` is accepted)
+        self.jaw_limits = None if jaw_limits is None else tuple(jaw_limits)
         self.fault = False
 
     @property
@@ -75,10 +82,24 @@ class RecordedRobot:
     def measured_cp(self, out=None):
         T = _EYE.copy() if out is None else out
         T[...] = _EYE
+        w, x, y, z = self.quat.tolist()
+        T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
         T[:3, 3] = self.pos
         return T
 
+    def measured_orientation(self) -> np.ndarray:
+        """The recorded orientation (w, x, y, z) as recorded (``Devices`` takes it as it is)."""
+        return self.quat
+
+    def measured_jaw(self) -> float:
+        return self.jaw
+
     def servo_cp(self, pose) -> bool:
+        return True
+
+    def servo_jaw(self, angle) -> bool:
         return True
 
     def resume(self) -> None:
@@ -157,12 +178,17 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
                                   "master_ok": first_in.master_ok.tolist(), "robot_pos": first_in.robot_pos.tolist(),
                                   "robot_present": first_in.robot_present.tolist(), "haptics": first_in.haptics,
                                   "teleop": first_in.teleop, "architecture": meta.get("architecture")}
-    masters = [StartMaster(start["master_pos"][b], start["pedal"][b], start["master_ok"][b]) for b in range(n)]
+    ident, none = [[1.0, 0.0, 0.0, 0.0]] * n, [None] * n      # (recordings made before 6-DOF teleoperation)
+    masters = [StartMaster(start["master_pos"][b], start["pedal"][b], start["master_ok"][b],
+                           start.get("master_orientation", ident)[b], start.get("grasp", [0.0] * n)[b])
+               for b in range(n)]
     present = [bool(x) for x in start["robot_present"]]
     if what_if:
         robots = [Service._make_robot(cfg.robot) if present[b] else None for b in range(n)]
     else:
-        robots = [RecordedRobot(start["robot_pos"][b]) if present[b] else None for b in range(n)]
+        robots = [RecordedRobot(start["robot_pos"][b], start.get("robot_orientation", ident)[b],
+                                start.get("robot_jaw", none)[b], start.get("jaw_range", none)[b])
+                  if present[b] else None for b in range(n)]
     schedule = build_schedule(recording)
     decoder = FrameDecoder(recording, schedule)     # decoding starts now, beside the service's set-up
     try:
@@ -183,7 +209,7 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
     recorded = _Inputs(lay, rows, inp)
     arch_code = svc.teleop.arch if what_if and architecture else None
     arms = [(b, r) for b, r in enumerate(robots) if r is not None and not what_if]
-    rpos, rfault = inp.robot_pos, inp.robot_fault
+    rpos, rfault, rquat, rjaw = inp.robot_pos, inp.robot_fault, inp.robot_orientation, inp.robot_jaw
     clock, take, tick = time.perf_counter, ticks.take, svc.replay_tick
     t_setup = clock()
     try:
@@ -195,6 +221,8 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
             feeder.too_old = inp.frames_too_old
             for b, r in arms:
                 r.pos[:] = rpos[b]
+                r.quat[:] = rquat[b]
+                r.jaw = float(rjaw[b])
                 r.fault = bool(rfault[b])
             w0 = clock()
             out = tick(inp)

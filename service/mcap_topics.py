@@ -10,8 +10,12 @@ Per arm b (CRTK names, ``ros2_schemas.robot_ns`` / ``master_ns``), at ``pose_hz`
 ``/PSM1/measured_cp`` (the robot's measured tool tip, world), ``/PSM1/servo_cp`` (the command
 X_r*, world), ``/MTMR/measured_cp`` (the master's sample, master frame), ``/MTMR/servo_cf``
 (the force sent to the master, its frame, N), and ``/pointfence/arm0/{xm,hip,proxy}``
-(PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). Orientations
-are identity: pointfence's points have none. Where the arm's robot has joints (Raven II),
+(PoseStamped, world) and ``/pointfence/arm0/force`` (WrenchStamped, world, N). The robot's
+poses and the master's carry their orientations (the measured tool orientation, the commanded
+one, the master's sample); the proxy points' are identity. The jaw and the grasp
+(``sensor_msgs/JointState``, one position, rad): ``/PSM1/jaw/servo_jp`` (the jaw command),
+``/PSM1/jaw/measured_js`` (the robot's jaw, where known) and ``/MTMR/gripper/measured_js`` (the
+master's grasp). Where the arm's robot has joints (Raven II),
 ``/PSM1/measured_js`` (``sensor_msgs/JointState``: its joint names, measured positions in rad or
 m; no velocity or effort) at the recorder's ``joint_hz``. With a ``[cable]`` grasper, its jaw estimate,
 setpoint and health (``GrasperTopics``).
@@ -22,7 +26,7 @@ import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap_ros2._dynamic import serialize_dynamic
 
-from .cdr import pose_layout, stamp_fields, wrench_layout
+from .cdr import FixedLayout, pose_layout, stamp_fields, wrench_layout
 from .holds import REASONS, ROBOT
 from .ros2_schemas import EVENTS, master_ns, msgdef, robot_ns
 
@@ -67,30 +71,59 @@ class ArmTopics:
 
     def __init__(self, layout, n: int):
         self.layout, self.n = layout, n
-        self.topics = []   # (topic, schema, layout, (part, field), record field)
+        self.topics = []   # (topic, schema, layout, (part, field), record field, (part, orientation field))
         for b in range(n):
             r, m, pf = robot_ns(b), master_ns(b), f"/pointfence/arm{b}"
-            self.topics += [(f"/{r}/measured_cp", "geometry_msgs/PoseStamped", pose_layout("world"), ("in", "robot_pos"), "p"),
-                            (f"/{r}/servo_cp", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "command"), "p"),
-                            (f"/{m}/measured_cp", "geometry_msgs/PoseStamped", pose_layout(f"{m}_base"), ("in", "master_pos"), "p"),
-                            (f"/{m}/servo_cf", "geometry_msgs/WrenchStamped", wrench_layout(f"{m}_base"), ("out", "force_master"), "f"),
-                            (f"{pf}/xm", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "xm"), "p"),
-                            (f"{pf}/hip", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "hip"), "p"),
-                            (f"{pf}/proxy", "geometry_msgs/PoseStamped", pose_layout("world"), ("out", "proxy"), "p"),
-                            (f"{pf}/force", "geometry_msgs/WrenchStamped", wrench_layout("world"), ("out", "force"), "f")]
+            P, W = "geometry_msgs/PoseStamped", "geometry_msgs/WrenchStamped"
+            self.topics += [(f"/{r}/measured_cp", P, pose_layout("world"), ("in", "robot_pos"), "p", ("in", "robot_orientation")),
+                            (f"/{r}/servo_cp", P, pose_layout("world"), ("out", "command"), "p", ("out", "orientation")),
+                            (f"/{m}/measured_cp", P, pose_layout(f"{m}_base"), ("in", "master_pos"), "p",
+                             ("in", "master_orientation")),
+                            (f"/{m}/servo_cf", W, wrench_layout(f"{m}_base"), ("out", "force_master"), "f", None),
+                            (f"{pf}/xm", P, pose_layout("world"), ("out", "xm"), "p", None),
+                            (f"{pf}/hip", P, pose_layout("world"), ("out", "hip"), "p", None),
+                            (f"{pf}/proxy", P, pose_layout("world"), ("out", "proxy"), "p", None),
+                            (f"{pf}/force", W, wrench_layout("world"), ("out", "force"), "f", None)]
         self.arm_of = [b for b in range(n) for _ in range(8)]
+        #: (topic, layout, (part, field), arm) of the jaw and grasp JointStates (one position, rad)
+        self.angles = [t for b in range(n) for t in (
+            (f"/{robot_ns(b)}/jaw/servo_jp", _angle_layout("jaw"), ("out", "jaw"), b),
+            (f"/{robot_ns(b)}/jaw/measured_js", _angle_layout("jaw"), ("in", "robot_jaw"), b),
+            (f"/{master_ns(b)}/gripper/measured_js", _angle_layout("gripper"), ("in", "grasp"), b))]
 
     def write(self, tw: TopicWriter, rows: np.ndarray, ns: np.ndarray) -> None:
-        for (topic, schema, lay, key, fld), b in zip(self.topics, self.arm_of):
-            c, _ = self.layout.cols[key]
+        cols = self.layout.cols
+        for (topic, schema, lay, key, fld, qkey), b in zip(self.topics, self.arm_of):
+            c, _ = cols[key]
             rec = lay.blank(len(rows))
             stamp_fields(rec, ns)
             rec[fld] = rows[:, c + 3 * b: c + 3 * b + 3]
             if fld == "p":
-                rec["q"][:, 3] = 1.0
+                if qkey is None:
+                    rec["q"][:, 3] = 1.0
+                else:                                  # (w, x, y, z) -> ROS's (x, y, z, w)
+                    cq, _ = cols[qkey]
+                    q = rows[:, cq + 4 * b: cq + 4 * b + 4]
+                    rec["q"][:, :3], rec["q"][:, 3] = q[:, 1:], q[:, 0]
             buf, size = rec.tobytes(), lay.size
             for i in range(len(rows)):
                 tw.raw(topic, schema, buf[i * size: (i + 1) * size], ns[i])
+        for topic, lay, key, b in self.angles:
+            c, _ = cols[key]
+            v = rows[:, c + b]
+            keep = np.flatnonzero(np.isfinite(v))     # (NaN: no value this tick)
+            rec = lay.blank(len(keep))
+            stamp_fields(rec, ns[keep])
+            rec["position"] = v[keep, None]
+            buf, size = rec.tobytes(), lay.size
+            for j, i in enumerate(keep.tolist()):
+                tw.raw(topic, "sensor_msgs/JointState", buf[j * size: (j + 1) * size], ns[i])
+
+
+def _angle_layout(name: str):
+    """``sensor_msgs/JointState`` of one joint ``name``: its ``position`` (rad), no velocity or effort."""
+    return FixedLayout().header("").u32(1).string(name).array("position", "f8", 1).array("velocity", "f8", 0) \
+        .array("effort", "f8", 0)
 
 
 class JointTopics:

@@ -212,12 +212,14 @@ class HapticsTable:
 @dataclass
 class TeleopConfig:
     """``[teleop]``: the fixture architecture (eqs. 3.1-3.3), motion scaling, the robot's speed
-    limit and the master-to-world registration; ``haptics`` / ``teleop``: engaged at start."""
+    limits (position, orientation, jaw) and the master-to-world registration; ``haptics`` / ``teleop``: engaged at start."""
 
     TABLE = "teleop"
     architecture: Literal["I", "II", "III"] = setting("III", doc="fixture architecture (eqs. 3.1-3.3); switchable while running")
     scale: float = setting(0.5, positive=True, doc="robot motion per master motion")
     max_robot_speed: float = setting(0.05, positive=True, doc="bound on every command increment (m/s)")
+    max_angular_speed: float = setting(3.0, positive=True, doc="bound on the commanded tool orientation's angular speed (rad/s)")
+    max_jaw_speed: float = setting(3.0, positive=True, doc="bound on the jaw command's speed (rad/s)")
     T_world_master: np.ndarray = setting(factory=lambda: np.eye(4), toml=Vec16, convert=rigid, default_doc="identity",
                                          doc="master-to-world registration, rigid, row-major")
     haptics: bool = setting(True, doc="haptics engaged at start", hint="engaged at start")

@@ -35,6 +35,24 @@ All quantities are world-frame positions (m) in (B, 3) arrays updated in place e
   distance to the proxy across the normal: zero while the command keeps up, at most
   ``slip_lift`` (the fixture radius) over a slip.
 
+Orientation and the jaw (unit quaternions w, x, y, z; angles in rad):
+
+* Registration and indexing: the mapped master orientation is ``q_m = q_R q_dev q_off``
+  (``q_R``: the registration's rotation R_world_master; ``q_dev``: the master's sample in its
+  own frame; ``q_off``: the indexing offset). While the pedal is up or the sample is invalid,
+  ``q_m`` stays and ``q_off`` takes up whatever the master does; at every re-anchor (the same
+  events as X_m's) ``q_m`` is set to the commanded orientation and ``q_off`` re-seated to match:
+  re-engaging never rotates the tool. An anchored arm's orientation, too, is held until the
+  master has moved ``ANCHOR_RELEASE`` or rotated ``ANCHOR_RELEASE_RAD``.
+* The commanded orientation ``q_cmd`` follows ``q_m`` under every architecture (the fixture
+  acts on the tool tip only), at most ``max_angular_speed * dt`` per tick; a robot that
+  decouples keeps its measured orientation.
+* The jaw follows the master's grasp, clamped to the robot's jaw range, at most
+  ``max_jaw_speed * dt`` per tick, for coupled arms. After a re-anchor it waits until the
+  grasp reaches it (crosses the jaw's angle, or comes within one step), as the dVRK's jaw does:
+  re-engaging never moves the jaw either. A robot that decouples keeps its measured jaw;
+  where the robot's jaw angle is unknown (NaN) the jaw is not commanded.
+
 The arithmetic runs in the compiled tick core (``native/tick_core.c``, ``pf_teleop_*``) on this
 class's arrays; ``Service.step`` calls it there directly, the methods here call the same
 functions one at a time.
@@ -51,7 +69,45 @@ from pointfence.native import TeleopCore, lib, ptr, ptr_to
 ARCHITECTURES = ("I", "II", "III")
 #: master motion (world frame, m, after scaling) that ends an arm's anchoring after a re-anchor
 ANCHOR_RELEASE = 1e-4
+#: master rotation (rad) that ends an arm's anchoring after a re-anchor (0.06 deg)
+ANCHOR_RELEASE_RAD = 1e-3
+#: the jaw range of an arm whose robot states none (an ideal robot), rad
+DEFAULT_JAW_RANGE = (0.0, 0.5 * np.pi)
 ARCH_CODE = {"I": 1, "II": 2, "III": 3}
+
+
+def quat_of_rotation(R) -> np.ndarray:
+    """The unit quaternion (w, x, y, z; w >= 0) of 3x3 rotation ``R`` (the tick core's)."""
+    R = np.ascontiguousarray(R, dtype=float).reshape(3, 3)
+    q = np.zeros(4)
+    lib.pf_quats_of_matrices(ptr(R, np.float64, "R"), 3, 1, ptr(q, np.float64, "q"))
+    return q
+
+
+def quat_mul(a, b) -> np.ndarray:
+    """Hamilton product of quaternions (w, x, y, z) ``a`` and ``b`` (rows broadcast)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
+    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
+
+
+def quat_angle(a, b) -> np.ndarray:
+    """The angle (rad) between orientations ``a`` and ``b`` (unit quaternions w, x, y, z)."""
+    d = quat_mul(a, np.asarray(b, float) * (1.0, -1.0, -1.0, -1.0))       # a b^-1
+    return 2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0]))
+
+
+def _unit_rows(q) -> np.ndarray:
+    """Rows of ``q`` (n, 4) as unit quaternions with w >= 0; identity where a row is not finite or ~0."""
+    q = np.array(q, dtype=float).reshape(-1, 4)
+    n = np.linalg.norm(q, axis=1)
+    bad = ~np.isfinite(n) | (n < 1e-12)
+    q[bad] = (1.0, 0.0, 0.0, 0.0)
+    n[bad] = 1.0
+    q /= np.where(q[:, 0] < 0, -n, n)[:, None]
+    return q
 
 
 def arch_code(architecture) -> int:
@@ -73,6 +129,9 @@ class Teleop:
         max_robot_speed: bound on the command's (and the HIP blend's) speed, m/s.
         dt: tick period, s.
         architecture: initial architecture.
+        max_angular_speed: bound on the commanded orientation's angular speed, rad/s.
+        max_jaw_speed: bound on the jaw command's speed, rad/s.
+        jaw_range: (B, 2) each arm's jaw range (rad), or one (lo, hi) for all.
         slip_lift: III's slip lift radius, m (0: off; the fixture radius turns it on, with
             ``bind_normals``).
 
@@ -81,11 +140,16 @@ class Teleop:
     rate limit), ``target`` (the HIP without its blend offset), ``e_hip`` (the blend offset);
     ``dev_prev`` (last valid master sample, master frame); (B,) ``live`` (valid and pedal down
     last tick), ``anchored`` (re-anchored, command held until the master moves).
+    Orientation and jaw: (B, 4) unit quaternions (w, x, y, z) ``q_m`` (mapped master
+    orientation, world), ``q_cmd`` (commanded orientation, world), ``q_off`` (indexing offset),
+    ``q_last`` (last valid master orientation, master frame); (B,) ``grasp`` (last valid grasp,
+    rad), ``jaw_cmd`` (the jaw command, rad; NaN: unknown, not commanded), ``jaw_lo``/``jaw_hi``.
     ``core`` is the compiled core's view of all of it (``native.TeleopCore``).
     """
 
     def __init__(self, n: int, T_world_master=None, scale: float = 0.5, max_robot_speed: float = 0.05,
-                 dt: float = 1e-3, architecture="III", slip_lift: float = 0.0):
+                 dt: float = 1e-3, architecture="III", max_angular_speed: float = 3.0,
+                 max_jaw_speed: float = 3.0, jaw_range=DEFAULT_JAW_RANGE, slip_lift: float = 0.0):
         T = np.eye(4) if T_world_master is None else np.asarray(T_world_master, dtype=float)
         self.n = int(n)
         self.R = np.ascontiguousarray(T[:3, :3])
@@ -113,6 +177,25 @@ class Teleop:
             setattr(c, name, ptr(getattr(self, name), np.float64, name))
         c.moved = ptr(self._moved, np.float64, "moved")
         c.live, c.anchored = ptr(self.live, bool, "live"), ptr(self.anchored, bool, "anchored")
+        self.wmax, self.jaw_vmax = float(max_angular_speed), float(max_jaw_speed)
+        self.qR = quat_of_rotation(self.R)
+        ident = lambda: np.tile([1.0, 0.0, 0.0, 0.0], (self.n, 1))  # noqa: E731
+        self.q_last, self.q_off, self.q_m, self.q_cmd = ident(), ident(), ident(), ident()
+        self._ang_moved = np.zeros(self.n)
+        self.grasp = np.zeros(self.n)
+        self.jaw_cmd = np.zeros(self.n)
+        jr = np.broadcast_to(np.asarray(jaw_range, dtype=float), (self.n, 2))
+        if not np.isfinite(jr).all() or np.any(jr[:, 0] >= jr[:, 1]):
+            raise InputError(f"jaw_range = {jr.tolist()}; expected finite (lo, hi) with lo < hi (rad) per arm")
+        self.jaw_lo, self.jaw_hi = np.ascontiguousarray(jr[:, 0]), np.ascontiguousarray(jr[:, 1])
+        self._jaw_side = np.zeros(self.n)
+        self.jaw_wait = np.zeros(self.n, bool)
+        c.wmax, c.jaw_vmax, c.anchor_release_rad = self.wmax, self.jaw_vmax, ANCHOR_RELEASE_RAD
+        c.qR[:] = self.qR.tolist()
+        for name in ("q_last", "q_off", "q_m", "q_cmd", "grasp", "jaw_cmd", "jaw_lo", "jaw_hi"):
+            setattr(c, name, ptr(getattr(self, name), np.float64, name))
+        c.ang_moved, c.jaw_side = ptr(self._ang_moved, np.float64, "ang_moved"), ptr(self._jaw_side, np.float64, "jaw_side")
+        c.jaw_wait = ptr(self.jaw_wait, bool, "jaw_wait")
         self.ref = ctypes.byref(c)
         self.slip_lift = slip_lift
         self._normals = None                     # the bound normals array (kept alive for the core)
@@ -171,9 +254,12 @@ class Teleop:
         out += self.p
         return out
 
-    def start(self, dev, robot_positions=None) -> None:
+    def start(self, dev, robot_positions=None, quat=None, grasp=None, robot_orientations=None,
+              robot_jaws=None) -> None:
         """Initial state: X_m on the robot (or the registered master with no robot), command on
-        the robot, HIP on X_m."""
+        the robot, HIP on X_m; the commanded orientation on the robot's (or the registered
+        master's: ``q_R quat``) and the mapped one on it; the jaw on the robot's (or, with no
+        robot, the master's grasp clamped to the jaw range), waiting for the grasp to reach it."""
         dev = np.asarray(dev, dtype=float).reshape(self.n, 3)
         ok = np.isfinite(dev).all(axis=1)
         self.dev_prev[:] = np.where(ok[:, None], dev, 0.0)
@@ -186,6 +272,17 @@ class Teleop:
         self.hip[:] = self.X_m
         self.e_hip[:] = 0.0
         self.live[:] = False
+        self.anchored[:] = False
+        self.q_last[:] = _unit_rows(np.tile([1.0, 0.0, 0.0, 0.0], (self.n, 1)) if quat is None else quat)
+        self.q_cmd[:] = _unit_rows(quat_mul(self.qR, self.q_last) if robot_orientations is None else robot_orientations)
+        g = np.zeros(self.n) if grasp is None else np.asarray(grasp, dtype=float).reshape(self.n)
+        self.grasp[:] = np.where(np.isfinite(g), g, 0.0)
+        if robot_jaws is None:
+            self.jaw_cmd[:] = np.clip(self.grasp, self.jaw_lo, self.jaw_hi)
+        else:
+            self.jaw_cmd[:] = np.asarray(robot_jaws, dtype=float).reshape(self.n)
+        self._ang_moved[:] = 0.0
+        lib.pf_teleop_reanchor(self.ref, ptr_to(np.ones(self.n, bool), bool, (self.n,), "mask"))   # q_m, q_off, jaw
         self.anchored[:] = False
         c = self.core
         c.blending = c.anchoring = c.rebase = 0
@@ -204,12 +301,17 @@ class Teleop:
         return ARCHITECTURES[self.arch - 1]
 
     # --- per tick (``Service.step`` runs these inside the core's ``pf_step_pre`` / ``_post``) ----------
-    def map_masters(self, dev: np.ndarray, pedal: np.ndarray, ok: np.ndarray) -> None:
-        """Integrate master motion into X_m for arms whose pedal is down and whose sample is valid
-        on this tick and the previous one (indexing: anything else leaves X_m where it is). An
-        anchored arm's X_m stays put until its master has moved ``ANCHOR_RELEASE``."""
+    def map_masters(self, dev: np.ndarray, pedal: np.ndarray, ok: np.ndarray, quat=None, grasp=None) -> None:
+        """Integrate master motion into X_m and q_m for arms whose pedal is down and whose sample
+        is valid on this tick and the previous one (indexing: anything else leaves them where they
+        are). An anchored arm's X_m and q_m stay put until its master has moved ``ANCHOR_RELEASE``
+        or rotated ``ANCHOR_RELEASE_RAD``. ``quat`` (B, 4) the master orientations (master
+        frame, w x y z; default: the last ones), ``grasp`` (B,) rad (default: the last)."""
         n = self.n
-        lib.pf_teleop_map_masters(self.ref, ptr_to(dev, float, (n, 3), "dev"), ptr_to(pedal, bool, (n,), "pedal"),
+        quat = self.q_last.copy() if quat is None else quat
+        grasp = self.grasp.copy() if grasp is None else grasp
+        lib.pf_teleop_map_masters(self.ref, ptr_to(dev, float, (n, 3), "dev"), ptr_to(quat, float, (n, 4), "quat"),
+                                  ptr_to(grasp, float, (n,), "grasp"), ptr_to(pedal, bool, (n,), "pedal"),
                                   ptr_to(ok, bool, (n,), "ok"))
 
     def proxy_hip(self) -> np.ndarray:

@@ -8,7 +8,8 @@ two structs; a test can drive ``Service.step`` with inputs of its own.
 
 Both hold preallocated arrays that every tick overwrites in place (no allocation in the tick):
 copy what you keep (``TickOutput.copy()``). B is the number of arms (master-robot pairs, one
-proxy each). Positions are metres, in the world frame unless said otherwise; forces newtons.
+proxy each). Positions are metres, in the world frame unless said otherwise; forces newtons;
+orientations unit quaternions (w, x, y, z); angles (grasp, jaw) radians.
 """
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ class TickInput:
     master_pos: np.ndarray = None
     #: (B,) foot pedal down (teleoperation couples the arm while it is)
     pedal: np.ndarray = None
-    #: (B,) the master's sample is valid (device ok and finite)
+    #: (B,) the master's sample is valid (device ok, position, orientation and grasp finite, the
+    #: orientation a unit quaternion)
     master_ok: np.ndarray = None
     #: (B, 3) each robot's measured tool tip (world); an ideal robot's is its last command
     robot_pos: np.ndarray = None
@@ -59,12 +61,20 @@ class TickInput:
     #: the tick watchdog saw this tick (or the last) stall (``Health.take_stall``, taken by
     #: ``Service.step``): recorded, so that a replay holds where the run held
     watchdog_stall: bool = False
+    #: (B, 4) each master's orientation in the master frame (w, x, y, z), and (B,) its grasp (rad)
+    master_orientation: np.ndarray = None
+    grasp: np.ndarray = None
+    #: (B, 4) each robot's measured tool orientation (world, w x y z), and (B,) its measured jaw
+    #: angle (rad; NaN: unknown); an ideal robot's are its last commands
+    robot_orientation: np.ndarray = None
+    robot_jaw: np.ndarray = None
 
     @classmethod
     def zeros(cls, n: int) -> "TickInput":
         z3, zb = (lambda: np.zeros((n, 3))), (lambda: np.zeros(n, bool))
         return cls(n=n, master_pos=z3(), pedal=zb(), master_ok=zb(), robot_pos=z3(), robot_present=zb(),
-                   robot_fault=zb())
+                   robot_fault=zb(), master_orientation=_identity(n), grasp=np.zeros(n),
+                   robot_orientation=_identity(n), robot_jaw=np.zeros(n))
 
     def copy(self) -> "TickInput":
         return _copy(self)
@@ -106,13 +116,18 @@ class TickOutput:
     #: the snapshot the proxies saw, and the kernel's wall-clock time this tick (us, 0: not run)
     frame_seq: int = 0
     kernel_us: float = 0.0
+    #: (B, 4) commanded tool orientation (world, w x y z), sent with ``command`` as one pose
+    orientation: np.ndarray = None
+    #: (B,) jaw command (rad; NaN: the jaw's angle is unknown and it is not commanded): the
+    #: master's grasp, clamped to the robot's jaw range and rate-limited (the grasper's input)
+    jaw: np.ndarray = None
 
     @classmethod
     def zeros(cls, n: int) -> "TickOutput":
         z3, zb = (lambda: np.zeros((n, 3))), (lambda: np.zeros(n, bool))
         return cls(n=n, xm=z3(), hip=z3(), proxy=z3(), state=np.zeros(n, np.int32), force=z3(),
                    force_master=z3(), gain=np.zeros(n), command=z3(), robot_pos=z3(), coupled=zb(), engage=zb(),
-                   release=zb(), arm_hold=np.zeros(n, np.int64))
+                   release=zb(), arm_hold=np.zeros(n, np.int64), orientation=_identity(n), jaw=np.zeros(n))
 
     @property
     def hold_reasons(self) -> HoldReason:
@@ -124,6 +139,13 @@ class TickOutput:
     def copy_into(self, dst: "TickOutput") -> None:
         """Copy this tick's values into ``dst`` (same B) without allocating."""
         _copy_into(self, dst)
+
+
+def _identity(n: int) -> np.ndarray:
+    """(n, 4) identity orientations (w, x, y, z)."""
+    q = np.zeros((n, 4))
+    q[:, 0] = 1.0
+    return q
 
 
 def _copy_into(src, dst) -> None:

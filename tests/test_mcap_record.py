@@ -151,10 +151,22 @@ def test_messages_decode_into_the_standard_ros2_types(served):
     c, k = lay.cols[("in", "robot_pos")]
     np.testing.assert_array_equal(msg.robot_pos, rows[i, c: c + k])
     pose = seen["/PSM1/measured_cp"][5].ros_msg
-    assert pose.header.frame_id == "world" and pose.pose.orientation.w == 1.0
+    assert pose.header.frame_id == "world"
     stamps = {(m.ros_msg.header.stamp.sec, m.ros_msg.header.stamp.nanosec): m.ros_msg for m in ti}
     tin = stamps[(pose.header.stamp.sec, pose.header.stamp.nanosec)]
     assert [pose.pose.position.x, pose.pose.position.y, pose.pose.position.z] == list(tin.robot_pos[:3])
+    # the tool's measured orientation (TickInput: w x y z; the pose: x y z w), the commanded one, the jaw
+    o = pose.pose.orientation
+    assert [o.w, o.x, o.y, o.z] == list(tin.robot_orientation[:4]) and abs(o.w) < 0.99   # (the Raven's tool, not identity)
+    to = {(m.ros_msg.header.stamp.sec, m.ros_msg.header.stamp.nanosec): m.ros_msg for m in seen["/pointfence/tick/output"]}
+    cmd = seen["/PSM1/servo_cp"][5].ros_msg
+    tout = to[(cmd.header.stamp.sec, cmd.header.stamp.nanosec)]
+    o = cmd.pose.orientation
+    assert [o.w, o.x, o.y, o.z] == list(tout.orientation[:4])
+    jaw = [m.ros_msg for m in seen["/PSM1/jaw/servo_jp"]]
+    assert jaw and jaw[0].name == ["jaw"] and len(jaw[0].position) == 1
+    assert list(to[(jaw[5].header.stamp.sec, jaw[5].header.stamp.nanosec)].jaw[:1]) == list(jaw[5].position)
+    assert seen["/MTMR/gripper/measured_js"][0].schema.name == "sensor_msgs/JointState"
     assert 0.0 < pose.pose.position.z < 0.3                        # metres above the table, not millimetres
     wr = seen["/MTMR/servo_cf"][-1].ros_msg
     assert wr.header.frame_id == "MTMR_base" and np.isfinite(wr.wrench.force.x)

@@ -63,8 +63,8 @@ def test_a_record_holding_nan_reads_and_is_not_rejected_forever():
 def test_the_layout_is_one_dtype_for_both_sides():
     blk = Block(None, 2, 6)
     L = blk.layout
-    assert L.size == blk.S == 8 + 4 * 6 + 32
-    assert (L.t, L.q, L.T_meas, L.T_d) == (0, slice(8, 14), slice(32, 48), slice(48, 64))
+    assert L.size == blk.S == 8 + 4 * 6 + 32 + 2
+    assert (L.t, L.q, L.T_meas, L.T_d, L.jaw, L.jaw_known) == (0, slice(8, 14), slice(32, 48), slice(48, 64), 64, 65)
 
 
 def test_nan_state_faults_the_arm_and_a_faulted_arm_never_moves(host):

@@ -167,6 +167,8 @@ class Robot(ABC):
 
     #: model name used by make_robot
     model: str = ""
+    #: (lo, hi) the jaw's range (rad) for a model with a jaw (``servo_jaw``, ``measured_jaw``); None: no jaw
+    jaw_limits: Optional[tuple] = None
 
     def __init__(self, joint_names: Sequence[str], lower, upper, *, T_world_base=None,
                  workspace_min=None, workspace_max=None, fault_error=None, control_rate_hz: float = 1000.0):
@@ -393,6 +395,14 @@ class Robot(ABC):
         self._T_d[...] = pose
         self.last_command = Command("cp", self.t, pose=pose, position=q)
         return True
+
+    def measured_jaw(self) -> float:
+        """The jaw's measured angle (rad; NaN while unknown). Only for a model with ``jaw_limits``."""
+        return math.nan
+
+    def servo_jaw(self, angle: float) -> bool:
+        """Stream a jaw setpoint (rad, within ``jaw_limits``). A model without a jaw refuses it."""
+        self._reject(f"servo_jaw: a {self.model or type(self).__name__} robot has no jaw")
 
     def servo_jp(self, q) -> bool:
         """Stream a joint-position setpoint. Returns True when applied, False when ignored

@@ -4,7 +4,10 @@ The arm's controller runs elsewhere (its own computer, its own process); pointfe
 setpoint on ``<ns>/servo_cp`` (``geometry_msgs/PoseStamped``, a full pose in the arm's base
 frame: the tick's position, the orientation of the setpoint, which is seated on the measured
 orientation when the arm holds or is enabled) and reads ``<ns>/measured_cp``,
-``<ns>/measured_js`` and ``<ns>/operating_state`` (crtk_wire.py). ``CrtkRobot`` is the robot
+``<ns>/measured_js`` and ``<ns>/operating_state`` (crtk_wire.py). With ``jaw = true`` the jaw's
+setpoint (the master's grasp, rad) streams on ``<ns>/jaw/servo_jp`` (``sensor_msgs/JointState``,
+one position) and its angle is read from ``<ns>/jaw/measured_js``, as the dVRK names them; until
+the arm has reported its jaw the service does not command it. ``CrtkRobot`` is the robot
 interface of service/robot/base.py over that exchange; ``ros2/crtk_bridge.CrtkBridge`` is its rclpy side.
 
 Threads: the bridge's node (ros2/crtk_bridge.py) is spun on its own thread; its callbacks swap
@@ -75,7 +78,8 @@ class CrtkRobot(Robot):
                  workspace_min=None, workspace_max=None, measured_timeout_s: float = MEASURED_TIMEOUT_S,
                  operating_state_type: str = "crtk", servo_cp_topic: str = "", measured_cp_topic: str = "",
                  measured_js_topic: str = "", operating_state_topic: str = "", connect_timeout_s: float = 5.0,
-                 control_rate_hz: float = 1000.0, connect: bool = True):
+                 control_rate_hz: float = 1000.0, jaw: bool = False, jaw_min: float = 0.0,
+                 jaw_max: float = 0.5 * math.pi, connect: bool = True):
         ns = wire.check_namespace(namespace)
         if isinstance(dof, bool) or not isinstance(dof, int) or not 1 <= dof <= 32:
             raise InputError(f"dof = {dof!r}; expected the number of joints in the arm's measured_js (1-32)")
@@ -88,6 +92,13 @@ class CrtkRobot(Robot):
         super().__init__([f"joint{i}" for i in range(dof)], [-_NO_LIMIT] * dof, [_NO_LIMIT] * dof,
                          T_world_base=T_world_base, workspace_min=workspace_min, workspace_max=workspace_max,
                          control_rate_hz=control_rate_hz)
+        if not (isinstance(jaw_min, (int, float)) and isinstance(jaw_max, (int, float)) and math.isfinite(jaw_min)
+                and math.isfinite(jaw_max) and -math.pi <= jaw_min < jaw_max <= math.pi):
+            raise InputError(f"jaw_min = {jaw_min!r}, jaw_max = {jaw_max!r}; expected -pi <= jaw_min < jaw_max <= pi (rad)")
+        #: (lo, hi) the jaw's range (rad), None: the arm's jaw is not driven ([robot] jaw = false)
+        self.jaw_limits = (float(jaw_min), float(jaw_max)) if jaw else None
+        self._jaw = math.nan               # measured jaw angle (rad), NaN until the arm reports it
+        self._jaw_d = math.nan             # jaw setpoint (rad), NaN: none to send
         self.namespace = ns
         self.frame_id = frame_id or f"{ns.replace('/', '_') or 'arm'}_base"
         self.state_kind = operating_state_type
@@ -95,6 +106,9 @@ class CrtkRobot(Robot):
                        "measured_cp": wire.topic(ns, "measured_cp", measured_cp_topic),
                        "measured_js": wire.topic(ns, "measured_js", measured_js_topic),
                        "operating_state": wire.topic(ns, "operating_state", operating_state_topic)}
+        if jaw:
+            self.topics.update({"jaw_servo_jp": wire.topic(ns, "jaw/servo_jp"),
+                                "jaw_measured_js": wire.topic(ns, "jaw/measured_js")})
         self._T_meas_ok = True             # the measured pose is taken, never computed (no kinematics here)
         self._base = np.eye(4)             # scratch: a pose in the base frame
         self._cp_seen = self._js_seen = self._bad_seen = None
@@ -166,6 +180,11 @@ class CrtkRobot(Robot):
                 return f"operating state {st[1]!r} on {self.topics['operating_state']}; expected {wire.ENABLED!r}"
         if b.error is not None:
             return f"the ROS 2 node stopped: {b.error}"
+        jaw = b.jaw
+        if jaw is not None and self.jaw_limits is not None:
+            if len(jaw[1]) != 1 or not math.isfinite(jaw[1][0]):
+                return f"jaw/measured_js on {self.topics['jaw_measured_js']} has positions {list(jaw[1])}; expected one finite angle"
+            self._jaw = jaw[1][0]
         return None
 
     def _take_cp(self, cp: tuple) -> Optional[str]:
@@ -200,9 +219,10 @@ class CrtkRobot(Robot):
         return None
 
     def _seat(self) -> None:
-        """The setpoint onto the measured pose and joints (no motion)."""
+        """The setpoint onto the measured pose, joints and jaw (no motion)."""
         np.copyto(self._T_d, self._T_meas)
         self._q_d[:] = self._q
+        self._jaw_d = self._jaw
 
     # ---------------------------------------------------------------- the Robot hooks
     def _fk(self, q, out):
@@ -230,6 +250,8 @@ class CrtkRobot(Robot):
             else:
                 np.matmul(self._T_base_world, self._T_d, out=base)
             self._bridge.send((base[0, 3].item(), base[1, 3].item(), base[2, 3].item()) + wire.matrix_to_quat(base))
+            if self.jaw_limits is not None and self._jaw_d == self._jaw_d:     # (not NaN)
+                self._bridge.send_jaw(self._jaw_d)
 
     def step(self, dt: float = 1e-3) -> None:
         """Exchange with the arm (``_advance``) and advance the time by ``dt`` (s). An arm with no
@@ -250,6 +272,26 @@ class CrtkRobot(Robot):
             self.ignored_commands += 1
             return False
         np.copyto(self._T_d, pose)
+        return True
+
+    def measured_jaw(self) -> float:
+        """The jaw's angle from ``jaw/measured_js`` (rad; NaN until the arm has reported it)."""
+        return self._jaw
+
+    def servo_jaw(self, angle: float) -> bool:
+        """Stream a jaw setpoint (rad, within ``jaw_limits``) on ``jaw/servo_jp`` from the next
+        ``step``. InputError (counted) without a jaw, on a non-finite angle or one outside the
+        range; False, nothing sent, unless ENABLED."""
+        if self.jaw_limits is None:
+            self._reject(f"servo_jaw: the CRTK arm {self.namespace!r} has no jaw ([robot] jaw = false)")
+        lo, hi = self.jaw_limits
+        if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not lo <= angle <= hi:
+            self._reject(f"servo_jaw: angle = {angle!r} rad; expected a finite number in [{lo:g}, {hi:g}] "
+                         "([robot] jaw_min, jaw_max)")
+        if self._mode is not RobotMode.ENABLED:
+            self.ignored_commands += 1
+            return False
+        self._jaw_d = float(angle)
         return True
 
     def servo_jp(self, q) -> bool:

@@ -40,18 +40,22 @@ def state_dtype(dof: int) -> np.dtype:
     """One arm's state row (all float64, SI units): child time (s), RobotMode, rejected and ignored
     command counts, servo setpoints applied, mode commands applied, fault text version, error
     text version; joints q (rad or m), dq, tau (Nm or N), setpoint q_d; measured and setpoint
-    poses T_meas, T_d (4x4 world, row-major)."""
+    poses T_meas, T_d (4x4 world, row-major); the measured jaw angle (rad) and whether it is known
+    (1.0; 0.0: no jaw, or not reported yet: the angle is then 0, never NaN, which would read as a
+    broken state)."""
     j = ("f8", (dof,))
     return np.dtype([("t", "f8"), ("mode", "f8"), ("rejected", "f8"), ("ignored", "f8"), ("servo_seq", "f8"),
                      ("mode_seq", "f8"), ("fault_ver", "f8"), ("error_ver", "f8"),
                      ("q",) + j, ("dq",) + j, ("tau",) + j, ("q_d",) + j,
-                     ("T_meas", "f8", (16,)), ("T_d", "f8", (16,))])
+                     ("T_meas", "f8", (16,)), ("T_d", "f8", (16,)), ("jaw", "f8"), ("jaw_known", "f8")])
 
 
 #: one arm's command row (service -> child), float64: setpoints sent (a sequence number), mode
-#: commands sent (a count), the latest setpoint pose (4x4 world, row-major), and the ring of mode
-#: commands (``HOLD`` ...; command i at ``i % RING``)
-COMMAND = np.dtype([("servo_seq", "f8"), ("mode_seq", "f8"), ("pose", "f8", (16,)), ("ring", "f8", (RING,))])
+#: commands sent (a count), the latest setpoint pose (4x4 world, row-major), the ring of mode
+#: commands (``HOLD`` ...; command i at ``i % RING``), jaw setpoints sent (a sequence number) and
+#: the latest (rad)
+COMMAND = np.dtype([("servo_seq", "f8"), ("mode_seq", "f8"), ("pose", "f8", (16,)), ("ring", "f8", (RING,)),
+                    ("jaw_seq", "f8"), ("jaw", "f8")])
 
 
 def _channel_dtype(row: np.dtype, n: int) -> np.dtype:
@@ -181,7 +185,7 @@ class Block:
 class Commands:
     """The command record of ``n`` arms (``n`` rows of ``COMMAND`` as flat floats, ``rec``) and
     views of its fields, one row per arm: ``servo_seq`` (n,), ``mode_seq`` (n,), ``pose`` (n, 16),
-    ``ring`` (n, RING)."""
+    ``ring`` (n, RING), ``jaw_seq`` (n,), ``jaw`` (n,)."""
 
     def __init__(self, n: int, rec: Optional[np.ndarray] = None):
         L = COMMAND_LAYOUT
@@ -189,6 +193,7 @@ class Commands:
         rows = self.rec.reshape(n, L.size)
         self.servo_seq, self.mode_seq = rows[:, L.servo_seq], rows[:, L.mode_seq]
         self.pose, self.ring = rows[:, L.pose], rows[:, L.ring]
+        self.jaw_seq, self.jaw = rows[:, L.jaw_seq], rows[:, L.jaw]
 
 
 def put_text(dst: np.ndarray, s: Optional[str]) -> None:

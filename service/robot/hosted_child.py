@@ -45,6 +45,9 @@ def write_state(L: RowLayout, row: np.ndarray, text: np.ndarray, r, applied: tup
         put_text(text[1], err)
         row[L.error_ver] += 1
     r.copy_state(row[L.q], row[L.dq], row[L.tau], row[L.q_d], row[L.T_meas], row[L.T_d])
+    jaw = r.measured_jaw() if r.jaw_limits is not None else math.nan
+    known = math.isfinite(jaw)
+    row[L.jaw], row[L.jaw_known] = (jaw if known else 0.0), float(known)
     if poison:
         for name in POISONED:
             row[getattr(L, name)] = math.nan
@@ -58,6 +61,7 @@ class ChildArms:
         self.blk, self.robots = blk, robots
         n = len(robots)
         self.seen = [[0, 0] for _ in robots]        # setpoints and mode commands applied, per arm
+        self.jaw_seen = [0] * n                      # jaw setpoints applied, per arm
         self.texts = [[None, None] for _ in robots]
         self.state = np.zeros((n, blk.S))
         self.cmds = Commands(n)
@@ -92,6 +96,12 @@ class ChildArms:
                     r.servo_cp(c.pose[b].reshape(4, 4))
                 except InputError:
                     pass            # counted in rejected_commands, kept in last_error
+            if got and c.jaw_seq[b] != self.jaw_seen[b]:
+                self.jaw_seen[b] = int(c.jaw_seq[b])
+                try:
+                    r.servo_jaw(float(c.jaw[b]))
+                except InputError:
+                    pass            # (as above)
             r.step(dt)
         self.publish()
 

@@ -389,6 +389,12 @@ class RavenItpRobot(Robot):
         np.copyto(self._T_d, pose)
         return True
 
+    jaw_limits = (JAW_MIN, JAW_MAX)
+
+    def measured_jaw(self) -> float:
+        """The integrated grasp command the Raven was sent (rad): what it was told, as for the pose."""
+        return self._q[0]
+
     def servo_jaw(self, angle: float) -> bool:
         """The jaw (grasp) angle (rad, within the Raven's -10 deg .. 90 deg), sent as grasp
         increments from the next ``step``. InputError on a non-finite angle or one outside."""

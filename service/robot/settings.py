@@ -132,6 +132,10 @@ class CrtkOptions:
     connect_timeout_s: float = setting(_default(CrtkRobot, "connect_timeout_s"), positive=True,
                                        doc="wait for the arm's first valid state at start (s; then FAULT)")
     control_rate_hz: float = setting(_default(CrtkRobot, "control_rate_hz"), doc="the rate servo_cp is streamed at (Hz)")
+    jaw: bool = setting(False, doc="the arm has a jaw: the master's grasp out on jaw/servo_jp, its angle in from "
+                                   "jaw/measured_js (sensor_msgs/JointState)")
+    jaw_min: float = setting(_default(CrtkRobot, "jaw_min"), doc="the jaw's smallest commanded angle (rad)")
+    jaw_max: float = setting(_default(CrtkRobot, "jaw_max"), doc="the jaw's largest commanded angle (rad)")
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """The rclpy side of a CRTK arm (robot/crtk.py ``CrtkRobot``): one node with the arm's three
-subscriptions and its ``servo_cp`` publisher.
+subscriptions and its ``servo_cp`` publisher (and, for an arm with a jaw, ``jaw/measured_js``
+and ``jaw/servo_jp``: ``sensor_msgs/JointState`` of one position, rad).
 
 The node is spun on its own thread (``RosNode`` on rclpy's ``EventsExecutor``: measured_cp and
 measured_js arrive at 1 kHz, and its C++ event queue costs a fraction of the Python time per
@@ -41,6 +42,8 @@ class CrtkBridge:
         self.cp: Optional[tuple] = None     # (arrival, stamp ns, frame_id, x, y, z, qx, qy, qz, qw)
         self.js: Optional[tuple] = None     # (arrival, positions, velocities, efforts)
         self.state: Optional[tuple] = None  # (arrival, state name)
+        self.jaw: Optional[tuple] = None    # (arrival, positions) of jaw/measured_js
+        self.jaw_sent = 0                   # jaw/servo_jp messages published
         #: the newest measured_cp that was no valid pose in ``frame_id`` (arrival, why), kept even
         #: when a good one follows before the arm's next step: one bad sample must fault the arm
         self.bad_cp: Optional[tuple] = None
@@ -56,6 +59,13 @@ class CrtkBridge:
         node.create_subscription(JointState, topics["measured_js"], self._on_js, wire.qos_stream())
         if state_cls is not None:
             node.create_subscription(state_cls, topics["operating_state"], self._on_state, wire.qos_reliable(10))
+        self._jaw_pub = None
+        if "jaw_servo_jp" in topics:
+            self._jaw_msg = JointState()
+            self._jaw_msg.name = ["jaw"]
+            self._jaw_msg.position = [0.0]
+            self._jaw_pub = node.create_publisher(JointState, topics["jaw_servo_jp"], wire.qos_reliable())
+            node.create_subscription(JointState, topics["jaw_measured_js"], self._on_jaw, wire.qos_stream())
         self.ros.start()
 
     # --- the node's thread ----------------------------------------------------------------------
@@ -76,6 +86,9 @@ class CrtkBridge:
     def _on_js(self, m) -> None:
         self.js = (time.monotonic(), tuple(m.position), tuple(m.velocity), tuple(m.effort))
 
+    def _on_jaw(self, m) -> None:
+        self.jaw = (time.monotonic(), tuple(m.position))
+
     def _on_state(self, m) -> None:
         self.state = (time.monotonic(), wire.state_name(m))
 
@@ -95,6 +108,14 @@ class CrtkBridge:
         self.sent += 1
         while len(self._order) > 256:      # forget sends never echoed
             self._stamps.pop(self._order.popleft(), None)
+
+    def send_jaw(self, angle: float) -> None:
+        """Publish the jaw setpoint ``angle`` (rad) on jaw/servo_jp, stamped now."""
+        m = self._jaw_msg
+        wire.set_stamp(m.header, time.time_ns())
+        m.position[0] = angle
+        self._jaw_pub.publish(m)
+        self.jaw_sent += 1
 
     def round_trip_us(self) -> list:
         return list(self._rtt)

@@ -5,7 +5,8 @@ masters (service/masters.py ``Master``: ``poll``, ``position``, ``clutch``, ``bu
 Each device (ros2/crtk_device.py ``CrtkDevice``: its topics, its pedal's meaning, its checks)
 gives a ``CrtkMaster``: ``position`` the handle's position from ``measured_cp`` (m, the device's
 base frame, which ``[teleop] T_world_master`` registers in the world), ``orientation`` its
-quaternion (w, x, y, z; kept for later use: positions drive the fixture today), ``clutch``
+quaternion (w, x, y, z: the tool's orientation follows it, service/teleop.py; no grasp is read,
+so the jaw stays where it is), ``clutch``
 whether the foot pedal couples the master to the robot (see crtk_device.py for what "pressed"
 means), ``buttons`` the pedal message's pressed buttons (bit mask), and ``send_force`` the
 tick's force back on ``body/servo_cf`` (N, the same base frame). ``ok`` is False (the arm holds,

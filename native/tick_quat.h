@@ -1,0 +1,110 @@
+/* pointfence's compiled tick core, its orientation part: unit quaternions (w, x, y, z) of the
+ * masters, the commands and the robots, and the poses built from them. Included by tick_core.c
+ * (one translation unit; native/build.py hashes both files), never compiled on its own.
+ * Uses <math.h>, <stdint.h> and PF_TINY, which tick_core.c has before it includes this. */
+#ifndef PF_TICK_QUAT_H
+#define PF_TICK_QUAT_H
+
+/* --- unit quaternions (w, x, y, z): orientations of masters, commands and robots ------------- */
+
+/* how far a master's quaternion norm may stray from 1 before its sample is invalid */
+#define PF_QUAT_TOL 1e-3
+
+/* out = a b (Hamilton product; out may alias neither a nor b) */
+static void qmul(const double *a, const double *b, double *out) {
+    out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+    out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+    out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+    out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+static void qconj(const double *a, double *out) { out[0] = a[0]; out[1] = -a[1]; out[2] = -a[2]; out[3] = -a[3]; }
+
+static void copy4(double *dst, const double *src) { dst[0] = src[0]; dst[1] = src[1]; dst[2] = src[2]; dst[3] = src[3]; }
+
+/* q scaled to unit norm, with w >= 0 (one representative of each rotation); identity if q is ~0 */
+static void qunit(double *q) {
+    double n = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    if (!(n > PF_TINY)) { q[0] = 1.0; q[1] = 0.0; q[2] = 0.0; q[3] = 0.0; return; }
+    double f = q[0] < 0.0 ? -1.0 / n : 1.0 / n;
+    q[0] *= f; q[1] *= f; q[2] *= f; q[3] *= f;
+}
+
+/* the rotation angle (rad, [0, pi]) of unit quaternion q */
+static double qangle(const double *q) {
+    double v = sqrt(q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    return 2.0 * atan2(v, fabs(q[0]));
+}
+
+/* the angle (rad) between unit quaternions a and b */
+static double qdist(const double *a, const double *b) {
+    double c[4], d[4];
+    qconj(b, c);
+    qmul(a, c, d);
+    return qangle(d);
+}
+
+/* the unit quaternion of rotation matrix R (row-major 3x3, rows `stride` doubles apart:
+ * 3 for a 3x3, 4 for the rotation of a 4x4 pose); Shepperd's method */
+static void quat_of_matrix(const double *T, int64_t stride, double *q) {
+    const double r00 = T[0], r01 = T[1], r02 = T[2];
+    const double r10 = T[stride], r11 = T[stride + 1], r12 = T[stride + 2];
+    const double r20 = T[2 * stride], r21 = T[2 * stride + 1], r22 = T[2 * stride + 2];
+    const double tr = r00 + r11 + r22;
+    if (tr >= r00 && tr >= r11 && tr >= r22) {
+        double s = 2.0 * sqrt(1.0 + tr);
+        q[0] = 0.25 * s; q[1] = (r21 - r12) / s; q[2] = (r02 - r20) / s; q[3] = (r10 - r01) / s;
+    } else if (r00 >= r11 && r00 >= r22) {
+        double s = 2.0 * sqrt(1.0 + r00 - r11 - r22);
+        q[0] = (r21 - r12) / s; q[1] = 0.25 * s; q[2] = (r01 + r10) / s; q[3] = (r02 + r20) / s;
+    } else if (r11 >= r22) {
+        double s = 2.0 * sqrt(1.0 + r11 - r00 - r22);
+        q[0] = (r02 - r20) / s; q[1] = (r01 + r10) / s; q[2] = 0.25 * s; q[3] = (r12 + r21) / s;
+    } else {
+        double s = 2.0 * sqrt(1.0 + r22 - r00 - r11);
+        q[0] = (r10 - r01) / s; q[1] = (r02 + r20) / s; q[2] = (r12 + r21) / s; q[3] = 0.25 * s;
+    }
+    qunit(q);
+}
+
+/* the rotation matrix of unit quaternion q into rows `stride` doubles apart */
+static void matrix_of_quat(const double *q, double *T, int64_t stride) {
+    const double w = q[0], x = q[1], y = q[2], z = q[3];
+    T[0] = 1.0 - 2.0 * (y * y + z * z); T[1] = 2.0 * (x * y - w * z); T[2] = 2.0 * (x * z + w * y);
+    T += stride;
+    T[0] = 2.0 * (x * y + w * z); T[1] = 1.0 - 2.0 * (x * x + z * z); T[2] = 2.0 * (y * z - w * x);
+    T += stride;
+    T[0] = 2.0 * (x * z - w * y); T[1] = 2.0 * (y * z + w * x); T[2] = 1.0 - 2.0 * (x * x + y * y);
+}
+
+/* n unit quaternions (n, 4) of n rotations: 4x4 poses (stride 4, 16 doubles each) or 3x3 (stride 3) */
+void pf_quats_of_matrices(const double *T, int64_t stride, int64_t n, double *q) {
+    const int64_t step = stride == 4 ? 16 : 9;
+    for (int64_t i = 0; i < n; i++) quat_of_matrix(T + step * i, stride, q + 4 * i);
+}
+
+/* n 4x4 poses (n, 16) from positions (n, 3) and unit quaternions (n, 4) */
+void pf_poses_of(const double *p, const double *q, int64_t n, double *T) {
+    for (int64_t i = 0; i < n; i++) {
+        double *t = T + 16 * i;
+        double u[4];
+        copy4(u, q + 4 * i);
+        qunit(u);
+        matrix_of_quat(u, t, 4);
+        t[3] = p[3 * i]; t[7] = p[3 * i + 1]; t[11] = p[3 * i + 2];
+        t[12] = 0.0; t[13] = 0.0; t[14] = 0.0; t[15] = 1.0;
+    }
+}
+
+/* A master sample is valid only if the device says so and its position, orientation (a unit
+ * quaternion within PF_QUAT_TOL) and grasp are finite: ok[i] is cleared otherwise (S2). */
+void pf_masters_valid(const double *pos, const double *quat, const double *grasp, int64_t n, uint8_t *ok) {
+    for (int64_t i = 0; i < n; i++) {
+        const double *p = pos + 3 * i, *q = quat + 4 * i;
+        int finite = isfinite(p[0]) && isfinite(p[1]) && isfinite(p[2]) && isfinite(grasp[i]);
+        double qn = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        if (!finite || !(fabs(qn - 1.0) <= PF_QUAT_TOL)) ok[i] = 0;   /* (a NaN fails the compare) */
+    }
+}
+
+#endif
