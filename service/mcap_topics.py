@@ -17,8 +17,8 @@ one, the master's sample); the proxy points' are identity. The jaw and the grasp
 ``/PSM1/jaw/measured_js`` (the robot's jaw, where known) and ``/MTMR/gripper/measured_js`` (the
 master's grasp). Where the arm's robot has joints (Raven II),
 ``/PSM1/measured_js`` (``sensor_msgs/JointState``: its joint names, measured positions in rad or
-m; no velocity or effort) at the recorder's ``joint_hz``. With a ``[cable]`` grasper, its jaw estimate,
-setpoint and health (``GrasperTopics``).
+m; no velocity or effort) at the recorder's ``joint_hz``. With a ``[cable]`` grasper, its jaw estimate
+(on that arm's ``jaw/measured_js`` instead of the robot's), setpoint and health (``GrasperTopics``).
 """
 from __future__ import annotations
 
@@ -90,6 +90,12 @@ class ArmTopics:
             (f"/{robot_ns(b)}/jaw/servo_jp", _angle_layout("jaw"), ("out", "jaw"), b),
             (f"/{robot_ns(b)}/jaw/measured_js", _angle_layout("jaw"), ("in", "robot_jaw"), b),
             (f"/{master_ns(b)}/gripper/measured_js", _angle_layout("gripper"), ("in", "grasp"), b))]
+
+    def hand_over_jaw(self, arm: int) -> None:
+        """Leave ``arm``'s ``jaw/measured_js`` to a ``[cable]`` grasper (``GrasperTopics`` writes
+        its measured jaw there): one writer per topic."""
+        topic = f"/{robot_ns(arm)}/jaw/measured_js"
+        self.angles = [a for a in self.angles if a[0] != topic]
 
     def write(self, tw: TopicWriter, rows: np.ndarray, ns: np.ndarray) -> None:
         cols = self.layout.cols

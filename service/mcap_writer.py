@@ -129,6 +129,7 @@ class Writer:
             _, path, arm, every, fields = msg
             block = mcap_shm.JointBlock(mcap_shm.attach(path), self.ticks.capacity, 1, len(fields))
             self.grasper = (GrasperTopics(arm, every, fields), block)
+            self.arms.hand_over_jaw(arm)
         elif op == "sync":
             self.sync = int(msg[1])
         elif op == "close":

@@ -326,7 +326,9 @@ def test_a_writer_that_dies_is_reported_and_never_blocks_the_tick(tmp_path):
         st = rec.status()
         assert not st["writer_alive"] and "ended (signal 9)" in st["error"]
         assert st["ticks_lost"] == 1100 - 99 - 256 and rec.full
-        assert worst < 0.01, f"a tick's write took {worst * 1e3:.1f} ms with the writer gone"
+        # a write that waited on the dead writer would wait for good (a pipe nobody reads); 0.2 s
+        # leaves room for a loaded 2-core machine's preemption (10 ms was seen) and still catches it
+        assert worst < 0.2, f"a tick's write took {worst * 1e3:.1f} ms with the writer gone"
         rec.add_metadata("x", {"a": 1})         # nobody to send it to: not an error of the caller's
     finally:
         t0 = time.perf_counter()
