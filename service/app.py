@@ -57,6 +57,14 @@ from .tick_io import TickInput, TickOutput
 RING = 1 << 16
 
 
+def slip_lift_radius(cfg) -> float:
+    """Architecture III's slip lift (``Teleop.slip_lift``, m): the fixture radius where
+    ``[teleop] slip_lift`` is on in fixture mode, else 0 (off)."""
+    if not cfg.teleop.slip_lift or cfg.mode != "fixture":
+        return 0.0
+    return float(cfg.pipeline.radius.r_base)
+
+
 class Service:
     """The haptic service; see the module docstring.
 
@@ -92,6 +100,8 @@ class Service:
         self.teleop = Teleop(n, tc.T_world_master, tc.scale, tc.max_robot_speed, self.dt,
                              architecture or tc.architecture, tc.max_angular_speed, tc.max_jaw_speed,
                              self.devices.jaw_ranges(DEFAULT_JAW_RANGE))
+        self.teleop.slip_lift = slip_lift_radius(cfg)
+        self._lift_normals = None
         self.health = Health(n, sc.recover_s)
         self.inp = TickInput.zeros(n)
         self.out = TickOutput.zeros(n)
@@ -242,6 +252,7 @@ class Service:
 
     def _reconfigured(self, cfg) -> None:
         self.cfg = cfg
+        self.teleop.slip_lift = slip_lift_radius(cfg)
         self.request_reanchor()      # S1: new fixture parameters move no robot by themselves
 
     def clear_faults(self) -> None:
@@ -336,7 +347,10 @@ class Service:
         tp.law_changed = False
         self._teleop_prev = inp.teleop
         health.assess(inp, self.cfg.service.max_frame_age_s, health_in)
-        proxies, states = scene.batch_pointers()     # (a re-seat below keeps the batch's storage)
+        proxies, states, normals = scene.batch_pointers()     # (a re-seat below keeps the batch's storage)
+        if normals is not self._lift_normals:        # a new batch: III's slip lift reads its normals
+            tp.bind_normals(normals)
+            self._lift_normals = normals
         # teleoperation: a held arm's X_m does not follow the master (re-coupling must not replay its
         # motion); coupling; S1: an arm that (re)couples, and every arm at a change of control law,
         # starts from where its robot is commanded; the HIP; where the proxies move

@@ -144,12 +144,14 @@ class HapticScene:
 
     def batch_pointers(self) -> tuple:
         """The proxies' positions ((B, 3) float32, world, m) and states ((B,) int32) as pointers
-        for the compiled tick core, bound again only when the batch (or its storage) changes."""
+        for the compiled tick core, and their surface normals ((B, 3) float32, the batch's own
+        array, updated in place every tick; the same object until the batch changes), bound
+        again only when the batch (or its storage) changes."""
         pos = self.batch.positions
         key = pos.base if pos.base is not None else pos
         if key is not self._bound_batch[0]:
             self._bound_batch = (key, (ptr(pos, np.float32, "proxy positions"),
-                                       ptr(self.batch.states, np.int32, "proxy states")))
+                                       ptr(self.batch.states, np.int32, "proxy states"), self.batch.normals))
         return self._bound_batch[1]
 
     def render(self, inp: TickInput, out: TickOutput, targets: np.ndarray, hip: np.ndarray) -> None:
@@ -169,7 +171,7 @@ class HapticScene:
             self.snapshot_first_tick.setdefault(seq, inp.k)
         if hip is not self._bound_hip[0]:
             self._bound_hip = (hip, ptr(hip, np.float64, "hip"))
-        proxies, states = self.batch_pointers()
+        proxies, states, _ = self.batch_pointers()
         if self.renderer.update_bound(proxies, self._bound_hip[1], states):
             # a proxy or HIP that is not finite: the renderer changed nothing; name the row
             self.renderer.update(self.batch.positions, hip, self.batch.states)

@@ -220,6 +220,9 @@ class TeleopConfig:
     max_robot_speed: float = setting(0.05, positive=True, doc="bound on every command increment (m/s)")
     max_angular_speed: float = setting(3.0, positive=True, doc="bound on the commanded tool orientation's angular speed (rad/s)")
     max_jaw_speed: float = setting(3.0, positive=True, doc="bound on the jaw command's speed (rad/s)")
+    slip_lift: bool = setting(True, doc="III: while the proxy slips sideways over a noisy cloud, raise the robot's goal along "
+                              "the surface normal by up to the fixture radius (min(L^2 / r_f, r_f), L the command's "
+                              "sideways distance to the proxy), so the command does not cut through the bumps between")
     T_world_master: np.ndarray = setting(factory=lambda: np.eye(4), toml=Vec16, convert=rigid, default_doc="identity",
                                          doc="master-to-world registration, rigid, row-major")
     haptics: bool = setting(True, doc="haptics engaged at start", hint="engaged at start")

@@ -1,8 +1,11 @@
 """Teleoperation through the whole service on the simulated clock: architectures I/II/III on the
 balloon, switching without jumps, clutch indexing, the speed limit, registration and scaling."""
+import ctypes
+
 import numpy as np
 import pytest
 
+from pointfence.service import config
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.replay import simulate
 from pointfence.service.teleop import Teleop
@@ -148,3 +151,23 @@ def test_disengaging_teleop_holds_and_reengaging_does_not_jump(tmp_path):
     assert cmd[-1, 2] < cmd[700, 2] - 0.005                             # and it follows again
     assert np.linalg.norm(f[1000 + 25]) < 1e-9                          # haptics off: force ramped out
     assert steps(f).max() <= 800 * V * DT + 0.2
+
+
+
+@pytest.mark.parametrize("lift", [True, False])
+def test_the_slip_lift_reads_the_proxy_batchs_normals_in_iii(tmp_path, lift):
+    """[teleop] slip_lift (on by default) gives the tick core III's lift at the fixture radius and
+    the running batch's own normals array (the one the kernel updates every tick): without the
+    wiring the lift is inert (radius 0 or no normals)."""
+    cfg = balloon_config(tmp_path)
+    if not lift:
+        p = tmp_path / "scene.toml"
+        p.write_text(p.read_text().replace("[teleop]\n", "[teleop]\nslip_lift = false\n", 1))
+        cfg = config.load(p)
+    svc, rows, rec = run(cfg, push(0.12), 0.6)
+    tp = svc.teleop
+    assert tp.slip_lift == (0.02 if lift else 0.0)
+    normals = svc.scene.batch.normals
+    bound = ctypes.cast(tp.core.normals, ctypes.c_void_p).value
+    assert bound == normals.ctypes.data                                # the batch's array, bound
+    assert np.abs(normals).sum() > 0                                   # in contact: real normals
