@@ -79,8 +79,8 @@ class NeighborQuery:
     def _ensure(self, B: int, n_res: int):
         cl, ctx, q = self.cl, self.pipeline.ctx, self.queue
         mf = cl.mem_flags
-        if self._q is None or B > self._q.n:
-            cap = max(B, 2 * (self._q.n if self._q else 0), 16)
+        if self._q is None or 4 * B > self._q.n:         # (4 floats a query)
+            cap = max(B, 2 * (self._q.n // 4 if self._q else 0), 16)
             if self._q is not None:
                 self._q.release(q)
             self._q = _Staging(cl, ctx, q, 4 * cap, np.float32, mf.READ_ONLY)
