@@ -149,14 +149,16 @@ def test_nearest_ties_go_to_the_earlier_point(group_size):
     assert ties == len(q)
 
 
-def test_buffers_reused_across_growing_and_shrinking_calls(random_pipe):
+@pytest.mark.parametrize("staged", [True, False])
+def test_buffers_reused_across_growing_and_shrinking_calls(random_pipe, staged):
     """Query counts and K up and down on one query object (its staging grows, never shrinks; each
-    slot's kernel keeps its arguments and sets only what changed): every call equal to the
-    reference, and arrays returned earlier untouched by later calls."""
+    slot's kernel keeps its arguments and sets only what changed), the result read through the
+    pinned staging or straight into the returned arrays: every call equal to the reference, and
+    arrays returned earlier untouched by later calls."""
     pipe, snap = random_pipe
     rng = np.random.default_rng(21)
-    gpu = NeighborQuery(pipe, kernel_shape="gpu", group_size=32)
-    cpu = NeighborQuery(pipe, kernel_shape="cpu")
+    gpu = NeighborQuery(pipe, kernel_shape="gpu", group_size=32, staged=staged)
+    cpu = NeighborQuery(pipe, kernel_shape="cpu", staged=staged)
     kept = []
     for B, K, r, prot in [(3, 4, 0.01, False), (40, 64, 0.02, False), (5, 300, 0.02, True), (70, 2, 0.006, False),
                           (1, 1, 0.03, True), (70, 2, 0.006, False), (17, 1000, 0.012, False)]:

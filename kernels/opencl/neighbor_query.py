@@ -8,9 +8,9 @@ kernels/opencl/kernel_shape.py): "auto" runs the GPU shape on GPU devices.
 
 Both kernels write one packed int32 result (counts, nearest, distance bits, then the index rows),
 so a call is: the queries written into a device buffer, the launch, and one blocking read of the
-result, on the pipeline's query queue. Queries and results are staged in host memory the
-runtime allocates (``ALLOC_HOST_PTR``, mapped once: pinned on GPUs, so both copies are DMA
-without a bounce buffer), grown (doubling) when a call needs more and never shrunk. Each
+result, on the pipeline's query queue. Queries (and on GPUs the result) are staged in host
+memory the runtime allocates (``ALLOC_HOST_PTR``, mapped once: pinned on GPUs, so the copies are
+DMA without a bounce buffer), grown (doubling) when a call needs more and never shrunk. Each
 snapshot slot has its own kernel instance whose arguments are set once; a call sets only the
 scalars that changed.
 """
@@ -34,20 +34,24 @@ A_QUERIES, A_NQ, A_RADIUS, A_SPAN, A_K, A_PROT, A_RES = 5, 6, 7, 8, 9, 10, 11
 
 
 class _Staging:
-    """A device buffer and a mapped host array of ``n`` elements of ``dtype`` beside it."""
+    """A device buffer of ``n`` elements of ``dtype`` and, if ``mapped``, a mapped host array
+    beside it (``host``, else None)."""
 
-    def __init__(self, cl, ctx, queue, n: int, dtype, flags):
+    def __init__(self, cl, ctx, queue, n: int, dtype, flags, mapped: bool = True):
         mf = cl.mem_flags
         nbytes = n * np.dtype(dtype).itemsize
         self.dev = cl.Buffer(ctx, flags, nbytes)
-        self._host_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.ALLOC_HOST_PTR, nbytes)
-        self.host, _ = cl.enqueue_map_buffer(queue, self._host_buf, cl.map_flags.READ | cl.map_flags.WRITE, 0, (n,),
-                                             dtype, is_blocking=True)
+        self.host = self._host_buf = None
+        if mapped:
+            self._host_buf = cl.Buffer(ctx, mf.READ_WRITE | mf.ALLOC_HOST_PTR, nbytes)
+            self.host, _ = cl.enqueue_map_buffer(queue, self._host_buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                                 (n,), dtype, is_blocking=True)
         self.n = n
 
     def release(self, queue):
-        self.host.base.release(queue)
-        self.host = None
+        if self.host is not None:
+            self.host.base.release(queue)
+            self.host = None
 
 
 class NeighborQuery:
@@ -56,9 +60,13 @@ class NeighborQuery:
     ``shape``: "cpu" or "gpu", the kernel that runs (resolved from ``kernel_shape``: "auto",
     "cpu" or "gpu"; None: the backend's). ``group_size``: work-items a query of the GPU-shaped
     kernel (1 to 256; None: by batch size, ``kernel_shape.neighbor_group_size``); results do not
-    depend on it. Calls from several threads take turns (one set of buffers)."""
+    depend on it. ``staged`` (fixed at construction): the result is read into a pinned staging array and copied from
+    there into the arrays returned (None: on the GPU shape), else read straight into them (one
+    copy fewer; on a GPU the driver then stages it in pinned memory of its own). The arrays
+    returned are views of one array of the caller's, never of the staging. Calls from several
+    threads take turns (one set of buffers)."""
 
-    def __init__(self, pipeline, kernel_shape=None, group_size: int | None = None):
+    def __init__(self, pipeline, kernel_shape=None, group_size: int | None = None, staged: bool | None = None):
         self.pipeline = pipeline
         self.cl = cl = pipeline.cl
         backend = pipeline.backend
@@ -66,6 +74,7 @@ class NeighborQuery:
             kernel_shape = getattr(backend, "kernel_shape", "auto")
         self.shape = resolve_shape(check_shape(kernel_shape), backend.device, cl)
         self.group_size = group_size
+        self.staged = self.shape == "gpu" if staged is None else bool(staged)
         self.queue = pipeline.query_queue
         if self.shape == "gpu":
             self._program, self._name = build(pipeline.ctx, "neighbors_gpu.cl"), "neighbors_wg"
@@ -89,7 +98,7 @@ class NeighborQuery:
             cap = max(n_res, 2 * (self._res.n if self._res else 0), 1024)
             if self._res is not None:
                 self._res.release(q)
-            self._res = _Staging(cl, ctx, q, cap, np.int32, mf.WRITE_ONLY)
+            self._res = _Staging(cl, ctx, q, cap, np.int32, mf.WRITE_ONLY, mapped=self.staged)
 
     def _kernel(self, slot, values: tuple):
         """This slot's kernel instance with the current buffers and ``values`` (nq, radius, span,
@@ -102,12 +111,11 @@ class NeighborQuery:
                 k.set_arg(i, a)
             rec = self._kernels[id(slot)] = [slot, k, None, None]
         k = rec[1]
-        if rec[2] is not (self._q, self._res):
-            if rec[2] is None or rec[2][0] is not self._q:
-                k.set_arg(A_QUERIES, self._q.dev)
-            if rec[2] is None or rec[2][1] is not self._res:
-                k.set_arg(A_RES, self._res.dev)
-            rec[2] = (self._q, self._res)
+        if rec[2] is None or rec[2][0] is not self._q:
+            k.set_arg(A_QUERIES, self._q.dev)
+        if rec[2] is None or rec[2][1] is not self._res:
+            k.set_arg(A_RES, self._res.dev)
+        rec[2] = (self._q, self._res)
         old = rec[3]
         types = (np.int32, np.float32, np.int32, np.int32, np.int32)
         for j, (v, t) in enumerate(zip(values, types)):
@@ -152,10 +160,13 @@ class NeighborQuery:
                     gsize, lsize = (-(-B // CPU_LOCAL) * CPU_LOCAL,), None
                 ev = cl.enqueue_copy(qq, self._q.dev, self._q.host[:4 * B], is_blocking=False)
                 cl.enqueue_nd_range_kernel(qq, k, gsize, lsize)
-                cl.enqueue_copy(qq, self._res.host[:n], self._res.dev, is_blocking=True)
+                if self.staged:
+                    cl.enqueue_copy(qq, self._res.host[:n], self._res.dev, is_blocking=True)
+                    r = self._res.host[:n].copy()
+                else:
+                    r = np.empty(n, np.int32)
+                    cl.enqueue_copy(qq, r, self._res.dev, is_blocking=True)
                 del ev   # (waited for by the blocking read: see kernels/opencl/pipeline.py)
-                r = self._res.host
-                return Neighbors(r[:B].copy(), r[3 * B: n].reshape(B, K).copy(), r[B: 2 * B].copy(),
-                                 r[2 * B: 3 * B].view(np.float32).copy())
+                return Neighbors(r[:B], r[3 * B: n].reshape(B, K), r[B: 2 * B], r[2 * B: 3 * B].view(np.float32))
         except cl.Error as e:
             raise KernelError(f"OpenCL neighbour query failed on {self.pipeline.backend.device_name}: {e}") from e
