@@ -100,6 +100,19 @@ def test_hits_beyond_k_are_the_reference_scan_order_not_any_subset(random_pipe):
             np.testing.assert_array_equal(nb.index[i], bf[i][:5])   # brute force lists ascending index
 
 
+@pytest.mark.parametrize("group_size", GROUPS)
+def test_every_candidate_a_hit(random_pipe, group_size):
+    """A 2 m radius reaches every cell of the grid (thousands of rows, many batches of rows) and
+    every point is a hit: each work-item's run, long or short, is written whole, the first 64
+    candidates from the count's bits and the rest tested again, in scan order."""
+    pipe, snap = random_pipe
+    q = np.array([[0.0, 0.0, 0.8], [0.55, -0.45, 1.15], [5.0, 5.0, 5.0]], np.float32)
+    want = check_all(pipe, snap, q, 2.0, snap.n_points, False, group_size)
+    assert want.count[0] == want.count[1] == snap.n_points and want.count[2] == 0
+    np.testing.assert_array_equal(want.index[0], np.arange(snap.n_points))
+    check_all(pipe, snap, q, 2.0, 1000, True, group_size)
+
+
 def test_empty_results_and_no_queries(random_pipe):
     pipe, snap = random_pipe
     q = np.array([[5.0, 5.0, 5.0], [-5.0, 0.0, 0.8], [0.0, 0.0, 0.31]], np.float32)

@@ -8,7 +8,8 @@
 // item r lists row r's range, an inclusive scan of the lengths lays the batch's candidates end to
 // end, and each work-item takes one contiguous run of them. It counts its hits, an exclusive
 // scan of the counts tells it where in the result row its hits go, and while that is below K it
-// tests its run again and writes them: the first K hits in scan order, however the work is split.
+// writes them (the hits among the first 64 candidates of its run kept as bits from the count, the
+// rest of a longer run tested again): the first K hits in scan order, however the work is split.
 // Count and nearest need no order: each work-item keeps its own (squared distance, index)
 // minimum, reduced over the work-group at the end, ties going to the smaller index (the
 // reference's argmin takes the first). Squared distances are rounded after every operation in
@@ -37,6 +38,11 @@ inline int nb_scan(__local int *buf, int v, int *total) {
     }
     *total = buf[pin * W + W - 1];
     return buf[pin * W + lid];
+}
+
+// Index of the lowest set bit of x (x != 0)
+inline int nb_ctz64(ulong x) {
+    return 63 - (int)clz(x & (~x + 1));
 }
 
 // Whether sorted point i is a neighbour of q (within radius in float32, protected where asked);
@@ -98,12 +104,14 @@ __kernel void neighbors_wg(__global const float4 *pts, __global const int *order
             if (rowp[mid + 1] > k0) hi = mid; else lo = mid + 1;
         }
         int r0 = lo, cnt = 0;
+        ulong hm = 0;                                // bit j: candidate k0 + j is a hit (j < 64)
         for (int r = r0; r < W && rowp[r] < k1; ++r) {
             int ia = rowa[r] - rowp[r], kb = min(k1, rowp[r + 1]);
             for (int k = max(k0, rowp[r]); k < kb; ++k) {
                 float d2;
                 if (nb_hit(pts, order, ia + k, q, r2, protected_only, &d2)) {
                     ++cnt;
+                    if (k - k0 < 64) hm |= (ulong)1 << (k - k0);
                     int kd = as_int(d2);             // (d2 >= 0: its bits order as it does)
                     if (kd < bestd || (kd == bestd && ia + k < besti)) { bestd = kd; besti = ia + k; }
                 }
@@ -111,10 +119,20 @@ __kernel void neighbors_wg(__global const float4 *pts, __global const int *order
         }
         int hits;
         int at = n + nb_scan(scan, cnt, &hits) - cnt;
-        if (cnt > 0 && at < K) {                     // write pass: this work-item's hits in scan order
-            for (int r = r0; r < W && rowp[r] < k1 && at < K; ++r) {
+        if (cnt > 0 && at < K) {
+            // write pass, this work-item's hits in scan order: the first 64 candidates of the run
+            // from the bits, the rest (a run longer than 64) tested again
+            int r = r0;
+            while (hm != 0 && at < K) {
+                int k = k0 + nb_ctz64(hm);
+                hm &= hm - 1;
+                while (rowp[r + 1] <= k) ++r;
+                idx[at++] = rowa[r] - rowp[r] + k;
+            }
+            int kr = k0 + 64;
+            for (; r < W && rowp[r] < k1 && at < K; ++r) {
                 int ia = rowa[r] - rowp[r], kb = min(k1, rowp[r + 1]);
-                for (int k = max(k0, rowp[r]); k < kb && at < K; ++k) {
+                for (int k = max(kr, rowp[r]); k < kb && at < K; ++k) {
                     float d2;
                     if (nb_hit(pts, order, ia + k, q, r2, protected_only, &d2)) idx[at++] = ia + k;
                 }
