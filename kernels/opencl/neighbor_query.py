@@ -60,11 +60,11 @@ class NeighborQuery:
     ``shape``: "cpu" or "gpu", the kernel that runs (resolved from ``kernel_shape``: "auto",
     "cpu" or "gpu"; None: the backend's). ``group_size``: work-items a query of the GPU-shaped
     kernel (1 to 256; None: by batch size, ``kernel_shape.neighbor_group_size``); results do not
-    depend on it. ``staged`` (fixed at construction): the result is read into a pinned staging array and copied from
-    there into the arrays returned (None: on the GPU shape), else read straight into them (one
-    copy fewer; on a GPU the driver then stages it in pinned memory of its own). The arrays
-    returned are views of one array of the caller's, never of the staging. Calls from several
-    threads take turns (one set of buffers)."""
+    depend on it. ``staged`` (fixed at construction): the result is read into a pinned staging
+    array and copied from there into the arrays returned (None: on the GPU shape), else read
+    straight into them (one copy fewer; on a GPU the driver then stages it in pinned memory of
+    its own). The arrays returned are views of one array of the caller's, never of the staging.
+    Calls from several threads take turns (one set of buffers)."""
 
     def __init__(self, pipeline, kernel_shape=None, group_size: int | None = None, staged: bool | None = None):
         self.pipeline = pipeline
@@ -125,15 +125,16 @@ class NeighborQuery:
         return k
 
     def _group(self, kernel, B: int) -> int:
+        """Work-items a query of the GPU shape for a batch of ``B``."""
         if self._max_group is None:
-            dev = self.pipeline.backend.device
-            self._max_group = min(MAX_GROUP, kernel.get_work_group_info(self.cl.kernel_work_group_info.WORK_GROUP_SIZE, dev))
+            info = self.cl.kernel_work_group_info.WORK_GROUP_SIZE
+            self._max_group = min(MAX_GROUP, kernel.get_work_group_info(info, self.pipeline.backend.device))
         if self.group_size is not None:
             w = int(self.group_size)
             if not 1 <= w <= self._max_group:
                 raise InputError(f"neighbour query group_size = {w}; the GPU-shaped kernel runs work-groups of 1 to "
-                                  f"{self._max_group} work-items on {self.pipeline.backend.device_name}: choose one in that range "
-                                 "(None: by batch size)")
+                                 f"{self._max_group} work-items on {self.pipeline.backend.device_name}: choose one in "
+                                 "that range (None: by batch size)")
             return w
         return neighbor_group_size(B, self._max_group)
 
