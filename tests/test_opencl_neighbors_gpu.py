@@ -22,8 +22,8 @@ from pointfence.kernels.reference.neighbors import neighbors as reference_neighb
 
 from kernel_cases import SHARED, kitchen_rig, params_for, random_rig
 
-# 1: every batch of rows a loop of its own; 7: not a power of two (the reduction's odd tail); 32, 256
-GROUPS = (1, 7, 32, 256)
+# 1: every batch of rows a loop of its own; 7: not a power of two (the reduction's odd tail); 32 to 1,024
+GROUPS = (1, 7, 32, 256, 1024)
 FIELDS = ("count", "index", "nearest", "nearest_dist")
 
 
@@ -232,7 +232,7 @@ def kitchen_pipe(selection):
     return pipe, pipe.host_snapshot()
 
 
-@pytest.mark.parametrize("group_size", (32, 256))
+@pytest.mark.parametrize("group_size", (32, 1024))
 def test_real_rig_equals_reference_and_cpu_shape(group_size):
     """Two 7-Scenes kitchen frames: dense surfaces, hundreds of hits a query, truncated rows; a box
     of the scene protected."""

@@ -68,7 +68,7 @@ def resolve_shape(shape: str, device, cl) -> str:
 #: work-items a query of the GPU-shaped neighbour kernel by batch size ((largest batch, work-items),
 #: ...): a batch that leaves multiprocessors idle spreads each query over many work-items
 #: (latency), a large one over fewer so that more queries run at once
-NEIGHBOR_GROUPS = ((1024, 256), (ANY, 128))
+NEIGHBOR_GROUPS = ((256, 512), (1024, 256), (ANY, 128))
 
 
 def neighbor_group_size(n: int, max_group: int, table=NEIGHBOR_GROUPS) -> int:

@@ -25,12 +25,13 @@ from ..neighbors import Neighbors, search_span
 from .context import build
 from .kernel_shape import check_shape, neighbor_group_size, resolve_shape
 
-#: work-items a query the GPU-shaped kernel allows (NB_MAXW in neighbors_gpu.cl)
-MAX_GROUP = 256
+#: most work-items a query of the GPU-shaped kernel (the device's limit for it may be lower)
+MAX_GROUP = 1024
 #: work-items a CPU-shaped work-group (queries a work-group)
 CPU_LOCAL = 64
 # kernel argument positions (both kernels)
 A_QUERIES, A_NQ, A_RADIUS, A_SPAN, A_K, A_PROT, A_RES = 5, 6, 7, 8, 9, 10, 11
+A_LOCAL = 12   # the GPU shape's local arrays: rowa[W], rowp[W + 1], scan[2 W] (int32)
 
 
 class _Staging:
@@ -59,7 +60,7 @@ class NeighborQuery:
 
     ``shape``: "cpu" or "gpu", the kernel that runs (resolved from ``kernel_shape``: "auto",
     "cpu" or "gpu"; None: the backend's). ``group_size``: work-items a query of the GPU-shaped
-    kernel (1 to 256; None: by batch size, ``kernel_shape.neighbor_group_size``); results do not
+    kernel (1 to 1,024 or the device's limit; None: by batch size, ``kernel_shape.neighbor_group_size``); results do not
     depend on it. ``staged`` (fixed at construction): the result is read into a pinned staging
     array and copied from there into the arrays returned (None: on the GPU shape), else read
     straight into them (one copy fewer; on a GPU the driver then stages it in pinned memory of
@@ -81,7 +82,7 @@ class NeighborQuery:
         else:
             self._program, self._name = pipeline.prg, "neighbors"
         self._lock = threading.Lock()
-        self._kernels = {}        # id(slot) -> [slot, kernel, (queries, res) bound, scalars set]
+        self._kernels = {}   # id(slot) -> [slot, kernel, (queries, res) bound, scalars set, group size set]
         self._q = self._res = None
         self._max_group = None
 
@@ -101,7 +102,7 @@ class NeighborQuery:
             self._res = _Staging(cl, ctx, q, cap, np.int32, mf.WRITE_ONLY, mapped=self.staged)
 
     def _kernel(self, slot, values: tuple):
-        """This slot's kernel instance with the current buffers and ``values`` (nq, radius, span,
+        """This slot's record (see ``_kernels``), its kernel instance with the current buffers and ``values`` (nq, radius, span,
         K, protected_only) as its arguments, setting only what changed since its last call."""
         cl, p = self.cl, self.pipeline
         rec = self._kernels.get(id(slot))
@@ -109,7 +110,7 @@ class NeighborQuery:
             k = cl.Kernel(self._program, self._name)   # own instance: per-slot arguments
             for i, a in enumerate((slot.pts, slot.order, slot.start, p.gridf, p.dims)):
                 k.set_arg(i, a)
-            rec = self._kernels[id(slot)] = [slot, k, None, None]
+            rec = self._kernels[id(slot)] = [slot, k, None, None, None]
         k = rec[1]
         if rec[2] is None or rec[2][0] is not self._q:
             k.set_arg(A_QUERIES, self._q.dev)
@@ -122,7 +123,15 @@ class NeighborQuery:
             if old is None or old[j] != v:
                 k.set_arg(A_NQ + j, t(v))
         rec[3] = values
-        return k
+        return rec
+
+    def _set_group(self, rec, w: int):
+        """The GPU shape's local arrays for work-groups of ``w`` (when ``w`` changed)."""
+        if rec[4] != w:
+            k, LocalMemory = rec[1], self.cl.LocalMemory
+            for j, n in enumerate((w, w + 1, 2 * w)):
+                k.set_arg(A_LOCAL + j, LocalMemory(4 * n))
+            rec[4] = w
 
     def _group(self, kernel, B: int) -> int:
         """Work-items a query of the GPU shape for a batch of ``B``."""
@@ -153,9 +162,11 @@ class NeighborQuery:
                 self._ensure(B, n)
                 qh = self._q.host.reshape(-1, 4)
                 qh[:B, :3] = q
-                k = self._kernel(slot, values)
+                rec = self._kernel(slot, values)
+                k = rec[1]
                 if self.shape == "gpu":
                     w = self._group(k, B)
+                    self._set_group(rec, w)
                     gsize, lsize = (B * w,), (w,)
                 else:
                     gsize, lsize = (-(-B // CPU_LOCAL) * CPU_LOCAL,), None

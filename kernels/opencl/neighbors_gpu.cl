@@ -20,8 +20,6 @@
 // depend only on the query and the work-group size, and no loop with a barrier is left early.
 #pragma OPENCL FP_CONTRACT OFF
 
-#define NB_MAXW 256     // largest work-group (the local arrays below)
-
 // Inclusive scan of v over the work-group (Hillis-Steele, double-buffered in buf[2 W]); *total
 // gets the sum over the work-group. buf may be reused after the caller's next barrier.
 inline int nb_scan(__local int *buf, int v, int *total) {
@@ -59,14 +57,14 @@ inline int nb_hit(__global const float4 *pts, __global const int *order, int i, 
 
 // Query b (work-group b) into res: res[b] the count, res[nq + b] the nearest hit (-1 if none),
 // res[2 nq + b] the bits of its distance (m, float32; inf if none), and from res[3 nq + b K] on
-// the first min(count, K) hits in scan order, -1 after. Arguments as neighbors.cl's.
+// the first min(count, K) hits in scan order, -1 after. Arguments as neighbors.cl's, then local
+// memory sized by the host for W work-items: rowa[W] (first sorted index of each row of the
+// batch), rowp[W + 1] (candidates of the batch before each row), scan[2 W] (the scans, then the
+// nearest's reduction).
 __kernel void neighbors_wg(__global const float4 *pts, __global const int *order, __global const int *start,
                            float4 grid, int4 dims, __global const float4 *queries, int nq,
-                           float radius, int span, int K, int protected_only, __global int *res) {
-    __local int rowa[NB_MAXW];          // first sorted index of each row of the batch
-    __local int rowp[NB_MAXW + 1];      // candidates of the batch before each row
-    __local int scan[2 * NB_MAXW];
-    __local int keyd[NB_MAXW], keyi[NB_MAXW];
+                           float radius, int span, int K, int protected_only, __global int *res,
+                           __local int *rowa, __local int *rowp, __local int *scan) {
     const int b = get_group_id(0), lid = get_local_id(0), W = get_local_size(0);
     float4 q = queries[b];
     int cx = (int)clamp(floor((q.x - grid.x) * grid.w), (float)(-span - 1), (float)(dims.x + span));
@@ -141,7 +139,9 @@ __kernel void neighbors_wg(__global const float4 *pts, __global const int *order
         n += hits;
         barrier(CLK_LOCAL_MEM_FENCE);                // rowa, rowp and scan are reused by the next batch
     }
-    // the work-group's smallest (d2 bits, index), lexicographically
+    // the work-group's smallest (d2 bits, index), lexicographically (scan is free: the batch
+    // loop ends on a barrier)
+    __local int *keyd = scan, *keyi = scan + W;
     keyd[lid] = bestd;
     keyi[lid] = besti;
     barrier(CLK_LOCAL_MEM_FENCE);
