@@ -1,6 +1,6 @@
-"""Which OpenCL proxy kernel a batch runs, and how the GPU-shaped one is sized.
+"""Which OpenCL proxy and neighbour-query kernels run, and how the GPU-shaped ones are sized.
 
-Two kernels give the same results bit for bit (kernels/opencl/proxy_gpu.cl says how):
+Two proxy kernels give the same results bit for bit (kernels/opencl/proxy_gpu.cl says how):
 
 * ``"cpu"``: ``proxy_tick`` (proxy.cl), one work-item a proxy running every step of the tick
   over its working set in global memory with 8-wide vector loops: PoCL's CPU devices;
@@ -11,6 +11,10 @@ Two kernels give the same results bit for bit (kernels/opencl/proxy_gpu.cl says 
 elsewhere. The choice is an option of ``OpenCLBackend`` (``kernel_shape``; unset, the
 ``POINTFENCE_OPENCL_KERNEL_SHAPE`` environment variable, read when the backend is made) and of
 ``pipeline.proxies(..., kernel_shape=...)``.
+
+The same setting picks the neighbour-query kernel (kernels/opencl/neighbor_query.py): ``"cpu"``
+runs ``neighbors`` (neighbors.cl, one work-item a query), ``"gpu"`` runs ``neighbors_wg``
+(neighbors_gpu.cl, one work-group a query), with the same results bit for bit.
 """
 from __future__ import annotations
 
@@ -59,6 +63,18 @@ def resolve_shape(shape: str, device, cl) -> str:
         raise InputError(f"kernel_shape = 'gpu' needs work-groups of {MIN_GROUP} work-items; {device.name.strip()} "
                          f"allows {device.max_work_group_size}: use kernel_shape='cpu'")
     return s
+
+
+#: work-items a query of the GPU-shaped neighbour kernel by batch size ((largest batch, work-items),
+#: ...): a batch that leaves multiprocessors idle spreads each query over many work-items
+#: (latency), a large one over fewer so that more queries run at once
+NEIGHBOR_GROUPS = ((256, 512), (1024, 256), (ANY, 128))
+
+
+def neighbor_group_size(n: int, max_group: int, table=NEIGHBOR_GROUPS) -> int:
+    """Work-items a query for a batch of ``n`` queries on a device that runs work-groups of at
+    most ``max_group`` work-items of the neighbour kernel."""
+    return max(1, min(_pick(table, n), max_group))
 
 
 def _pick(table, n: int) -> int:

@@ -1,4 +1,5 @@
-// Fixed-radius neighbours in the spatial hash. Mirrors kernels/reference/neighbors.py.
+// Fixed-radius neighbours in the spatial hash, shaped for CPUs: one work-item per query.
+// Mirrors kernels/reference/neighbors.py (neighbors_gpu.cl: the GPU shape, same results).
 // Snapshot layout (frames.cl): pts in pixel order, order[] = pix | protected << 31 sorted by cell.
 // Reported indices are positions in `order` (the host snapshot's point indices).
 #pragma OPENCL FP_CONTRACT OFF
@@ -6,7 +7,8 @@
 __kernel void neighbors(__global const float4 *pts, __global const int *order, __global const int *start,
                         float4 grid, int4 dims, __global const float4 *queries, int nq,
                         float radius, int span, int K, int protected_only,
-                        __global int *count, __global int *index, __global int *nearest, __global float *nearest_d) {
+                        __global int *res) {
+    // res: [count (nq)][nearest (nq)][bits of its distance, m (nq)][first K hits of each query (nq K)]
     int b = get_global_id(0);
     if (b >= nq) return;
     float4 q = queries[b];
@@ -19,7 +21,7 @@ __kernel void neighbors(__global const float4 *pts, __global const int *order, _
     float r2 = radius * radius;
     int n = 0, best = -1;
     float best_d2 = INFINITY;
-    __global int *idx = index + (size_t)b * K;
+    __global int *idx = res + 3 * nq + (size_t)b * K;
     for (int iz = z0; iz <= z1; ++iz)
         for (int iy = y0; iy <= y1; ++iy) {
             int base = (iz * dims.y + iy) * dims.x;
@@ -38,7 +40,7 @@ __kernel void neighbors(__global const float4 *pts, __global const int *order, _
             }
         }
     for (int j = n; j < K; ++j) idx[j] = -1;
-    count[b] = n;
-    nearest[b] = best;
-    nearest_d[b] = best >= 0 ? sqrt(best_d2) : INFINITY;
+    res[b] = n;
+    res[nq + b] = best;
+    res[2 * nq + b] = as_int(best >= 0 ? sqrt(best_d2) : INFINITY);
 }

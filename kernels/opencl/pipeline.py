@@ -17,10 +17,10 @@ from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
 from ..errors import KernelError
 from ..motion import N_MOMENTS
-from ..neighbors import Neighbors, search_span
 from ..snapshot import HostSnapshot
 from ..yielding import checkpoint
 from .context import _cl, build
+from .neighbor_query import NeighborQuery
 
 LOCAL = 64
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
@@ -94,7 +94,6 @@ class OpenCLPipeline(FramePipeline):
         self.k_scan_add = self.prg.scan_add
         self.k_scatter = self.prg.scatter
         self.k_sort_cells = self.prg.sort_cells
-        self.k_neighbors = self.prg.neighbors
         self.k_moments = self.prg.cell_moments
         self.k_expand = self.prg.expand_velocity
 
@@ -139,9 +138,9 @@ class OpenCLPipeline(FramePipeline):
             np.array([*s.color_lo, 0], np.int32), np.array([*s.color_hi, 0], np.int32),
         )
         self.radius_arg = np.array([r.r_base, r.k_sigma, r.r_max, 1.0 if r.adaptive else 0.0], np.float32)
-        # Neighbour-query staging, grown (never shrunk) when a larger batch arrives.
-        self._nq_cap = 0
-        self._nq_K = 0
+        #: the neighbour query (kernels/opencl/neighbor_query.py): its ``shape`` is the backend's
+        #: ``kernel_shape`` resolved for the device, ``group_size`` the GPU shape's work-group
+        self.neighbor_query = NeighborQuery(self)
 
     def _zero_cell_starts(self):
         for slot in self.buffers.slots:
@@ -225,40 +224,9 @@ class OpenCLPipeline(FramePipeline):
         return 0.0
 
     # --- queries -------------------------------------------------------------------------
-    def _ensure_query_capacity(self, B: int, K: int):
-        if B <= self._nq_cap and K <= self._nq_K:
-            return
-        cl, ctx, mf = self.cl, self.ctx, self.cl.mem_flags
-        cap, Kc = max(B, 2 * self._nq_cap, 16), max(K, self._nq_K)
-        self._q_host = np.zeros((cap, 4), np.float32)
-        self._q_buf = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
-        self._count = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap)
-        self._index = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap * Kc)
-        self._near = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap)
-        self._near_d = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * cap)
-        self._nq_cap, self._nq_K = cap, Kc
-
     def _neighbors(self, q, radius, max_neighbors, protected_only):
-        cl = self.cl
-        B, K = q.shape[0], max_neighbors
-        self._ensure_query_capacity(B, K)
-        self._q_host[:B, :3] = q
-        out = Neighbors(np.empty(B, np.int32), np.empty((B, K), np.int32), np.empty(B, np.int32), np.empty(B, np.float32))
-        qq = self.query_queue
-        with self.buffers.read() as slot:
-            try:
-                events = [cl.enqueue_copy(qq, self._q_buf, self._q_host[:B], is_blocking=False)]
-                self.k_neighbors(qq, (_round_up(B),), None, slot.pts, slot.order, slot.start, self.gridf, self.dims,
-                                 self._q_buf, np.int32(B), np.float32(radius), np.int32(search_span(radius, self.grid.h)),
-                                 np.int32(K), np.int32(protected_only), self._count, self._index, self._near, self._near_d)
-                events += [cl.enqueue_copy(qq, out.count, self._count, is_blocking=False),
-                           cl.enqueue_copy(qq, out.index, self._index, is_blocking=False),
-                           cl.enqueue_copy(qq, out.nearest, self._near, is_blocking=False)]
-                cl.enqueue_copy(qq, out.nearest_dist, self._near_d, is_blocking=True)
-                events.clear()
-            except cl.Error as e:
-                raise KernelError(f"OpenCL neighbour query failed on {self.backend.device_name}: {e}") from e
-        return out
+        """One write of the queries, one launch and one read (``NeighborQuery``)."""
+        return self.neighbor_query(q, radius, max_neighbors, protected_only)
 
     def proxies(self, positions, params=None, **options):
         """A batch of proxies on this pipeline, one kernel launch per tick (``kernels/opencl/proxy.py``)."""
