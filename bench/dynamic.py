@@ -41,6 +41,8 @@ def add_arguments(p):
                         "../shared/data) to move instead of the default two; repeatable")
     p.add_argument("--no-rig", action="store_true",
                    help="with --real: skip the real-rig figures (occlusion, fused rig, radius study)")
+    p.add_argument("--no-propagation", action="store_true",
+                   help="with --real: the estimator without neighbour propagation (min_neighbours = 0), to compare")
     p.add_argument("--quick", action="store_true",
                    help="with --real: a short sweep (one scene, 0.1 and 0.3 m/s, toward the camera), seconds")
 
@@ -51,19 +53,23 @@ def _speed(predict, backend, device, **kw):
 
 def run_real(args) -> dict:
     """The ``--real`` figures (see the module docstring)."""
+    from pointfence.kernels.motion import MotionModel
     from pointfence.service import dynamic_real as dr
     from pointfence.service import dynamic_real_study as study
 
     b, dev = args.backend, args.device
     scenes = tuple(args.frames) if args.frames else dr.REAL_SCENES[:1] if args.quick else dr.REAL_SCENES
     opts = dict(speeds=dr.QUICK_SPEEDS, radii=(0.01,), cases=(("toward", "hold"),)) if args.quick else {}
-    res = dr.sweep(scenes, backend=b, device=dev, **opts)
-    out = {"backend": b, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ, "robot_speed_limit_mps": dr.ROBOT_SPEED,
+    mo = {"min_neighbours": 0} if args.no_propagation else {}
+    res = dr.sweep(scenes, backend=b, device=dev, model_options=mo, **opts)
+    out = {"backend": b, "motion_options": mo, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ, "robot_speed_limit_mps": dr.ROBOT_SPEED,
            "real_scenes": res["scenes"], "real_rows": res["rows"],
            "real_held_speed_mps": dr.held_speeds(res["rows"], proxy_mm=0.5, robot_mm=1.0),
            "real_no_popthrough_speed_mps": dr.held_speeds(res["rows"], proxy_mm=float("inf"), robot_mm=float("inf"),
                                                           popped=True)}
-    out["real_estimator"] = study.estimator_table(scenes, speeds=dr.QUICK_SPEEDS, backend=b, device=dev)
+    est = dict(speeds=(0.3,), motions=("toward",)) if args.quick else dict(speeds=(0.3, 1.0))
+    out["real_estimator"] = study.estimator_table(scenes, backend=b, device=dev, model=MotionModel(enabled=True, **mo),
+                                                  **est)
     if not (args.frames or args.quick or args.no_rig):
         from pointfence.service.dynamic_real_rig import rig_figures  # the real rig (another module's owner)
 

@@ -39,7 +39,7 @@ ROBOT_SPEED = 0.5  # m/s, the point-mass robot's rate limit
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: the real recordings the evaluation uses by default (../shared/data)
 REAL_SCENES = ("apc_shelfbin_50f", "7scenes_kitchen_50f")
-SPEEDS = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5)
+SPEEDS = (0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 1.5)
 QUICK_SPEEDS = (0.1, 0.3)
 RADII = (0.01, 0.02)
 #: (motion, master) cases of the sweep

@@ -17,7 +17,8 @@ into the camera with a depth test (the nearest point per pixel wins), quantised 
 recording was: the real holes, clutter, edges and quantisation move with the scene, and the
 re-projection adds the holes a moving scene opens.
 
-The true surface is the real depth image with its small holes filled (nearest valid pixel
+Only the scene within ``KEEP`` of the contact point (and what is nearer the camera than it) is
+kept: the evaluation's workspace lies within. The true surface is the real depth image with its small holes filled (nearest valid pixel
 within ``FILL_PX`` pixels: the warping-hole grid of a registered image) and sampled at twice
 the image resolution (bilinear within each 2 x 2 block of pixels whose depths agree within
 ``JUMP`` of their depth; depth steps are edges, not surface). Its distance to a point q at t is
@@ -45,6 +46,9 @@ FILL_PX = 3
 JUMP = 0.02
 #: hinge of the rocking motion: this far (m) from the anchor along the camera's +x axis
 HINGE = 0.1
+#: the scene kept around the contact point (m): the true surface and the moving cloud beyond it
+#: (the evaluation's workspace lies within) are left out, except what is nearer the camera
+KEEP = 0.3
 MOTIONS = ("toward", "sideways", "rocking")
 
 
@@ -144,7 +148,7 @@ class MovingRealFrame:
     """One real depth image moving by ``Motion``; ``render(t)`` is the frame the camera sees
     at t, ``distance(q, t)`` the signed distance (m) of points q (N, 3) to the true surface."""
 
-    def __init__(self, depth: np.ndarray, cam: Camera, name: str = "real"):
+    def __init__(self, depth: np.ndarray, cam: Camera, name: str = "real", keep: float = KEEP):
         from scipy.spatial import cKDTree
 
         self.cam = cam
@@ -157,12 +161,23 @@ class MovingRealFrame:
         ok = z > 0
         if np.count_nonzero(ok) < 100:
             raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
-        self.cloud = deproject(z[ok], cam, u[ok], v[ok])
-        self.filled = fill_holes(z)
-        self.tree = cKDTree(dense_surface(self.filled, cam))
         self.valid_fraction = float(np.mean(ok))
+        self.filled = fill_holes(z)
+        self.contact = self._find_anchor()
+        cloud = deproject(z[ok], cam, u[ok], v[ok])
+        self.cloud = cloud[self._kept(cloud, keep)]
+        dense = dense_surface(self.filled, cam)
+        self.tree = cKDTree(dense[np.linalg.norm(dense - self.contact, axis=1) < keep])
 
-    def anchor(self, window: int = 30) -> np.ndarray:
+    def _kept(self, p: np.ndarray, keep: float) -> np.ndarray:
+        """Points within ``keep`` of the contact point or nearer the camera than it (occluders)."""
+        return (np.linalg.norm(p - self.contact, axis=1) < keep) | (p[:, 2] < self.contact[2])
+
+    def anchor(self) -> np.ndarray:
+        """The contact point (camera frame, m; see ``_find_anchor``)."""
+        return self.contact.copy()
+
+    def _find_anchor(self, window: int = 30) -> np.ndarray:
         """A contact point near the image centre (camera frame, m): the valid pixel closest to
         the principal point whose filled neighbourhood (``window`` px each side) is at least
         90 % valid and one surface (no step over ``JUMP`` of the depth between neighbours)."""
@@ -188,7 +203,7 @@ class MovingRealFrame:
     def render(self, motion: Motion, t: float, seq: int) -> DepthFrame:
         """The frame (uint16 mm, stamped t) the camera sees of the scene moved to time t."""
         R, c = motion.pose(t)
-        p = self.cloud @ R.T + c
+        p = np.einsum("ij,kj->ik", self.cloud, R) + c
         cam = self.cam
         front = p[:, 2] > cam.z_min
         p = p[front]
@@ -196,12 +211,15 @@ class MovingRealFrame:
         v = np.rint(p[:, 1] / p[:, 2] * cam.fy + cam.cy).astype(np.int64)
         inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
         lin = v[inside] * cam.width + u[inside]
-        code = np.rint(p[inside, 2] / cam.depth_scale)
-        img = np.full(cam.width * cam.height, np.inf)
-        np.minimum.at(img, lin, code)
-        img[~np.isfinite(img)] = 0
-        img = np.clip(img, 0, min(cam.max_code, 65535) - 1).astype(np.uint16).reshape(cam.height, cam.width)
-        return DepthFrame(cam.name, img, float(t), int(seq))
+        code = np.clip(np.rint(p[inside, 2] / cam.depth_scale), 1, min(cam.max_code, 65535) - 1)
+        key = lin * 65536 + code.astype(np.int64)
+        key.sort()                                # per pixel, nearest first
+        lin, code = key >> 16, key & 0xFFFF
+        first = np.ones(lin.size, bool)
+        first[1:] = lin[1:] != lin[:-1]
+        img = np.zeros(cam.width * cam.height, np.uint16)
+        img[lin[first]] = code[first]
+        return DepthFrame(cam.name, img.reshape(cam.height, cam.width), float(t), int(seq))
 
     def distance(self, motion: Motion, q, t: float) -> np.ndarray:
         """Signed distance (N,) m of points q (N, 3, camera frame) to the true surface at t."""
