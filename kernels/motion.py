@@ -234,7 +234,8 @@ class MotionEstimator:
 
     def summary(self) -> dict:
         """The last estimate's cells (occupied motion cells measured / propagated / without an
-        estimate) and measured speeds (max, median, m/s); computed in ``update``."""
+        estimate, and why not measured) and measured speeds (max, median, m/s); computed in
+        ``update``."""
         return dict(self._summary)
 
     def update(self, moments: np.ndarray, t: float):
@@ -264,6 +265,7 @@ class MotionEstimator:
             c = np.stack([occ % nx, (occ // nx) % ny, occ // (nx * ny)], axis=1)
             upper = np.asarray(self.dims)
             todo = np.ones(occ.size, bool)
+            few = np.zeros(occ.size, bool)      # at the largest block: too few points (else counts disagree)
             for r in range(1, self.max_block + 1):
                 sel = np.flatnonzero(todo)
                 if not sel.size:
@@ -272,8 +274,9 @@ class MotionEstimator:
                 hi = np.minimum(c[sel] + r + 1, upper)
                 b1, b0 = _block(sat, lo, hi), _block(prev[1], lo, hi)
                 n1, n0 = b1[:, 0], b0[:, 0]
-                ok = (n1 >= m.min_points) & (n0 >= m.min_points)
-                ok &= (n1 <= m.count_ratio * n0) & (n0 <= m.count_ratio * n1)
+                enough = (n1 >= m.min_points) & (n0 >= m.min_points)
+                ok = enough & (n1 <= m.count_ratio * n0) & (n0 <= m.count_ratio * n1)
+                few[sel] = ~enough
                 good = sel[ok]
                 vc[good] = _normal_flow(b1[ok], b0[ok], gap, m.planarity)
                 todo[good] = False
@@ -286,6 +289,9 @@ class MotionEstimator:
             vc[np.linalg.norm(vc, axis=1) < m.v_min] = 0.0
             self.state[occ] = state
             self._summary = _summary(state, np.linalg.norm(vc[state == CELL_MEASURED], axis=1))
+            self._summary.update(rejected_few_points=int(np.count_nonzero(todo & few)),
+                                 rejected_counts=int(np.count_nonzero(todo & ~few)),
+                                 rejected_v_max=int(np.count_nonzero(~todo & (speed > m.v_max))))
         v = np.zeros((moments.shape[0], 3), np.float32)
         v[fine] = vc[np.searchsorted(occ, self._coarse[fine])]
         vmax = float(np.max(np.linalg.norm(vc, axis=1), initial=0.0))
@@ -317,12 +323,16 @@ class MotionEstimator:
 
 
 def _summary(state: np.ndarray, measured_speed: np.ndarray) -> dict:
-    """Counts of the occupied motion cells per state and the measured speeds (m/s)."""
+    """Counts of the occupied motion cells per state and the measured speeds (m/s); ``update``
+    adds why the unmeasured ones were not (rejected_few_points: fewer than min_points in the
+    largest block; rejected_counts: its counts disagree by more than count_ratio: an edge, a
+    hole, the surface crossing cells; rejected_v_max)."""
     return {"cells_measured": int(np.count_nonzero(state == CELL_MEASURED)),
             "cells_propagated": int(np.count_nonzero(state == CELL_PROPAGATED)),
             "cells_unknown": int(np.count_nonzero(state == CELL_NONE)),
             "speed_max_mps": round(float(np.max(measured_speed, initial=0.0)), 4),
-            "speed_median_mps": round(float(np.median(measured_speed)), 4) if measured_speed.size else 0.0}
+            "speed_median_mps": round(float(np.median(measured_speed)), 4) if measured_speed.size else 0.0,
+            "rejected_few_points": 0, "rejected_counts": 0, "rejected_v_max": 0}
 
 
 def _to_world(local: np.ndarray, corners: np.ndarray) -> np.ndarray:

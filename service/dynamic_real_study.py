@@ -9,7 +9,9 @@ prediction is off by), ``predicted_mm`` that of the predicted points (what predi
 ``now_mm`` that of the points to the surface at their own time (the floor: re-projection and
 1 mm depth codes). ``estimated`` is the share of those points with a velocity, ``measured`` the
 share whose motion cell was measured, ``propagated`` the share whose cell took its measured
-neighbours' velocity (``MotionEstimator.confidence_of``).
+neighbours' velocity (``MotionEstimator.confidence_of``); ``cells``: the medians of the
+estimator's whole-snapshot counts (``MotionEstimator.summary``: cells measured, propagated,
+unknown, and why not measured).
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ def estimator_run(surface, kind: str, speed: float, *, backend: str = "opencl", 
     snapshots of the run (after the first estimate), distances in mm."""
     a = surface.anchor()
     motion = Motion(kind, speed, tuple(a))
-    rows = []
+    rows, summaries = [], []
     dt = 1.0 / RATE_HZ
 
     def probe(hs, t):
@@ -44,6 +46,7 @@ def estimator_run(surface, kind: str, speed: float, *, backend: str = "opencl", 
             return
         pn, ve = p[near], snap.velocity[near].astype(np.float64)
         state = hs.pipeline.motion.confidence_of(snap.cell_of()[near])
+        summaries.append(hs.pipeline.motion.summary())
         rows.append((np.mean(np.linalg.norm(ve, axis=1) > 0), np.mean(state == CELL_MEASURED),
                      np.mean(state == CELL_PROPAGATED),
                      np.median(np.abs(surface.distance(motion, pn, t))),
@@ -58,7 +61,8 @@ def estimator_run(surface, kind: str, speed: float, *, backend: str = "opencl", 
     m = np.median(np.asarray(rows), axis=0)
     return {"snapshots": len(rows), "estimated": round(float(m[0]), 3), "measured": round(float(m[1]), 3),
             "propagated": round(float(m[2]), 3), "now_mm": round(float(m[3]) * 1e3, 2),
-            "static_mm": round(float(m[4]) * 1e3, 2), "predicted_mm": round(float(m[5]) * 1e3, 2)}
+            "static_mm": round(float(m[4]) * 1e3, 2), "predicted_mm": round(float(m[5]) * 1e3, 2),
+            "cells": {k: int(np.median([s[k] for s in summaries])) for k in summaries[0] if k.startswith(("cells_", "rejected_"))}}
 
 
 def estimator_table(scenes, *, speeds=(0.1, 0.3), motions=MOTIONS, **options) -> list:
