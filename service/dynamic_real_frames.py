@@ -18,15 +18,13 @@ recording was: the real holes, clutter, edges and quantisation move with the sce
 re-projection adds the holes a moving scene opens.
 
 Only the scene within ``KEEP`` of the contact point (and what is nearer the camera than it) is
-kept: the evaluation's workspace lies within. The true surface is the real depth image with its small holes filled (nearest valid pixel
-within ``FILL_PX`` pixels: the warping-hole grid of a registered image) and sampled at twice
-the image resolution (bilinear within each 2 x 2 block of pixels whose depths agree within
-``JUMP`` of their depth; depth steps are edges, not surface). Its distance to a point q at t is
-that of R(t)^T (q - c(t)) to the samples at t = 0 (one KD-tree for the whole run), sampled
-finely enough that the distance is within about a quarter of a pixel footprint
-(0.16 mm at 0.4 m) of the continuous surface's. The sign is negative behind the surface: further along the camera's ray than the nearest
-surface point (a surface the camera sees faces it; a foreground object between the camera and
-the point does not make it "behind").
+kept: the evaluation's workspace lies within. The true surface is the real depth image with its small holes filled
+(nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
+triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
+within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
+point q at t is the exact distance of R(t)^T (q - c(t)) to that mesh at t = 0, negative behind
+it (further along the camera's ray than the closest surface point: a foreground object between
+the camera and the point does not make it "behind").
 """
 from __future__ import annotations
 
@@ -39,6 +37,8 @@ import numpy as np
 from pointfence.kernels.camera import Camera
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
+
+from .depth_mesh import MeshDistance, depth_triangles
 
 #: pixels a hole is filled across for the true surface
 FILL_PX = 3
@@ -88,23 +88,6 @@ def fill_holes(depth_m: np.ndarray, px: int = FILL_PX) -> np.ndarray:
     return out
 
 
-def dense_surface(filled: np.ndarray, cam: Camera, jump: float = JUMP) -> np.ndarray:
-    """Points (N, 3) sampling the filled depth map (m) at half-pixel steps: the pixel centres
-    and the bilinear mid-points of every 2 x 2 block of valid pixels that is one surface."""
-    z = filled
-    h, w = z.shape
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    ok = z > 0
-    pts = [deproject(z[ok], cam, u[ok], v[ok])]
-    a, b, c, d = z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]
-    q = np.stack([a, b, c, d])
-    blk = (q > 0).all(0) & (q.max(0) - q.min(0) <= jump * q.max(0))
-    for du, dv, zz in ((0.5, 0.0, (a + b) / 2), (0.0, 0.5, (a + c) / 2), (0.5, 0.5, (a + b + c + d) / 4)):
-        uu, vv = u[:-1, :-1][blk] + du, v[:-1, :-1][blk] + dv
-        pts.append(deproject(zz[blk], cam, uu, vv))
-    return np.concatenate(pts)
-
-
 @dataclass(frozen=True)
 class Motion:
     """A rigid motion of the scene at constant speed: kind (``MOTIONS``), the anchor's speed
@@ -149,8 +132,6 @@ class MovingRealFrame:
     at t, ``distance(q, t)`` the signed distance (m) of points q (N, 3) to the true surface."""
 
     def __init__(self, depth: np.ndarray, cam: Camera, name: str = "real", keep: float = KEEP):
-        from scipy.spatial import cKDTree
-
         self.cam = cam
         self.name = name
         z = np.asarray(depth, np.float64) * cam.depth_scale
@@ -166,8 +147,8 @@ class MovingRealFrame:
         self.contact = self._find_anchor()
         cloud = deproject(z[ok], cam, u[ok], v[ok])
         self.cloud = cloud[self._kept(cloud, keep)]
-        dense = dense_surface(self.filled, cam)
-        self.tree = cKDTree(dense[np.linalg.norm(dense - self.contact, axis=1) < keep])
+        tris = depth_triangles(self.filled, cam, JUMP)
+        self.mesh = MeshDistance(tris[np.linalg.norm(tris.mean(1) - self.contact, axis=1) < keep])
 
     def _kept(self, p: np.ndarray, keep: float) -> np.ndarray:
         """Points within ``keep`` of the contact point or nearer the camera than it (occluders)."""
@@ -225,9 +206,4 @@ class MovingRealFrame:
         """Signed distance (N,) m of points q (N, 3, camera frame) to the true surface at t."""
         R, c = motion.pose(t)
         q0 = (np.asarray(q, np.float64).reshape(-1, 3) - c) @ R  # R^T (q - c), row-wise
-        d, i = self.tree.query(q0)
-        s = self.tree.data[i]
-        # behind: further along the camera's ray than the nearest surface point (the surfaces a
-        # camera sees face it, so this is the far side of the surface's tangent plane there)
-        behind = np.einsum("ij,ij->i", q0 - s, s) > 0
-        return np.where(behind, -d, d)
+        return self.mesh.signed(q0)
