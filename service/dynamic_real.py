@@ -12,8 +12,8 @@ robot follows the proxy) is held against it at 1 kHz:
 The robot is a point mass following the proxy at up to ``ROBOT_SPEED``. At every tick the
 proxy's and the robot's penetration of the forbidden region (r_f around the true surface at
 that tick's exact time) is measured against it: r_f - d, d the exact signed distance to the
-triangulated real surface (``dynamic_real_frames``, ``depth_mesh``). The same loop runs the synthetic translating plane of
-``dynamic_scenes`` (analytic distance) so both sit in one table.
+triangulated real surface (``dynamic_real_frames``, ``depth_mesh``). The same loop runs the
+synthetic translating plane of ``dynamic_scenes`` (analytic distance) so both sit in one table.
 
 Time: tick k at t0 + k / 1000 s; frame seq captured at seq / 30 s and ingested, stamped with
 its capture time, at the first tick at or after it (no latency: ``MotionModel.latency`` = 0).

@@ -18,8 +18,8 @@ recording was: the real holes, clutter, edges and quantisation move with the sce
 re-projection adds the holes a moving scene opens.
 
 Only the scene within ``KEEP`` of the contact point (and what is nearer the camera than it) is
-kept: the evaluation's workspace lies within. The true surface is the real depth image with its small holes filled
-(nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
+kept: the evaluation's workspace lies within. The true surface is the real depth image with its
+small holes filled (nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
 triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
 within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
 point q at t is the exact distance of R(t)^T (q - c(t)) to that mesh at t = 0, negative behind
