@@ -62,7 +62,8 @@ def run_real(args) -> dict:
     opts = dict(speeds=dr.QUICK_SPEEDS, radii=(0.01,), cases=(("toward", "hold"),)) if args.quick else {}
     mo = {"min_neighbours": 0} if args.no_propagation else {}
     res = dr.sweep(scenes, backend=b, device=dev, model_options=mo, **opts)
-    out = {"backend": b, "motion_options": mo, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ, "robot_speed_limit_mps": dr.ROBOT_SPEED,
+    out = {"backend": b, "motion_options": mo, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ,
+           "robot_speed_limit_mps": dr.ROBOT_SPEED,
            "real_scenes": res["scenes"], "real_rows": res["rows"],
            "real_held_speed_mps": dr.held_speeds(res["rows"], proxy_mm=0.5, robot_mm=1.0),
            "real_no_popthrough_speed_mps": dr.held_speeds(res["rows"], proxy_mm=float("inf"), robot_mm=float("inf"),

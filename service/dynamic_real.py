@@ -219,7 +219,8 @@ def held_speeds(rows: list, proxy_mm: float, robot_mm: float, popped: bool = Fal
         for key, rs in groups.items():
             held = None
             for r in sorted(rs, key=lambda r: r["speed_mps"]):
-                if r[f"proxy_mm_{tag}"] > proxy_mm or r[f"robot_mm_{tag}"] > robot_mm or (popped and r[f"popped_{tag}"]):
+                over = r[f"proxy_mm_{tag}"] > proxy_mm or r[f"robot_mm_{tag}"] > robot_mm
+                if over or (popped and r[f"popped_{tag}"]):
                     break
                 held = r["speed_mps"]
             out[f"{key[0]}/{key[1]}/{key[2]}/r_f {key[3]:g} mm/{tag} prediction"] = held

@@ -62,7 +62,8 @@ def estimator_run(surface, kind: str, speed: float, *, backend: str = "opencl", 
     return {"snapshots": len(rows), "estimated": round(float(m[0]), 3), "measured": round(float(m[1]), 3),
             "propagated": round(float(m[2]), 3), "now_mm": round(float(m[3]) * 1e3, 2),
             "static_mm": round(float(m[4]) * 1e3, 2), "predicted_mm": round(float(m[5]) * 1e3, 2),
-            "cells": {k: int(np.median([s[k] for s in summaries])) for k in summaries[0] if k.startswith(("cells_", "rejected_"))}}
+            "cells": {k: int(np.median([s[k] for s in summaries]))
+                      for k in summaries[0] if k.startswith(("cells_", "rejected_"))}}
 
 
 def estimator_table(scenes, *, speeds=(0.1, 0.3), motions=MOTIONS, **options) -> list:
