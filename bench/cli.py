@@ -18,7 +18,7 @@ BENCHES = {
     "loop": "the live 1 kHz haptic loop on a synthetic scene: tick compute and lateness p50/p99, deadline misses, 1 and 4 proxies",
     "e2e": "one client at 1 kHz over loopback against a live `serve` process: rtt_us p50/p99, loss_ratio, rejected counts (--duration, default 60 s)",
     "fuzz": "random and mutated datagrams (default 1,000,000) through the service's packet handler: no crash, no accepted forgery",
-    "dynamic": "chapter 6 in simulated time: pop-through speed with/without motion prediction (30 Hz, 2 cm fixture; 100 ms latency; 5 mm proxy), tool-shadow occlusion under architecture III with 1 vs 2 cameras, robot self-filter, fixed vs adaptive radius study (--study DIR writes table, CSV, plot)",
+    "dynamic": "chapter 6 in simulated time: pop-through speed with/without motion prediction (30 Hz, 2 cm fixture; 100 ms latency; 5 mm proxy), tool-shadow occlusion under architecture III with 1 vs 2 cameras, robot self-filter, fixed vs adaptive radius study (--study DIR writes table, CSV, plot); --real: the same on real depth frames moved at known speeds (penetration of proxy and robot against the true surface, estimator vs true motion)",
     "soak": "the live service at 1 kHz under every injected fault kind (faults, attacks, operator actions), each judged against SAFETY.md on its streamed recording (--minutes, default: every fault once)",
     "ros2": "the ROS 2 path on loopback: camera-node -> ros2: camera latency and dropped frames, CRTK master and arm, servo_cp round trip at 1 kHz; the loop's misses and lateness with ROS on and off in the same call",
     "stress": "raise proxies and cameras until the 1 kHz tick (p99 <= 1 ms) or the 30 Hz ingest (p99 <= 33 ms) no longer fits",

@@ -13,6 +13,16 @@ the machine:
   self-filter / without it;
 * the adaptive radius study (fixed vs adaptive r_f over distance, noise, systematic error):
   rows in ``radius_study``; ``--study DIR`` also writes the table, CSV and plot there.
+
+``--real`` runs chapter 6 on real depth frames instead (``service/dynamic_real.py``): real
+frames (../shared/data's apc_shelfbin_50f and 7scenes_kitchen_50f, or ``--frames DIR``, repeatable)
+moved toward the camera, sideways and rocking at known speeds, architecture III with a
+point-mass robot, 1 and 2 cm fixtures; per scene / motion / master / r_f / speed the proxy's
+and the robot's max penetration of the forbidden region (mm, against the true surface at every
+tick) without and with prediction, the synthetic plane beside them (``real_rows``); the fastest
+speeds held to the issue-23 targets (``real_held_speed_mps``); the motion estimator against the
+true velocity (``real_estimator``); and the real-rig figures (occlusion, fused rig, radius study)
+of ``service/dynamic_real_rig.py`` (``real_rig``). ``--quick``: two speeds, one scene, seconds.
 """
 from __future__ import annotations
 
@@ -24,13 +34,53 @@ def add_arguments(p):
                    help="write the adaptive radius study (radius_study.md/.csv/.png) into DIR")
     p.add_argument("--no-study", action="store_true", help="skip the adaptive radius study (about 15 s)")
     p.add_argument("--latency", type=float, default=0.1, help="camera latency T of the latency runs, s (default 0.1)")
+    p.add_argument("--real", action="store_true",
+                   help="chapter 6 on real depth frames moved at known speeds (service/dynamic_real.py)")
+    p.add_argument("--frames", action="append", default=None, metavar="DIR",
+                   help="with --real: a recording (directory of 16-bit depth images + intrinsics, or a name in "
+                        "../shared/data) to move instead of the default two; repeatable")
+    p.add_argument("--no-rig", action="store_true",
+                   help="with --real: skip the real-rig figures (occlusion, fused rig, radius study)")
+    p.add_argument("--no-propagation", action="store_true",
+                   help="with --real: the estimator without neighbour propagation (min_neighbours = 0), to compare")
+    p.add_argument("--quick", action="store_true",
+                   help="with --real: a short sweep (one scene, 0.1 and 0.3 m/s, toward the camera), seconds")
 
 
 def _speed(predict, backend, device, **kw):
     return ds.popthrough_speed(predict, backend=backend, device=device, **kw)
 
 
+def run_real(args) -> dict:
+    """The ``--real`` figures (see the module docstring)."""
+    from pointfence.kernels.motion import MotionModel
+    from pointfence.service import dynamic_real as dr
+    from pointfence.service import dynamic_real_study as study
+
+    b, dev = args.backend, args.device
+    scenes = tuple(args.frames) if args.frames else dr.REAL_SCENES[:1] if args.quick else dr.REAL_SCENES
+    opts = dict(speeds=dr.QUICK_SPEEDS, radii=(0.01,), cases=(("toward", "hold"),)) if args.quick else {}
+    mo = {"min_neighbours": 0} if args.no_propagation else {}
+    res = dr.sweep(scenes, backend=b, device=dev, model_options=mo, **opts)
+    out = {"backend": b, "motion_options": mo, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ,
+           "robot_speed_limit_mps": dr.ROBOT_SPEED,
+           "real_scenes": res["scenes"], "real_rows": res["rows"],
+           "real_held_speed_mps": dr.held_speeds(res["rows"], proxy_mm=0.5, robot_mm=1.0),
+           "real_no_popthrough_speed_mps": dr.held_speeds(res["rows"], proxy_mm=float("inf"), robot_mm=float("inf"),
+                                                          popped=True)}
+    est = dict(speeds=(0.3,), motions=("toward",)) if args.quick else dict(speeds=(0.3, 1.0))
+    out["real_estimator"] = study.estimator_table(scenes, backend=b, device=dev, model=MotionModel(enabled=True, **mo),
+                                                  **est)
+    if not (args.frames or args.quick or args.no_rig):
+        from pointfence.service.dynamic_real_rig import rig_figures  # the real two-camera rig, real noise
+
+        out["real_rig"] = rig_figures(b, dev)
+    return out
+
+
 def run(args) -> dict:
+    if args.real:
+        return run_real(args)
     b, dev = args.backend, args.device
     out = {"backend": b, "frame_rate_hz": ds.RATE_HZ, "tick_rate_hz": ds.TICK_HZ, "fixture_radius_m": 0.02,
            "speeds_tried_mps": list(ds.SPEEDS)}

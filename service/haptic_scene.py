@@ -268,6 +268,8 @@ class HapticScene:
             st["frames"] = self.feeder.status(now)
         st["self_filter"] = ({"on": False, "why": self.self_filter_off} if self.frame_filter is None
                              else {"on": True, **self.frame_filter.status()})
+        if self.pipeline.params.motion.enabled:  # per-cell velocities of the last snapshot (kernels/motion.py)
+            st["motion"] = self.pipeline.motion.summary()
         return st
 
 

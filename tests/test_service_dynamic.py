@@ -114,7 +114,7 @@ def test_motion_table_and_self_filter_keys(tmp_path):
 def test_prediction_holds_the_fixture_on_a_plane_rising_at_half_a_metre_per_second(tmp_path):
     on_cfg = plane_config(tmp_path, "[motion]\nenabled = true\n")
     svc, on = plane_run(on_cfg)
-    _, off = plane_run(plane_config(tmp_path, ""))
+    svc_off, off = plane_run(plane_config(tmp_path, ""))
     print(f"penetration mm, with prediction: proxy {on['proxy_mm']:.2f} robot {on['robot_mm']:.2f}; "
           f"without: proxy {off['proxy_mm']:.2f} robot {off['robot_mm']:.2f}")
     # the ticks predicted: the frame time is the loop time (frames arrive at their timestamps) and
@@ -129,6 +129,12 @@ def test_prediction_holds_the_fixture_on_a_plane_rising_at_half_a_metre_per_seco
     assert off["proxy_mm"] > 10.0 and off["robot_mm"] > 10.0
     # and the robot rode up with the plane (it was in contact all along)
     assert rows[-1, 9] > 0.1 + 0.02 - 0.005
+    # the status shows the last snapshot's per-cell velocities: the plane's cells measured at its
+    # speed (kernels/motion.py summary); none without prediction
+    st = svc.status()["motion"]
+    assert st["cells_measured"] > 0 and abs(st["speed_median_mps"] - 0.5) < 0.05, st
+    assert st["cells_measured"] >= st["cells_propagated"] + st["cells_unknown"], st
+    assert "motion" not in svc_off.status()
 
 
 @needs_opencl

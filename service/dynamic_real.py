@@ -1,0 +1,227 @@
+"""Motion prediction on real depth frames (dissertation ch. 6, issue 23), in simulated time.
+
+A real frame is moved at a known speed (``dynamic_real_frames``: toward the camera, sideways,
+rocking), seen at 30 Hz, while a fixture proxy (architecture III: the HIP is the master, the
+robot follows the proxy) is held against it at 1 kHz:
+
+* ``hold``: the master holds still ``r_f + 1 cm`` in front of the surface's start (the surface
+  then advances r_f + 2 cm, or at least 4 frames, and pushes the proxy back);
+* ``push``: the master pushes 2 cm into the surface and follows the point it pushes (a
+  surgeon pressing on a moving organ): the proxy rides the moving fixture's boundary.
+
+The robot is a point mass following the proxy at up to ``ROBOT_SPEED``. At every tick the
+proxy's and the robot's penetration of the forbidden region (r_f around the true surface at
+that tick's exact time) is measured against it: r_f - d, d the exact signed distance to the
+triangulated real surface (``dynamic_real_frames``, ``depth_mesh``). The same loop runs the
+synthetic translating plane of ``dynamic_scenes`` (analytic distance) so both sit in one table.
+
+Time: tick k at t0 + k / 1000 s; frame seq captured at seq / 30 s and ingested, stamped with
+its capture time, at the first tick at or after it (no latency: ``MotionModel.latency`` = 0).
+No wall clock anywhere: the figures do not depend on the machine.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pointfence.kernels import DepthFrame, PipelineParams, RadiusModel, Workspace
+from pointfence.kernels.errors import InputError
+from pointfence.kernels.haptics import HapticParams, HapticScene, haptic_pipeline_params
+from pointfence.kernels.motion import MotionModel
+
+from .dynamic_real_frames import Motion, MovingRealFrame, load_real
+
+RATE_HZ = 30.0
+TICK_HZ = 1000.0
+ROBOT_SPEED = 0.5  # m/s, the point-mass robot's rate limit
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: the real recordings the evaluation uses by default (../shared/data)
+REAL_SCENES = ("apc_shelfbin_50f", "7scenes_kitchen_50f")
+SPEEDS = (0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 1.5)
+QUICK_SPEEDS = (0.1, 0.3)
+RADII = (0.01, 0.02)
+#: (motion, master) cases of the sweep
+CASES = (("toward", "hold"), ("toward", "push"), ("sideways", "push"), ("rocking", "push"))
+
+
+@dataclass
+class RealRun:
+    """Outcome of one run: max penetrations of the forbidden region (m), and of its surface."""
+
+    proxy_penetration: float
+    robot_penetration: float
+    proxy_popped: bool      # the proxy centre went behind the true surface
+    ticks: int
+    frames: int
+
+
+class _PlaneSurface:
+    """The synthetic translating plane of ``dynamic_scenes`` (Kinect noise, holes) behind the
+    same interface as ``MovingRealFrame``: camera, render, distance, anchor, approach."""
+
+    name = "synthetic_plane"
+
+    def __init__(self, speed: float, seed: int = 0):
+        from pointfence.service.sources import SyntheticSource, default_camera
+
+        self.cam = default_camera("cam0", eye=(0.0, 0.0, 0.5), width=160, height=120)
+        self.src = SyntheticSource("translating_plane", self.cam, speed=speed, travel=0.0, position=(0.0, 0.0, -0.1),
+                                   quantize=False, rate_hz=RATE_HZ, seed=seed)
+        self.seed = seed
+
+    def anchor(self):
+        return np.array([0.0, 0.0, -0.1])
+
+    def anchor_at(self, t):
+        return np.asarray(self.src.scene.anchor(t), np.float64)
+
+    def approach(self, anchor):
+        return np.array([0.0, 0.0, 1.0])
+
+    def render(self, motion, t, seq):
+        depth, _, _ = self.src.render(t, np.random.default_rng([self.seed, seq]))
+        return DepthFrame(self.cam.name, depth, float(t), int(seq))
+
+    def distance(self, motion, q, t):
+        return self.src.scene.distance(np.asarray(q, np.float64).reshape(-1, 3), t)
+
+
+def _approach(anchor) -> np.ndarray:
+    """Unit vector from a real surface point toward the camera (the camera frame's origin)."""
+    a = np.asarray(anchor, np.float64)
+    return -a / np.linalg.norm(a)
+
+
+def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f: float = 0.01, master: str = "hold",
+             backend: str = "opencl", device: str | None = None, model: MotionModel | None = None,
+             probe=None) -> RealRun:
+    """One run of the loop in the module docstring on ``surface`` (a ``MovingRealFrame`` with
+    ``motion``, or the synthetic plane with motion None). ``model``: the motion model (default:
+    ``MotionModel(enabled=predict)``). ``probe(hs, t)``: called after every ingest (the
+    estimator study reads the snapshot there)."""
+    if master not in ("hold", "push"):
+        raise InputError(f"master = {master!r}; expected 'hold' or 'push'")
+    anchor = np.asarray(surface.anchor(), np.float64)
+    n = surface.approach(anchor) if motion is None else _approach(anchor)
+    travel = r_f + 0.02  # the hold case's advance past the master: r_f + 1 cm of push
+    duration = max(travel / max(speed, 1e-9), 4 / RATE_HZ)
+    if model is None:
+        model = MotionModel(enabled=bool(predict))
+    lo, hi = np.minimum(anchor, anchor + n * 0.3), np.maximum(anchor, anchor + n * 0.3)
+    reach = 0.1 + (speed * duration if motion is not None and motion.kind != "toward" else 0.0)
+    lo, hi = lo - reach, hi + reach
+    if motion is not None and motion.kind != "sideways":
+        lo[2] -= speed * duration + 0.05
+    p = HapticParams(mode="fixture")
+    pp = haptic_pipeline_params(p, PipelineParams(workspace=Workspace(tuple(lo), tuple(hi)),
+                                                  radius=RadiusModel(r_base=r_f, r_max=r_f), motion=model))
+    t0 = 1 / RATE_HZ  # the proxy engages at frame 1, where the surface is then
+
+    def moved(x, t):
+        if motion is None:
+            return x + surface.anchor_at(t) - anchor
+        R, c = motion.pose(t)
+        return R @ x + c
+
+    start = moved(anchor + n * (r_f + p.band / 2 + 1e-3), t0)
+    hold = moved(anchor + n * (r_f + 0.01), t0)
+    pushed = anchor - n * 0.02
+    hs = HapticScene([surface.cam], [start], p, pp, backend=backend, device=device)
+
+    def ingest(seq):
+        hs.ingest([surface.render(motion, seq / RATE_HZ, seq)])
+        if probe is not None:
+            probe(hs, seq / RATE_HZ)
+
+    # the camera watches the moving scene for one frame before the proxy engages
+    ingest(0)
+    ingest(1)
+    seq, frames = 1, 2
+    for _ in range(40):
+        hs.step([start], now=t0)
+    xr = hs.proxies[0].astype(np.float64).copy()
+    step = ROBOT_SPEED / TICK_HZ
+    worst_p = worst_r = -np.inf
+    popped = False
+    n_ticks = int(round(duration * TICK_HZ))
+    for k in range(n_ticks):
+        t = t0 + k / TICK_HZ
+        avail = int(np.floor(t * RATE_HZ + 1e-9))
+        if avail != seq:
+            seq = avail
+            ingest(seq)
+            frames += 1
+        hs.step([hold if master == "hold" else moved(pushed, t)], now=t)
+        goal = hs.proxies[0].astype(np.float64)
+        d = goal - xr
+        dn = float(np.linalg.norm(d))
+        xr = goal if dn <= step else xr + d * (step / dn)
+        dp, dr = surface.distance(motion, np.stack([goal, xr]), t)
+        worst_p, worst_r = max(worst_p, r_f - dp), max(worst_r, r_f - dr)
+        popped |= bool(dp < 0)
+    return RealRun(max(worst_p, 0.0), max(worst_r, 0.0), popped, n_ticks, frames)
+
+
+def real_surface(frames) -> MovingRealFrame:
+    """The ``MovingRealFrame`` of a recording: a name in ../shared/data or a path."""
+    path = Path(frames)
+    if not path.exists() and (DATA / str(frames)).exists():
+        path = DATA / str(frames)
+    depth, cam = load_real(path)
+    return MovingRealFrame(depth, cam, name=path.name)
+
+
+def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backend: str = "opencl",
+          device: str | None = None, synthetic: bool = True, model_options: dict | None = None) -> dict:
+    """Every scene x case x r_f x speed, with and without prediction. Returns {"rows": [...],
+    "scenes": {name: {valid_fraction, anchor_depth_m}}}; a row: scene, motion, master, r_f_mm,
+    speed_mps, and proxy/robot max penetration (mm) and proxy popped, without and with prediction.
+    ``synthetic``: add the synthetic plane (toward, hold and push) for comparison.
+    ``model_options``: MotionModel fields for the prediction runs (besides enabled)."""
+    rows, info = [], {}
+    mo = dict(model_options or {})
+    targets = [(real_surface(s), s) for s in scenes]
+    for surf, label in targets:
+        a = surf.anchor()
+        info[surf.name] = {"valid_fraction": round(surf.valid_fraction, 3), "anchor_depth_m": round(float(a[2]), 3),
+                           "source": str(label)}
+    jobs = [(surf, kind, master) for surf, _ in targets for kind, master in cases]
+    if synthetic:
+        jobs += [(None, "toward", m) for m in sorted({m for k, m in cases if k == "toward"})]
+    for surf, kind, master in jobs:
+        for r_f in radii:
+            for v in speeds:
+                row = {"scene": surf.name if surf is not None else _PlaneSurface.name, "motion": kind,
+                       "master": master, "r_f_mm": round(r_f * 1e3, 1), "speed_mps": v}
+                for tag, predict in (("without", False), ("with", True)):
+                    s = surf if surf is not None else _PlaneSurface(v)
+                    motion = Motion(kind, v, tuple(s.anchor())) if surf is not None else None
+                    model = MotionModel(enabled=predict, **(mo if predict else {}))
+                    r = run_case(s, motion, v, predict, r_f=r_f, master=master, backend=backend, device=device,
+                                 model=model)
+                    row[f"proxy_mm_{tag}"] = round(r.proxy_penetration * 1e3, 2)
+                    row[f"robot_mm_{tag}"] = round(r.robot_penetration * 1e3, 2)
+                    row[f"popped_{tag}"] = r.proxy_popped
+                rows.append(row)
+    return {"rows": rows, "scenes": info}
+
+
+def held_speeds(rows: list, proxy_mm: float, robot_mm: float, popped: bool = False) -> dict:
+    """Per (scene, motion, master, r_f, prediction): the fastest speed up to which every run kept
+    the proxy within ``proxy_mm`` and the robot within ``robot_mm`` of penetration (and, with
+    ``popped``, the proxy centre in front of the true surface); None: not even the slowest."""
+    groups, out = {}, {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["motion"], r["master"], r["r_f_mm"]), []).append(r)
+    for tag in ("without", "with"):
+        for key, rs in groups.items():
+            held = None
+            for r in sorted(rs, key=lambda r: r["speed_mps"]):
+                over = r[f"proxy_mm_{tag}"] > proxy_mm or r[f"robot_mm_{tag}"] > robot_mm
+                if over or (popped and r[f"popped_{tag}"]):
+                    break
+                held = r["speed_mps"]
+            out[f"{key[0]}/{key[1]}/{key[2]}/r_f {key[3]:g} mm/{tag} prediction"] = held
+    return out

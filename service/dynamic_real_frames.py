@@ -1,0 +1,209 @@
+"""Real depth frames moved at a known speed, with their true surface at every instant
+(dissertation ch. 6 on real data; used by ``service/dynamic_real.py``).
+
+A real depth image (a recording's first frame, millimetres, 0 = no data) is the scene at
+t = 0, in its camera's frame (camera at the origin looking along +z, metres). The scene then
+moves rigidly, p(t) = R(t) p + c(t):
+
+* ``toward``: translated along -z (toward the camera) at ``speed``: every surface point's depth
+  drops by speed * t;
+* ``sideways``: translated along +x (parallel to the image plane) at ``speed``;
+* ``rocking``: rotated about an axis parallel to the image's y axis through a hinge ``HINGE``
+  m to the side of the anchor point (a platform rocking on a mixer, fig. 3.10), at the rate
+  that moves the anchor toward the camera at ``speed``.
+
+The frame the camera sees at t is the real cloud (its valid pixels) moved and re-projected
+into the camera with a depth test (the nearest point per pixel wins), quantised to 1 mm as the
+recording was: the real holes, clutter, edges and quantisation move with the scene, and the
+re-projection adds the holes a moving scene opens.
+
+Only the scene within ``KEEP`` of the contact point (and what is nearer the camera than it) is
+kept: the evaluation's workspace lies within. The true surface is the real depth image with its
+small holes filled (nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
+triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
+within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
+point q at t is the exact distance of R(t)^T (q - c(t)) to that mesh at t = 0, negative behind
+it (further along the camera's ray than the closest surface point: a foreground object between
+the camera and the point does not make it "behind").
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pointfence.kernels.camera import Camera
+from pointfence.kernels.errors import InputError
+from pointfence.kernels.frame import DepthFrame
+
+from .depth_mesh import MeshDistance, depth_triangles
+
+#: pixels a hole is filled across for the true surface
+FILL_PX = 3
+#: relative depth step (of the depth) that separates two surfaces (an edge) in the true surface
+JUMP = 0.02
+#: hinge of the rocking motion: this far (m) from the anchor along the camera's +x axis
+HINGE = 0.1
+#: the scene kept around the contact point (m): the true surface and the moving cloud beyond it
+#: (the evaluation's workspace lies within) are left out, except what is nearer the camera
+KEEP = 0.3
+MOTIONS = ("toward", "sideways", "rocking")
+
+
+def load_real(frames, index: int = 0) -> tuple[np.ndarray, Camera]:
+    """(depth uint16 (H, W) in mm codes, camera at the origin) of frame ``index`` of a
+    recording: a directory of 16-bit depth images with intrinsics (any layout
+    ``pointfence.service.sources.recorded`` reads: 7-Scenes, tsdf-fusion, PCL grabber) or a
+    single recording file it reads."""
+    from pointfence.service.sources.recorded import RecordedSource
+
+    path = Path(frames)
+    if not path.exists():
+        raise InputError(f"--frames {frames}: no such file or directory; give a directory of 16-bit depth images "
+                         "with their intrinsics (e.g. ../shared/data/apc_shelfbin_50f)")
+    src = RecordedSource(path, loop=False, cache=False)
+    if not 0 <= index < len(src):
+        raise InputError(f"--frames {frames}: frame {index} asked for; the recording has {len(src)} frames")
+    depth, _, _ = src.load(index)
+    return np.asarray(depth, np.uint16), src.camera.with_pose(np.eye(4))
+
+
+def deproject(depth_m: np.ndarray, cam: Camera, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3) of pixel coordinates (u, v) at depths ``depth_m`` (m)."""
+    return np.stack([(u - cam.cx) / cam.fx * depth_m, (v - cam.cy) / cam.fy * depth_m, depth_m], axis=-1)
+
+
+def fill_holes(depth_m: np.ndarray, px: int = FILL_PX) -> np.ndarray:
+    """Depth (m) with every hole within ``px`` pixels of a valid pixel given that pixel's depth."""
+    from scipy import ndimage
+
+    hole = depth_m <= 0
+    if not hole.any() or hole.all():
+        return depth_m.copy()
+    dist, (iy, ix) = ndimage.distance_transform_edt(hole, return_indices=True)
+    out = depth_m[iy, ix]
+    out[dist > px] = 0.0
+    return out
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A rigid motion of the scene at constant speed: kind (``MOTIONS``), the anchor's speed
+    (m/s), the anchor (camera frame, m)."""
+
+    kind: str
+    speed: float
+    anchor: tuple
+
+    def __post_init__(self):
+        if self.kind not in MOTIONS:
+            raise InputError(f"motion {self.kind!r}; expected one of {', '.join(MOTIONS)}")
+        if not (math.isfinite(self.speed) and self.speed >= 0):
+            raise InputError(f"motion speed = {self.speed!r}; expected a finite speed >= 0 m/s")
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(R (3, 3), c (3,)): the scene's point p is at R p + c at time t (s)."""
+        if self.kind == "toward":
+            return np.eye(3), np.array([0.0, 0.0, -self.speed * t])
+        if self.kind == "sideways":
+            return np.eye(3), np.array([self.speed * t, 0.0, 0.0])
+        a = -self.speed / HINGE * t  # about +y through the hinge: the anchor moves toward -z
+        ca, sa = math.cos(a), math.sin(a)
+        R = np.array([[ca, 0.0, sa], [0.0, 1.0, 0.0], [-sa, 0.0, ca]])
+        hinge = np.asarray(self.anchor, np.float64) + [HINGE, 0.0, 0.0]
+        return R, hinge - R @ hinge
+
+    def velocity(self, points: np.ndarray, t: float) -> np.ndarray:
+        """True velocity (N, 3) m/s of the moved scene points ``points`` (at their place at t)."""
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        if self.kind == "toward":
+            return np.broadcast_to([0.0, 0.0, -self.speed], p.shape).copy()
+        if self.kind == "sideways":
+            return np.broadcast_to([self.speed, 0.0, 0.0], p.shape).copy()
+        w = np.array([0.0, -self.speed / HINGE, 0.0])
+        hinge = np.asarray(self.anchor, np.float64) + [HINGE, 0.0, 0.0]
+        return np.cross(w, p - hinge)
+
+
+class MovingRealFrame:
+    """One real depth image moving by ``Motion``; ``render(t)`` is the frame the camera sees
+    at t, ``distance(q, t)`` the signed distance (m) of points q (N, 3) to the true surface."""
+
+    def __init__(self, depth: np.ndarray, cam: Camera, name: str = "real", keep: float = KEEP):
+        self.cam = cam
+        self.name = name
+        z = np.asarray(depth, np.float64) * cam.depth_scale
+        z[(depth >= min(cam.max_code, 65535))] = 0.0
+        self.depth_m = z
+        h, w = z.shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        ok = z > 0
+        if np.count_nonzero(ok) < 100:
+            raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
+        self.valid_fraction = float(np.mean(ok))
+        self.filled = fill_holes(z)
+        self.contact = self._find_anchor()
+        cloud = deproject(z[ok], cam, u[ok], v[ok])
+        self.cloud = cloud[self._kept(cloud, keep)]
+        tris = depth_triangles(self.filled, cam, JUMP)
+        self.mesh = MeshDistance(tris[np.linalg.norm(tris.mean(1) - self.contact, axis=1) < keep])
+
+    def _kept(self, p: np.ndarray, keep: float) -> np.ndarray:
+        """Points within ``keep`` of the contact point or nearer the camera than it (occluders)."""
+        return (np.linalg.norm(p - self.contact, axis=1) < keep) | (p[:, 2] < self.contact[2])
+
+    def anchor(self) -> np.ndarray:
+        """The contact point (camera frame, m; see ``_find_anchor``)."""
+        return self.contact.copy()
+
+    def _find_anchor(self, window: int = 30) -> np.ndarray:
+        """A contact point near the image centre (camera frame, m): the valid pixel closest to
+        the principal point whose filled neighbourhood (``window`` px each side) is at least
+        90 % valid and one surface (no step over ``JUMP`` of the depth between neighbours)."""
+        from scipy import ndimage
+
+        z = self.filled
+        size = 2 * window + 1
+        ok = z > 0
+        cover = ndimage.uniform_filter(ok.astype(np.float64), size=size)
+        step = np.zeros_like(ok)
+        dx = np.abs(np.diff(z, axis=1)) > JUMP * np.maximum(z[:, 1:], z[:, :-1])
+        dy = np.abs(np.diff(z, axis=0)) > JUMP * np.maximum(z[1:], z[:-1])
+        step[:, 1:] |= dx
+        step[1:] |= dy
+        edge = ndimage.maximum_filter(step.astype(np.uint8), size=size) > 0
+        good = ok & (cover >= 0.9) & ~edge
+        if not good.any():
+            raise InputError(f"{self.name}: no smooth patch of {size} x {size} px in the image to touch")
+        v, u = np.nonzero(good)
+        i = int(np.argmin((u - self.cam.cx) ** 2 + (v - self.cam.cy) ** 2))
+        return deproject(np.array(z[v[i], u[i]]), self.cam, np.array(float(u[i])), np.array(float(v[i])))
+
+    def render(self, motion: Motion, t: float, seq: int) -> DepthFrame:
+        """The frame (uint16 mm, stamped t) the camera sees of the scene moved to time t."""
+        R, c = motion.pose(t)
+        p = np.einsum("ij,kj->ik", self.cloud, R) + c
+        cam = self.cam
+        front = p[:, 2] > cam.z_min
+        p = p[front]
+        u = np.rint(p[:, 0] / p[:, 2] * cam.fx + cam.cx).astype(np.int64)
+        v = np.rint(p[:, 1] / p[:, 2] * cam.fy + cam.cy).astype(np.int64)
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        lin = v[inside] * cam.width + u[inside]
+        code = np.clip(np.rint(p[inside, 2] / cam.depth_scale), 1, min(cam.max_code, 65535) - 1)
+        key = lin * 65536 + code.astype(np.int64)
+        key.sort()                                # per pixel, nearest first
+        lin, code = key >> 16, key & 0xFFFF
+        first = np.ones(lin.size, bool)
+        first[1:] = lin[1:] != lin[:-1]
+        img = np.zeros(cam.width * cam.height, np.uint16)
+        img[lin[first]] = code[first]
+        return DepthFrame(cam.name, img.reshape(cam.height, cam.width), float(t), int(seq))
+
+    def distance(self, motion: Motion, q, t: float) -> np.ndarray:
+        """Signed distance (N,) m of points q (N, 3, camera frame) to the true surface at t."""
+        R, c = motion.pose(t)
+        q0 = (np.asarray(q, np.float64).reshape(-1, 3) - c) @ R  # R^T (q - c), row-wise
+        return self.mesh.signed(q0)
