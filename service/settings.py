@@ -293,6 +293,9 @@ class MotionTable:
     v_min: float = setting(MotionModel.v_min, lo=0, doc="slower is depth noise: 0 (m/s)")
     v_max: float = setting(MotionModel.v_max, lo=0, doc="faster estimates are discarded (m/s)")
     max_gap: float = setting(MotionModel.max_gap, lo=0, doc="snapshots further apart give no estimate (s)")
+    min_neighbours: int = setting(MotionModel.min_neighbours, lo=0,
+                                  doc="an unmeasured cell takes the velocity of at least this many agreeing measured neighbours (0: never)")
+    coherence: float = setting(MotionModel.coherence, lo=0, doc="neighbours agree within this fraction of their mean speed")
 
     def __post_init__(self):
         self.model()
