@@ -185,7 +185,8 @@ def test_the_jaw_its_measure_and_the_masters_grasp_are_joint_states_of_the_ticks
     index, lay = _rows_by_stamp(live)
     rows, got = live["rec"].rows, live["got"]
     for b in range(ARMS):
-        for topic, part, name, joint in (("jaw/servo_jp", "out", "jaw", "jaw"), ("jaw/measured_js", "in", "robot_jaw", "jaw"),
+        for topic, part, name, joint in (("jaw/servo_jp", "out", "jaw", "jaw"),
+                                         ("jaw/measured_js", "in", "robot_jaw", "jaw"),
                                          ("master/gripper/measured_js", "in", "grasp", "gripper")):
             msgs = got[f"/pointfence/arm{b}/{topic}"]
             assert len(msgs) >= 30, (topic, len(msgs))
