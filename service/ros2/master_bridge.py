@@ -3,12 +3,12 @@ ros2/crtk_master.py as ``python -m pointfence.service.ros2.master_bridge SHM DEV
 
 One rclpy node (``pointfence_crtk_masters``) serves every device (ros2/crtk_device.py): its
 executor thread takes each ``measured_cp``, gripper (``gripper/measured_js``) and pedal message,
-checks it and writes the device's state row into shared memory (ros2/master_block.py); the
-main thread, once a millisecond, beats the heartbeat, reads each device's force from shared
-memory and publishes a new one on ``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame). Its own watchdog:
-when the service has written no new force for the device's timeout (its tick stalled, or it
-died) while the last force published was not zero, it publishes a zero wrench once. It ends
-when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
+checks it and writes the device's state row into shared memory (ros2/master_block.py); the main
+thread, once a millisecond, beats the heartbeat, reads each device's force from shared memory and
+publishes a new one on ``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame).
+Its own watchdog: when the service has written no new force for the device's timeout (its tick
+stalled, or it died) while the last force published was not zero, it publishes a zero wrench once.
+It ends when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
 publishes a zero wrench to every device before it closes: a haptic device is never left pushing.
 """
 from __future__ import annotations
