@@ -100,7 +100,11 @@ def live(ros2_env, tmp_path_factory):
         res["status_before"] = run.service.status()["telemetry"]
         os.kill(tel.pid, signal.SIGKILL)
         ticks_at_kill, lost_at_kill = run.loop.ticks, tel.rows_lost
-        run.wait(2.5)        # (more than the ring's 2 s of sampled ticks)
+        # more ticks than the ring holds (its 2 s of sampled ticks: a loaded machine's loop may take longer)
+        end = time.monotonic() + 20.0
+        run.wait(2.5)
+        while run.loop.ticks < ticks_at_kill + tel.capacity * tel.every + 300 and time.monotonic() < end:
+            run.wait(0.1)
         res.update(ticks_at_kill=ticks_at_kill, ticks_after=run.loop.ticks, lost_at_kill=lost_at_kill,
                    status_after=run.service.status()["telemetry"], loop_running=run.loop.running,
                    loop_error=run.loop.error, epoch_ns=tel.epoch_ns, every=tel.every)
