@@ -347,3 +347,193 @@ def test_serve_with_a_ros2_master_renders_forces_back_to_the_sim_master(ros2_env
     assert dev["poses"] > 100 and dev["frame_id"] == "MTMR_base" and dev["forces_published"] > 100, dev
     assert summary["force_frames"].keys() == {"MTMR_base"}
     assert summary["max_force_n"] > 0.5, summary                 # the fixture pushed back on the operator's hand
+
+
+# --- the MTM's gripper and orientation -------------------------------------------------------------------
+def test_gripper_settings_and_checks():
+    from pointfence.service.ros2.crtk_device import GRASP_LIMIT_RAD
+    from pointfence.service.ros2.master_block import REJECT_GRIPPER
+
+    d = CrtkDevice("MTML")
+    assert (d.gripper_topic, d.gripper) == ("/MTML/gripper/measured_js", "auto")   # the dVRK MTM's topic
+    assert d.check_grip([0.4]) is None and d.check_grip([-0.2, 7.0]) is None           # (the first joint)
+    assert d.check_grip([])[0] == REJECT_GRIPPER
+    assert d.check_grip([math.nan])[0] == REJECT_NONFINITE and d.check_grip([math.inf])[0] == REJECT_NONFINITE
+    assert d.check_grip([GRASP_LIMIT_RAD + 0.01])[0] == REJECT_GRIPPER
+    with pytest.raises(InputError, match="gripper = 'always'"):
+        CrtkDevice("M", gripper="always")
+
+
+def _lab_publishers(lab, ns, pedal_topic):
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState, Joy
+
+    pose_pub = lab.node.create_publisher(PoseStamped, f"/{ns}/measured_cp", 10)
+    grip_pub = lab.node.create_publisher(JointState, f"/{ns}/gripper/measured_js", 10)
+    pedal_pub = lab.node.create_publisher(Joy, pedal_topic, 10)
+
+    def send(q=(1.0, 0.0, 0.0, 0.0), grip=None, x=0.01):
+        p = PoseStamped()
+        p.header.frame_id = f"{ns}_base"
+        p.pose.position.x = x
+        o = p.pose.orientation
+        o.w, o.x, o.y, o.z = q
+        pose_pub.publish(p)
+        if grip is not None:
+            grip_pub.publish(JointState(name=["gripper"], position=list(grip)))
+        pedal_pub.publish(Joy(buttons=[1]))
+    return send
+
+
+def test_the_mtm_gripper_is_the_masters_grasp_and_a_bad_or_silent_gripper_makes_it_invalid(ros2_env):
+    from pointfence.service.ros2.crtk_master import CrtkMasterHost
+    from pointfence.service.ros2.node import RosNode
+
+    host = CrtkMasterHost([CrtkDevice("GRP", clutch_topic="/grp/pedal", pedal="couples", timeout_ms=100)])
+    m = host.masters[0]
+    lab = RosNode("pf_test_gripper").start()
+    send = _lab_publishers(lab, "GRP", "/grp/pedal")
+    # a turned handle: 40 degrees about (1, 2, -2)/3, w x y z as the tick reads it (ROS's x y z w in the message)
+    a = math.radians(40.0)
+    q = (math.cos(a / 2), *(math.sin(a / 2) * np.array([1.0, 2.0, -2.0]) / 3.0))
+
+    def until(cond, **kw):
+        return polled(m, lambda m: (send(**kw), cond(m))[1], 15)
+
+    try:
+        assert until(lambda m: m.ok and m.clutch, q=q)        # no gripper heard yet ("auto"): grasp 0, valid
+        assert m.grasp == 0.0
+        np.testing.assert_allclose(m.orientation, q, atol=1e-12)
+        assert until(lambda m: m.grasp == 0.37, q=q, grip=(0.37,))
+        assert m.ok and m.status()["grips"] >= 1 and m.status()["grasp"] == 0.37
+        assert until(lambda m: not m.ok, q=q, grip=(math.nan,))                   # a NaN gripper: invalid
+        assert m.grasp == 0.37 and m.status()["rejected"]["non_finite"] >= 1       # the NaN never reached it
+        assert "gripper" in m.status()["last_rejection"]
+        assert until(lambda m: m.ok and m.grasp == 0.5, q=q, grip=(0.5,))
+        assert until(lambda m: not m.ok, q=q, grip=())                            # no angle in it
+        assert m.status()["rejected"]["gripper"] >= 1
+        assert until(lambda m: m.ok, q=q, grip=(0.5,))
+        stale = m.stale_ticks
+        assert until(lambda m: not m.ok, q=q)                 # poses on, the gripper silent: stale after 100 ms
+        assert m.stale_ticks > stale
+        assert until(lambda m: m.ok, q=q, grip=(0.1,))
+    finally:
+        lab.close()
+        host.close()
+
+
+def test_a_required_gripper_holds_until_heard_and_none_ignores_it(ros2_env):
+    from pointfence.service.ros2.crtk_master import CrtkMasterHost
+    from pointfence.service.ros2.node import RosNode
+
+    host = CrtkMasterHost([CrtkDevice("REQ", clutch_topic="/req/pedal", pedal="couples", gripper="required"),
+                           CrtkDevice("NOG", clutch_topic="/nog/pedal", pedal="couples", gripper="none")])
+    req, nog = host.masters
+    lab = RosNode("pf_test_gripper_modes").start()
+    send_req, send_nog = _lab_publishers(lab, "REQ", "/req/pedal"), _lab_publishers(lab, "NOG", "/nog/pedal")
+    try:
+        assert polled(req, lambda m: (send_req(), m.status()["poses"] > 5)[1], 15)
+        assert not req.ok                                     # poses, but no gripper yet: the arm holds
+        assert polled(req, lambda m: (send_req(grip=(0.25,)), m.ok)[1], 15) and req.grasp == 0.25
+        assert polled(nog, lambda m: (send_nog(grip=(0.9,)), m.ok and m.status()["poses"] > 5)[1], 15)
+        time.sleep(0.1)
+        nog.poll(time.monotonic())
+        assert nog.grasp == 0.0 and nog.status()["grips"] == 0    # not subscribed
+    finally:
+        lab.close()
+        host.close()
+
+
+GRIP_LAB = textwrap.dedent("""
+    # a scripted MTM: a turned handle, a dead-man pedal pressed, the gripper angle told on stdin
+    import math, sys, threading, time
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState, Joy
+
+    rclpy.init()
+    node = rclpy.create_node("lab_mtm")
+    pose_pub = node.create_publisher(PoseStamped, "/GMTM/measured_cp", 10)
+    grip_pub = node.create_publisher(JointState, "/GMTM/gripper/measured_js", 10)
+    pedal_pub = node.create_publisher(Joy, "/gmtm/deadman", 10)
+    state = {"grip": 0.0, "run": True}
+    def commands():
+        for line in sys.stdin:
+            if line.strip():
+                state["grip"] = float(line)
+        state["run"] = False
+    threading.Thread(target=commands, daemon=True).start()
+    msg = PoseStamped()
+    msg.header.frame_id = "GMTM_base"
+    msg.pose.orientation.w = 1.0
+    while state["run"]:
+        msg.header.stamp = node.get_clock().now().to_msg()
+        pose_pub.publish(msg)
+        grip_pub.publish(JointState(name=["gripper"], position=[state["grip"]]))
+        pedal_pub.publish(Joy(buttons=[1]))
+        time.sleep(0.002)
+    node.destroy_node()
+    rclpy.shutdown()
+""")
+
+
+@needs_opencl
+def test_the_jaw_follows_the_mtm_gripper_rate_limited_and_a_nan_gripper_holds_it(ros2_env, tmp_path):
+    from pointfence.service.canned import canned_sources
+    from pointfence.service.ros2.crtk_master import CrtkMasterHost
+    from pointfence.service.runner import LiveRun
+
+    cfg = balloon_config(tmp_path, arch="III", robot=POINT_MASS, extra="max_lateness_s = 1.0\n")
+    lab = subprocess.Popen([sys.executable, "-c", GRIP_LAB], env={**os.environ, **ros2_env}, stdin=subprocess.PIPE,
+                           text=True, bufsize=1)
+    host = CrtkMasterHost([CrtkDevice("GMTM", clutch_topic="/gmtm/deadman", pedal="couples", timeout_ms=100)])
+    m = host.masters[0]
+    run = None
+
+    def tell(grip):
+        lab.stdin.write(f"{grip}\n")
+        lab.stdin.flush()
+
+    def jaw():
+        s = run.service.snapshot()
+        return s["tick"], float(s["jaw"][0])
+
+    def holding():
+        return "master input invalid" in run.service.status()["arms_holding"][0]
+
+    try:
+        tell(0.2)
+        assert polled(m, lambda m: m.ok and m.clutch and m.grasp == 0.2, 20), host.status()
+        run = LiveRun(cfg, host.masters, sources=canned_sources(cfg, 10))
+        run.start()
+        assert wait_for(lambda: run.service.out.coupled[0] and abs(jaw()[1] - 0.2) < 1e-12, 15), jaw()
+        vmax, dt = run.service.cfg.teleop.max_jaw_speed, run.service.dt
+        tell(0.8)                                     # 0.6 rad at 3 rad/s: 0.2 s of ramp
+        seen = [jaw()]
+        while seen[-1][1] < 0.8 - 1e-12 and len(seen) < 200000:
+            s = jaw()
+            if s[0] != seen[-1][0]:
+                seen.append(s)
+        assert abs(seen[-1][1] - 0.8) < 1e-12, seen[-5:]
+        ramp = [j for _, j in seen if 0.2 + 1e-9 < j < 0.8 - 1e-9]
+        assert len(ramp) >= 3, seen                  # it ramped (not a jump)
+        for (k0, j0), (k1, j1) in zip(seen, seen[1:]):
+            assert j1 - j0 <= vmax * dt * (k1 - k0) + 1e-12, (k0, j0, k1, j1)
+        tell("nan")                                   # a NaN gripper: the master's sample is invalid, the arm holds
+        assert wait_for(holding, 5), run.service.status()
+        assert m.status()["rejected"]["non_finite"] >= 1
+        held = jaw()[1]
+        time.sleep(0.1)
+        assert jaw()[1] == held == run.service.snapshot()["jaw"][0]
+        tell(0.3)                                     # a valid one again: it recovers
+        assert wait_for(lambda: not holding(), 5), run.service.status()
+    finally:
+        if run is not None:
+            run.stop()
+        host.close()
+        lab.stdin.close()
+        try:
+            lab.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            lab.kill()
+            lab.wait()

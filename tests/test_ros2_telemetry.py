@@ -30,6 +30,25 @@ def _config(ros2: dict):
     return config_mod.parse(doc, "test")
 
 
+POSES = ("xm", "hip", "proxy", "measured_cp", "servo_cp", "master/measured_cp")
+JOINTS = ("jaw/servo_jp", "jaw/measured_js", "master/gripper/measured_js")
+
+
+def turning(m, i: int):
+    """Master ``m`` (a scripted circle) with its handle turning at 0.4 rad/s about an axis of its
+    own and its gripper opening and closing between 0.1 and 0.5 rad: the tool turns and its jaw
+    moves in the ticks telemetry samples."""
+    from pointfence.service.masters import ScriptedMaster
+
+    t = m.times
+    axis = np.array([[0.3, -0.2, 1.0], [1.0, 0.5, 0.2]][i % 2])
+    axis /= np.linalg.norm(axis)
+    a = 0.4 * t
+    q = np.concatenate([np.cos(a / 2)[:, None], np.sin(a / 2)[:, None] * axis], 1)
+    g = 0.3 + 0.2 * np.sin(2.0 * t + i)
+    return ScriptedMaster(t, m.positions, m.clutches, orientations=q, grasps=g, name=m.name)
+
+
 @pytest.fixture(scope="module")
 def live(ros2_env, tmp_path_factory):
     """One live run with 2 arms circling into the balloon's fixture, recorded to MCAP, with
@@ -37,7 +56,7 @@ def live(ros2_env, tmp_path_factory):
     (2.5 s at least) the publisher process is killed and the run goes on for 2.5 s."""
     from geometry_msgs.msg import PoseStamped, WrenchStamped
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-    from sensor_msgs.msg import PointCloud2
+    from sensor_msgs.msg import JointState, PointCloud2
     from std_msgs.msg import String
     from visualization_msgs.msg import MarkerArray
 
@@ -53,7 +72,8 @@ def live(ros2_env, tmp_path_factory):
     sub = RosNode("pf_telemetry_test")
     topics = {"/pointfence/markers": MarkerArray, "/pointfence/fixtures": PointCloud2}
     for b in range(ARMS):
-        topics.update({f"/pointfence/arm{b}/{x}": PoseStamped for x in ("xm", "hip", "proxy", "measured_cp")})
+        topics.update({f"/pointfence/arm{b}/{x}": PoseStamped for x in POSES})
+        topics.update({f"/pointfence/arm{b}/{x}": JointState for x in JOINTS})
         topics[f"/pointfence/arm{b}/force"] = WrenchStamped
     for topic, kind in topics.items():
         sub.node.create_subscription(kind, topic, lambda m, t=topic: got[t].append(m), 100)
@@ -61,7 +81,7 @@ def live(ros2_env, tmp_path_factory):
     sub.node.create_subscription(String, "/pointfence/status", lambda m: got["/pointfence/status"].append(m), latched)
     sub.start()
     path = tmp_path_factory.mktemp("telemetry") / "run.mcap"
-    masters = [circling_master(i, ARMS, 20.0) for i in range(ARMS)]
+    masters = [turning(circling_master(i, ARMS, 20.0), i) for i in range(ARMS)]
     run = LiveRun(cfg, masters, sources=canned_sources(cfg, 5, {}), record_path=path)
     res = {"cfg": cfg}
     stopped = False
@@ -74,13 +94,17 @@ def live(ros2_env, tmp_path_factory):
         while time.monotonic() < end and not (
                 len(got["/pointfence/fixtures"]) >= 5 and len(got["/pointfence/markers"]) >= 10
                 and all(len(got[f"/pointfence/arm{b}/{x}"]) >= 30 for b in range(ARMS)
-                        for x in ("xm", "hip", "proxy", "measured_cp", "force"))):
+                        for x in (*POSES, *JOINTS, "force"))):
             run.wait(0.1)
         tel = run.telemetry
         res["status_before"] = run.service.status()["telemetry"]
         os.kill(tel.pid, signal.SIGKILL)
         ticks_at_kill, lost_at_kill = run.loop.ticks, tel.rows_lost
-        run.wait(2.5)        # (more than the ring's 2 s of sampled ticks)
+        # more ticks than the ring holds (its 2 s of sampled ticks: a loaded machine's loop may take longer)
+        end = time.monotonic() + 20.0
+        run.wait(2.5)
+        while run.loop.ticks < ticks_at_kill + tel.capacity * tel.every + 300 and time.monotonic() < end:
+            run.wait(0.1)
         res.update(ticks_at_kill=ticks_at_kill, ticks_after=run.loop.ticks, lost_at_kill=lost_at_kill,
                    status_after=run.service.status()["telemetry"], loop_running=run.loop.running,
                    loop_error=run.loop.error, epoch_ns=tel.epoch_ns, every=tel.every)
@@ -110,9 +134,9 @@ def _rows_by_stamp(live):
     return dict(zip(ns.tolist(), range(len(ns)))), lay
 
 
-def _col(lay, rows, part, name, i, b):
+def _col(lay, rows, part, name, i, b, width=3):
     c, _ = lay.cols[(part, name)]
-    return rows[i, c + 3 * b: c + 3 * b + 3]
+    return rows[i, c + width * b: c + width * b + width]
 
 
 def _ns(header) -> int:
@@ -124,14 +148,18 @@ def test_poses_and_forces_are_the_service_ticks_in_metres_and_newtons(live):
     index, lay = _rows_by_stamp(live)
     rows, got = live["rec"].rows, live["got"]
     c_k = lay.cols[("in", "k")][0]
-    xm = []
+    xm, turned = [], collections.defaultdict(list)
     for b in range(ARMS):
-        for topic, part, name in (("xm", "out", "xm"), ("hip", "out", "hip"), ("proxy", "out", "proxy"),
-                                  ("measured_cp", "in", "robot_pos"), ("force", "out", "force")):
+        for topic, part, name, qname in (("xm", "out", "xm", None), ("hip", "out", "hip", None),
+                                         ("proxy", "out", "proxy", None),
+                                         ("measured_cp", "in", "robot_pos", "robot_orientation"),
+                                         ("servo_cp", "out", "command", "orientation"),
+                                         ("master/measured_cp", "in", "master_pos", "master_orientation"),
+                                         ("force", "out", "force", None)):
             msgs = got[f"/pointfence/arm{b}/{topic}"]
             assert len(msgs) >= 30, (topic, len(msgs))
             for m in msgs:
-                assert m.header.frame_id == "world"
+                assert m.header.frame_id == (("MTMR_base", "MTML_base")[b] if topic.startswith("master") else "world")
                 i = index[_ns(m.header)]               # the message's stamp is a recorded tick's
                 assert int(rows[i, c_k]) % live["every"] == 0
                 want = _col(lay, rows, part, name, i, b)
@@ -142,11 +170,39 @@ def test_poses_and_forces_are_the_service_ticks_in_metres_and_newtons(live):
                     v = m.pose.position
                     xm += [want] if topic == "xm" else []
                     q = m.pose.orientation
-                    assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)
+                    if qname is None:                  # points: identity
+                        assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)
+                    else:                              # the tick's (w, x, y, z) as ROS's (x, y, z, w)
+                        w = _col(lay, rows, part if qname != "orientation" else "out", qname, i, b, 4)
+                        assert (q.w, q.x, q.y, q.z) == tuple(w), (topic, i)
+                        turned[topic].append(abs(w[0]))
                 np.testing.assert_allclose([v.x, v.y, v.z], want, rtol=0, atol=1e-12)
     # real positions, not zeros (the arms start at the tool tip, 17 cm above the table; a loaded machine may
     # hold them all along, so no motion is required)
     assert np.abs(np.array(xm)).max() > 0.1
+    # the masters turn (0.4 rad/s): the orientations published are not all identity (the tool's turn only
+    # while its arm is coupled: see test_orientations_jaw_and_grasp_reach_their_topics for a fixed case)
+    assert min(turned["master/measured_cp"]) < np.cos(0.1)
+
+
+def test_the_jaw_its_measure_and_the_masters_grasp_are_joint_states_of_the_ticks(live):
+    index, lay = _rows_by_stamp(live)
+    rows, got = live["rec"].rows, live["got"]
+    for b in range(ARMS):
+        for topic, part, name, joint in (("jaw/servo_jp", "out", "jaw", "jaw"),
+                                         ("jaw/measured_js", "in", "robot_jaw", "jaw"),
+                                         ("master/gripper/measured_js", "in", "grasp", "gripper")):
+            msgs = got[f"/pointfence/arm{b}/{topic}"]
+            assert len(msgs) >= 30, (topic, len(msgs))
+            c, _ = lay.cols[(part, name)]
+            values = []
+            for m in msgs:
+                assert list(m.name) == [joint] and len(m.velocity) == len(m.effort) == 0
+                i = index[_ns(m.header)]
+                assert list(m.position) == [rows[i, c + b]], (topic, i)
+                values.append(m.position[0])
+            if topic.startswith("master"):       # the gripper moves (the jaw follows only while the arm is
+                assert max(values) - min(values) > 0.05, values[:5]    # coupled: a loaded machine may hold it)
 
 
 def test_the_fixture_cloud_is_a_consistent_pointcloud2_on_the_protected_points(live):
@@ -289,3 +345,69 @@ def test_namespace_frame_id_and_the_sampled_ticks(ros2_env):
 
 class _Feeder:
     on_snapshot = None
+
+
+def test_orientations_jaw_and_grasp_reach_their_topics(ros2_env):
+    """Without a live run: ticks with known orientations and angles written straight into a
+    Telemetry reach the pose and joint topics (w, x, y, z as ROS's x, y, z, w); a master that gave
+    no sample (NaN) and an unknown jaw (NaN) publish nothing on their topics."""
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState
+
+    from pointfence.kernels.params import Workspace
+    from pointfence.service.ros2.node import RosNode
+    from pointfence.service.ros2.telemetry import Telemetry
+    from pointfence.service.settings import Ros2Table
+    from pointfence.service.tick_io import TickInput, TickOutput
+
+    got = collections.defaultdict(list)
+    sub = RosNode("pf_telemetry_orientation_test")
+    for name, kind in (*((x, PoseStamped) for x in POSES), *((x, JointState) for x in JOINTS)):
+        sub.node.create_subscription(kind, f"/pointfence/arm1/{name}", lambda m, t=name: got[t].append(m), 100)
+    sub.start()
+    tel = Telemetry(Ros2Table(telemetry=True, telemetry_rate_hz=1000.0), 2, 1000.0, 0.02,
+                    Workspace((-0.1, -0.1, 0.0), (0.1, 0.1, 0.2)))
+    inp, out = TickInput.zeros(2), TickOutput.zeros(2)
+    q_robot, q_cmd, q_master = ((0.6, 0.0, 0.8, 0.0), (0.0, 1.0, 0.0, 0.0), (0.5, 0.5, -0.5, 0.5))
+    inp.robot_orientation[1], out.orientation[1], inp.master_orientation[1] = q_robot, q_cmd, q_master
+    inp.robot_pos[1], out.command[1], inp.master_pos[1] = (0.01, 0.02, 0.03), (0.04, 0.05, 0.06), (0.07, 0.08, 0.09)
+    try:
+        assert tel.wait_ready(30.0), tel.error
+        k, deadline = 0, time.monotonic() + 20.0
+        while min(len(got[x]) for x in (*POSES, *JOINTS)) < 20 and time.monotonic() < deadline:
+            inp.k, inp.now = k, k * 1e-3
+            out.jaw[1], inp.robot_jaw[1], inp.grasp[1] = 0.1 + 1e-4 * k, 0.2 + 1e-4 * k, 0.3 + 1e-4 * k
+            tel.write(inp, out)
+            k += 1
+            time.sleep(0.001)
+        inp.master_pos[1, 0] = np.nan          # then: no master sample, the jaw's angle unknown
+        out.jaw[1] = inp.robot_jaw[1] = np.nan
+        for j in range(k, k + 200):
+            inp.k, inp.now = j, j * 1e-3
+            tel.write(inp, out)
+            time.sleep(0.001)
+        time.sleep(0.5)
+        ticks = k
+    finally:
+        tel.close()
+        sub.close()
+    for name, q in (("measured_cp", q_robot), ("servo_cp", q_cmd), ("master/measured_cp", q_master),
+                    ("xm", (1.0, 0.0, 0.0, 0.0))):
+        assert got[name], name
+        for m in got[name]:
+            o = m.pose.orientation
+            assert (o.w, o.x, o.y, o.z) == q, name
+    assert {m.header.frame_id for m in got["master/measured_cp"]} == {"MTML_base"}     # arm 1's master's frame
+    p = got["servo_cp"][0].pose.position
+    assert (p.x, p.y, p.z) == (0.04, 0.05, 0.06)
+    for name, base in (("jaw/servo_jp", 0.1), ("jaw/measured_js", 0.2), ("master/gripper/measured_js", 0.3)):
+        for m in got[name]:
+            k = round((_ns(m.header) - tel.epoch_ns) / 1e6)       # (the tick's number: 1 ms a tick)
+            assert list(m.position) == [base + 1e-4 * min(k, ticks - 1)], name
+    # NaN: nothing more on the master's pose and the jaw's topics, while the grasp and tool poses go on
+    def tick_numbers(name):
+        return [round((_ns(m.header) - tel.epoch_ns) / 1e6) for m in got[name]]
+    for name in ("master/measured_cp", "jaw/servo_jp", "jaw/measured_js"):
+        assert max(tick_numbers(name)) < ticks, name
+    for name in ("master/gripper/measured_js", "servo_cp", "measured_cp"):
+        assert max(tick_numbers(name)) >= ticks + 100, name

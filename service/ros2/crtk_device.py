@@ -12,6 +12,10 @@ Topics, for a device in namespace ``MTMR`` (each can be set on its own):
   ``body/servo_cf`` in the base frame's orientation when ``body/set_cf_orientation_absolute`` is
   true, which the bridge publishes (``std_msgs/Bool``) when it first hears the device
   (``orientation_absolute``);
+* ``/MTMR/gripper/measured_js`` (``sensor_msgs/JointState``, one position, rad): the handle's
+  gripper angle, as the dVRK MTM publishes it: the master's ``grasp``, which the jaw follows
+  (``gripper``: ``"auto"`` reads it once heard, a device without a gripper reads 0;
+  ``"required"`` holds the arm until it is heard; ``"none"`` does not subscribe);
 * the foot pedal, ``sensor_msgs/Joy`` on ``clutch_topic`` (default the dVRK's
   ``/footpedals/clutch``), button ``clutch_button``: 1 pressed, 0 released, 2 released (the
   dVRK's "quick tap", sent after a release).
@@ -34,7 +38,9 @@ position farther than ``max_position_m`` from the base frame's origin, or a ``he
 other than ``frame_id`` (when ``frame_id`` is not given, the first valid pose's frame is the
 device's frame from then on) is rejected, and the device reads as invalid (``ok`` False: the arm
 holds) until a valid pose arrives. A device heard from no newer than ``timeout_ms`` ago is
-invalid too (S9).
+invalid too (S9). A gripper message whose position is empty or not finite, or farther than
+``GRASP_LIMIT_RAD`` from 0, is rejected the same way, and once the gripper has been heard (or
+from the start, ``"required"``) a gripper silent for ``timeout_ms`` makes the device invalid.
 """
 from __future__ import annotations
 
@@ -45,9 +51,13 @@ from typing import Optional
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
-from .master_block import REJECT_FRAME, REJECT_NONFINITE, REJECT_RANGE
+from .master_block import REJECT_FRAME, REJECT_GRIPPER, REJECT_NONFINITE, REJECT_RANGE
 
 PEDAL_MEANINGS = ("decouples", "couples")
+#: whether the device's gripper is read (see the module docstring)
+GRIPPER_MODES = ("auto", "required", "none")
+#: the largest gripper angle accepted, rad (either way from 0)
+GRASP_LIMIT_RAD = math.pi
 #: how far a pose's quaternion norm may be from 1
 QUAT_TOLERANCE = 0.01
 #: ceiling of ``max_position_m`` (S7)
@@ -81,6 +91,8 @@ class CrtkDevice:
     timeout_ms: int = P.DEFAULT_TIMEOUT_MS
     max_position_m: float = 2.0
     orientation_absolute: bool = True
+    gripper_topic: Optional[str] = None
+    gripper: str = "auto"
 
     def __post_init__(self):
         ns = str(self.namespace).strip().strip("/")
@@ -91,6 +103,10 @@ class CrtkDevice:
         set_("pose_topic", _topic(self.pose_topic or f"/{ns}/measured_cp", "pose topic"))
         set_("force_topic", _topic(self.force_topic or f"/{ns}/body/servo_cf", "force topic"))
         set_("clutch_topic", _topic(self.clutch_topic, "clutch topic"))
+        set_("gripper_topic", _topic(self.gripper_topic or f"/{ns}/gripper/measured_js", "gripper topic"))
+        if self.gripper not in GRIPPER_MODES:
+            raise InputError(f"gripper = {self.gripper!r}; expected 'auto' (read the gripper once heard), "
+                             "'required' (hold the arm until it is heard) or 'none' (a device without one)")
         if not isinstance(self.clutch_button, int) or isinstance(self.clutch_button, bool) or not 0 <= self.clutch_button < 64:
             raise InputError(f"clutch button = {self.clutch_button!r}; expected the pedal's index in the Joy "
                              "message's buttons, 0-63")
@@ -136,6 +152,21 @@ class CrtkDevice:
         if abs(nq - 1.0) > QUAT_TOLERANCE:
             return REJECT_RANGE, (f"{self.pose_topic}: orientation quaternion of norm {nq:.4f}; expected a unit "
                                   "quaternion")
+        return None
+
+    def check_grip(self, position) -> Optional[tuple]:
+        """None if a gripper message's ``position`` (its joint angles, rad) holds a valid angle
+        (the first); else (reason code, message)."""
+        if len(position) == 0:
+            return REJECT_GRIPPER, (f"{self.gripper_topic}: no position; expected the gripper's angle (rad) as "
+                                    "position[0]")
+        g = float(position[0])
+        if not math.isfinite(g):
+            return REJECT_NONFINITE, (f"{self.gripper_topic}: non-finite gripper angle {g}; the arm holds until a "
+                                      "finite one arrives")
+        if abs(g) > GRASP_LIMIT_RAD:
+            return REJECT_GRIPPER, (f"{self.gripper_topic}: gripper angle {g:.4f} rad; expected at most "
+                                    f"{GRASP_LIMIT_RAD:.4f} rad either way")
         return None
 
     def pedal_state(self, buttons) -> Optional[int]:

@@ -5,14 +5,17 @@ masters (service/masters.py ``Master``: ``poll``, ``position``, ``clutch``, ``bu
 Each device (ros2/crtk_device.py ``CrtkDevice``: its topics, its pedal's meaning, its checks)
 gives a ``CrtkMaster``: ``position`` the handle's position from ``measured_cp`` (m, the device's
 base frame, which ``[teleop] T_world_master`` registers in the world), ``orientation`` its
-quaternion (w, x, y, z: the tool's orientation follows it, service/teleop.py; no grasp is read,
-so the jaw stays where it is), ``clutch``
+quaternion (w, x, y, z: the tool's orientation follows it, service/teleop.py), ``grasp`` the
+gripper's angle from ``gripper/measured_js`` (rad: the jaw follows it; 0 for a device whose
+gripper is not heard, see crtk_device.py's ``gripper``), ``clutch``
 whether the foot pedal couples the master to the robot (see crtk_device.py for what "pressed"
 means), ``buttons`` the pedal message's pressed buttons (bit mask), and ``send_force`` the
 tick's force back on ``body/servo_cf`` (N, the same base frame). ``ok`` is False (the arm holds,
 ``HoldReason.MASTER``; S6, S9) until the first valid pose, when the newest ``measured_cp`` is
 older than the device's ``timeout_ms`` (a silent device, a dead driver or bridge), and when the
-newest one was rejected (non-finite, a wrong ``frame_id``, out of range).
+newest one was rejected (non-finite, a wrong ``frame_id``, out of range); and likewise for the
+gripper once it has been heard (from the start with ``gripper = "required"``): a rejected or
+stale gripper message makes the sample invalid, so the jaw holds with the arm.
 
 **Where rclpy runs: a process of its own (measured).** The MTM publishes ``measured_cp`` near
 1 kHz and the tick sends a force every millisecond. Handled in the service's process, each
@@ -161,18 +164,23 @@ class CrtkMaster(Master):
         self._seq = 0
         self._timeout = dev.timeout_s
         self._couples = dev.pedal == "couples"
+        self._grip = dev.gripper != "none"
+        self._grip_required = dev.gripper == "required"
         L = STATE_LAYOUT
         self._i_poses, self._i_rx, self._i_valid, self._i_pressed, self._i_buttons = (
             L.poses, L.pose_rx, L.pose_valid, L.pressed, L.buttons)
+        self._i_grips, self._i_grip_rx, self._i_grip_valid, self._i_grasp = L.grips, L.grip_rx, L.grip_valid, L.grasp
         self._p0, self._q0 = L.p.start, L.q.start
-        #: ticks that found the newest pose too old, or rejected (the service side's counts)
+        #: ticks that found the newest pose (or gripper message) too old, or rejected (the service
+        #: side's counts)
         self.stale_ticks = 0
         self.invalid_ticks = 0
 
     def poll(self, t: float) -> None:
         """The tick's read (loop time ``t``, s): copy the bridge's newest state record (no wait:
         a record being written is skipped and the previous one kept), then decide validity
-        from its arrival time on this machine's monotonic clock."""
+        from its arrival time on this machine's monotonic clock (the pose's and, once heard or
+        when required, the gripper's)."""
         hub = self.poll_also
         if hub is not None and t != hub.t:
             hub.tick(t)
@@ -185,12 +193,17 @@ class CrtkMaster(Master):
         pressed = r[self._i_pressed]
         self.clutch = pressed >= 0 and (pressed == 1.0) == self._couples
         self.buttons = int(r[self._i_buttons])
-        if r[self._i_poses] == 0:
+        now = time.monotonic()
+        heard = r[self._i_grip_rx] > 0.0                 # (a gripper message's arrival is set)
+        grip = self._grip and (heard or self._grip_required)
+        if grip:
+            self.grasp = r[self._i_grasp]               # (0 until one is accepted; then the newest accepted)
+        if r[self._i_poses] == 0 or (grip and not heard):
             self.ok = False
-        elif time.monotonic() - r[self._i_rx] > self._timeout:
+        elif now - r[self._i_rx] > self._timeout or (grip and now - r[self._i_grip_rx] > self._timeout):
             self.ok = False
             self.stale_ticks += 1
-        elif r[self._i_valid] != 1.0:
+        elif r[self._i_valid] != 1.0 or (grip and r[self._i_grip_valid] != 1.0):
             self.ok = False
             self.invalid_ticks += 1
         else:
@@ -223,6 +236,8 @@ class CrtkMaster(Master):
         d = self.device
         out = {"namespace": d.namespace, "pose_topic": d.pose_topic, "force_topic": d.force_topic,
                "clutch_topic": d.clutch_topic, "clutch_button": d.clutch_button, "pedal": d.pedal,
+               "gripper_topic": d.gripper_topic, "gripper": d.gripper, "grips": int(r[L.grips]),
+               "grasp": float(r[L.grasp]),
                "ok": bool(self.ok), "clutch": bool(self.clutch), "poses": int(r[L.poses]), "pedals": int(r[L.pedals]),
                "rejected": {REJECT_NAMES[k + 1]: int(v) for k, v in enumerate(r[L.rejected])},
                "stale_ticks": self.stale_ticks, "invalid_ticks": self.invalid_ticks, "forces_sent": self._seq}

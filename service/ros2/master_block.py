@@ -6,7 +6,7 @@ block, and moved with the same one-writer, one-reader ``Channel`` (two slots, se
 a CRC-32 of the bytes: neither side ever waits for the other). Per device:
 
 * a state channel (bridge -> service), one row of ``STATE`` (float64): written by the bridge's
-  executor thread after each ``measured_cp`` or pedal message;
+  executor thread after each ``measured_cp``, gripper or pedal message;
 * a command channel (service -> bridge), one row of ``COMMAND``: the tick's force;
 * force counters (``FORCE_STATS``, int64 words the bridge's publishing thread alone writes;
   status only, no consistency needed) and two texts: the pose frame the device is locked to,
@@ -32,14 +32,17 @@ CONTROL = np.dtype([("stop", "i8"), ("beat", "i8"), ("pid", "i8"), ("ready", "i8
 #: ``reject`` the reason code of the newest rejection (``REJECT_*``); ``rejected`` (4,) counts by
 #: code (non-finite, frame, range, pedal); ``pedals`` accepted pedal messages, ``pressed`` the
 #: pedal's state (-1: no message yet, 0 up, 1 pressed), ``buttons`` the pedal message's pressed
-#: buttons as a bit mask (bit i: button i)
+#: buttons as a bit mask (bit i: button i); ``grips`` accepted gripper messages
+#: (``gripper/measured_js``), ``grip_rx`` arrival of the newest (accepted or not, monotonic s),
+#: ``grip_valid`` 1 if that newest one was accepted, ``grasp`` the gripper's angle (rad) from the
+#: newest accepted one
 STATE = np.dtype([("poses", "f8"), ("pose_rx", "f8"), ("pose_valid", "f8"), ("p", "f8", (3,)), ("q", "f8", (4,)),
-                  ("reject", "f8"), ("rejected", "f8", (4,)), ("pedals", "f8"), ("pressed", "f8"),
-                  ("buttons", "f8")])
+                  ("reject", "f8"), ("rejected", "f8", (5,)), ("pedals", "f8"), ("pressed", "f8"),
+                  ("buttons", "f8"), ("grips", "f8"), ("grip_rx", "f8"), ("grip_valid", "f8"), ("grasp", "f8")])
 #: reasons a message is rejected (index into ``rejected`` is code - 1)
-REJECT_NONFINITE, REJECT_FRAME, REJECT_RANGE, REJECT_PEDAL = 1, 2, 3, 4
+REJECT_NONFINITE, REJECT_FRAME, REJECT_RANGE, REJECT_PEDAL, REJECT_GRIPPER = 1, 2, 3, 4, 5
 REJECT_NAMES = {REJECT_NONFINITE: "non_finite", REJECT_FRAME: "frame_id", REJECT_RANGE: "range",
-                REJECT_PEDAL: "pedal"}
+                REJECT_PEDAL: "pedal", REJECT_GRIPPER: "gripper"}
 
 #: one device's command (service -> bridge): the tick's sequence number and force (N, master frame)
 COMMAND = np.dtype([("seq", "f8"), ("f", "f8", (3,))])

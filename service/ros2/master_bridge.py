@@ -2,13 +2,13 @@
 ros2/crtk_master.py as ``python -m pointfence.service.ros2.master_bridge SHM DEVICES PARENT``).
 
 One rclpy node (``pointfence_crtk_masters``) serves every device (ros2/crtk_device.py): its
-executor thread takes each ``measured_cp`` and pedal message, checks it and writes the device's
-state row into shared memory (ros2/master_block.py); the main thread, once a millisecond, beats
-the heartbeat, reads each device's force from shared memory and publishes a new one on
-``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame). Its own watchdog:
-when the service has written no new force for the device's timeout (its tick stalled, or it
-died) while the last force published was not zero, it publishes a zero wrench once. It ends
-when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
+executor thread takes each ``measured_cp``, gripper (``gripper/measured_js``) and pedal message,
+checks it and writes the device's state row into shared memory (ros2/master_block.py); the main
+thread, once a millisecond, beats the heartbeat, reads each device's force from shared memory and
+publishes a new one on ``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame).
+Its own watchdog: when the service has written no new force for the device's timeout (its tick
+stalled, or it died) while the last force published was not zero, it publishes a zero wrench once.
+It ends when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
 publishes a zero wrench to every device before it closes: a haptic device is never left pushing.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ class DeviceSide:
     def __init__(self, blk: MasterBlock, i: int, dev: CrtkDevice, node):
         from geometry_msgs.msg import PoseStamped, WrenchStamped
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import Joy
+        from sensor_msgs.msg import JointState, Joy
         from std_msgs.msg import Bool
 
         self.dev, self.node, self.i = dev, node, i
@@ -64,6 +64,8 @@ class DeviceSide:
         self.orient_pub = node.create_publisher(Bool, dev.cf_orientation_topic, events) if dev.orientation_absolute else None
         node.create_subscription(PoseStamped, dev.pose_topic, self.on_pose, latest)
         node.create_subscription(Joy, dev.clutch_topic, self.on_pedal, events)
+        if dev.gripper != "none":
+            node.create_subscription(JointState, dev.gripper_topic, self.on_gripper, latest)
 
     # --- the executor thread: messages in -> the state row ---------------------------------------------
     def _reject(self, code: int, message: str) -> None:
@@ -89,6 +91,20 @@ class DeviceSide:
             row[L.pose_valid] = 1.0
         else:
             row[L.pose_valid] = 0.0
+            self._reject(*bad)
+        self.state.write(row)
+
+    def on_gripper(self, msg) -> None:
+        L, row = STATE_LAYOUT, self.row
+        row[L.grip_rx] = time.monotonic()
+        position = msg.position
+        bad = self.dev.check_grip(position)
+        if bad is None:
+            row[L.grasp] = float(position[0])
+            row[L.grips] += 1
+            row[L.grip_valid] = 1.0
+        else:
+            row[L.grip_valid] = 0.0
             self._reject(*bad)
         self.state.write(row)
 

@@ -64,10 +64,14 @@ CLOSE_TIMEOUT_S = 5.0
 #: niceness increment of the child (it yields to the service's threads on a busy machine)
 CHILD_NICE = 5
 
-#: (struct, field, values per arm; 0: a scalar) of a telemetry row, in column order
+#: (struct, field, values per arm; 0: a scalar) of a telemetry row, in column order: positions (3,
+#: m), orientations (4, w x y z), angles (1, rad; NaN: none this tick)
 FIELDS = (("in", "k", 0), ("in", "now", 0), ("in", "architecture", 0), ("in", "haptics", 0), ("in", "teleop", 0),
           ("in", "pedal", 1), ("in", "master_ok", 1), ("in", "robot_fault", 1), ("in", "robot_pos", 3),
+          ("in", "robot_orientation", 4), ("in", "robot_jaw", 1), ("in", "master_pos", 3),
+          ("in", "master_orientation", 4), ("in", "grasp", 1),
           ("out", "xm", 3), ("out", "hip", 3), ("out", "proxy", 3), ("out", "force", 3), ("out", "command", 3),
+          ("out", "orientation", 4), ("out", "jaw", 1),
           ("out", "state", 1), ("out", "gain", 1), ("out", "coupled", 1), ("out", "hold", 0), ("out", "arm_hold", 1))
 
 
@@ -88,12 +92,12 @@ class TelemetryLayout:
         self.width = c
 
     def get(self, row: np.ndarray, name: str):
-        """Field ``name`` of ``row``: a float (scalars), an (n,) or an (n, 3) view."""
+        """Field ``name`` of ``row``: a float (scalars), an (n,), (n, 3) or (n, 4) view."""
         c, k = self.cols[name]
         per_arm = self._per_arm[name]
         if per_arm == 0:
             return float(row[c])
-        return row[c: c + k].reshape(self.n, 3) if per_arm == 3 else row[c: c + k]
+        return row[c: c + k].reshape(self.n, per_arm) if per_arm > 1 else row[c: c + k]
 
 
 def strided_shape(height: int, width: int, stride: int = CLOUD_STRIDE) -> tuple:
@@ -145,7 +149,7 @@ class Telemetry:
             c, k = self.layout.cols[name]
             if per_arm:
                 v = self._stage[c: c + k]
-                self._arrays[part].append((name, v.reshape(self.n, 3) if per_arm == 3 else v))
+                self._arrays[part].append((name, v.reshape(self.n, per_arm) if per_arm > 1 else v))
             else:
                 self._scalars[part].append((name, c))
         self._rows = [self._block.rows[s] for s in range(self.capacity)]

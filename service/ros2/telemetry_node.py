@@ -4,16 +4,26 @@ memory and publishes, with rclpy, outside the service's interpreter.
 
 Topics (relative names under ``[ros2] namespace``: the default puts them at ``/pointfence/...``,
 the recording's names and frame ids, so one Foxglove layout shows a live run and its MCAP file);
-every header's frame id is ``[ros2] frame_id`` (default ``world``, the robot base frame), units
-SI (m, N), orientations identity (pointfence's points have none), stamps the loop clock mapped to
-wall-clock time (the recording's):
+every header's frame id is ``[ros2] frame_id`` (default ``world``, the robot base frame) but the
+master's own pose's, units SI (m, N, rad), stamps the loop clock mapped to wall-clock time (the
+recording's):
 
 * ``pointfence/arm<b>/xm``, ``hip``, ``proxy`` (``geometry_msgs/PoseStamped``): the master's
-  point X_m mapped into the world, the haptic interface point, the proxy, at
-  ``telemetry_rate_hz``;
-* ``pointfence/arm<b>/measured_cp`` (``PoseStamped``): the robot's measured tool tip (world). Not
+  point X_m mapped into the world, the haptic interface point, the proxy (points: identity
+  orientation), at ``telemetry_rate_hz``;
+* ``pointfence/arm<b>/measured_cp`` (``PoseStamped``): the robot's measured tool pose (world:
+  ``TickInput.robot_pos`` and ``robot_orientation``), and ``pointfence/arm<b>/servo_cp`` its
+  commanded one (``TickOutput.command`` and ``orientation``, the pose the tick sends). Not
   ``/PSM1/measured_cp`` as in the recording: telemetry never publishes on a CRTK device's own
   topics, where a real arm or pointfence's CRTK bridge reads and writes state and commands;
+* ``pointfence/arm<b>/master/measured_cp`` (``PoseStamped``): the master's sample in its own
+  frame (``TickInput.master_pos`` and ``master_orientation``; frame id ``MTMR_base`` for arm 0,
+  ``MTML_base`` for arm 1, as the recording's ``/MTMR/measured_cp``); none while the sample is
+  not finite;
+* ``pointfence/arm<b>/jaw/servo_jp``, ``jaw/measured_js`` and ``master/gripper/measured_js``
+  (``sensor_msgs/JointState``, one joint, ``position`` rad): the jaw command
+  (``TickOutput.jaw``), the robot's measured jaw (``TickInput.robot_jaw``) and the master's grasp
+  (``TickInput.grasp``); none on a tick where the angle is unknown (NaN);
 * ``pointfence/arm<b>/force`` (``geometry_msgs/WrenchStamped``): the force on the master in the
   world frame (N, after the hold ramp: ``TickOutput.force``), torque zero;
 * ``pointfence/fixtures`` (``sensor_msgs/PointCloud2``, x y z float32, m): the protected points of
@@ -49,12 +59,16 @@ import numpy as np
 from .. import mcap_shm
 from ..holds import REASONS
 from ..child_pipe import read_init, receive
-from ..ros2_schemas import FIXTURES
+from ..ros2_schemas import FIXTURES, master_ns
 from . import telemetry as T
 
 STATUS_SCHEMA = "pointfence/status/1"
 #: rows published per cycle after a hiccup (the newest ones)
 MAX_ROWS_PER_CYCLE = 8
+#: the row's fields the pose and joint topics read (positions, orientations; angles)
+POSE_FIELDS = ("xm", "hip", "proxy", "robot_pos", "robot_orientation", "command", "orientation", "master_pos",
+               "master_orientation")
+ANGLE_FIELDS = ("jaw", "robot_jaw", "grasp")
 #: status at least this often (s) when nothing changes
 STATUS_EVERY_S = 1.0
 
@@ -93,7 +107,7 @@ class Publisher:
     def __init__(self, p: dict):
         from geometry_msgs.msg import PoseStamped, WrenchStamped
         from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import PointCloud2, PointField
+        from sensor_msgs.msg import JointState, PointCloud2, PointField
         from std_msgs.msg import String
         from visualization_msgs.msg import MarkerArray
 
@@ -117,19 +131,33 @@ class Publisher:
                             durability=DurabilityPolicy.VOLATILE)
         latest = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.poses, self.wrenches = [], []       # per arm: [(field, publisher, message)], (publisher, message)
+        # per arm: [(position field, orientation field or None, publisher, message)], (publisher, message),
+        # [(angle field, publisher, message)]
+        self.poses, self.wrenches, self.angles = [], [], []
         for b in range(self.n):
             pf = f"pointfence/arm{b}"
             arm = []
-            for name, field in (("xm", "xm"), ("hip", "hip"), ("proxy", "proxy"), ("measured_cp", "robot_pos")):
+            for name, field, qfield, frame in (
+                    ("xm", "xm", None, self.frame_id), ("hip", "hip", None, self.frame_id),
+                    ("proxy", "proxy", None, self.frame_id),
+                    ("measured_cp", "robot_pos", "robot_orientation", self.frame_id),
+                    ("servo_cp", "command", "orientation", self.frame_id),
+                    ("master/measured_cp", "master_pos", "master_orientation", f"{master_ns(b)}_base")):
                 msg = PoseStamped()
-                msg.header.frame_id = self.frame_id
+                msg.header.frame_id = frame
                 msg.pose.orientation.w = 1.0
-                arm.append((field, node.create_publisher(PoseStamped, f"{pf}/{name}", stream), msg))
+                arm.append((field, qfield, node.create_publisher(PoseStamped, f"{pf}/{name}", stream), msg))
             self.poses.append(arm)
             w = WrenchStamped()
             w.header.frame_id = self.frame_id
             self.wrenches.append((node.create_publisher(WrenchStamped, f"{pf}/force", stream), w))
+            joints = []
+            for name, field, joint in (("jaw/servo_jp", "jaw", "jaw"), ("jaw/measured_js", "robot_jaw", "jaw"),
+                                       ("master/gripper/measured_js", "grasp", "gripper")):
+                js = JointState()
+                js.name, js.position = [joint], [0.0]
+                joints.append((field, node.create_publisher(JointState, f"{pf}/{name}", stream), js))
+            self.angles.append(joints)
         self.marker_pub = node.create_publisher(MarkerArray, "pointfence/markers", stream)
         self.cloud_pub = node.create_publisher(PointCloud2, FIXTURES.lstrip("/"), latest)
         self.status_pub = node.create_publisher(String, "pointfence/status", latest)
@@ -177,14 +205,28 @@ class Publisher:
     def publish_row(self, row: np.ndarray) -> None:
         sec, nsec = self._stamp(row)
         get = self.layout.get
-        values = {f: get(row, f) for f in ("xm", "hip", "proxy", "robot_pos")}
+        values = {f: get(row, f) for f in POSE_FIELDS + ANGLE_FIELDS}
         force = get(row, "force")
         count = 0
         for b in range(self.n):
-            for field, pub, msg in self.poses[b]:
+            for field, qfield, pub, msg in self.poses[b]:
+                x, y, z = (float(v) for v in values[field][b])
+                if qfield is not None:
+                    w, qx, qy, qz = (float(v) for v in values[qfield][b])
+                    if not math.isfinite(x + y + z + w + qx + qy + qz):    # (a master that gave no sample)
+                        continue
+                    o = msg.pose.orientation                              # (ROS's x, y, z, w)
+                    o.x, o.y, o.z, o.w = qx, qy, qz, w
                 msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
-                x, y, z = values[field][b]
-                msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = float(x), float(y), float(z)
+                msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = x, y, z
+                pub.publish(msg)
+                count += 1
+            for field, pub, msg in self.angles[b]:
+                a = float(values[field][b])
+                if not math.isfinite(a):                                  # (unknown this tick)
+                    continue
+                msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+                msg.position[0] = a
                 pub.publish(msg)
                 count += 1
             pub, msg = self.wrenches[b]
