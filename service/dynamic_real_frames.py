@@ -10,7 +10,10 @@ moves rigidly, p(t) = R(t) p + c(t):
 * ``sideways``: translated along +x (parallel to the image plane) at ``speed``;
 * ``rocking``: rotated about an axis parallel to the image's y axis through a hinge ``HINGE``
   m to the side of the anchor point (a platform rocking on a mixer, fig. 3.10), at the rate
-  that moves the anchor toward the camera at ``speed``.
+  that moves the anchor toward the camera at ``speed``;
+
+and, given a ``stop`` time, halts there (a stroke of known length: the hold case of
+``dynamic_real``).
 
 The frame the camera sees at t is the real cloud (its valid pixels) moved and re-projected
 into the camera with a depth test (the nearest point per pixel wins), quantised to 1 mm as the
@@ -91,20 +94,33 @@ def fill_holes(depth_m: np.ndarray, px: int = FILL_PX) -> np.ndarray:
 @dataclass(frozen=True)
 class Motion:
     """A rigid motion of the scene at constant speed: kind (``MOTIONS``), the anchor's speed
-    (m/s), the anchor (camera frame, m)."""
+    (m/s), the anchor (camera frame, m), and the time ``stop`` (s) at which the scene halts
+    where it is (None: it moves throughout)."""
 
     kind: str
     speed: float
     anchor: tuple
+    stop: float | None = None
 
     def __post_init__(self):
         if self.kind not in MOTIONS:
             raise InputError(f"motion {self.kind!r}; expected one of {', '.join(MOTIONS)}")
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise InputError(f"motion speed = {self.speed!r}; expected a finite speed >= 0 m/s")
+        if self.stop is not None and not (math.isfinite(self.stop) and self.stop >= 0):
+            raise InputError(f"motion stop = {self.stop!r}; expected a finite time >= 0 s, or None (never stops)")
+
+    def moving(self, t: float) -> bool:
+        """Whether the scene still moves at time t (s)."""
+        return self.stop is None or t < self.stop
+
+    def _moved_for(self, t: float) -> float:
+        """How long (s) the scene has moved by time t."""
+        return float(t) if self.stop is None else min(float(t), self.stop)
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(R (3, 3), c (3,)): the scene's point p is at R p + c at time t (s)."""
+        t = self._moved_for(t)
         if self.kind == "toward":
             return np.eye(3), np.array([0.0, 0.0, -self.speed * t])
         if self.kind == "sideways":
@@ -118,6 +134,8 @@ class Motion:
     def velocity(self, points: np.ndarray, t: float) -> np.ndarray:
         """True velocity (N, 3) m/s of the moved scene points ``points`` (at their place at t)."""
         p = np.asarray(points, np.float64).reshape(-1, 3)
+        if not self.moving(t):
+            return np.zeros_like(p)
         if self.kind == "toward":
             return np.broadcast_to([0.0, 0.0, -self.speed], p.shape).copy()
         if self.kind == "sideways":
