@@ -26,8 +26,9 @@ small holes filled (nearest valid pixel within ``FILL_PX`` pixels: the warping-h
 triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
 within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
 point q at t is the exact distance of R(t)^T (q - c(t)) to that mesh at t = 0, negative behind
-it (further along the camera's ray than the closest surface point: a foreground object between
-the camera and the point does not make it "behind").
+it: further along the camera's ray than the closest surface point (a foreground object between
+the camera and the point does not make it "behind"), and its own ray blocked by the surface (a
+point beside a hole or in a gap between objects, with the surface behind it, is in front).
 """
 from __future__ import annotations
 
@@ -224,4 +225,29 @@ class MovingRealFrame:
         """Signed distance (N,) m of points q (N, 3, camera frame) to the true surface at t."""
         R, c = motion.pose(t)
         q0 = (np.asarray(q, np.float64).reshape(-1, 3) - c) @ R  # R^T (q - c), row-wise
-        return self.mesh.signed(q0)
+        d = self.mesh.signed(q0)
+        behind = np.flatnonzero(d < 0)
+        if behind.size:
+            # behind also needs the point's own ray to be blocked: the nearest triangle alone
+            # calls a point beside a hole's boundary, or in a gap between two objects with the
+            # surface far behind it along its ray, "behind" by a fraction of a millimetre of depth
+            # (its sign then flips between ticks a millimetre apart)
+            hidden = self._occluded(q0[behind])
+            d[behind[~hidden]] *= -1.0
+        return d
+
+    def _occluded(self, q0: np.ndarray) -> np.ndarray:
+        """Whether each point (M, 3, the frame at t = 0) is further along its camera ray than
+        the surface: deeper than the nearest (filled) depth within a pixel of its projection
+        (a pixel each way: on a steep wall a sub-millimetre penetration is kept)."""
+        cam, z = self.cam, self.filled
+        h, w = z.shape
+        out = np.zeros(len(q0), bool)
+        for k, p in enumerate(q0):
+            if p[2] <= 0:
+                continue
+            u, v = int(round(p[0] / p[2] * cam.fx + cam.cx)), int(round(p[1] / p[2] * cam.fy + cam.cy))
+            win = z[max(v - 1, 0):max(min(v + 2, h), 0), max(u - 1, 0):max(min(u + 2, w), 0)]
+            win = win[win > 0]
+            out[k] = bool(win.size) and p[2] > float(win.min())
+        return out
