@@ -10,7 +10,10 @@ moves rigidly, p(t) = R(t) p + c(t):
 * ``sideways``: translated along +x (parallel to the image plane) at ``speed``;
 * ``rocking``: rotated about an axis parallel to the image's y axis through a hinge ``HINGE``
   m to the side of the anchor point (a platform rocking on a mixer, fig. 3.10), at the rate
-  that moves the anchor toward the camera at ``speed``.
+  that moves the anchor toward the camera at ``speed``;
+
+and, given a ``stop`` time, halts there (a stroke of known length: the hold case of
+``dynamic_real``).
 
 The frame the camera sees at t is the real cloud (its valid pixels) moved and re-projected
 into the camera with a depth test (the nearest point per pixel wins), quantised to 1 mm as the
@@ -23,8 +26,9 @@ small holes filled (nearest valid pixel within ``FILL_PX`` pixels: the warping-h
 triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
 within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
 point q at t is the exact distance of R(t)^T (q - c(t)) to that mesh at t = 0, negative behind
-it (further along the camera's ray than the closest surface point: a foreground object between
-the camera and the point does not make it "behind").
+it: further along the camera's ray than the closest surface point (a foreground object between
+the camera and the point does not make it "behind"), and its own ray blocked by the surface (a
+point beside a hole or in a gap between objects, with the surface behind it, is in front).
 """
 from __future__ import annotations
 
@@ -91,20 +95,33 @@ def fill_holes(depth_m: np.ndarray, px: int = FILL_PX) -> np.ndarray:
 @dataclass(frozen=True)
 class Motion:
     """A rigid motion of the scene at constant speed: kind (``MOTIONS``), the anchor's speed
-    (m/s), the anchor (camera frame, m)."""
+    (m/s), the anchor (camera frame, m), and the time ``stop`` (s) at which the scene halts
+    where it is (None: it moves throughout)."""
 
     kind: str
     speed: float
     anchor: tuple
+    stop: float | None = None
 
     def __post_init__(self):
         if self.kind not in MOTIONS:
             raise InputError(f"motion {self.kind!r}; expected one of {', '.join(MOTIONS)}")
         if not (math.isfinite(self.speed) and self.speed >= 0):
             raise InputError(f"motion speed = {self.speed!r}; expected a finite speed >= 0 m/s")
+        if self.stop is not None and not (math.isfinite(self.stop) and self.stop >= 0):
+            raise InputError(f"motion stop = {self.stop!r}; expected a finite time >= 0 s, or None (never stops)")
+
+    def moving(self, t: float) -> bool:
+        """Whether the scene still moves at time t (s)."""
+        return self.stop is None or t < self.stop
+
+    def _moved_for(self, t: float) -> float:
+        """How long (s) the scene has moved by time t."""
+        return float(t) if self.stop is None else min(float(t), self.stop)
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(R (3, 3), c (3,)): the scene's point p is at R p + c at time t (s)."""
+        t = self._moved_for(t)
         if self.kind == "toward":
             return np.eye(3), np.array([0.0, 0.0, -self.speed * t])
         if self.kind == "sideways":
@@ -118,6 +135,8 @@ class Motion:
     def velocity(self, points: np.ndarray, t: float) -> np.ndarray:
         """True velocity (N, 3) m/s of the moved scene points ``points`` (at their place at t)."""
         p = np.asarray(points, np.float64).reshape(-1, 3)
+        if not self.moving(t):
+            return np.zeros_like(p)
         if self.kind == "toward":
             return np.broadcast_to([0.0, 0.0, -self.speed], p.shape).copy()
         if self.kind == "sideways":
@@ -206,4 +225,29 @@ class MovingRealFrame:
         """Signed distance (N,) m of points q (N, 3, camera frame) to the true surface at t."""
         R, c = motion.pose(t)
         q0 = (np.asarray(q, np.float64).reshape(-1, 3) - c) @ R  # R^T (q - c), row-wise
-        return self.mesh.signed(q0)
+        d = self.mesh.signed(q0)
+        behind = np.flatnonzero(d < 0)
+        if behind.size:
+            # behind also needs the point's own ray to be blocked: the nearest triangle alone
+            # calls a point beside a hole's boundary, or in a gap between two objects with the
+            # surface far behind it along its ray, "behind" by a fraction of a millimetre of depth
+            # (its sign then flips between ticks a millimetre apart)
+            hidden = self._occluded(q0[behind])
+            d[behind[~hidden]] *= -1.0
+        return d
+
+    def _occluded(self, q0: np.ndarray) -> np.ndarray:
+        """Whether each point (M, 3, the frame at t = 0) is further along its camera ray than
+        the surface: deeper than the nearest (filled) depth within a pixel of its projection
+        (a pixel each way: on a steep wall a sub-millimetre penetration is kept)."""
+        cam, z = self.cam, self.filled
+        h, w = z.shape
+        out = np.zeros(len(q0), bool)
+        for k, p in enumerate(q0):
+            if p[2] <= 0:
+                continue
+            u, v = int(round(p[0] / p[2] * cam.fx + cam.cx)), int(round(p[1] / p[2] * cam.fy + cam.cy))
+            win = z[max(v - 1, 0):max(min(v + 2, h), 0), max(u - 1, 0):max(min(u + 2, w), 0)]
+            win = win[win > 0]
+            out[k] = bool(win.size) and p[2] > float(win.min())
+        return out

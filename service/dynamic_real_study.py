@@ -2,7 +2,8 @@
 frame's motion the per-cell velocities predict, on real depth frames moved at known speeds
 (``dynamic_real_frames``), in simulated time.
 
-After every snapshot the points within ``NEAR`` of the moving contact point are advanced by
+The surface moves for the whole run (``advance`` inf: the estimator is studied on steady
+motion). After every snapshot the points within ``NEAR`` of the moving contact point are advanced by
 their estimated velocity over one frame period and compared with the true surface one frame
 later: ``static_mm`` is the median distance of the unmoved points to it (what a fixture without
 prediction is off by), ``predicted_mm`` that of the predicted points (what prediction leaves),
@@ -14,6 +15,8 @@ estimator's whole-snapshot counts (``MotionEstimator.summary``: cells measured, 
 unknown, and why not measured).
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -55,7 +58,7 @@ def estimator_run(surface, kind: str, speed: float, *, backend: str = "opencl", 
 
     model = model if model is not None else MotionModel(enabled=True)
     run_case(surface, motion, speed, True, r_f=0.01, master="hold" if kind == "toward" else "push",
-             backend=backend, device=device, model=model, probe=probe)
+             backend=backend, device=device, model=model, probe=probe, advance=math.inf)
     if not rows:
         return {"snapshots": 0}
     m = np.median(np.asarray(rows), axis=0)

@@ -249,3 +249,75 @@ def test_mesh_distance_equals_brute_force_over_every_triangle():
     want = np.array([_tri_distance(p, tris)[0].min() for p in q])
     np.testing.assert_allclose(np.abs(got), want, atol=1e-12)
     assert (got < 0).any() and (got > 0).any()
+
+
+def test_a_motion_with_a_stop_halts_there():
+    """``Motion.stop``: the pose moves until the stop and stays there; the velocity is 0 after
+    it; a stop that is not a finite time >= 0 is refused."""
+    a = (0.05, -0.1, 0.5)
+    for kind in ("toward", "sideways", "rocking"):
+        free, halted = Motion(kind, 1.0, a), Motion(kind, 1.0, a, stop=0.03)
+        for t in (0.01, 0.029):
+            np.testing.assert_allclose(halted.pose(t)[1], free.pose(t)[1])
+        for t in (0.03, 0.05, 0.2):
+            np.testing.assert_allclose(halted.pose(t)[0], free.pose(0.03)[0])
+            np.testing.assert_allclose(halted.pose(t)[1], free.pose(0.03)[1])
+        assert np.all(halted.velocity(np.array([a]), 0.05) == 0)
+        assert np.linalg.norm(halted.velocity(np.array([a]), 0.01)) > 0.9
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="stop"):
+            Motion("toward", 1.0, a, stop=bad)
+
+
+def test_a_point_beside_a_hole_with_the_surface_behind_it_is_in_front():
+    """A plane z = 0.5 m seen with its right half missing (a hole, or an object's edge) and a
+    floor 5 cm behind it under the hole: a point 3 mm beyond the plane's edge, 1 mm deeper than
+    the edge, its own ray ending on the floor 4 cm further, is in front of the surface (the
+    nearest triangle is the edge's, the point is further along the edge point's ray: the
+    nearest-point rule alone read it 3 mm behind); a point 2 mm behind the plane itself still
+    reads 2 mm behind."""
+    cam = Camera("h", 200, 100, 300.0, 300.0, 100.0, 50.0, depth_scale=1e-4)
+    depth = np.full((100, 200), 5000, np.uint16)
+    depth[:, 120:] = 5500
+    frame = MovingRealFrame(depth, cam, name="edge")
+    m = Motion("toward", 0.0, tuple(frame.anchor()))
+    x_edge = (119 - 100) / 300 * 0.5               # the plane's last pixel column, m
+    beside = np.array([[x_edge + 0.003, 0.0, 0.501]])
+    got = float(frame.distance(m, beside, 0.0)[0])
+    assert got > 0, got
+    assert abs(got - np.hypot(0.003, 0.001)) < 2e-4, got
+    behind = np.array([[x_edge - 0.02, 0.0, 0.502]])
+    assert abs(float(frame.distance(m, behind, 0.0)[0]) + 0.002) < 1e-4
+
+
+@needs_data
+def test_a_real_frame_point_between_two_objects_is_in_front(apc):
+    """apc's bin: a point 36 mm from two foreground objects' faces (above and below it in the
+    image) and 65 mm in front of the bin floor along its own ray, 1 mm deeper than its nearest
+    face point (a proxy pushed out by prediction at 1.5 m/s, 2 cm fixture, passed there): in
+    front (the nearest-point rule alone read it 36.7 mm behind, a pop-through that was not)."""
+    m = Motion("toward", 0.0, tuple(apc.anchor()))
+    q = apc.anchor() + np.array([-44.3, -3.6, -19.5]) * 1e-3
+    d = float(apc.distance(m, q[None], 0.0)[0])
+    assert 0.03 < d < 0.04, d
+
+
+@needs_data
+def test_the_2cm_fixture_holds_a_real_frame_advancing_at_1mps_with_prediction(apc):
+    """apc frame toward the holding master at 1 m/s (33 mm a frame, more than the 2 cm
+    fixture), its 4 cm stroke, then still, 4 frames: with prediction the proxy never goes
+    through and stays within 0.5 mm of the fixture; without, one frame's jump carries the
+    surface past it by more than the radius."""
+    a = apc.anchor()
+    on = dr.run_case(apc, Motion("toward", 1.0, tuple(a)), 1.0, True, r_f=0.02, master="hold")
+    off = dr.run_case(apc, Motion("toward", 1.0, tuple(a)), 1.0, False, r_f=0.02, master="hold")
+    print(f"\napc toward/hold 1 m/s, 2 cm: with {on.proxy_penetration * 1e3:.2f}/{on.robot_penetration * 1e3:.2f} mm, "
+          f"without {off.proxy_penetration * 1e3:.2f}/{off.robot_penetration * 1e3:.2f} mm")
+    assert on.frames >= 5 and not on.proxy_popped
+    assert on.proxy_penetration <= 0.5e-3
+    assert off.proxy_penetration > 0.01
+
+
+def test_run_case_refuses_a_bad_advance():
+    with pytest.raises(InputError, match="advance"):
+        dr.run_case(None, None, 0.1, True, master="hold", advance=-0.01)
