@@ -128,12 +128,12 @@ def test_a_tick_sends_every_hosted_arms_setpoint_in_one_message():
         ch = host._blk.cmd                            # (the test looks at the wire)
         writes = int(ch.meta[0] + ch.meta[1]) // 2
         out.command[:] = x0 + [0.001, 0.0, 0.0]
-        assert dev.command_robots(out, 1e-3) is False
+        assert dev.command_robots(out, 1e-3) is False, dev.last_refusal
         out.engage[:] = False
         out.command[:] = x0 + [0.002, 0.0, 0.0]
         before = int(ch.meta[0] + ch.meta[1]) // 2
         assert before > writes                         # (the resumes: mode commands leave at once)
-        assert dev.command_robots(out, 1e-3) is False
+        assert dev.command_robots(out, 1e-3) is False, dev.last_refusal
         assert int(ch.meta[0] + ch.meta[1]) // 2 == before + 1
         got = np.zeros(3 * host._blk.C)
         assert ch.read(got)
