@@ -16,6 +16,7 @@ from pointfence.service.devices import Devices
 from pointfence.service.masters import Master, ScriptedMaster
 from pointfence.service.robot import RobotMode, make_robot
 from pointfence.service.robot.hosted import RobotHost
+from pointfence.service.teleop import quat_of_rotation
 from pointfence.service.robot.hosted_block import Block
 from pointfence.service.tick_io import TickInput, TickOutput
 
@@ -124,6 +125,10 @@ def test_a_tick_sends_every_hosted_arms_setpoint_in_one_message():
         dev = Devices([_Fixed([0, 0, 0]) for _ in host.robots], host.robots)
         out = TickOutput.zeros(3)
         x0 = np.array([r.measured_cp()[:3, 3] for r in host.robots])
+        # each arm's own orientation: the tick's default (identity) is out of a Raven's reach, and
+        # the child's refusal would reach the next servo_cp whenever the child answers first
+        for b, r in enumerate(host.robots):
+            out.orientation[b] = quat_of_rotation(r.measured_cp()[:3, :3])
         out.coupled[:] = out.engage[:] = True
         ch = host._blk.cmd                            # (the test looks at the wire)
         writes = int(ch.meta[0] + ch.meta[1]) // 2
