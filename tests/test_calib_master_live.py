@@ -94,6 +94,7 @@ def test_masters_endpoint_reports_the_raw_sample_and_needs_the_token(live):
     a = rep["masters"][0]
     assert a["arm"] == 0 and a["valid"] is True
     assert np.allclose(a["position"], START, atol=1e-3)       # the master frame, not the world (X_m)
+    rig.wait_ticks(2)
     st2, rep2 = rig.raw("GET", "/masters")
     assert rep2["tick"] > rep["tick"] and rep2["t"] > rep["t"]
     assert rig.raw("GET", "/masters", auth=False)[0] == 401
