@@ -27,8 +27,14 @@ residuals above bounds, an uncertain result by jackknife); a result not trusted 
 with ``--accept-untrusted`` (exit status 3). A fitted scale outside ``[teleop] scale``'s limits
 (``service/limits.py``) is an error. ``--config scene.toml`` merges the keys into ``[teleop]``
 (only those keys change, comments and layout stay, earlier versions kept as .bak, .bak.2, ...);
-``--out FILE`` writes the ``[teleop]`` snippet. This works offline from the recorded CSV; the
-service's status does not report raw master positions, so there is no live mode.
+``--out FILE`` writes the ``[teleop]`` snippet.
+
+**live** (``calib master --live [--port P] [--token-file F] [--arm N]``): the guided motion
+against a running ``pointfence serve``: the operator is prompted for each step and each
+position is the master's raw sample read from the control API (``GET /masters``, with the
+run's token as `pointfence ctl` finds it), averaged once the master rests (or on Enter with
+``--enter``); ``calib/master_live.py``. Then solved, reported and written as ``--guided``; a step
+not captured in ``--step-timeout`` s is left out and named in the verdict (NOT TRUSTED).
 """
 from __future__ import annotations
 
@@ -344,11 +350,14 @@ def add_arguments(p) -> None:
                    help="register synthetic pairs (default) or guided steps with a known answer")
     p.add_argument("--out", help="also write the [teleop] snippet to this file")
     p.add_argument("--config", help="merge scale and T_world_master into this scene's [teleop] (earlier versions kept as .bak, ...)")
+    from .master_live import add_arguments as live_arguments
+
+    live_arguments(p)
 
 
-def run(args) -> int:
-    from .output import write_snippet
-
+def run(args, prompt=None, say=None, wait_enter=None) -> int:
+    """``pointfence calib master``; ``prompt``/``say``/``wait_enter``: the live mode's operator
+    hooks (``master_live.GuidedCapture``; default print and input)."""
     if args.print_script:
         print(script(), end="")
         return 0
@@ -359,6 +368,14 @@ def run(args) -> int:
         cfg = config.load(args.config).teleop
     scale = args.scale if args.scale is not None else (cfg.scale if cfg is not None else 0.5)
     truth = None
+    if args.live:
+        if args.pairs or args.guided or args.simulate:
+            raise InputError("calib master --live captures the guided motion itself; drop the pairs CSV, --guided and --simulate")
+        from .master_live import capture_from_args
+
+        cap = capture_from_args(args, list(DIRECTIONS), prompt=prompt, say=say, wait_enter=wait_enter)
+        p0 = cfg.T_world_master[:3, 3] if cfg is not None else np.zeros(3)
+        return _live_result(args, cap, scale, p0)
     if args.guided or args.simulate == "guided":
         if args.simulate:
             steps, R_true = simulate_steps()
@@ -382,6 +399,32 @@ def run(args) -> int:
     if truth is not None:
         err = rotation_angle_deg(truth[0][:3, :3].T @ reg.T_world_master[:3, :3])
         print(f"# simulate: rotation error {err:.3f} deg, scale {reg.scale:.4f} (true {truth[1]:.4f})")
+    return _finish(args, reg, how)
+
+
+def _live_result(args, cap, scale: float, p0) -> int:
+    """Solve the live capture (``master_live.Capture``) as ``--guided``, its left-out steps
+    among the verdict's problems; too few steps to solve at all: NOT TRUSTED, nothing written."""
+    dirs = [d for d, _ in cap.steps[1:]]
+    axes = {d[1] for d in dirs}
+    if len(axes) < 2:
+        print(Verdict(False, list(cap.problems) + [
+            f"{len(dirs)} of {len(DIRECTIONS)} steps captured ({', '.join(dirs) or 'none'}); at least two axes are needed "
+            "to solve and all six steps to trust it: repeat `calib master --live`, following each prompt"]).text())
+        if args.out or args.config:
+            print("# not written: no registration could be solved")
+        return 3
+    reg = register_guided(cap.steps, scale, p0)
+    reg.problems[:0] = cap.problems
+    print(reg.report())
+    return _finish(args, reg, f"live guided motion, arm {args.arm}, {len(dirs)} steps")
+
+
+def _finish(args, reg: MasterRegistration, how: str) -> int:
+    """Print the ``[teleop]`` snippet; write ``--out``/``--config`` unless the verdict is NOT
+    TRUSTED (then exit status 3, unless ``--accept-untrusted``)."""
+    from .output import write_snippet
+
     r = reg.residuals
     comment = (f"pointfence calib master ({how}): residuals {np.sqrt(np.mean(r ** 2)):.2f} {reg.unit} RMS, "
                f"{'trusted' if reg.verdict.trusted else 'NOT TRUSTED'}")

@@ -132,6 +132,8 @@ class Service:
         self._published = TickOutput.zeros(n)
         self._pub_core = self._bind_core(self._published)
         self._pub_ref = ctypes.byref(self._pub_core)
+        self._pub_master = np.full((n, 3), np.nan)   # the last tick's raw master samples (master frame, m)
+        self._pub_master_ok = np.zeros(n, bool)      # and their valid flags (``master_sample``)
         self.kernel_us = np.zeros(RING)         # the kernel's wall-clock time per tick (us), a ring
         self.ticks = 0
         self._started = False
@@ -423,6 +425,8 @@ class Service:
         with self._pub_lock:
             lib.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state,
             #                                                       orientation, jaw
+            np.copyto(self._pub_master, inp.master_pos)
+            np.copyto(self._pub_master_ok, inp.master_ok)
             p.t, p.k = out.t, out.k
         if self.recorder is not None:
             self.recorder.write(inp, out)
@@ -476,6 +480,14 @@ class Service:
                    "xr": p.robot_pos.copy(), "force": p.force.copy(), "state": p.state.copy(), "t": p.t,
                    "tick": p.k, "orientation": p.orientation.copy(), "jaw": p.jaw.copy()}
         return out
+
+    def master_sample(self) -> dict:
+        """The last published tick's raw master samples (copies): ``position`` (B, 3) in each
+        master's own frame (m; NaN where it gave none), ``valid`` (B,), the tick's loop time ``t``
+        (s) and number ``tick``. Read under the publish lock, never in the tick."""
+        with self._pub_lock:
+            p = self._published
+            return {"position": self._pub_master.copy(), "valid": self._pub_master_ok.copy(), "t": p.t, "tick": p.k}
 
     def kernel_timing(self, since: int = 0) -> dict:
         """The kernel's share of the ticks since tick number ``since``: p50 and p99 (us) of the

@@ -16,6 +16,10 @@ and a refused command changes nothing):
     GET  /metrics                    loop timing (compute/lateness p50/p99/max, misses, overruns),
                                      degraded (hold) reasons, camera ages and staleness, clients
     GET  /config                     the fixture parameters in use (mode, radius, selection, cell)
+    GET  /masters                    each master's latest raw sample: position in its own frame
+                                     (m; null when invalid), valid, and the tick's number and loop
+                                     time (s); read from the tick's published copy, not in a tick
+                                     (``pointfence calib master --live`` polls it)
     POST /architecture  {"architecture": "I"|"II"|"III"}
     POST /haptics       {"engaged": true|false}
     POST /teleop        {"engaged": true|false}
@@ -281,6 +285,15 @@ class Controller:
         return {"fixture": self.fixture_config(), "architecture": self.service.architecture,
                 "architectures": list(ARCHITECTURES)}
 
+    def get_masters(self, _body) -> dict:
+        m = self.service.master_sample()
+        loop = self.loop
+        arms = [{"arm": b, "valid": bool(ok), "position": [float(x) for x in pos] if ok and math.isfinite(sum(pos)) else None}
+                for b, (pos, ok) in enumerate(zip(m["position"].tolist(), m["valid"].tolist()))]
+        return {"tick": int(m["tick"]), "t": float(m["t"]), "masters": arms,
+                "loop_running": bool(loop.running) if loop is not None else None,
+                "loop_error": loop.error if loop is not None else None}
+
     def count_rejected(self, reason: str) -> None:
         """Count a request the HTTP layer refused before it reached a route (``REJECT_REASONS``)."""
         with self._count_lock:
@@ -458,6 +471,7 @@ class Controller:
         ("GET", "/status"): get_status,
         ("GET", "/metrics"): get_metrics,
         ("GET", "/config"): get_config,
+        ("GET", "/masters"): get_masters,
         ("POST", "/architecture"): post_architecture,
         ("POST", "/haptics"): post_haptics,
         ("POST", "/teleop"): post_teleop,

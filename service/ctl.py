@@ -119,7 +119,8 @@ class ControlClient:
         return self.post("/selection", {"kind": kind, **kw})
 
 
-def _address(args) -> tuple:
+def address(args) -> tuple:
+    """(host, port) of the control API from ``--host``/``--port``, else ``$POINTFENCE_CONTROL``."""
     host, port = args.host, args.port
     env = os.environ.get("POINTFENCE_CONTROL")
     if env and host is None and port is None:
@@ -162,7 +163,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    host, port = _address(args)
+    host, port = address(args)
     c = ControlClient(host, port, args.timeout, token_file=args.token_file)
     act = args.action
     if act in ("status", "metrics", "config"):

@@ -20,7 +20,7 @@ class Running:
     """Service + SimFrames + a HapticLoop thread on a FakeClock + the control API on port 0
     (its token in the default place, ``ctl_auth.default_token_path(port)``, as `serve` does)."""
 
-    def __init__(self, tmp_path, arch="III", extra="", record=60000, mode_line=None, start=True):
+    def __init__(self, tmp_path, arch="III", extra="", record=60000, mode_line=None, start=True, master=None):
         tmp_path.mkdir(parents=True, exist_ok=True)
         cfg = balloon_config(tmp_path, arch=arch, robot=POINT_MASS, extra=extra)
         if mode_line is not None:
@@ -28,7 +28,7 @@ class Running:
 
             cfg = replace(cfg, mode=mode_line)
         self.cfg = cfg
-        self.svc = Service(cfg, [push(t_start=0.1, t_end=2.0, hold=100.0)], record=record)
+        self.svc = Service(cfg, [master if master is not None else push(t_start=0.1, t_end=2.0, hold=100.0)], record=record)
         self.sources = cfg.open_sources()
         fe = SimFrames(self.svc.pipeline, self.sources, cfg.service.stale_s, cfg.service.max_frame_age_s)
         self.svc.attach_frames(fe)
