@@ -50,6 +50,7 @@ from pointfence.kernels.errors import InputError
 
 from .cable_block import ALERT_TEXT, FAULT_TEXT, INJECT_NAN, INJECT_NONE, LOST_CODE, GrasperBlock, get_text
 from .cable_settings import CableTable
+from .child_pipe import stop_by_flag
 
 LOST = "grasper process not answering"
 #: fault kinds of ``inject``
@@ -180,15 +181,7 @@ class GrasperHost:
         proc = self._proc
         if proc is None:
             return
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGCONT)        # (a stopped child cannot see the stop request)
-            if self._blk is not None:
-                self._blk.ctl["stop"] = 1
-            try:
-                proc.wait(timeout=2.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=2.0)
+        stop_by_flag(proc, self._blk.ctl if self._blk is not None else None)
         self._proc = None
 
     def __del__(self):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import signal
 import struct
 import subprocess
 import sys
@@ -56,3 +57,18 @@ def end(proc: subprocess.Popen, timeout_s: float) -> bool:
         proc.kill()
         proc.wait()
         return True
+
+
+def stop_by_flag(proc: subprocess.Popen, ctl) -> None:
+    """End a child told to stop through shared memory (the robot and grasper processes): it is
+    continued first (a stopped child cannot see the request), ``ctl["stop"] = 1`` asks it to
+    finish its period (``ctl`` None: its block is gone), then a 2 s wait and a kill."""
+    if proc.poll() is None:
+        os.kill(proc.pid, signal.SIGCONT)
+        if ctl is not None:
+            ctl["stop"] = 1
+    try:
+        proc.wait(timeout=2.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=2.0)

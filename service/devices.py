@@ -188,14 +188,7 @@ class Devices:
                 try:
                     r.servo_cp(poses[b])
                 except InputError as e:     # unreachable: the robot keeps its setpoint
-                    self.refusals += 1
-                    self.last_refusal = f"robot {b}: {e}"
-                    r.setpoint_cp(out=self._T4[b])
-                    self.kept[b] = self._T4[b, :3, 3]
-                    lib.pf_quats_of_matrices(ptr(self._T4[b], np.float64, "setpoint"), 4, 1,
-                                             ptr(self.kept_orientation[b], np.float64, "kept"))
-                    self.refused[b] = True
-                    self._refused_any = True
+                    self._refuse(b, r, f"robot {b}: {e}")
             elif release[b]:
                 r.hold()
         if self.jawed:
@@ -205,17 +198,22 @@ class Devices:
                     try:
                         r.servo_jaw(jaw[b])
                     except InputError as e:     # (outside its range: the jaw keeps its setpoint, the arm holds)
-                        self.refusals += 1
-                        self.last_refusal = f"robot {b} jaw: {e}"
-                        r.setpoint_cp(out=self._T4[b])
-                        self.kept[b] = self._T4[b, :3, 3]
-                        lib.pf_quats_of_matrices(ptr(self._T4[b], np.float64, "setpoint"), 4, 1,
-                                                 ptr(self.kept_orientation[b], np.float64, "kept"))
-                        self.refused[b] = True
-                        self._refused_any = True
+                        self._refuse(b, r, f"robot {b} jaw: {e}")
         for b, r in self.real:
             r.step(dt)
         return self._refused_any
+
+    def _refuse(self, b: int, r, why: str) -> None:
+        """Arm ``b``'s robot ``r`` refused this tick's command: count it, keep its setpoint
+        (position and orientation: the tick's command follows, ``kept``) and say why."""
+        self.refusals += 1
+        self.last_refusal = why
+        r.setpoint_cp(out=self._T4[b])
+        self.kept[b] = self._T4[b, :3, 3]
+        lib.pf_quats_of_matrices(ptr(self._T4[b], np.float64, "setpoint"), 4, 1,
+                                 ptr(self.kept_orientation[b], np.float64, "kept"))
+        self.refused[b] = True
+        self._refused_any = True
 
     def hold_robots(self, dt: float, coupled: np.ndarray, command: np.ndarray, orientation: np.ndarray = None,
                     jaw: np.ndarray = None) -> None:

@@ -67,6 +67,7 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
+from ..child_pipe import stop_by_flag
 from .factory import robot_from_config
 from .hosted_arm import HostedRobot
 from .hosted_block import FAULT, INJECT_NAN, INJECT_NONE, RING, TICKS, Block, Commands, get_text
@@ -364,15 +365,7 @@ class RobotHost:
         """Stop the child (it finishes its period) and free the shared memory. Idempotent."""
         proc = getattr(self, "_proc", None)
         if proc is not None:
-            if proc.poll() is None:
-                os.kill(proc.pid, signal.SIGCONT)    # (a stalled child cannot see the stop request)
-            if self._blk is not None:
-                self._blk.ctl["stop"] = 1
-            try:
-                proc.wait(timeout=2.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=2.0)
+            stop_by_flag(proc, self._blk.ctl if self._blk is not None else None)
             self._proc = None
         shm = getattr(self, "_shm", None)
         if shm is not None:
