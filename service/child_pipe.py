@@ -1,6 +1,8 @@
 """The control pipe of pointfence's helper processes (the MCAP writer, the ROS 2 telemetry
 publisher): length-prefixed pickled tuples on the child's stdin, the first an ``("init", dict)``,
-and the end of a child: its stdin closed (the child's cue to finish), a bounded wait, a kill."""
+and the end of a child: its stdin closed (the child's cue to finish), a bounded wait, a kill;
+for the children steered through shared memory (robot and grasper processes) the end is a stop
+flag in their block instead (``stop_by_flag``)."""
 from __future__ import annotations
 
 import os
