@@ -11,6 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 from . import dynamic_scenes as ds
+from .record import INPUT_COLUMNS
+
+INPUT_AGE, INPUT_DT = INPUT_COLUMNS.index("frame_age"), INPUT_COLUMNS.index("dt")
+#: a live run whose longest stall let the plane move further than this (mm) fell behind
+LIVE_MAX_TRAVEL_MM = 1.0
 
 #: the service-level run: a plane rising at ``speed`` through z = -0.1 m at t = 0 under a 160x120
 #: camera 0.5 m above it, all protected by a 2 cm fixture; architecture III with an ideal robot
@@ -57,6 +62,7 @@ def service_plane(predict: bool, *, speed: float = 0.5, backend: str = "opencl",
         run.start()
         try:
             run.wait(duration)
+            timing = run.timing()
         finally:
             run.stop()
         svc, sources = run.service, run.sources
@@ -69,13 +75,38 @@ def service_plane(predict: bool, *, speed: float = 0.5, backend: str = "opencl",
     keep = t - t[0] > 0.1
     r_f = cfg.pipeline.radius.r_base
     pen = {}
+    ages, gaps = rec.inputs[: rec.count, INPUT_AGE][keep], rec.inputs[: rec.count, INPUT_DT][keep]
     for name, pts in (("proxy", rows[:, 7:10]), ("robot", rec.robots[: rec.count, 0, :3])):
         d = np.array([scene.distance(p[None], ti)[0] for p, ti in zip(pts[keep], t[keep])])
         pen[name] = round(1000 * max(0.0, float((r_f - d).max())), 2) if len(d) else None
     for s in sources:
         s.close()
-    return {"penetration_mm_proxy": pen["proxy"], "penetration_mm_robot": pen["robot"], "ticks": int(rec.count),
-            "hold": svc.status()["hold"], "last_dt_ms": round(svc.batch.last_dt * 1000, 2)}
+    res = {"penetration_mm_proxy": pen["proxy"], "penetration_mm_robot": pen["robot"], "ticks": int(rec.count),
+           "hold": svc.status()["hold"], "last_dt_ms": round(svc.batch.last_dt * 1000, 2),
+           "frame_age_ms_max": round(1000 * float(ages.max()), 1) if len(ages) else None}
+    if live:
+        res["loop_miss_ratio"] = round(timing.miss_ratio, 5)
+        res["loop_late_us_p99"] = round(timing.late_us_p99, 1)
+        res["tick_gap_ms_max"] = round(1000 * float(gaps.max()), 2) if len(gaps) else None
+        res["fell_behind"] = fell_behind(res, float(speed), 1.0 / cfg.cameras[0].rate_hz)
+    return res
+
+
+def fell_behind(res: dict, speed: float, frame_period_s: float) -> list:
+    """What kept a live run from being the experiment it models (empty: nothing). The plane
+    advances ``speed`` (m/s) the whole time, so the longest gap between two measured ticks
+    (``tick_gap_ms_max``) lets it move ``speed * gap`` into the proxy with no tick to push back:
+    more than ``LIVE_MAX_TRAVEL_MM`` is the machine's lateness in the measure, not the fixture's.
+    A snapshot older than two frame periods (``frame_period_s``, s) means the ingest fell behind
+    the camera."""
+    why = []
+    gap = res.get("tick_gap_ms_max")
+    if gap is not None and speed * gap > LIVE_MAX_TRAVEL_MM:
+        why.append(f"ticks {gap:.1f} ms apart: the plane moved {speed * gap:.1f} mm between them")
+    limit = 2000.0 * frame_period_s
+    if res.get("frame_age_ms_max") is not None and res["frame_age_ms_max"] > limit:
+        why.append(f"snapshots up to {res['frame_age_ms_max']:.0f} ms old (two frames: {limit:.0f} ms)")
+    return why
 
 
 def _speed(v):
@@ -98,6 +129,14 @@ def run(backend: str = "opencl", device: str | None = None, latency: float = 0.1
         f"{svc['without_prediction']['penetration_mm_robot']:.2f} mm without motion prediction, "
         f"{svc['with_prediction']['penetration_mm_robot']:.2f} mm with it (robot; proxy "
         f"{svc['without_prediction']['penetration_mm_proxy']:.2f} / {svc['with_prediction']['penetration_mm_proxy']:.2f} mm)")
+    for name, r in svc.items() if live else ():   # a busy machine's live run measures the machine: say so
+        out(f"    live run {name.replace('_', ' ')}: loop misses {100 * r['loop_miss_ratio']:.2f} %, lateness "
+            f"p99 {r['loop_late_us_p99']:.0f} us, longest gap between ticks {r['tick_gap_ms_max']:.1f} ms, "
+            f"snapshot age max {r['frame_age_ms_max']:.0f} ms")
+        if r.get("fell_behind"):
+            out(f"    the live run {name.replace('_', ' ')} fell behind ({'; '.join(r['fell_behind'])}): its "
+                f"penetration is the machine's lateness, not the fixture's; `pointfence demo --offline` gives "
+                f"the simulated-clock figure")
     for label, kw in (("no latency", {}), (f"camera latency {latency * 1000:.0f} ms", {"latency": latency})):
         off = ds.popthrough_speed(False, backend=backend, device=device, **kw)
         on = ds.popthrough_speed(True, backend=backend, device=device, **kw)

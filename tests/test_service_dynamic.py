@@ -291,3 +291,45 @@ def test_demo_has_a_no_dynamic_switch():
     p = argparse.ArgumentParser()
     demo.add_arguments(p)
     assert p.parse_args(["--no-dynamic"]).no_dynamic and not p.parse_args([]).no_dynamic
+
+
+# --- the demo's live chapter-6 run says when the machine, not the fixture, set its figure ---------------------
+
+def test_live_run_judge_names_stalls_and_old_snapshots():
+    from pointfence.service.dynamic_demo import fell_behind
+
+    quiet = {"tick_gap_ms_max": 1.4, "frame_age_ms_max": 40.0}
+    assert fell_behind(quiet, 0.5, 1 / 30) == []
+    # a 3 ms gap at 0.5 m/s: the plane moved 1.5 mm with no tick to push the proxy back
+    stall = fell_behind({"tick_gap_ms_max": 3.0, "frame_age_ms_max": 40.0}, 0.5, 1 / 30)
+    assert len(stall) == 1 and "1.5 mm" in stall[0]
+    # the same gap at 0.1 m/s is 0.3 mm: still the fixture's measure
+    assert fell_behind({"tick_gap_ms_max": 3.0, "frame_age_ms_max": 40.0}, 0.1, 1 / 30) == []
+    old = fell_behind({"tick_gap_ms_max": 1.0, "frame_age_ms_max": 120.0}, 0.5, 1 / 30)
+    assert len(old) == 1 and "120 ms" in old[0] and "67 ms" in old[0]
+
+
+def test_demo_prints_when_the_live_run_fell_behind(monkeypatch):
+    from pointfence.service import dynamic_demo as dd
+
+    runs = {False: {"penetration_mm_proxy": 761.7, "penetration_mm_robot": 761.7, "frame_age_ms_max": 300.0,
+                    "loop_miss_ratio": 0.3, "loop_late_us_p99": 3400.0, "tick_gap_ms_max": 196.0},
+            True: {"penetration_mm_proxy": 0.44, "penetration_mm_robot": 0.40, "frame_age_ms_max": 36.0,
+                   "loop_miss_ratio": 0.001, "loop_late_us_p99": 90.0, "tick_gap_ms_max": 1.2}}
+    for r in runs.values():
+        r["fell_behind"] = dd.fell_behind(r, 0.5, 1 / 30)
+    monkeypatch.setattr(dd, "service_plane", lambda predict, **kw: dict(runs[predict]))
+    monkeypatch.setattr(dd.ds, "popthrough_speed", lambda predict, **kw: {"popthrough_mps": 0.6, "held_mps": 1.5})
+    monkeypatch.setattr(dd.ds, "occlusion_run", lambda n, **kw: type("R", (), {"max_penetration": 0.001})())
+    monkeypatch.setattr(dd.ds, "self_filter_ratio", lambda **kw: {
+        "false_fixture_points_without": 1, "false_fixture_points_with": 0, "self_filter_false_fixture_ratio": 0,
+        "tips_fenced_without": 1, "tips_fenced_with": 0})
+    lines = []
+    dd.run(live=True, out=lines.append)
+    text = "\n".join(lines)
+    assert "the live run without prediction fell behind" in text and "98.0 mm" in text
+    assert "the live run with prediction fell behind" not in text
+    assert "longest gap between ticks 196.0 ms" in text
+    lines.clear()
+    dd.run(live=False, out=lines.append)    # the simulated clock: no live figures to judge
+    assert not any("live run" in ln for ln in lines)
