@@ -113,6 +113,7 @@ _SIGNATURES = {
     "pf_quats_of_matrices": (None, [_D, c_int64, c_int64, _D]),
     "pf_poses_of": (None, [_D, _D, c_int64, _D]),
     "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
+    "pf_pose_check": (c_int32, [c_void_p, c_double]),
 }
 
 

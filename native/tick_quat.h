@@ -96,6 +96,28 @@ void pf_poses_of(const double *p, const double *q, int64_t n, double *T) {
     }
 }
 
+/* A 4x4 pose (row-major, 16 doubles) checked as robot/base.py's ``as_pose`` does: 0 for a
+ * finite rigid transform with a proper rotation; 1 not finite; 2 last row not [0 0 0 1] within
+ * ``tol``; 3 rotation not orthonormal (max |R^T R - I| > tol); 4 a reflection (det < 0). The
+ * robot's setpoint check calls it every tick; Python names what is wrong only when it fails. */
+int32_t pf_pose_check(const double *T, double tol) {
+    double s = 0.0;
+    for (int i = 0; i < 16; i++) s += T[i];
+    if (!isfinite(s)) return 1;
+    const double r00 = T[0], r01 = T[1], r02 = T[2], r10 = T[4], r11 = T[5], r12 = T[6];
+    const double r20 = T[8], r21 = T[9], r22 = T[10];
+    if (fmax(fmax(fabs(T[12]), fabs(T[13])), fmax(fabs(T[14]), fabs(T[15] - 1.0))) > tol) return 2;
+    double err = fabs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0);
+    err = fmax(err, fabs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0));
+    err = fmax(err, fabs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0));
+    err = fmax(err, fabs(r00 * r01 + r10 * r11 + r20 * r21));
+    err = fmax(err, fabs(r00 * r02 + r10 * r12 + r20 * r22));
+    err = fmax(err, fabs(r01 * r02 + r11 * r12 + r21 * r22));
+    if (err > tol) return 3;
+    const double det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20);
+    return det < 0.0 ? 4 : 0;
+}
+
 /* A master sample is valid only if the device says so and its position, orientation (a unit
  * quaternion within PF_QUAT_TOL) and grasp are finite: ok[i] is cleared otherwise (S2). */
 void pf_masters_valid(const double *pos, const double *quat, const double *grasp, int64_t n, uint8_t *ok) {

@@ -234,3 +234,58 @@ def test_workspace_box_rejects_commands_outside():
     with pytest.raises(InputError, match="outside the workspace"):
         r.servo_cp(p + [0.0, 0.0, 0.2])
     assert r.servo_cp(p + [0.0, 0.0, 0.001])
+
+
+# --- the pose check every setpoint passes (compiled: the tick calls it for every arm) -----------------
+
+def _rigid_error(T):
+    """max |R^T R - I| and the determinant, in NumPy (the definition the check implements)."""
+    R = T[:3, :3]
+    return float(np.abs(R.T @ R - np.eye(3)).max()), float(np.linalg.det(R))
+
+
+def test_pose_check_agrees_with_its_definition_at_the_tolerance():
+    from pointfence.service.robot.base import RIGID_TOL, as_pose
+
+    rng = np.random.default_rng(7)
+    accepted = refused = 0
+    for k in range(400):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        w, x, y, z = q
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        T = np.eye(4)
+        T[:3, :3] = R * (1.0 + (k % 40 - 20) * 0.5 * RIGID_TOL / 10)   # scale errors around the tolerance
+        T[:3, 3] = rng.uniform(-1, 1, 3)
+        err, det = _rigid_error(T)
+        if err > 1.01 * RIGID_TOL:
+            with pytest.raises(InputError, match="not orthonormal"):
+                as_pose(T)
+            refused += 1
+        elif err < 0.99 * RIGID_TOL:
+            got = as_pose(T)
+            assert np.array_equal(got, T) and got is not T
+            accepted += 1
+    assert accepted > 50 and refused > 50
+
+
+def test_pose_check_writes_into_out_and_names_each_fault():
+    from pointfence.service.robot.base import as_pose
+
+    out = np.zeros((4, 4))
+    T = np.eye(4)
+    T[:3, 3] = (0.1, -0.2, 0.3)
+    assert as_pose(T, "p", out) is out and np.array_equal(out, T)
+    assert as_pose(T.tolist(), "p", out) is out            # (a nested list is read, not kept)
+    bad = {"not finite": np.where(np.eye(4) == 1, np.inf, 0.0), "last row": T + np.eye(4)[3] * 0.01,
+           "determinant": np.diag([1.0, 1.0, -1.0, 1.0])}
+    nan = T.copy()
+    nan[1, 3] = np.nan
+    bad["not finite "] = nan
+    for want, B in bad.items():
+        with pytest.raises(InputError, match=want.strip()):
+            as_pose(B, "p", out)
+    with pytest.raises(InputError, match="shape"):
+        as_pose(np.eye(3), "p", out)

@@ -37,6 +37,7 @@ from typing import NoReturn, Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.errors import InputError
+from pointfence.native import lib
 
 #: tolerance on R^T R - I and on the last row of a homogeneous transform
 RIGID_TOL = 1e-6
@@ -111,20 +112,55 @@ def as_vector(v, n: int, what: str) -> np.ndarray:
     return a
 
 
-def as_pose(T, what: str = "pose") -> np.ndarray:
-    """``T`` as a finite rigid 4x4 transform (proper rotation), or InputError naming it (a copy)."""
+def as_pose(T, what: str = "pose", out: Optional[np.ndarray] = None) -> np.ndarray:
+    """``T`` as a finite rigid 4x4 transform (proper rotation), or InputError naming it: a copy,
+    or written into ``out`` (4x4 float64, C-contiguous; no allocation: a robot's setpoint check
+    in the tick). The check is the compiled core's (``pf_pose_check``); what is wrong is named by
+    ``_pose_error`` only when it fails."""
     try:
-        a = np.array(T, dtype=float)
+        a = np.asarray(T, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"{what} = {T!r}; expected a 4x4 transform") from None
     if a.shape != (4, 4):
         raise InputError(f"{what} has shape {a.shape}; expected (4, 4) or a position (3,)")
+    if out is None:
+        out = np.array(a, order="C")
+        address = out.ctypes.data
+    else:
+        if out is not a:
+            np.copyto(out, a)
+        address = _address(out)
+    if lib.pf_pose_check(address, RIGID_TOL):
+        _pose_error(out, what)
+    return out
+
+
+#: id -> (array, data address) of the ``out`` arrays ``as_pose`` wrote into (a robot's setpoint
+#: scratch: a handful; ``ndarray.ctypes`` costs microseconds, the tick asks every tick)
+_ADDRESSES: dict = {}
+
+
+def _address(a: np.ndarray) -> int:
+    """The data address of 4x4 float64 C-contiguous ``a``, kept per array (the entry holds ``a``,
+    so its id is not reused while cached)."""
+    got = _ADDRESSES.get(id(a))
+    if got is None or got[0] is not a:
+        if a.dtype != np.float64 or a.shape != (4, 4) or not a.flags.c_contiguous:
+            raise TypeError(f"as_pose: out must be a C-contiguous 4x4 float64 array, got {a.dtype} {a.shape}")
+        if len(_ADDRESSES) >= 256:
+            _ADDRESSES.clear()
+        got = _ADDRESSES[id(a)] = (a, a.ctypes.data)
+    return got[1]
+
+
+def _pose_error(a: np.ndarray, what: str) -> NoReturn:
+    """Raise the InputError naming why 4x4 ``a`` is not a finite rigid transform (the checks of
+    ``pf_pose_check``, in Python, for the message)."""
     (r00, r01, r02, x), (r10, r11, r12, y), (r20, r21, r22, z), last = a.tolist()
     if not math.isfinite(r00 + r01 + r02 + x + r10 + r11 + r12 + y + r20 + r21 + r22 + z + sum(last)):
         raise InputError(f"{what} is not finite: {a.tolist()}")
     if max(abs(last[0]), abs(last[1]), abs(last[2]), abs(last[3] - 1.0)) > RIGID_TOL:
         raise InputError(f"{what} last row = {_fmt(a[3])}; expected [0, 0, 0, 1]")
-    # R^T R - I, scalar (cheaper than NumPy on a 3x3)
     err = max(abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0), abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
               abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0), abs(r00 * r01 + r10 * r11 + r20 * r21),
               abs(r00 * r02 + r10 * r12 + r20 * r22), abs(r01 * r02 + r11 * r12 + r21 * r22))
@@ -133,7 +169,7 @@ def as_pose(T, what: str = "pose") -> np.ndarray:
     det = (r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20))
     if det < 0:
         raise InputError(f"{what} rotation has determinant {det:.6g}; expected +1 (a reflection is not a pose)")
-    return a
+    raise InputError(f"{what} is not a rigid transform: {a.tolist()}")
 
 
 def as_limits(lower, upper, n: int, what: str) -> tuple:
@@ -369,8 +405,8 @@ class Robot(ABC):
                     np.copyto(pose, self._T_d)
                 pose[0, 3], pose[1, 3], pose[2, 3] = x, y, z
             else:
-                pose = as_pose(a, "servo_cp pose")
-                x, y, z = pose[:3, 3].tolist()
+                pose = as_pose(a, "servo_cp pose", out)
+                x, y, z = pose[0, 3], pose[1, 3], pose[2, 3]
         except InputError as e:
             self._reject(str(e))
         box = self._ws_box

@@ -188,7 +188,7 @@ class HostedRobot:
             self._rejected_seen = self._child_rejected
             raise InputError(self._last_error or "servo_cp: the robot rejected the previous setpoint")
         try:
-            pose = r.checked_setpoint(T, out=self._pose)    # checks it, as the arm in the tick does
+            r.checked_setpoint(T, out=self._pose)    # checks it into the scratch, as the arm in the tick does
         except InputError as e:
             self._local_rejected += 1
             self._last_error = str(e)
@@ -196,8 +196,6 @@ class HostedRobot:
         if self._latched is not None or r.state is not RobotMode.ENABLED:
             self._local_ignored += 1
             return False
-        if pose is not self._pose:         # (a 4x4 pose was given: checked into a new array)
-            np.copyto(self._pose, pose)
         self._host.stage_pose(self._b, self._pose16)
         r.adopt_setpoint(self._pose16)
         return True
