@@ -19,6 +19,7 @@ from ..errors import KernelError
 from ..motion import N_MOMENTS
 from ..snapshot import HostSnapshot
 from ..yielding import checkpoint
+from .cell_sort import CellSort
 from .context import _cl, build
 from .neighbor_query import NeighborQuery
 
@@ -87,13 +88,7 @@ class OpenCLPipeline(FramePipeline):
         self.prg = build(ctx, "frames.cl", "neighbors.cl")
         self.k_zero = self.prg.zero_ints
         self.k_classify = self.prg.classify
-        self.k_count = self.prg.count_runs
         self.k_count_camera = self.prg.count_camera
-        self.k_scan_chunks = self.prg.scan_chunks
-        self.k_scan_partials = self.prg.scan_partials
-        self.k_scan_add = self.prg.scan_add
-        self.k_scatter = self.prg.scatter
-        self.k_sort_cells = self.prg.sort_cells
         self.k_moments = self.prg.cell_moments
         self.k_expand = self.prg.expand_velocity
 
@@ -101,23 +96,18 @@ class OpenCLPipeline(FramePipeline):
         rig = self.rig
         npix, C = rig.n_pixels, self.grid.n_cells
         self.npix, self.ncells = npix, C
-        # Pixels per count_runs work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
-        self.per = 64 if backend.device.type & cl.device_type.CPU else 1
-        self.n_runs = (npix + self.per - 1) // self.per
-        self.nchunks = int(min(4096, max(1, C // 64)))
-        self.chunk = (C + self.nchunks - 1) // self.nchunks
         self.rays = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rig.rays)
         self.depth = cl.Buffer(ctx, mf.READ_ONLY, 2 * npix)
         sel = params.selection.kind
         self.color = cl.Buffer(ctx, mf.READ_ONLY, 3 * npix if sel == "color" else 1)
         self.mask = cl.Buffer(ctx, mf.READ_ONLY, npix if sel == "mask" else 1)
-        self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * C)
         self.pix_cell = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
-        self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
         self.pix_prot = cl.Buffer(ctx, mf.READ_WRITE, npix)
         self.cam_counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * len(rig))
         self._cam_counts_host = np.zeros(len(rig), np.int32)
-        self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
+        #: the cell sort (kernels/opencl/cell_sort.py): its ``shape`` is the backend's ``kernel_shape``
+        #: resolved for the device ("gpu": runs ordered by their heads, no per-cell sort)
+        self.cell_sort = CellSort(self)
         if params.motion.enabled:
             self.moments = cl.Buffer(ctx, mf.READ_WRITE, 4 * N_MOMENTS * C)
             self.cell_vel = cl.Buffer(ctx, mf.READ_ONLY, 16 * C)
@@ -165,23 +155,14 @@ class OpenCLPipeline(FramePipeline):
                 if self.params.selection.kind == "mask" and f.mask is not None:
                     m = (np.asarray(f.mask) != 0).astype(np.uint8)
                     events.append(cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False))
-            npix, C = np.int32(self.npix), np.int32(self.ncells)
-            self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
             for i in range(len(rig)):
                 checkpoint()
                 pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
                 self.k_classify(q, (_round_up(int(cami[1])),), None, self.depth, self.rays, pose, cam, cami,
                                 self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
                                 self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
-            self.k_count(q, (_round_up(self.n_runs),), None, self.pix_cell, npix, np.int32(self.per), self.counts, self.pix_rank)
             checkpoint()
-            chunk = np.int32(self.chunk)
-            self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, slot.start, self.partial)
-            self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), slot.start, C)
-            self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
-            self.k_scatter(q, (_round_up(self.npix),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
-                           slot.start, slot.order)
-            self.k_sort_cells(q, (_round_up(self.ncells),), None, slot.start, C, slot.order)
+            self.cell_sort.enqueue(q, self.pix_cell, self.pix_prot, slot.start, slot.order)
             checkpoint()
             self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
             for i in range(len(rig)):

@@ -1,0 +1,101 @@
+"""The OpenCL snapshot's cell sort: every surviving pixel's entry filed under its hash cell, in
+rig pixel order (camera, then pixel) within each cell, the reference's stable sort, so that the
+same frames give the same snapshot on every run and every device.
+
+Two shapes give the same ``order`` and ``start``, entry for entry (``kernel_shape``, as for the
+proxy and neighbour kernels: kernels/opencl/kernel_shape.py; "auto" runs "gpu" on GPU devices):
+
+* ``"cpu"`` (frames.cl): a counting sort whose work-items each walk ``CPU_RUN`` pixels and take
+  one atomic a run of equal cells (few atomics on a CPU), a scatter whose order within a cell
+  follows the atomics, then ``sort_cells``, one work-item a cell putting its entries into pixel
+  order (an insertion sort or a heapsort in global memory: right for PoCL's few threads, a long
+  serial chain for one GPU thread).
+* ``"gpu"`` (cell_sort_gpu.cl): the pixels are cut into runs (stretches of one cell, at most
+  ``RUN_MAX`` pixels, never crossing a multiple of it); a run's head takes one atomic for the
+  whole run (``count_heads``), files its pixel and length at the first slot of its range
+  (``place_heads``), and then places its entries from the heads of its cell alone
+  (``order_runs``): runs of one cell are disjoint pixel intervals, so a run's offset in pixel
+  order is the length of the cell's runs that start at a smaller pixel, whatever order the
+  atomics handed out the ranges in. No per-cell sort and no per-pixel atomic; a head reads one
+  slot per run of its cell (a 3 cm cell of a 640x480 camera at 0.6 m: about 30 runs a camera).
+
+Both are deterministic by construction: the result is a function of the pixels' cells alone.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .context import build
+from .kernel_shape import check_shape, resolve_shape
+
+#: work-items of a work-group (global sizes are rounded up to it)
+LOCAL = 64
+#: pixels a work-item of the CPU shape's count walks (one atomic a run of equal cells among them)
+CPU_RUN = 64
+#: longest run of the GPU shape (RUN_MAX in cell_sort_gpu.cl)
+RUN_MAX = 64
+
+
+def _round_up(n: int, m: int = LOCAL) -> int:
+    return max(m, (n + m - 1) // m * m)
+
+
+class CellSort:
+    """The cell sort of an ``OpenCLPipeline``: its work buffers, allocated once, and its launches.
+
+    ``pipeline``: the owner (its ``cl``, ``ctx``, ``prg`` (frames.cl) and ``k_zero`` (its
+    ``zero_ints``), ``backend``, ``npix`` (rig pixels) and ``ncells``). ``kernel_shape``: "auto", "cpu" or "gpu" (None: the backend's);
+    ``shape`` is the one that runs."""
+
+    def __init__(self, pipeline, kernel_shape=None):
+        cl = self.cl = pipeline.cl
+        ctx, backend = pipeline.ctx, pipeline.backend
+        if kernel_shape is None:
+            kernel_shape = getattr(backend, "kernel_shape", "auto")
+        self.shape = resolve_shape(check_shape(kernel_shape), backend.device, cl)
+        prg = pipeline.prg
+        self.k_zero = pipeline.k_zero
+        self.k_scan_chunks, self.k_scan_partials, self.k_scan_add = prg.scan_chunks, prg.scan_partials, prg.scan_add
+        npix, C = pipeline.npix, pipeline.ncells
+        self.npix, self.ncells = npix, C
+        self.nchunks = int(min(4096, max(1, C // 64)))
+        self.chunk = (C + self.nchunks - 1) // self.nchunks
+        mf = cl.mem_flags
+        n = max(npix, 1)
+        self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * C)
+        self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
+        if self.shape == "gpu":
+            gp = build(ctx, "cell_sort_gpu.cl")
+            self.k_count_heads, self.k_place_heads, self.k_order_runs = gp.count_heads, gp.place_heads, gp.order_runs
+            self.run_base, self.run_len, self.seg_pix, self.seg_len = (cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
+                                                                       for _ in range(4))
+        else:
+            self.k_count, self.k_scatter, self.k_sort = prg.count_runs, prg.scatter, prg.sort_cells
+            self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
+            # Pixels per count_runs work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
+            self.per = CPU_RUN if backend.device.type & cl.device_type.CPU else 1
+            self.n_runs = (npix + self.per - 1) // self.per
+
+    def enqueue(self, q, pix_cell, pix_prot, start, order):
+        """Enqueue the sort on ``q``: from classify's ``pix_cell`` and ``pix_prot`` (every rig
+        pixel), the snapshot's ``start`` (int32, ncells + 1) and ``order`` (int32, a point each)."""
+        npix, C = np.int32(self.npix), np.int32(self.ncells)
+        gpix = (_round_up(self.npix),)
+        self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
+        if self.shape == "gpu":
+            self.k_count_heads(q, gpix, None, pix_cell, npix, self.counts, self.run_base, self.run_len)
+        else:
+            self.k_count(q, (_round_up(self.n_runs),), None, pix_cell, npix, np.int32(self.per), self.counts,
+                         self.pix_rank)
+        chunk = np.int32(self.chunk)
+        self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, start, self.partial)
+        self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), start, C)
+        self.k_scan_add(q, (self.nchunks,), None, start, C, chunk, self.partial)
+        if self.shape == "gpu":
+            self.k_place_heads(q, gpix, None, pix_cell, npix, start, self.run_base, self.run_len, self.seg_pix,
+                               self.seg_len)
+            self.k_order_runs(q, gpix, None, pix_cell, pix_prot, npix, start, self.seg_pix, self.seg_len,
+                              self.run_len, order)
+        else:
+            self.k_scatter(q, gpix, None, pix_cell, self.pix_rank, pix_prot, npix, start, order)
+            self.k_sort(q, (_round_up(self.ncells),), None, start, C, order)
