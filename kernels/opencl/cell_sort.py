@@ -11,13 +11,15 @@ proxy and neighbour kernels: kernels/opencl/kernel_shape.py; "auto" runs "gpu" o
   order (an insertion sort or a heapsort in global memory: right for PoCL's few threads, a long
   serial chain for one GPU thread).
 * ``"gpu"`` (cell_sort_gpu.cl): the pixels are cut into runs (stretches of one cell, at most
-  ``RUN_MAX`` pixels, never crossing a multiple of it); a run's head takes one atomic for the
-  whole run (``count_heads``), files its pixel and length at the first slot of its range
-  (``place_heads``), and then places its entries from the heads of its cell alone
-  (``order_runs``): runs of one cell are disjoint pixel intervals, so a run's offset in pixel
-  order is the length of the cell's runs that start at a smaller pixel, whatever order the
-  atomics handed out the ranges in. No per-cell sort and no per-pixel atomic; a head reads one
-  slot per run of its cell (a 3 cm cell of a 640x480 camera at 0.6 m: about 30 runs a camera).
+  ``RUN_MAX`` pixels, never crossing a multiple of it); a run's head counts the whole run into
+  its cell with one atomic and takes an index among its cell's runs with another
+  (``count_heads``), lists its pixel and length there (``place_heads``: a cell's list lies in the
+  cell's own slot range, as it has no more runs than points), and then places its entries from
+  that list alone (``order_runs``): runs of one cell are disjoint pixel intervals, so a run's
+  offset in pixel order is the length of the cell's runs that start at a smaller pixel, whatever
+  order the atomics listed them in. No per-cell sort and no per-pixel atomic; a head reads its
+  cell's list, independent loads (a 3 cm cell of a 640x480 camera at 0.6 m: about 30 runs a
+  camera).
 
 Both are deterministic by construction: the result is a function of the pixels' cells alone.
 """
@@ -62,13 +64,15 @@ class CellSort:
         self.chunk = (C + self.nchunks - 1) // self.nchunks
         mf = cl.mem_flags
         n = max(npix, 1)
-        self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * C)
+        # counts[c]: points of cell c; on the GPU shape counts[C + c] too: runs of cell c
+        self.n_counts = 2 * C if self.shape == "gpu" else C
+        self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.n_counts)
         self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
         if self.shape == "gpu":
             gp = build(ctx, "cell_sort_gpu.cl")
             self.k_count_heads, self.k_place_heads, self.k_order_runs = gp.count_heads, gp.place_heads, gp.order_runs
-            self.run_base, self.run_len, self.seg_pix, self.seg_len = (cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
-                                                                       for _ in range(4))
+            self.run_slot, self.run_len, self.head_pix, self.head_len = (cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
+                                                                         for _ in range(4))
         else:
             self.k_count, self.k_scatter, self.k_sort = prg.count_runs, prg.scatter, prg.sort_cells
             self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
@@ -81,9 +85,9 @@ class CellSort:
         pixel), the snapshot's ``start`` (int32, ncells + 1) and ``order`` (int32, a point each)."""
         npix, C = np.int32(self.npix), np.int32(self.ncells)
         gpix = (_round_up(self.npix),)
-        self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
+        self.k_zero(q, (_round_up(self.n_counts),), None, self.counts, np.int32(self.n_counts))
         if self.shape == "gpu":
-            self.k_count_heads(q, gpix, None, pix_cell, npix, self.counts, self.run_base, self.run_len)
+            self.k_count_heads(q, gpix, None, pix_cell, npix, C, self.counts, self.run_slot, self.run_len)
         else:
             self.k_count(q, (_round_up(self.n_runs),), None, pix_cell, npix, np.int32(self.per), self.counts,
                          self.pix_rank)
@@ -92,10 +96,10 @@ class CellSort:
         self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), start, C)
         self.k_scan_add(q, (self.nchunks,), None, start, C, chunk, self.partial)
         if self.shape == "gpu":
-            self.k_place_heads(q, gpix, None, pix_cell, npix, start, self.run_base, self.run_len, self.seg_pix,
-                               self.seg_len)
-            self.k_order_runs(q, gpix, None, pix_cell, pix_prot, npix, start, self.seg_pix, self.seg_len,
-                              self.run_len, order)
+            self.k_place_heads(q, gpix, None, pix_cell, npix, start, self.run_slot, self.run_len, self.head_pix,
+                               self.head_len)
+            self.k_order_runs(q, gpix, None, pix_cell, pix_prot, npix, C, self.counts, start, self.head_pix,
+                              self.head_len, self.run_len, order)
         else:
             self.k_scatter(q, gpix, None, pix_cell, self.pix_rank, pix_prot, npix, start, order)
             self.k_sort(q, (_round_up(self.ncells),), None, start, C, order)
