@@ -2,7 +2,8 @@
 entry for entry: cell starts, pixels in pixel order within each cell, protected bits, and the
 snapshot's points and velocities, on random rigs, real recordings and scenes built to break the
 GPU shape (one cell holding the whole rig, runs cut at every RUN_MAX block, cells alternating
-pixel by pixel, no point at all), over repeated builds; and how the shape is chosen.
+pixel by pixel, no point at all), over repeated builds; how the shape is chosen; and the pinned
+upload array (`depth_staging`) that GPU devices ingest from.
 
 On PoCL (a CPU device) the GPU shape is forced (``kernel_shape="gpu"``); PoCL's worker threads
 hand out the atomics' ranges in a different order from build to build, which the GPU shape must
@@ -194,3 +195,49 @@ def test_shape_follows_the_device_and_the_setting(monkeypatch):
     assert get_backend("opencl").pipeline(cams, params_for()).cell_sort.shape == "cpu"
     with pytest.raises(InputError, match="expected one of auto, cpu, gpu"):
         get_backend("opencl", kernel_shape="gpus")
+
+
+@pytest.fixture(params=["device", "forced"])
+def pinned(request, monkeypatch):
+    """The pinned upload array as the device has it ("device": on GPUs only), or forced on
+    ("forced": PoCL runs the same path over its host memory)."""
+    if request.param == "forced":
+        import pointfence.kernels.opencl.pipeline as ocl_pipeline
+
+        monkeypatch.setattr(ocl_pipeline, "pinned_upload", lambda device, cl: True)
+    return request.param
+
+
+def test_frames_written_into_depth_staging_give_the_same_snapshot(pinned):
+    """Frames from their own arrays, frames written in place into ``depth_staging`` and a mix of
+    both give the reference's snapshot (the in-place frames were copied nowhere else: a missed
+    upload would build from the last images); a camera not in the rig is refused by name; a
+    frame from its own array is copied into its camera's view."""
+    rng = np.random.default_rng(7)
+    cams, frames = random_rig(rng, n_cams=3)
+    ref = get_backend("numpy").pipeline(cams, params_for("mask"))
+    dev = get_backend("opencl").pipeline(cams, params_for("mask"))
+    views = [dev.depth_staging(c.name) for c in cams]
+    backend = dev.backend
+    if pinned == "device" and backend.device.type & backend.cl.device_type.CPU:
+        assert views == [None, None, None], "a CPU device has no upload array: its buffers are host memory"
+        return
+    assert all(v.shape == (c.height, c.width) and v.dtype == np.uint16 for v, c in zip(views, cams))
+    assert dev.depth_staging(1) is views[1]
+    with pytest.raises(InputError, match="no camera 'nope' in the rig"):
+        dev.depth_staging("nope")
+    ref.ingest(frames)
+    dev.ingest(frames)
+    assert_same_snapshot(dev, ref, "own arrays")
+    later = [dataclasses.replace(f, depth=np.roll(f.depth, 3 * (i + 1), axis=1)) for i, f in enumerate(frames)]
+    for v, f in zip(views, later):
+        np.copyto(v, f.depth)
+    staged = [dataclasses.replace(f, depth=v) for f, v in zip(later, views)]
+    ref.ingest(later)
+    dev.ingest(staged)
+    assert_same_snapshot(dev, ref, "written in place")
+    mixed = [staged[0], frames[1], staged[2]]   # camera 1 from its own array again
+    ref.ingest([later[0], frames[1], later[2]])
+    dev.ingest(mixed)
+    assert_same_snapshot(dev, ref, "mixed")
+    np.testing.assert_array_equal(views[1], frames[1].depth)   # its own array was copied into the view

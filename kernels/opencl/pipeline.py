@@ -15,7 +15,7 @@ import numpy as np
 
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
-from ..errors import KernelError
+from ..errors import InputError, KernelError
 from ..motion import N_MOMENTS
 from ..snapshot import HostSnapshot
 from ..yielding import checkpoint
@@ -25,6 +25,13 @@ from .neighbor_query import NeighborQuery
 
 LOCAL = 64
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
+
+
+def pinned_upload(device, cl) -> bool:
+    """Whether frames go to ``device`` through a pinned upload array (``depth_staging``): on
+    devices other than CPUs (a discrete GPU's copies from pageable memory take a staging copy in
+    the driver, one a camera); on CPU devices a buffer is host memory already."""
+    return not device.type & cl.device_type.CPU
 
 
 def _round_up(n: int, m: int = LOCAL) -> int:
@@ -98,6 +105,7 @@ class OpenCLPipeline(FramePipeline):
         self.npix, self.ncells = npix, C
         self.rays = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rig.rays)
         self.depth = cl.Buffer(ctx, mf.READ_ONLY, 2 * npix)
+        self._staging, self._staging_views = self._pinned_depth(cl, ctx, backend.device)
         sel = params.selection.kind
         self.color = cl.Buffer(ctx, mf.READ_ONLY, 3 * npix if sel == "color" else 1)
         self.mask = cl.Buffer(ctx, mf.READ_ONLY, npix if sel == "mask" else 1)
@@ -136,6 +144,29 @@ class OpenCLPipeline(FramePipeline):
         #: ``kernel_shape`` resolved for the device, ``group_size`` the GPU shape's work-group
         self.neighbor_query = NeighborQuery(self)
 
+    def _pinned_depth(self, cl, ctx, device):
+        """Where ``pinned_upload``: the rig's depth images in one pinned host array (uint16, a
+        pixel each, rig order; memory the runtime allocates, mapped once), uploaded by one DMA
+        copy a build, and a (H, W) view of it a camera (``depth_staging``); else (None, ())."""
+        if not pinned_upload(device, cl):
+            return None, ()
+        self._staging_buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.ALLOC_HOST_PTR, 2 * max(self.npix, 1))
+        arr, _ = cl.enqueue_map_buffer(self.build_queue, self._staging_buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                       (max(self.npix, 1),), np.uint16, is_blocking=True)
+        arr[:] = 0
+        offs = self.rig.offsets
+        views = tuple(arr[int(offs[i]):int(offs[i + 1])].reshape(c.height, c.width)
+                      for i, c in enumerate(self.rig.cameras))
+        return arr, views
+
+    def depth_staging(self, camera):
+        """Camera ``camera``'s view of the pinned upload array (see ``_pinned_depth``), or None
+        where there is none (CPU devices)."""
+        i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
+        if i is None or not 0 <= int(i) < len(self.rig):
+            raise InputError(f"depth_staging: no camera {camera!r} in the rig ({', '.join(self.rig.index)})")
+        return self._staging_views[int(i)] if self._staging is not None else None
+
     def _zero_cell_starts(self):
         for slot in self.buffers.slots:
             self.k_zero(self.build_queue, (_round_up(self.ncells + 1),), None, slot.start, np.int32(self.ncells + 1))
@@ -151,14 +182,19 @@ class OpenCLPipeline(FramePipeline):
             for i, f in enumerate(frames):
                 checkpoint()
                 off = int(rig.offsets[i])
-                events.append(cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off,
-                                              is_blocking=False))
+                if self._staging is None:
+                    events.append(cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off,
+                                                  is_blocking=False))
+                elif f.depth.ctypes.data != self._staging_views[i].ctypes.data:   # not written in place
+                    np.copyto(self._staging_views[i], f.depth)
                 if self.params.selection.kind == "color" and f.color is not None:
                     events.append(cl.enqueue_copy(q, self.color, np.ascontiguousarray(f.color), dst_offset=3 * off,
                                                   is_blocking=False))
                 if self.params.selection.kind == "mask" and f.mask is not None:
                     m = (np.asarray(f.mask) != 0).astype(np.uint8)
                     events.append(cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False))
+            if self._staging is not None:
+                events.append(cl.enqueue_copy(q, self.depth, self._staging, is_blocking=False))
             for i in range(len(rig)):
                 checkpoint()
                 pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
