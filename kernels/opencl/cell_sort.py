@@ -45,8 +45,9 @@ def _round_up(n: int, m: int = LOCAL) -> int:
 class CellSort:
     """The cell sort of an ``OpenCLPipeline``: its work buffers, allocated once, and its launches.
 
-    ``pipeline``: the owner (its ``cl``, ``ctx``, ``prg`` (frames.cl) and ``k_zero`` (its
-    ``zero_ints``), ``backend``, ``npix`` (rig pixels) and ``ncells``). ``kernel_shape``: "auto", "cpu" or "gpu" (None: the backend's);
+    ``pipeline``: the owner (its ``cl``, ``ctx``, ``prg`` (frames.cl), ``backend``, ``npix`` (rig
+    pixels), ``ncells``, ``pix_cell`` and ``pix_prot`` (classify's output) and ``buffers`` (the
+    snapshot slots, whose ``start`` and ``order`` the sort writes)). ``kernel_shape``: "auto", "cpu" or "gpu" (None: the backend's);
     ``shape`` is the one that runs."""
 
     def __init__(self, pipeline, kernel_shape=None):
@@ -55,9 +56,6 @@ class CellSort:
         if kernel_shape is None:
             kernel_shape = getattr(backend, "kernel_shape", "auto")
         self.shape = resolve_shape(check_shape(kernel_shape), backend.device, cl)
-        prg = pipeline.prg
-        self.k_zero = pipeline.k_zero
-        self.k_scan_chunks, self.k_scan_partials, self.k_scan_add = prg.scan_chunks, prg.scan_partials, prg.scan_add
         npix, C = pipeline.npix, pipeline.ncells
         self.npix, self.ncells = npix, C
         self.nchunks = int(min(4096, max(1, C // 64)))
@@ -69,37 +67,52 @@ class CellSort:
         self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.n_counts)
         self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
         if self.shape == "gpu":
-            gp = build(ctx, "cell_sort_gpu.cl")
-            self.k_count_heads, self.k_place_heads, self.k_order_runs = gp.count_heads, gp.place_heads, gp.order_runs
+            self.program = build(ctx, "cell_sort_gpu.cl")
             self.run_slot, self.run_len, self.head_pix, self.head_len = (cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
                                                                          for _ in range(4))
         else:
-            self.k_count, self.k_scatter, self.k_sort = prg.count_runs, prg.scatter, prg.sort_cells
+            self.program = pipeline.prg
             self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
             # Pixels per count_runs work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
             self.per = CPU_RUN if backend.device.type & cl.device_type.CPU else 1
             self.n_runs = (npix + self.per - 1) // self.per
+        #: per snapshot slot, the launches in order: (kernel instance with its arguments set, global size)
+        self._launches = [self._bind(pipeline.prg, pipeline.pix_cell, pipeline.pix_prot, slot.start, slot.order)
+                          for slot in pipeline.buffers.slots]
 
-    def enqueue(self, q, pix_cell, pix_prot, start, order):
-        """Enqueue the sort on ``q``: from classify's ``pix_cell`` and ``pix_prot`` (every rig
-        pixel), the snapshot's ``start`` (int32, ncells + 1) and ``order`` (int32, a point each)."""
-        npix, C = np.int32(self.npix), np.int32(self.ncells)
-        gpix = (_round_up(self.npix),)
-        self.k_zero(q, (_round_up(self.n_counts),), None, self.counts, np.int32(self.n_counts))
+    def _kernel(self, program, name: str, gsize: tuple, *args):
+        """(an instance of kernel ``name`` with ``args`` set, ``gsize``)."""
+        k = self.cl.Kernel(program, name)
+        k.set_args(*args)
+        return k, gsize
+
+    def _bind(self, frames_prg, pix_cell, pix_prot, start, order) -> list:
+        """The sort's launches into one slot's ``start`` (int32, ncells + 1) and ``order`` (int32,
+        a point each), from classify's ``pix_cell`` and ``pix_prot``: their arguments are set once
+        here, so that a build only enqueues them."""
+        npix, C, chunk, k = np.int32(self.npix), np.int32(self.ncells), np.int32(self.chunk), self._kernel
+        gpix, gcells, gchunks = (_round_up(self.npix),), (_round_up(self.ncells),), (self.nchunks,)
+        out = [k(frames_prg, "zero_ints", (_round_up(self.n_counts),), self.counts, np.int32(self.n_counts))]
         if self.shape == "gpu":
-            self.k_count_heads(q, gpix, None, pix_cell, npix, C, self.counts, self.run_slot, self.run_len)
+            out.append(k(self.program, "count_heads", gpix, pix_cell, npix, C, self.counts, self.run_slot, self.run_len))
         else:
-            self.k_count(q, (_round_up(self.n_runs),), None, pix_cell, npix, np.int32(self.per), self.counts,
-                         self.pix_rank)
-        chunk = np.int32(self.chunk)
-        self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, start, self.partial)
-        self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), start, C)
-        self.k_scan_add(q, (self.nchunks,), None, start, C, chunk, self.partial)
+            out.append(k(frames_prg, "count_runs", (_round_up(self.n_runs),), pix_cell, npix, np.int32(self.per),
+                         self.counts, self.pix_rank))
+        out += [k(frames_prg, "scan_chunks", gchunks, self.counts, C, chunk, start, self.partial),
+                k(frames_prg, "scan_partials", (1,), self.partial, np.int32(self.nchunks), start, C),
+                k(frames_prg, "scan_add", gchunks, start, C, chunk, self.partial)]
         if self.shape == "gpu":
-            self.k_place_heads(q, gpix, None, pix_cell, npix, start, self.run_slot, self.run_len, self.head_pix,
-                               self.head_len)
-            self.k_order_runs(q, gpix, None, pix_cell, pix_prot, npix, C, self.counts, start, self.head_pix,
-                              self.head_len, self.run_len, order)
+            out += [k(self.program, "place_heads", gpix, pix_cell, npix, start, self.run_slot, self.run_len,
+                      self.head_pix, self.head_len),
+                    k(self.program, "order_runs", gpix, pix_cell, pix_prot, npix, C, self.counts, start, self.head_pix,
+                      self.head_len, self.run_len, order)]
         else:
-            self.k_scatter(q, gpix, None, pix_cell, self.pix_rank, pix_prot, npix, start, order)
-            self.k_sort(q, (_round_up(self.ncells),), None, start, C, order)
+            out += [k(frames_prg, "scatter", gpix, pix_cell, self.pix_rank, pix_prot, npix, start, order),
+                    k(frames_prg, "sort_cells", gcells, start, C, order)]
+        return out
+
+    def enqueue(self, q, slot: int):
+        """Enqueue the sort of snapshot slot ``slot`` (its index in the pipeline's ``buffers``)
+        on ``q``, after classify has written ``pix_cell`` and ``pix_prot``."""
+        for kernel, gsize in self._launches[slot]:
+            self.cl.enqueue_nd_range_kernel(q, kernel, gsize, None)

@@ -94,8 +94,6 @@ class OpenCLPipeline(FramePipeline):
         self.inline_queue = None if self.inline_ctx is None else cl.CommandQueue(self.inline_ctx)
         self.prg = build(ctx, "frames.cl", "neighbors.cl")
         self.k_zero = self.prg.zero_ints
-        self.k_classify = self.prg.classify
-        self.k_count_camera = self.prg.count_camera
         self.k_moments = self.prg.cell_moments
         self.k_expand = self.prg.expand_velocity
 
@@ -117,15 +115,15 @@ class OpenCLPipeline(FramePipeline):
         # ones, so that thousands of work-items share a camera (4,096 a work-item left 75 of them
         # walking 4,096 pixels each in turn: 0.2 ms a camera on an H100).
         self.cam_chunk = 4096 if backend.device.type & cl.device_type.CPU else 64
-        #: the cell sort (kernels/opencl/cell_sort.py): its ``shape`` is the backend's ``kernel_shape``
-        #: resolved for the device ("gpu": runs ordered by their heads, no per-cell sort)
-        self.cell_sort = CellSort(self)
         if params.motion.enabled:
             self.moments = cl.Buffer(ctx, mf.READ_WRITE, 4 * N_MOMENTS * C)
             self.cell_vel = cl.Buffer(ctx, mf.READ_ONLY, 16 * C)
             self._moments_host = np.zeros((C, N_MOMENTS), np.float32)
             self._cell_vel_host = np.zeros((C, 4), np.float32)
         self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C, self.inline_ctx) for _ in range(2)])
+        #: the cell sort (kernels/opencl/cell_sort.py): its ``shape`` is the backend's ``kernel_shape``
+        #: resolved for the device ("gpu": runs ordered by their heads, no per-cell sort)
+        self.cell_sort = CellSort(self)
         self._n_host = np.zeros(1, np.int32)
         self._zero_cell_starts()
 
@@ -143,6 +141,7 @@ class OpenCLPipeline(FramePipeline):
         #: the neighbour query (kernels/opencl/neighbor_query.py): its ``shape`` is the backend's
         #: ``kernel_shape`` resolved for the device, ``group_size`` the GPU shape's work-group
         self.neighbor_query = NeighborQuery(self)
+        self._bind_build_kernels()
 
     def _pinned_depth(self, cl, ctx, device):
         """Where ``pinned_upload``: the rig's depth images in one pinned host array (uint16, a
@@ -166,6 +165,27 @@ class OpenCLPipeline(FramePipeline):
         if i is None or not 0 <= int(i) < len(self.rig):
             raise InputError(f"depth_staging: no camera {camera!r} in the rig ({', '.join(self.rig.index)})")
         return self._staging_views[int(i)] if self._staging is not None else None
+
+    def _bind_build_kernels(self):
+        """Kernel instances of the build with their arguments set once (pyopencl's ``kernel(...)``
+        sets every argument again on every launch): classify a camera a slot (a build sets only
+        the camera's pose and parameters), count_camera a camera, and the zeroing of the counts."""
+        cl, rig, prg = self.cl, self.rig, self.prg
+
+        def bound(name, *args):
+            k = cl.Kernel(prg, name)
+            k.set_args(*args)
+            return k
+
+        pose0, cam0 = np.zeros(16, np.float32), np.zeros(8, np.float32)
+        self._classify = [[bound("classify", self.depth, self.rays, pose0, cam0, rig.ints[i].copy(), self.wmin, self.wmax,
+                                 self.gridf, self.dims, *self.sel_args, self.color, self.mask, self.radius_arg,
+                                 self.pix_cell, self.pix_prot, slot.pts, slot.sigma) for i in range(len(rig))]
+                          for slot in self.buffers.slots]
+        per = self.cam_chunk
+        self._count_camera = [(bound("count_camera", self.pix_cell, rig.ints[i].copy(), np.int32(per), self.cam_counts),
+                               (_round_up((int(rig.ints[i][1]) + per - 1) // per),)) for i in range(len(rig))]
+        self._zero_cam_counts = bound("zero_ints", self.cam_counts, np.int32(len(rig)))
 
     def _zero_cell_starts(self):
         for slot in self.buffers.slots:
@@ -195,21 +215,17 @@ class OpenCLPipeline(FramePipeline):
                     events.append(cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False))
             if self._staging is not None:
                 events.append(cl.enqueue_copy(q, self.depth, self._staging, is_blocking=False))
-            for i in range(len(rig)):
+            for i, k in enumerate(self._classify[b]):
                 checkpoint()
-                pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
-                self.k_classify(q, (_round_up(int(cami[1])),), None, self.depth, self.rays, pose, cam, cami,
-                                self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
-                                self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
+                k.set_arg(2, packed[i, :16].copy())   # pose
+                k.set_arg(3, packed[i, 16:24].copy())   # camera parameters
+                cl.enqueue_nd_range_kernel(q, k, (_round_up(int(rig.ints[i][1])),), None)
             checkpoint()
-            self.cell_sort.enqueue(q, self.pix_cell, self.pix_prot, slot.start, slot.order)
+            self.cell_sort.enqueue(q, b)
             checkpoint()
-            self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
-            for i in range(len(rig)):
-                cami = rig.ints[i].copy()
-                per = self.cam_chunk
-                self.k_count_camera(q, (_round_up((int(cami[1]) + per - 1) // per),), None, self.pix_cell, cami,
-                                    np.int32(per), self.cam_counts)
+            cl.enqueue_nd_range_kernel(q, self._zero_cam_counts, (LOCAL,), None)
+            for k, gsize in self._count_camera:
+                cl.enqueue_nd_range_kernel(q, k, gsize, None)
             events.append(cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False))
             cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
             events.clear()
