@@ -5,11 +5,11 @@ same frames give the same snapshot on every run and every device.
 Two shapes give the same ``order`` and ``start``, entry for entry (``kernel_shape``, as for the
 proxy and neighbour kernels: kernels/opencl/kernel_shape.py; "auto" runs "gpu" on GPU devices):
 
-* ``"cpu"`` (frames.cl): a counting sort whose work-items each walk ``CPU_RUN`` pixels and take
-  one atomic a run of equal cells (few atomics on a CPU), a scatter whose order within a cell
-  follows the atomics, then ``sort_cells``, one work-item a cell putting its entries into pixel
-  order (an insertion sort or a heapsort in global memory: right for PoCL's few threads, a long
-  serial chain for one GPU thread).
+* ``"cpu"`` (frames.cl): a counting sort whose work-items each walk ``CPU_RUN`` pixels (1 where
+  this shape is forced on a GPU) and take one atomic a run of equal cells, a scatter whose order
+  within a cell follows the atomics, then ``sort_cells``, one work-item a cell putting its
+  entries into pixel order (an insertion sort or a heapsort in global memory: right for PoCL's
+  few threads, a long serial chain for one GPU thread).
 * ``"gpu"`` (cell_sort_gpu.cl): the pixels are cut into runs (stretches of one cell, at most
   ``RUN_MAX`` pixels, never crossing a multiple of it); a run's head counts the whole run into
   its cell with one atomic and takes an index among its cell's runs with another

@@ -112,8 +112,8 @@ class OpenCLPipeline(FramePipeline):
         self.cam_counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * len(rig))
         self._cam_counts_host = np.zeros(len(rig), np.int32)
         # Pixels a count_camera work-item walks: long stretches on CPUs (few atomics); on GPUs short
-        # ones, so that thousands of work-items share a camera (4,096 a work-item left 75 of them
-        # walking 4,096 pixels each in turn: 0.2 ms a camera on an H100).
+        # ones, so that thousands of work-items share a camera (at 4,096 a 640x480 camera has 75
+        # work-items, each a long serial walk).
         self.cam_chunk = 4096 if backend.device.type & cl.device_type.CPU else 64
         if params.motion.enabled:
             self.moments = cl.Buffer(ctx, mf.READ_WRITE, 4 * N_MOMENTS * C)
