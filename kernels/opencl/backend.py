@@ -17,7 +17,7 @@ class OpenCLBackend(Backend):
     def __init__(self, device: str | None = None, inline: bool | None = None, kernel_shape: str | None = None):
         """``inline``: run small proxy batches on PoCL's in-thread device (``context.inline_device``);
         None reads ``POINTFENCE_OPENCL_INLINE`` (default on; "0" turns it off). ``kernel_shape``:
-        the proxy kernel, "auto" (GPU-shaped on GPU devices), "gpu" or "cpu"
+        the proxy, neighbour-query and cell-sort kernels, "auto" (GPU-shaped on GPU devices), "gpu" or "cpu"
         (``kernels/opencl/kernel_shape.py``); None reads ``POINTFENCE_OPENCL_KERNEL_SHAPE``
         (default "auto")."""
         self.kernel_shape = shape_from_environment() if kernel_shape is None else check_shape(kernel_shape)

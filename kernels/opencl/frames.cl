@@ -4,7 +4,8 @@
 //   cam  = depth_scale, z_min, z_max, noise a, noise b, lateral (m per m of depth), has_color, has_mask
 //   cami = pixel offset in the rig, pixel count, max_code, camera index
 // The hash is a counting sort of pixel indices: classify (attributes and cell per pixel, written
-// in pixel order), count_runs, scan, scatter (4-byte entries only), sort_cells. A snapshot is
+// in pixel order), then the cell sort (kernels/opencl/cell_sort.py): here its CPU shape, count_runs,
+// scan, scatter (4-byte entries only), sort_cells; its GPU shape is cell_sort_gpu.cl. A snapshot is
 //   pts[pix] = (x, y, z, r_f) and sigma[pix] for every surviving pixel (pixel order), and
 //   order[start[c] .. start[c+1]) = entries of cell c, entry = pix | protected << 31, in
 //   ascending pixel order within the cell (the reference's stable sort: camera, then pixel).

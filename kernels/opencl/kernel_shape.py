@@ -14,7 +14,9 @@ elsewhere. The choice is an option of ``OpenCLBackend`` (``kernel_shape``; unset
 
 The same setting picks the neighbour-query kernel (kernels/opencl/neighbor_query.py): ``"cpu"``
 runs ``neighbors`` (neighbors.cl, one work-item a query), ``"gpu"`` runs ``neighbors_wg``
-(neighbors_gpu.cl, one work-group a query), with the same results bit for bit.
+(neighbors_gpu.cl, one work-group a query), with the same results bit for bit; and the
+snapshot's cell sort (kernels/opencl/cell_sort.py): ``"cpu"`` a counting sort and a per-cell sort,
+``"gpu"`` runs of one cell ordered by their heads, the same snapshot entry for entry.
 """
 from __future__ import annotations
 

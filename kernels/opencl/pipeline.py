@@ -15,15 +15,23 @@ import numpy as np
 
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
-from ..errors import KernelError
+from ..errors import InputError, KernelError
 from ..motion import N_MOMENTS
 from ..snapshot import HostSnapshot
 from ..yielding import checkpoint
+from .cell_sort import CellSort
 from .context import _cl, build
 from .neighbor_query import NeighborQuery
 
 LOCAL = 64
 SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
+
+
+def pinned_upload(device, cl) -> bool:
+    """Whether frames go to ``device`` through a pinned upload array (``depth_staging``): on
+    devices other than CPUs (a discrete GPU's copies from pageable memory take a staging copy in
+    the driver, one a camera); on CPU devices a buffer is host memory already."""
+    return not device.type & cl.device_type.CPU
 
 
 def _round_up(n: int, m: int = LOCAL) -> int:
@@ -86,14 +94,6 @@ class OpenCLPipeline(FramePipeline):
         self.inline_queue = None if self.inline_ctx is None else cl.CommandQueue(self.inline_ctx)
         self.prg = build(ctx, "frames.cl", "neighbors.cl")
         self.k_zero = self.prg.zero_ints
-        self.k_classify = self.prg.classify
-        self.k_count = self.prg.count_runs
-        self.k_count_camera = self.prg.count_camera
-        self.k_scan_chunks = self.prg.scan_chunks
-        self.k_scan_partials = self.prg.scan_partials
-        self.k_scan_add = self.prg.scan_add
-        self.k_scatter = self.prg.scatter
-        self.k_sort_cells = self.prg.sort_cells
         self.k_moments = self.prg.cell_moments
         self.k_expand = self.prg.expand_velocity
 
@@ -101,29 +101,29 @@ class OpenCLPipeline(FramePipeline):
         rig = self.rig
         npix, C = rig.n_pixels, self.grid.n_cells
         self.npix, self.ncells = npix, C
-        # Pixels per count_runs work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
-        self.per = 64 if backend.device.type & cl.device_type.CPU else 1
-        self.n_runs = (npix + self.per - 1) // self.per
-        self.nchunks = int(min(4096, max(1, C // 64)))
-        self.chunk = (C + self.nchunks - 1) // self.nchunks
         self.rays = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rig.rays)
         self.depth = cl.Buffer(ctx, mf.READ_ONLY, 2 * npix)
+        self._staging, self._staging_views = self._pinned_depth(cl, ctx, backend.device)
         sel = params.selection.kind
         self.color = cl.Buffer(ctx, mf.READ_ONLY, 3 * npix if sel == "color" else 1)
         self.mask = cl.Buffer(ctx, mf.READ_ONLY, npix if sel == "mask" else 1)
-        self.counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * C)
         self.pix_cell = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
-        self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * npix)
         self.pix_prot = cl.Buffer(ctx, mf.READ_WRITE, npix)
         self.cam_counts = cl.Buffer(ctx, mf.READ_WRITE, 4 * len(rig))
         self._cam_counts_host = np.zeros(len(rig), np.int32)
-        self.partial = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.nchunks)
+        # Pixels a count_camera work-item walks: long stretches on CPUs (few atomics); on GPUs short
+        # ones, so that thousands of work-items share a camera (at 4,096 a 640x480 camera has 75
+        # work-items, each a long serial walk).
+        self.cam_chunk = 4096 if backend.device.type & cl.device_type.CPU else 64
         if params.motion.enabled:
             self.moments = cl.Buffer(ctx, mf.READ_WRITE, 4 * N_MOMENTS * C)
             self.cell_vel = cl.Buffer(ctx, mf.READ_ONLY, 16 * C)
             self._moments_host = np.zeros((C, N_MOMENTS), np.float32)
             self._cell_vel_host = np.zeros((C, 4), np.float32)
         self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C, self.inline_ctx) for _ in range(2)])
+        #: the cell sort (kernels/opencl/cell_sort.py): its ``shape`` is the backend's ``kernel_shape``
+        #: resolved for the device ("gpu": runs ordered by their heads, no per-cell sort)
+        self.cell_sort = CellSort(self)
         self._n_host = np.zeros(1, np.int32)
         self._zero_cell_starts()
 
@@ -141,6 +141,51 @@ class OpenCLPipeline(FramePipeline):
         #: the neighbour query (kernels/opencl/neighbor_query.py): its ``shape`` is the backend's
         #: ``kernel_shape`` resolved for the device, ``group_size`` the GPU shape's work-group
         self.neighbor_query = NeighborQuery(self)
+        self._bind_build_kernels()
+
+    def _pinned_depth(self, cl, ctx, device):
+        """Where ``pinned_upload``: the rig's depth images in one pinned host array (uint16, a
+        pixel each, rig order; memory the runtime allocates, mapped once), uploaded by one DMA
+        copy a build, and a (H, W) view of it a camera (``depth_staging``); else (None, ())."""
+        if not pinned_upload(device, cl):
+            return None, ()
+        self._staging_buf = cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.ALLOC_HOST_PTR, 2 * max(self.npix, 1))
+        arr, _ = cl.enqueue_map_buffer(self.build_queue, self._staging_buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                       (max(self.npix, 1),), np.uint16, is_blocking=True)
+        arr[:] = 0
+        offs = self.rig.offsets
+        views = tuple(arr[int(offs[i]):int(offs[i + 1])].reshape(c.height, c.width)
+                      for i, c in enumerate(self.rig.cameras))
+        return arr, views
+
+    def depth_staging(self, camera):
+        """Camera ``camera``'s view of the pinned upload array (see ``_pinned_depth``), or None
+        where there is none (CPU devices)."""
+        i = camera if isinstance(camera, (int, np.integer)) else self.rig.index.get(camera)
+        if i is None or not 0 <= int(i) < len(self.rig):
+            raise InputError(f"depth_staging: no camera {camera!r} in the rig ({', '.join(self.rig.index)})")
+        return self._staging_views[int(i)] if self._staging is not None else None
+
+    def _bind_build_kernels(self):
+        """Kernel instances of the build with their arguments set once (pyopencl's ``kernel(...)``
+        sets every argument again on every launch): classify a camera a slot (a build sets only
+        the camera's pose and parameters), count_camera a camera, and the zeroing of the counts."""
+        cl, rig, prg = self.cl, self.rig, self.prg
+
+        def bound(name, *args):
+            k = cl.Kernel(prg, name)
+            k.set_args(*args)
+            return k
+
+        pose0, cam0 = np.zeros(16, np.float32), np.zeros(8, np.float32)
+        self._classify = [[bound("classify", self.depth, self.rays, pose0, cam0, rig.ints[i].copy(), self.wmin, self.wmax,
+                                 self.gridf, self.dims, *self.sel_args, self.color, self.mask, self.radius_arg,
+                                 self.pix_cell, self.pix_prot, slot.pts, slot.sigma) for i in range(len(rig))]
+                          for slot in self.buffers.slots]
+        per = self.cam_chunk
+        self._count_camera = [(bound("count_camera", self.pix_cell, rig.ints[i].copy(), np.int32(per), self.cam_counts),
+                               (_round_up((int(rig.ints[i][1]) + per - 1) // per),)) for i in range(len(rig))]
+        self._zero_cam_counts = bound("zero_ints", self.cam_counts, np.int32(len(rig)))
 
     def _zero_cell_starts(self):
         for slot in self.buffers.slots:
@@ -157,37 +202,30 @@ class OpenCLPipeline(FramePipeline):
             for i, f in enumerate(frames):
                 checkpoint()
                 off = int(rig.offsets[i])
-                events.append(cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off,
-                                              is_blocking=False))
+                if self._staging is None:
+                    events.append(cl.enqueue_copy(q, self.depth, np.ascontiguousarray(f.depth), dst_offset=2 * off,
+                                                  is_blocking=False))
+                elif f.depth.ctypes.data != self._staging_views[i].ctypes.data:   # not written in place
+                    np.copyto(self._staging_views[i], f.depth)
                 if self.params.selection.kind == "color" and f.color is not None:
                     events.append(cl.enqueue_copy(q, self.color, np.ascontiguousarray(f.color), dst_offset=3 * off,
                                                   is_blocking=False))
                 if self.params.selection.kind == "mask" and f.mask is not None:
                     m = (np.asarray(f.mask) != 0).astype(np.uint8)
                     events.append(cl.enqueue_copy(q, self.mask, m, dst_offset=off, is_blocking=False))
-            npix, C = np.int32(self.npix), np.int32(self.ncells)
-            self.k_zero(q, (_round_up(self.ncells),), None, self.counts, C)
-            for i in range(len(rig)):
+            if self._staging is not None:
+                events.append(cl.enqueue_copy(q, self.depth, self._staging, is_blocking=False))
+            for i, k in enumerate(self._classify[b]):
                 checkpoint()
-                pose, cam, cami = packed[i, :16].copy(), packed[i, 16:24].copy(), rig.ints[i].copy()
-                self.k_classify(q, (_round_up(int(cami[1])),), None, self.depth, self.rays, pose, cam, cami,
-                                self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
-                                self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
-            self.k_count(q, (_round_up(self.n_runs),), None, self.pix_cell, npix, np.int32(self.per), self.counts, self.pix_rank)
+                k.set_arg(2, packed[i, :16].copy())   # pose
+                k.set_arg(3, packed[i, 16:24].copy())   # camera parameters
+                cl.enqueue_nd_range_kernel(q, k, (_round_up(int(rig.ints[i][1])),), None)
             checkpoint()
-            chunk = np.int32(self.chunk)
-            self.k_scan_chunks(q, (self.nchunks,), None, self.counts, C, chunk, slot.start, self.partial)
-            self.k_scan_partials(q, (1,), None, self.partial, np.int32(self.nchunks), slot.start, C)
-            self.k_scan_add(q, (self.nchunks,), None, slot.start, C, chunk, self.partial)
-            self.k_scatter(q, (_round_up(self.npix),), None, self.pix_cell, self.pix_rank, self.pix_prot, npix,
-                           slot.start, slot.order)
-            self.k_sort_cells(q, (_round_up(self.ncells),), None, slot.start, C, slot.order)
+            self.cell_sort.enqueue(q, b)
             checkpoint()
-            self.k_zero(q, (LOCAL,), None, self.cam_counts, np.int32(len(rig)))
-            for i in range(len(rig)):
-                cami = rig.ints[i].copy()
-                self.k_count_camera(q, (_round_up((int(cami[1]) + 4095) // 4096),), None, self.pix_cell, cami,
-                                    np.int32(4096), self.cam_counts)
+            cl.enqueue_nd_range_kernel(q, self._zero_cam_counts, (LOCAL,), None)
+            for k, gsize in self._count_camera:
+                cl.enqueue_nd_range_kernel(q, k, gsize, None)
             events.append(cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False))
             cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
             events.clear()
