@@ -39,6 +39,7 @@ from pointfence.kernels.haptics import HapticParams, HapticScene, haptic_pipelin
 from pointfence.kernels.motion import MotionModel
 
 from .dynamic_real_frames import Motion, MovingRealFrame, load_real
+from .teleop import Teleop
 
 RATE_HZ = 30.0
 TICK_HZ = 1000.0
@@ -111,13 +112,17 @@ def _approach(anchor) -> np.ndarray:
 
 def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f: float = 0.01, master: str = "hold",
              backend: str = "opencl", device: str | None = None, model: MotionModel | None = None,
-             probe=None, advance: float | None = None) -> RealRun:
+             probe=None, advance: float | None = None, on_tick=None, slip_lift: bool = True) -> RealRun:
     """One run of the loop in the module docstring on ``surface`` (a ``MovingRealFrame`` with
     ``motion``, or the synthetic plane with motion None). ``model``: the motion model (default:
     ``MotionModel(enabled=predict)``). ``probe(hs, t)``: called after every ingest (the
-    estimator study reads the snapshot there). ``advance``: hold only, how far (m) the surface
+    estimator study reads the snapshot there). ``on_tick(hs, t, goal, robot, d_proxy, d_robot)``:
+    called after every tick with the proxy (the robot's goal) and the robot's position (m) and
+    their signed distances to the true surface (m; ``dynamic_real_trace`` records them). ``advance``: hold only, how far (m) the surface
     advances from its place at engagement before it stops (default r_f + 2 cm; inf: it moves
-    for the whole run; a ``motion`` with its own ``stop`` keeps it)."""
+    for the whole run; a ``motion`` with its own ``stop`` keeps it). ``slip_lift``: the robot's
+    command raised along the proxy's normal while it trails a slipping proxy (``[teleop]
+    slip_lift``, on by default in the service; False: the bare rate-limited proxy)."""
     if master not in ("hold", "push"):
         raise InputError(f"master = {master!r}; expected 'hold' or 'push'")
     if advance is not None and not (isinstance(advance, (int, float)) and advance > 0):
@@ -167,8 +172,18 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     seq, frames = 1, 2
     for _ in range(40):
         hs.step([start], now=t0)
-    xr = hs.proxies[0].astype(np.float64).copy()
-    step = ROBOT_SPEED / TICK_HZ
+    # the robot's command is the service's (architecture III: ``Teleop``, the compiled core's
+    # arithmetic): the proxy as the goal, raised by the slip lift while the command trails it,
+    # rate-limited to ROBOT_SPEED; the master's point maps 1:1 onto the HIP
+    x0 = hs.proxies[0].astype(np.float64)[None].copy()
+    tp = Teleop(1, scale=1.0, max_robot_speed=ROBOT_SPEED, dt=1.0 / TICK_HZ, architecture="III",
+                slip_lift=r_f if slip_lift else 0.0)
+    if slip_lift:
+        tp.bind_normals(hs.normals)
+    on = np.ones(1, bool)
+    tp.start(x0, x0)
+    tp.map_masters(x0, on, on)
+    dev = x0.copy()
     worst_p = worst_r = -np.inf
     popped = False
     n_ticks = int(round(duration * TICK_HZ))
@@ -179,14 +194,19 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
             seq = avail
             ingest(seq)
             frames += 1
-        hs.step([hold if master == "hold" else moved(pushed, t)], now=t)
+        dev[0] = hold if master == "hold" else moved(pushed, t)
+        tp.map_masters(dev, on, on)
+        tp.update_hip(tp.cmd)
+        hs.step(tp.proxy_hip(), now=t)
+        tp.command_goal(hs.proxies, True)
+        tp.limit_command(on)
         goal = hs.proxies[0].astype(np.float64)
-        d = goal - xr
-        dn = float(np.linalg.norm(d))
-        xr = goal if dn <= step else xr + d * (step / dn)
+        xr = tp.cmd[0].copy()
         dp, dr = surface.distance(motion, np.stack([goal, xr]), t)
         worst_p, worst_r = max(worst_p, r_f - dp), max(worst_r, r_f - dr)
         popped |= bool(dp < 0)
+        if on_tick is not None:
+            on_tick(hs, t, goal, xr, dp, dr)
     return RealRun(max(worst_p, 0.0), max(worst_r, 0.0), popped, n_ticks, frames)
 
 
