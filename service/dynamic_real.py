@@ -104,6 +104,24 @@ class _PlaneSurface:
         return self.src.scene.distance(np.asarray(q, np.float64).reshape(-1, 3), self._scene_time(t))
 
 
+@dataclass
+class TickView:
+    """One tick of ``run_case``, for ``on_tick``: its time t (s), the master's point (the HIP),
+    the proxy (the robot's goal) and the robot (m, camera frame), their signed distances to the
+    true surface at t (m), r_f (m), the ``HapticScene`` (its snapshot, the dt used) and
+    ``carry(points, t_from, t_to)``: points of the scene at t_from moved by the true motion."""
+
+    t: float
+    hip: np.ndarray
+    proxy: np.ndarray
+    robot: np.ndarray
+    d_proxy: float
+    d_robot: float
+    r_f: float
+    scene: HapticScene
+    carry: object
+
+
 def _approach(anchor) -> np.ndarray:
     """Unit vector from a real surface point toward the camera (the camera frame's origin)."""
     a = np.asarray(anchor, np.float64)
@@ -116,9 +134,8 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     """One run of the loop in the module docstring on ``surface`` (a ``MovingRealFrame`` with
     ``motion``, or the synthetic plane with motion None). ``model``: the motion model (default:
     ``MotionModel(enabled=predict)``). ``probe(hs, t)``: called after every ingest (the
-    estimator study reads the snapshot there). ``on_tick(hs, t, goal, robot, d_proxy, d_robot)``:
-    called after every tick with the proxy (the robot's goal) and the robot's position (m) and
-    their signed distances to the true surface (m; ``dynamic_real_trace`` records them). ``advance``: hold only, how far (m) the surface
+    estimator study reads the snapshot there). ``on_tick(TickView)``: called after every tick
+    (``dynamic_real_trace`` records the ticks with it). ``advance``: hold only, how far (m) the surface
     advances from its place at engagement before it stops (default r_f + 2 cm; inf: it moves
     for the whole run; a ``motion`` with its own ``stop`` keeps it). ``slip_lift``: the robot's
     command raised along the proxy's normal while it trails a slipping proxy (``[teleop]
@@ -155,6 +172,15 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
             return x + surface.anchor_at(t) - anchor
         R, c = motion.pose(t)
         return R @ x + c
+
+    def carry(x, t_from, t_to):
+        """Points (N, 3) of the scene at ``t_from`` where the true motion has them at ``t_to``."""
+        x = np.asarray(x, np.float64).reshape(-1, 3)
+        if motion is None:
+            return x + (surface.anchor_at(t_to) - surface.anchor_at(t_from))
+        R0, c0 = motion.pose(t_from)
+        R1, c1 = motion.pose(t_to)
+        return ((x - c0) @ R0) @ R1.T + c1
 
     start = moved(anchor + n * (r_f + p.band / 2 + 1e-3), t0)
     hold = moved(anchor + n * (r_f + 0.01), t0)
@@ -206,7 +232,7 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
         worst_p, worst_r = max(worst_p, r_f - dp), max(worst_r, r_f - dr)
         popped |= bool(dp < 0)
         if on_tick is not None:
-            on_tick(hs, t, goal, xr, dp, dr)
+            on_tick(TickView(t, dev[0].copy(), goal, xr, float(dp), float(dr), r_f, hs, carry))
     return RealRun(max(worst_p, 0.0), max(worst_r, 0.0), popped, n_ticks, frames)
 
 
@@ -220,12 +246,14 @@ def real_surface(frames) -> MovingRealFrame:
 
 
 def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backend: str = "opencl",
-          device: str | None = None, synthetic: bool = True, model_options: dict | None = None) -> dict:
+          device: str | None = None, synthetic: bool = True, model_options: dict | None = None,
+          slip_lift: bool = True) -> dict:
     """Every scene x case x r_f x speed, with and without prediction. Returns {"rows": [...],
     "scenes": {name: {valid_fraction, anchor_depth_m}}}; a row: scene, motion, master, r_f_mm,
     speed_mps, and proxy/robot max penetration (mm) and proxy popped, without and with prediction.
     ``synthetic``: add the synthetic plane (toward, hold and push) for comparison.
-    ``model_options``: MotionModel fields for the prediction runs (besides enabled)."""
+    ``model_options``: MotionModel fields for the prediction runs (besides enabled).
+    ``slip_lift``: the robot command's slip lift (``run_case``)."""
     rows, info = [], {}
     mo = dict(model_options or {})
     targets = [(real_surface(s), s) for s in scenes]
@@ -246,7 +274,7 @@ def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backen
                     motion = Motion(kind, v, tuple(s.anchor())) if surf is not None else None
                     model = MotionModel(enabled=predict, **(mo if predict else {}))
                     r = run_case(s, motion, v, predict, r_f=r_f, master=master, backend=backend, device=device,
-                                 model=model)
+                                 model=model, slip_lift=slip_lift)
                     row[f"proxy_mm_{tag}"] = round(r.proxy_penetration * 1e3, 2)
                     row[f"robot_mm_{tag}"] = round(r.robot_penetration * 1e3, 2)
                     row[f"popped_{tag}"] = r.proxy_popped
