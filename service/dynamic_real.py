@@ -6,8 +6,9 @@ robot follows the proxy) is held against it at 1 kHz:
 
 * ``hold``: the master holds still ``r_f + 1 cm`` in front of the surface's start; the surface
   then advances r_f + 2 cm (the issue's 3 cm stroke for the 1 cm fixture), pushing the proxy
-  1 cm back past the master, and stops there; the run lasts at least 4 frames, so prediction is
-  tried over several frames and over the stop. A surface that kept moving for 4 frames at
+  1 cm back past the master, and stops there; the run lasts at least 4 frames and goes on for
+  ``AFTER_STOP`` (4 frames) after the stop, so prediction is tried over several frames and over
+  the stop at every speed. A surface that kept moving for 4 frames at
   1 m/s would push the proxy 11 cm back, and a real surface slanted to the motion carries it
   that far across the scene (4.5 cm on apc's bin floor), into the occlusion shadow of a
   foreground object, where no camera sees the surface: that is the occlusion problem (a second
@@ -44,6 +45,8 @@ from .teleop import Teleop
 RATE_HZ = 30.0
 TICK_HZ = 1000.0
 ROBOT_SPEED = 0.5  # m/s, the point-mass robot's rate limit
+#: how long (s) a hold run goes on after the surface stops: 4 frames, whatever the speed
+AFTER_STOP = 4 / RATE_HZ
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: the real recordings the evaluation uses by default (../shared/data)
 REAL_SCENES = ("apc_shelfbin_50f", "7scenes_kitchen_50f")
@@ -162,6 +165,7 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     if master == "hold" and speed > 0:
         stop = t0 + (travel if advance is None else advance) / speed
         if math.isfinite(stop):
+            duration = max(duration, stop - t0 + AFTER_STOP)
             if motion is None:
                 surface = surface.stopped_at(stop)
             elif motion.stop is None:

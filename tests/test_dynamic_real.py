@@ -345,8 +345,15 @@ def test_trace_splits_the_plane_floor_into_sampling_not_prediction():
     # the per-frame sampling term swings both ways: a draw per frame, not a drift
     sampling = [f["sampling_mm_max"] for f in tr.frames()[3:]]
     assert min(sampling) < -0.2 < 0.2 < max(sampling)
-    # the recorded dt is the service's: now - frame time, clamped to the horizon (latency 0)
-    assert np.allclose(tr.dt, np.clip(tr.t - tr.t_snapshot, 0.0, 0.1), atol=1e-9)
+    # the recorded dt is the service's: now - frame time, clamped to the horizon (latency 0),
+    # and 0 once the surface has stopped and the estimate says so
+    moving = tr.t < 1 / dr.RATE_HZ + 0.03 / 0.1
+    assert np.allclose(tr.dt[moving], np.clip(tr.t - tr.t_snapshot, 0.0, 0.1)[moving], atol=1e-9)
+    # the run goes on AFTER_STOP past the stop (it used to end there below 0.2 m/s), and the
+    # stale prediction over the stop adds nothing
+    after = ~moving
+    assert after.sum() >= round(dr.AFTER_STOP * dr.TICK_HZ) and np.all(tr.v_true[after] == 0)
+    assert tr.proxy_mm[after].max() <= tr.proxy_mm[moving].max()
 
 
 def test_trace_prediction_term_is_the_static_clouds_lag_without_prediction():
