@@ -16,7 +16,10 @@ robot follows the proxy) is held against it at 1 kHz:
 * ``push``: the master pushes 2 cm into the surface and follows the point it pushes (a
   surgeon pressing on a moving organ): the proxy rides the moving fixture's boundary.
 
-The robot is a point mass following the proxy at up to ``ROBOT_SPEED``. At every tick the
+The robot is a point mass on the service's architecture-III command (``Teleop``, the compiled
+core's arithmetic): the proxy as its goal, raised along the proxy's normal by the slip lift
+(``[teleop] slip_lift``, on by default) while the command trails a proxy that slides away from
+it, rate-limited to ``ROBOT_SPEED``. At every tick the
 proxy's and the robot's penetration of the forbidden region (r_f around the true surface at
 that tick's exact time) is measured against it: r_f - d, d the exact signed distance to the
 triangulated real surface (``dynamic_real_frames``, ``depth_mesh``). The same loop runs the
