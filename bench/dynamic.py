@@ -57,8 +57,9 @@ def add_arguments(p):
     p.add_argument("--radii", type=_floats, default=None, metavar="R,R,...",
                    help="with --real: the fixture radii r_f, m (default 0.01,0.02)")
     p.add_argument("--floor", action="store_true",
-                   help="with --real: where the penetration comes from (service/dynamic_real_trace.py): per case, "
-                        "the worst tick's sampling / prediction / overlap terms, with prediction")
+                   help="with --real: where the penetration comes from (service/dynamic_real_trace.py): per toward "
+                        "case and speed (--speeds, default 0.1,0.3), 1 cm fixture, with prediction, the worst tick's "
+                        "sampling / prediction / overlap terms")
 
 
 def _floats(text: str) -> tuple:
