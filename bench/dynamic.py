@@ -22,9 +22,14 @@ and the robot's max penetration of the forbidden region (mm, against the true su
 tick) without and with prediction, the synthetic plane beside them (``real_rows``); the fastest
 speeds held to the issue-23 targets (``real_held_speed_mps``); the motion estimator against the
 true velocity (``real_estimator``); and the real-rig figures (occlusion, fused rig, radius study)
-of ``service/dynamic_real_rig.py`` (``real_rig``). ``--quick``: two speeds, one scene, seconds.
+of ``service/dynamic_real_rig.py`` (``real_rig``). ``--quick``: two speeds, one scene, seconds;
+``--speeds``, ``--cases``, ``--radii``: a subset of the sweep; ``--floor``: where each toward
+case's penetration comes from (``service/dynamic_real_trace.py``: sampling, prediction,
+overlap at the worst tick, ``real_floor``).
 """
 from __future__ import annotations
+
+import argparse
 
 from pointfence.service import dynamic_scenes as ds
 
@@ -45,6 +50,36 @@ def add_arguments(p):
                    help="with --real: the estimator without neighbour propagation (min_neighbours = 0), to compare")
     p.add_argument("--quick", action="store_true",
                    help="with --real: a short sweep (one scene, 0.1 and 0.3 m/s, toward the camera), seconds")
+    p.add_argument("--speeds", type=_floats, default=None, metavar="V,V,...",
+                   help="with --real: the sweep's surface speeds, m/s (default 0.05 ... 1.5)")
+    p.add_argument("--cases", type=_cases, default=None, metavar="MOTION/MASTER,...",
+                   help="with --real: the sweep's cases, e.g. toward/hold,toward/push (default: all four)")
+    p.add_argument("--radii", type=_floats, default=None, metavar="R,R,...",
+                   help="with --real: the fixture radii r_f, m (default 0.01,0.02)")
+    p.add_argument("--floor", action="store_true",
+                   help="with --real: where the penetration comes from (service/dynamic_real_trace.py): per toward "
+                        "case and speed (--speeds, default 0.1,0.3), 1 cm fixture, with prediction, the worst tick's "
+                        "sampling / prediction / overlap terms")
+
+
+def _floats(text: str) -> tuple:
+    try:
+        out = tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        out = ()
+    if not out or not all(0 < x < 10 for x in out):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated positive numbers, e.g. 0.1,0.3")
+    return out
+
+
+def _cases(text: str) -> tuple:
+    from pointfence.service.dynamic_real import CASES
+
+    out = tuple(tuple(c.strip().split("/")) for c in text.split(",") if c.strip())
+    bad = [("/".join(c)) for c in out if c not in CASES]
+    if not out or bad:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected cases among {', '.join('/'.join(c) for c in CASES)}")
+    return out
 
 
 def _speed(predict, backend, device, **kw):
@@ -60,6 +95,9 @@ def run_real(args) -> dict:
     b, dev = args.backend, args.device
     scenes = tuple(args.frames) if args.frames else dr.REAL_SCENES[:1] if args.quick else dr.REAL_SCENES
     opts = dict(speeds=dr.QUICK_SPEEDS, radii=(0.01,), cases=(("toward", "hold"),)) if args.quick else {}
+    for key in ("speeds", "cases", "radii"):
+        if getattr(args, key, None):
+            opts[key] = getattr(args, key)
     mo = {"min_neighbours": 0} if args.no_propagation else {}
     res = dr.sweep(scenes, backend=b, device=dev, model_options=mo, **opts)
     out = {"backend": b, "motion_options": mo, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ,
@@ -68,6 +106,12 @@ def run_real(args) -> dict:
            "real_held_speed_mps": dr.held_speeds(res["rows"], proxy_mm=0.5, robot_mm=1.0),
            "real_no_popthrough_speed_mps": dr.held_speeds(res["rows"], proxy_mm=float("inf"), robot_mm=float("inf"),
                                                           popped=True)}
+    if getattr(args, "floor", False):
+        from pointfence.service.dynamic_real_trace import floor_table
+
+        out["real_floor"] = floor_table(scenes, speeds=opts.get("speeds", dr.QUICK_SPEEDS),
+                                        masters=sorted({m for k, m in opts.get("cases", dr.CASES) if k == "toward"}),
+                                        backend=b, device=dev)
     est = dict(speeds=(0.3,), motions=("toward",)) if args.quick else dict(speeds=(0.3, 1.0))
     out["real_estimator"] = study.estimator_table(scenes, backend=b, device=dev, model=MotionModel(enabled=True, **mo),
                                                   **est)

@@ -6,8 +6,9 @@ robot follows the proxy) is held against it at 1 kHz:
 
 * ``hold``: the master holds still ``r_f + 1 cm`` in front of the surface's start; the surface
   then advances r_f + 2 cm (the issue's 3 cm stroke for the 1 cm fixture), pushing the proxy
-  1 cm back past the master, and stops there; the run lasts at least 4 frames, so prediction is
-  tried over several frames and over the stop. A surface that kept moving for 4 frames at
+  1 cm back past the master, and stops there; the run lasts at least 4 frames and goes on for
+  ``AFTER_STOP`` (4 frames) after the stop, so prediction is tried over several frames and over
+  the stop at every speed. A surface that kept moving for 4 frames at
   1 m/s would push the proxy 11 cm back, and a real surface slanted to the motion carries it
   that far across the scene (4.5 cm on apc's bin floor), into the occlusion shadow of a
   foreground object, where no camera sees the surface: that is the occlusion problem (a second
@@ -15,7 +16,10 @@ robot follows the proxy) is held against it at 1 kHz:
 * ``push``: the master pushes 2 cm into the surface and follows the point it pushes (a
   surgeon pressing on a moving organ): the proxy rides the moving fixture's boundary.
 
-The robot is a point mass following the proxy at up to ``ROBOT_SPEED``. At every tick the
+The robot is a point mass on the service's architecture-III command (``Teleop``, the compiled
+core's arithmetic): the proxy as its goal, raised along the proxy's normal by the slip lift
+(``[teleop] slip_lift``, on by default) while the command trails a proxy that slides away from
+it, rate-limited to ``ROBOT_SPEED``. At every tick the
 proxy's and the robot's penetration of the forbidden region (r_f around the true surface at
 that tick's exact time) is measured against it: r_f - d, d the exact signed distance to the
 triangulated real surface (``dynamic_real_frames``, ``depth_mesh``). The same loop runs the
@@ -39,10 +43,13 @@ from pointfence.kernels.haptics import HapticParams, HapticScene, haptic_pipelin
 from pointfence.kernels.motion import MotionModel
 
 from .dynamic_real_frames import Motion, MovingRealFrame, load_real
+from .teleop import Teleop
 
 RATE_HZ = 30.0
 TICK_HZ = 1000.0
 ROBOT_SPEED = 0.5  # m/s, the point-mass robot's rate limit
+#: how long (s) a hold run goes on after the surface stops: 4 frames, whatever the speed
+AFTER_STOP = 4 / RATE_HZ
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: the real recordings the evaluation uses by default (../shared/data)
 REAL_SCENES = ("apc_shelfbin_50f", "7scenes_kitchen_50f")
@@ -103,6 +110,24 @@ class _PlaneSurface:
         return self.src.scene.distance(np.asarray(q, np.float64).reshape(-1, 3), self._scene_time(t))
 
 
+@dataclass
+class TickView:
+    """One tick of ``run_case``, for ``on_tick``: its time t (s), the master's point (the HIP),
+    the proxy (the robot's goal) and the robot (m, camera frame), their signed distances to the
+    true surface at t (m), r_f (m), the ``HapticScene`` (its snapshot, the dt used) and
+    ``carry(points, t_from, t_to)``: points of the scene at t_from moved by the true motion."""
+
+    t: float
+    hip: np.ndarray
+    proxy: np.ndarray
+    robot: np.ndarray
+    d_proxy: float
+    d_robot: float
+    r_f: float
+    scene: HapticScene
+    carry: object
+
+
 def _approach(anchor) -> np.ndarray:
     """Unit vector from a real surface point toward the camera (the camera frame's origin)."""
     a = np.asarray(anchor, np.float64)
@@ -111,13 +136,16 @@ def _approach(anchor) -> np.ndarray:
 
 def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f: float = 0.01, master: str = "hold",
              backend: str = "opencl", device: str | None = None, model: MotionModel | None = None,
-             probe=None, advance: float | None = None) -> RealRun:
+             probe=None, advance: float | None = None, on_tick=None, slip_lift: bool = True) -> RealRun:
     """One run of the loop in the module docstring on ``surface`` (a ``MovingRealFrame`` with
     ``motion``, or the synthetic plane with motion None). ``model``: the motion model (default:
     ``MotionModel(enabled=predict)``). ``probe(hs, t)``: called after every ingest (the
-    estimator study reads the snapshot there). ``advance``: hold only, how far (m) the surface
+    estimator study reads the snapshot there). ``on_tick(TickView)``: called after every tick
+    (``dynamic_real_trace`` records the ticks with it). ``advance``: hold only, how far (m) the surface
     advances from its place at engagement before it stops (default r_f + 2 cm; inf: it moves
-    for the whole run; a ``motion`` with its own ``stop`` keeps it)."""
+    for the whole run; a ``motion`` with its own ``stop`` keeps it). ``slip_lift``: the robot's
+    command raised along the proxy's normal while it trails a slipping proxy (``[teleop]
+    slip_lift``, on by default in the service; False: the bare rate-limited proxy)."""
     if master not in ("hold", "push"):
         raise InputError(f"master = {master!r}; expected 'hold' or 'push'")
     if advance is not None and not (isinstance(advance, (int, float)) and advance > 0):
@@ -140,6 +168,7 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     if master == "hold" and speed > 0:
         stop = t0 + (travel if advance is None else advance) / speed
         if math.isfinite(stop):
+            duration = max(duration, stop - t0 + AFTER_STOP)
             if motion is None:
                 surface = surface.stopped_at(stop)
             elif motion.stop is None:
@@ -150,6 +179,15 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
             return x + surface.anchor_at(t) - anchor
         R, c = motion.pose(t)
         return R @ x + c
+
+    def carry(x, t_from, t_to):
+        """Points (N, 3) of the scene at ``t_from`` where the true motion has them at ``t_to``."""
+        x = np.asarray(x, np.float64).reshape(-1, 3)
+        if motion is None:
+            return x + (surface.anchor_at(t_to) - surface.anchor_at(t_from))
+        R0, c0 = motion.pose(t_from)
+        R1, c1 = motion.pose(t_to)
+        return ((x - c0) @ R0) @ R1.T + c1
 
     start = moved(anchor + n * (r_f + p.band / 2 + 1e-3), t0)
     hold = moved(anchor + n * (r_f + 0.01), t0)
@@ -167,8 +205,18 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     seq, frames = 1, 2
     for _ in range(40):
         hs.step([start], now=t0)
-    xr = hs.proxies[0].astype(np.float64).copy()
-    step = ROBOT_SPEED / TICK_HZ
+    # the robot's command is the service's (architecture III: ``Teleop``, the compiled core's
+    # arithmetic): the proxy as the goal, raised by the slip lift while the command trails it,
+    # rate-limited to ROBOT_SPEED; the master's point maps 1:1 onto the HIP
+    x0 = hs.proxies[0].astype(np.float64)[None].copy()
+    tp = Teleop(1, scale=1.0, max_robot_speed=ROBOT_SPEED, dt=1.0 / TICK_HZ, architecture="III",
+                slip_lift=r_f if slip_lift else 0.0)
+    if slip_lift:
+        tp.bind_normals(hs.normals)
+    on = np.ones(1, bool)
+    tp.start(x0, x0)
+    tp.map_masters(x0, on, on)
+    dev = x0.copy()
     worst_p = worst_r = -np.inf
     popped = False
     n_ticks = int(round(duration * TICK_HZ))
@@ -179,14 +227,19 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
             seq = avail
             ingest(seq)
             frames += 1
-        hs.step([hold if master == "hold" else moved(pushed, t)], now=t)
+        dev[0] = hold if master == "hold" else moved(pushed, t)
+        tp.map_masters(dev, on, on)
+        tp.update_hip(tp.cmd)
+        hs.step(tp.proxy_hip(), now=t)
+        tp.command_goal(hs.proxies, True)
+        tp.limit_command(on)
         goal = hs.proxies[0].astype(np.float64)
-        d = goal - xr
-        dn = float(np.linalg.norm(d))
-        xr = goal if dn <= step else xr + d * (step / dn)
+        xr = tp.cmd[0].copy()
         dp, dr = surface.distance(motion, np.stack([goal, xr]), t)
         worst_p, worst_r = max(worst_p, r_f - dp), max(worst_r, r_f - dr)
         popped |= bool(dp < 0)
+        if on_tick is not None:
+            on_tick(TickView(t, dev[0].copy(), goal, xr, float(dp), float(dr), r_f, hs, carry))
     return RealRun(max(worst_p, 0.0), max(worst_r, 0.0), popped, n_ticks, frames)
 
 
@@ -200,12 +253,14 @@ def real_surface(frames) -> MovingRealFrame:
 
 
 def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backend: str = "opencl",
-          device: str | None = None, synthetic: bool = True, model_options: dict | None = None) -> dict:
+          device: str | None = None, synthetic: bool = True, model_options: dict | None = None,
+          slip_lift: bool = True) -> dict:
     """Every scene x case x r_f x speed, with and without prediction. Returns {"rows": [...],
     "scenes": {name: {valid_fraction, anchor_depth_m}}}; a row: scene, motion, master, r_f_mm,
     speed_mps, and proxy/robot max penetration (mm) and proxy popped, without and with prediction.
     ``synthetic``: add the synthetic plane (toward, hold and push) for comparison.
-    ``model_options``: MotionModel fields for the prediction runs (besides enabled)."""
+    ``model_options``: MotionModel fields for the prediction runs (besides enabled).
+    ``slip_lift``: the robot command's slip lift (``run_case``)."""
     rows, info = [], {}
     mo = dict(model_options or {})
     targets = [(real_surface(s), s) for s in scenes]
@@ -226,7 +281,7 @@ def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backen
                     motion = Motion(kind, v, tuple(s.anchor())) if surf is not None else None
                     model = MotionModel(enabled=predict, **(mo if predict else {}))
                     r = run_case(s, motion, v, predict, r_f=r_f, master=master, backend=backend, device=device,
-                                 model=model)
+                                 model=model, slip_lift=slip_lift)
                     row[f"proxy_mm_{tag}"] = round(r.proxy_penetration * 1e3, 2)
                     row[f"robot_mm_{tag}"] = round(r.robot_penetration * 1e3, 2)
                     row[f"popped_{tag}"] = r.proxy_popped
