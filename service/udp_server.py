@@ -46,6 +46,7 @@ from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
 from .age_hist import AgeHistogram
+from .held_io import Sender
 from .masters import Master
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
@@ -183,6 +184,7 @@ class UdpHub:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, int(port)))
         self.reader = StampedReader(self.sock, rcvbuf_bytes)
+        self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
@@ -521,9 +523,7 @@ class UdpHub:
         return s.tx_seq
 
     def _send(self, addr, data: bytes) -> None:
-        try:
-            self.sock.sendto(data, addr)
-        except OSError:
+        if not self.sender.send(addr, data):
             self.send_errors += 1
 
     def send_feedback(self, m: UdpMaster, s: Session, f) -> None:
