@@ -48,6 +48,7 @@ from pointfence.kernels.errors import InputError
 from .age_hist import AgeHistogram
 from .held_io import Sender
 from .masters import Master
+from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
 from .udp_ratelimit import SourceLimiter, poll_loop
@@ -220,6 +221,7 @@ class UdpHub:
         self.send_errors = 0
         self._stop = threading.Event()
         self._thread = None
+        self.scheduling = "normal"        # the receiver thread's (set_rt_priority)
         if receiver:
             self._thread = threading.Thread(target=self._run, name="pointfence-udp-rx", daemon=True)
             self._thread.start()
@@ -227,6 +229,17 @@ class UdpHub:
     @property
     def address(self):
         return self.sock.getsockname()
+
+    def set_rt_priority(self, priority: int) -> str:
+        """SCHED_FIFO ``priority`` for the receiver thread where the OS allows it (0: leave it
+        normal; ``runner.LiveRun`` gives it the frame threads'). Every tick reads its samples, and
+        it holds the interpreter lock while it works: at normal priority on a loaded machine it
+        waited for a core most of the time, fell behind the devices (samples tens of
+        milliseconds old, sessions timed out: arms held, S9) and, preempted with the lock, kept
+        the loop waiting. It blocks whenever its socket is empty. Returns what was applied."""
+        if self._thread is not None and self._thread.is_alive():
+            self.scheduling = set_fifo(self._thread.native_id, priority)
+        return self.scheduling
 
     def attach(self, service) -> None:
         """The service whose proxies, robots and status go into FEEDBACK messages."""
@@ -569,6 +582,7 @@ class UdpHub:
             "sessions_timed_out": self.sessions_dropped, "sessions_closed": self.sessions_closed,
             "sessions_displaced": self.sessions_displaced, "feedback_sent": self.feedback_sent,
             "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
+            "receiver_scheduling": self.scheduling,
             "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
             "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
             "superseded": self.superseded, "stale_ticks": self.stale_ticks, "kernel_dropped": self.reader.dropped,
