@@ -177,6 +177,13 @@ class SoakRig:
         except urllib.error.HTTPError as e:
             return e.code
 
+    def scheduling(self) -> dict:
+        """How the OS schedules the threads that feed or watch the tick (each's own report)."""
+        loop = self.run.loop
+        return {"loop": loop.scheduling, "frames": self.run.frames.scheduling,
+                "udp_receiver": self.hub.scheduling,
+                "watchdog": loop.watchdog.scheduling if loop.watchdog is not None else None}
+
     def robot_notes(self) -> str:
         """Why each hosted arm cannot be enabled now, if it cannot (for a failure's message)."""
         host = self.run.robot_host
