@@ -53,7 +53,7 @@ def _load():
     except OSError:
         return None
     sendto, recvmsg = lc.sendto, lc.recvmsg
-    sendto.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32]
+    sendto.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int, ctypes.c_void_p, ctypes.c_uint32]
     sendto.restype = ctypes.c_ssize_t
     recvmsg.argtypes = [ctypes.c_int, ctypes.POINTER(_MsgHdr), ctypes.c_int]
     recvmsg.restype = ctypes.c_ssize_t
@@ -69,17 +69,20 @@ def available(sock: socket.socket) -> bool:
 
 
 class Sender:
-    """``send(addr, data)``: one datagram from ``sock`` to ``addr`` (host, port), never blocking,
-    keeping the interpreter lock. Returns False where the kernel refused it (full send buffer,
-    an unreachable peer): the caller counts it, as it counts a socket ``OSError``."""
+    """``send(addr, data)``: one datagram (bytes, or a bytearray sent as it is at the call) from
+    ``sock`` to ``addr`` (host, port), never blocking, keeping the interpreter lock. Returns False
+    where the kernel refused it (full send buffer, an unreachable peer): the caller counts it, as
+    it counts a socket ``OSError``."""
 
     def __init__(self, sock: socket.socket):
         self.sock = sock
         self.held = available(sock)
         self._sockaddr: dict = {}        # (host, port) -> packed sockaddr_in (a ctypes buffer)
+        self._bufs = _Buffers()
 
-    def send(self, addr, data: bytes) -> bool:
-        if not self.held or type(data) is not bytes:
+    def send(self, addr, data) -> bool:
+        kind = type(data)
+        if not self.held or (kind is not bytes and kind is not bytearray):
             try:
                 self.sock.sendto(data, addr)
                 return True
@@ -97,7 +100,25 @@ class Sender:
         fd = self.sock.fileno()
         if fd < 0:
             return False
-        return _CALLS[0](fd, data, len(data), MSG_DONTWAIT | MSG_NOSIGNAL, sa, 16) >= 0
+        ptr = data if kind is bytes else self._bufs.address(data)
+        return _CALLS[0](fd, ptr, len(data), MSG_DONTWAIT | MSG_NOSIGNAL, sa, 16) >= 0
+
+
+class _Buffers:
+    """The addresses of the bytearrays handed to the calls, each found once: the ctypes view kept
+    here exports the buffer, so it cannot be resized (moved) while it is known."""
+
+    def __init__(self):
+        self._known: dict = {}           # id(buf) -> (buf, its ctypes view, address)
+
+    def address(self, buf: bytearray) -> int:
+        got = self._known.get(id(buf))
+        if got is None or got[0] is not buf or len(got[1]) != len(buf):
+            if len(self._known) >= _ADDR_CACHE_MAX:
+                self._known.clear()
+            view = (ctypes.c_char * len(buf)).from_buffer(buf)
+            got = self._known[id(buf)] = (buf, view, ctypes.addressof(view))
+        return got[2]
 
 
 class Receiver:
@@ -122,20 +143,11 @@ class Receiver:
         self._hdr.msg_iovlen = 1
         self._hdr.msg_control = ctypes.addressof(self._ctrl_c)
         self._hdr_ref = ctypes.byref(self._hdr)
-        self._bufs: dict = {}            # id(buf) -> (buf, its ctypes view, address): the export pins it
+        self._bufs = _Buffers()
         self._peers: dict = {}           # packed port + address -> (host, port)
 
-    def _address_of(self, buf: bytearray) -> int:
-        got = self._bufs.get(id(buf))
-        if got is None or got[0] is not buf:
-            if len(self._bufs) >= _ADDR_CACHE_MAX:
-                self._bufs.clear()
-            view = (ctypes.c_char * len(buf)).from_buffer(buf)
-            got = self._bufs[id(buf)] = (buf, view, ctypes.addressof(view), len(buf))
-        return got
-
     def read(self, buf: bytearray):
-        _, _, base, size = self._address_of(buf)
+        base, size = self._bufs.address(buf), len(buf)
         hdr, iov, recvmsg = self._hdr, self._iov, _CALLS[1]
         while True:
             fd = self.sock.fileno()

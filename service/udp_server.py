@@ -34,6 +34,7 @@ that arm's robot and ramps its force to zero (``service.app``, hold reason "mast
 """
 from __future__ import annotations
 
+import math
 import os
 import socket
 import threading
@@ -186,6 +187,7 @@ class UdpHub:
         self.sock.bind((host, int(port)))
         self.reader = StampedReader(self.sock, rcvbuf_bytes)
         self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
+        self._fb = P.FeedbackWriter()     # the tick's FEEDBACK, written in place
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
@@ -540,8 +542,11 @@ class UdpHub:
             self.send_errors += 1
 
     def send_feedback(self, m: UdpMaster, s: Session, f) -> None:
+        """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame; saturated at the
+        session's force limit, zero if not finite), with the proxy, robot, hold and fixture state of
+        its arm; written into one buffer (``P.FeedbackWriter``), sent keeping the interpreter lock."""
         fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
-        if not (np.isfinite(fx) and np.isfinite(fy) and np.isfinite(fz)):
+        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
             fx = fy = fz = 0.0
         n2 = fx * fx + fy * fy + fz * fz
         if n2 > s.max_force * s.max_force:
@@ -549,23 +554,25 @@ class UdpHub:
             fx, fy, fz = fx * k, fy * k, fz * k
         b = m.slot
         t = self.t or 0.0
-        fb = P.Feedback(tick=int(round(t * self.rate_hz)), t_tick_ns=(self._base_ns or 0) + int(round(t * 1e9)),
-                        echo_seq=s.seq, echo_t_client_ns=s.t_client_ns, force=(fx, fy, fz), slot=b,
-                        error=s.error, rejected=s.rejected)
+        px = py = pz = rx = ry = rz = 0.0
+        contact, robot_mode, hold, fixture = P.CONTACT_FREE, P.ROBOT_IDEAL, 0, 0
         svc = self.service
         if svc is not None:
             batch = svc.batch
             if batch is not None:
-                fb.proxy = tuple(float(v) for v in batch.positions[b])
-                fb.contact = int(batch.states[b])
-            fb.robot = tuple(float(v) for v in svc.xr[b])
+                px, py, pz = batch.positions[b].tolist()
+                contact = int(batch.states[b])
+            rx, ry, rz = svc.xr[b].tolist()
             r = svc.robots[b]
-            fb.robot_mode = P.ROBOT_IDEAL if r is None else (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)[int(r.state)]
-            fb.hold = int(svc.arm_hold[b])
-            fb.fixture = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
-                          | (P.FX_COUPLED if svc.coupled[b] else 0) | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
-        fb.t_sent_ns = time.perf_counter_ns()
-        self._send(s.addr, fb.encode(s.key, s.device_id, s.id, self._next_tx(s)))
+            robot_mode = P.ROBOT_IDEAL if r is None else (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)[int(r.state)]
+            hold = int(svc.arm_hold[b])
+            fixture = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
+                       | (P.FX_COUPLED if svc.coupled[b] else 0) | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
+        data = self._fb.write(s.key, s.device_id, s.id, self._next_tx(s), int(round(t * self.rate_hz)),
+                              (self._base_ns or 0) + int(round(t * 1e9)), time.perf_counter_ns(), s.seq, s.t_client_ns,
+                              fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, 0, hold, s.error, b,
+                              s.rejected)
+        self._send(s.addr, data)
         self.feedback_sent += 1
 
     # --- status -------------------------------------------------------------------------------------

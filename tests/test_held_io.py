@@ -76,9 +76,14 @@ def test_sender_delivers_and_refuses_a_bad_address_without_raising():
         assert s.held
         assert s.send(rx.getsockname(), b"feedback")
         assert s.send(rx.getsockname(), b"again")
+        buf = bytearray(b"in place")                  # a bytearray: sent as it is at the call
+        assert s.send(rx.getsockname(), buf)
+        buf[:2] = b"IN"
+        assert s.send(rx.getsockname(), buf)
         time.sleep(0.01)
         assert rx.recvfrom(100) == (b"feedback", tx.getsockname())
         assert rx.recvfrom(100)[0] == b"again"
+        assert rx.recvfrom(100)[0] == b"in place" and rx.recvfrom(100)[0] == b"IN place"
         assert not s.send(("not an address", 1), b"x")
         assert not s.send(("127.0.0.1",), b"x")
         tx.close()
