@@ -141,6 +141,7 @@ def run(args) -> dict:
                         # the next fault goes in once the run is steady again, or after 30 s more
                         rig.steady(30.0)
                 rig.sleep(0.3)
+                rig.steady(5.0)         # (the last look right before it: a hold for load since the wait)
                 ev = Event(fault.name)
                 fault.inject(rig, ev)
                 _recover(rig, fault, ev)

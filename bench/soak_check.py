@@ -169,6 +169,13 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, robot_watchdog_s, ou
     seen_by_robot = fault.detect_s == "robot_watchdog" or fault.name == "robot_state_nan"
     if onset is None:
         return [(fault.invariant, f"{fault.name}: never became detectable in the recording")]
+    # arms already holding for this fault's reason at the tick before it went in (snapshots
+    # already too old on a loaded machine): its onset, latency and latching cannot be told from
+    # that hold. Reported as the run's availability, never as handled
+    before = [b for b in fault.arms if i0 > 0 and rec.arm_hold[i0 - 1, b] & bit]
+    if before:
+        return [(AVAILABILITY, f"{fault.name}: injected while arm(s) {before} already held for "
+                               f"{reason_names(bit)} (load): its contract could not be judged")]
     latency, motion, stop = 0.0, 0.0, 0.0
     settle = int(round(STOP_S * 1e3 / ms))
     for b in fault.arms:

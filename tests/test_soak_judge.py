@@ -200,3 +200,32 @@ def test_the_hold_bound_counts_the_ticks_the_loop_ran_not_the_periods_it_missed(
     assert any(inv == "S3" and "held 125 ms" in w and "1 ticks run after" in w for inv, w in late["failures"])
     assert not [w for _, w in stall(211, gap=False)["failures"] if "held" in w]   # no gap: as before,
     assert any("held 112 ms" in w for _, w in stall(212, gap=False)["failures"])  # periods are ticks
+
+
+def test_a_fault_injected_while_its_arms_already_held_for_it_is_availability_not_handled():
+    """Snapshots already too old when the ingest thread is killed (a loaded machine): the hold
+    that follows cannot be told from the one before, so the event is the run's availability (a
+    failure, not handled), never a broken latch. Before: 'came back before the fault was cleared
+    (not latched)' when the earlier hold ended."""
+    holds = np.zeros((N, 3))
+    holds[90:180, 1:] = INGEST          # held for old snapshots from before the injection (100)
+    holds[200:420, 1:] = INGEST         # the death's latched hold
+    age = np.zeros((N, 8))
+    age[:, 0] = np.arange(N)
+    age[:, 4:7] = (3, 1, 1)
+    age[90:180, 3] = 0.6
+    age[200:420, 3] = 0.6
+    rec = recording(holds=holds, inputs=age)
+    ev = Event("ingest_thread_death", inject=100, restore=300, clear=400, recovered=430)
+    v = judge(FAULTS["ingest_thread_death"], ev, rec, 0.5, 0.05)
+    assert [inv for inv, _ in v["failures"]] == [AVAILABILITY]
+    assert "already held" in v["failures"][0][1]
+    clean = holds.copy()
+    clean[90:180] = 0                   # the same death on a steady run: judged, and handled
+    age[90:180, 3] = 0.0
+    rows = np.zeros((N, 22))
+    rows[:, 0] = np.arange(N) * 1e-3
+    rows[:200, 18] = 2.0                # the force is zero from the hold on
+    v = judge(FAULTS["ingest_thread_death"], Event("ingest_thread_death", 100, 300, 400, 430),
+              recording(holds=clean, inputs=age, rows=rows), 0.5, 0.05)
+    assert v["failures"] == [], v["failures"]
