@@ -24,9 +24,11 @@ from .soak_devices import devices_main, flood_main
 #: and the devices' thread. They stand for hardware with controllers of its own; on the two cores
 #: they share with the service and with whatever else the machine runs, at normal priority they
 #: waited for a core for tens of milliseconds (a robot's watchdog fault, a device's session lost)
-#: and the soak judged the machine's load instead of the service. Below the service's frame
-#: threads and receivers ([service] frames_rt_priority, 50) and its loop (80)
-EQUIPMENT_RT_PRIORITY = 40
+#: and the soak judged the machine's load instead of the service. Above the service's frame
+#: threads and receivers ([service] frames_rt_priority, 50), whose work a flood or a build can
+#: stretch over a whole core (below them, a forged flood starved the arms into a watchdog fault,
+#: judged against the attack), and below its loop (80)
+EQUIPMENT_RT_PRIORITY = 60
 
 
 class StallableSource(DepthSource):
