@@ -141,6 +141,7 @@ def run(args) -> dict:
                         # the next fault goes in once the run is steady again, or after 30 s more
                         rig.steady(30.0)
                 rig.sleep(0.3)
+                rig.steady(5.0)         # (the last look right before it: a hold for load since the wait)
                 ev = Event(fault.name)
                 fault.inject(rig, ev)
                 _recover(rig, fault, ev)
@@ -150,6 +151,7 @@ def run(args) -> dict:
         rig.sleep(0.3)
     finally:
         timing = rig.run.timing()
+        scheduling = rig.scheduling()
         cpu = cpu_usage(c0, cpu_times())
         ages = rig.hub.status()["state_age_ms"]
         region = _region(rig)
@@ -214,6 +216,8 @@ def run(args) -> dict:
                     "loop_miss_ratio": 0.001},
         "per_fault": per,
         "devices": link.get("devices"),
+        # the service's threads that feed or watch the tick, as the OS runs them (SCHED_FIFO or normal)
+        "scheduling": scheduling,
         "recording": str(rig.record_path),
         "backend": rig.svc.backend.name, "device": rig.svc.backend.device_name,
     }

@@ -2,8 +2,12 @@
 Python does not compete with the service's haptic loop for its interpreter lock).
 
 ``devices_main``: the simulated devices, each a ``pointfence.clients.Client`` at 1 kHz over
-loopback, served in turn by one thread. A device pushes its arm into the fixture (master frame: down, device 1
-also 2 cm along +x) and then circles slowly in the horizontal plane while pushing, as an operator
+loopback, served in turn by one thread that sleeps between its periods. They are the soak's
+equipment, kept cheap beside the service they load: they display no force, so they read the
+service's FEEDBACK only to know that their session lives (every ``FEEDBACK_POLL_S``, from a
+receive buffer of a few datagrams: the kernel drops the rest unread, where reading and
+verifying every one took most of the devices' process). A device pushes its arm into the
+fixture (master frame: down, device 1 also 2 cm along +x) and then circles slowly in the horizontal plane while pushing, as an operator
 probing along a surface. The soak drives the devices through a pipe with commands:
 
 * ``("freeze", on)``: every device holds still (operator actions are judged while it does);
@@ -37,6 +41,11 @@ APPROACH_S = 1.5
 #: a device starts a new handshake after this long without feedback (s): a late feedback from a
 #: busy service is not a lost session, and a new handshake would end a live one
 RECONNECT_S = 0.5
+#: how often a device reads the service's FEEDBACK (s): well within the client's 50 ms freshness
+FEEDBACK_POLL_S = 0.01
+#: a device socket's receive buffer (bytes asked; Linux doubles it and keeps a floor): the few
+#: FEEDBACK datagrams that arrive first after a read wait for the next; the kernel drops the rest
+FEEDBACK_RCVBUF = 2048
 
 
 class _Device:
@@ -44,7 +53,7 @@ class _Device:
 
     def __init__(self, arm: int):
         self.arm = arm
-        self.offset = np.array([0.02 * arm, 0.0, 0.0])
+        self.offset_x = 0.02 * arm
         self.silent_until = 0.0
         self.nan_until = 0.0
         self.sent = deque(maxlen=200)
@@ -53,18 +62,19 @@ class _Device:
         self.errors = 0
 
 
-def _position(dev: _Device, t: float, frozen_at) -> np.ndarray:
-    """The scripted master position at time ``t`` (s since start), or where it was frozen."""
+def _position(dev: _Device, t: float, frozen_at) -> tuple:
+    """The scripted master position (x, y, z, m) at time ``t`` (s since start), or where it was
+    frozen."""
     if frozen_at is not None:
         t = frozen_at
     a = min(1.0, t / APPROACH_S)
     a = 0.5 - 0.5 * math.cos(math.pi * a)             # smooth start and stop
-    p = dev.offset * a + np.array([0.0, 0.0, -PUSH * a])
+    x, y, z = dev.offset_x * a, 0.0, -PUSH * a
     if t > APPROACH_S:
         w = 2 * math.pi * CIRCLE_HZ * (t - APPROACH_S)
-        ramp = min(1.0, (t - APPROACH_S) / 1.0)
-        p = p + ramp * CIRCLE_R * np.array([math.sin(w), 1.0 - math.cos(w), 0.0])
-    return p
+        r = min(1.0, (t - APPROACH_S) / 1.0) * CIRCLE_R
+        x, y = x + r * math.sin(w), y + r * (1.0 - math.cos(w))
+    return x, y, z
 
 
 class _Link:
@@ -76,7 +86,11 @@ class _Link:
         self.dev = dev
         self.c = Client(host, port, key, device_id=100 + dev.arm, timeout_ms=50,
                         workspace=((-0.2, -0.2, -0.2), (0.2, 0.2, 0.2)))
-        self.last_rx = self.retry_at = 0.0
+        try:
+            self.c.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, FEEDBACK_RCVBUF)
+        except OSError:
+            pass
+        self.last_rx = self.retry_at = self.next_poll = 0.0
         self.connecting = False
 
     def step(self, now: float, shared: dict) -> None:
@@ -106,15 +120,21 @@ class _Link:
         fz = shared["frozen_at"]
         pos = _position(dev, now - shared["t0"], None if fz is None else fz - shared["t0"])
         if now < dev.nan_until:
-            pos = np.array([math.nan, 0.0, 0.0])
+            pos = (math.nan, 0.0, 0.0)
         c.send_state(pos, clutch=shared["pedal"])
         dev.sent.append(c.last_datagram)
-        if c.poll() is not None:
-            self.last_rx = now
+        if now >= self.next_poll:
+            self.next_poll = now + FEEDBACK_POLL_S
+            if c.poll() is not None:
+                self.last_rx = now
 
 
-def _devices_loop(host, port, key, devs, shared: dict, stop: threading.Event) -> None:
-    """Every device in one thread at 1 kHz (absolute deadlines; far behind: skip ahead)."""
+def _devices_loop(host, port, key, devs, shared: dict, stop: threading.Event, rt_priority: int = 0) -> None:
+    """Every device in one thread at 1 kHz (absolute deadlines; far behind: skip ahead), SCHED_FIFO
+    ``rt_priority`` where the OS allows it (0: normal; ``shared["scheduling"]`` says what applied)."""
+    from pointfence.service.osthread import set_fifo
+
+    shared["scheduling"] = set_fifo(threading.get_native_id(), rt_priority)
     links = [_Link(host, port, key, d) for d in devs]
     period = 1e-3
     try:
@@ -140,12 +160,13 @@ def _devices_loop(host, port, key, devs, shared: dict, stop: threading.Event) ->
             ln.c.close()
 
 
-def devices_main(conn, host: str, port: int, key: bytes, n: int = 2) -> None:
-    """The devices' process (see the module docstring); ``conn``: its end of a Pipe."""
+def devices_main(conn, host: str, port: int, key: bytes, n: int = 2, rt_priority: int = 0) -> None:
+    """The devices' process (see the module docstring); ``conn``: its end of a Pipe;
+    ``rt_priority``: the devices' thread's SCHED_FIFO priority (0: normal)."""
     shared = {"t0": time.monotonic(), "frozen_at": None, "pedal": True}
     devs = [_Device(b) for b in range(n)]
     stop = threading.Event()
-    threads = [threading.Thread(target=_devices_loop, args=(host, port, key, devs, shared, stop), daemon=True,
+    threads = [threading.Thread(target=_devices_loop, args=(host, port, key, devs, shared, stop, rt_priority), daemon=True,
                                 name="soak-devices")]
     for th in threads:
         th.start()
@@ -169,7 +190,7 @@ def devices_main(conn, host: str, port: int, key: bytes, n: int = 2) -> None:
             stop.set()
             for th in threads:
                 th.join(timeout=5.0)
-            conn.send(("stopped", [{"reconnects": d.reconnects, "errors": d.errors,
+            conn.send(("stopped", [{"reconnects": d.reconnects, "errors": d.errors, "scheduling": shared.get("scheduling"),
                                     "sent": int(getattr(getattr(d, "stats", None), "sent", 0))} for d in devs]))
             return
         conn.send(("ok",))

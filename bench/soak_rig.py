@@ -20,6 +20,16 @@ from pointfence.service.sources.base import DepthSource
 
 from .soak_devices import devices_main, flood_main
 
+#: SCHED_FIFO priority of the soak's equipment where the OS allows it: the simulated arms' process
+#: and the devices' thread. They stand for hardware with controllers of its own; on the two cores
+#: they share with the service and with whatever else the machine runs, at normal priority they
+#: waited for a core for tens of milliseconds (a robot's watchdog fault, a device's session lost)
+#: and the soak judged the machine's load instead of the service. Above the service's frame
+#: threads and receivers ([service] frames_rt_priority, 50), whose work a flood or a build can
+#: stretch over a whole core (below them, a forged flood starved the arms into a watchdog fault,
+#: judged against the attack), and below its loop (80)
+EQUIPMENT_RT_PRIORITY = 60
+
 
 class StallableSource(DepthSource):
     """A camera source whose ``read`` blocks while ``stalled`` is set (a stalled camera driver);
@@ -61,7 +71,7 @@ class SoakRig:
         self.hub = UdpHub(self.psk, 2, "127.0.0.1", 0, 50, cfg.service.rate_hz, max_force)
         self.sources = [StallableSource(s) for s in live_sources(cfg, prerender)]
         self.run = LiveRun(cfg, list(self.hub.masters), backend=backend, device=device, sources=self.sources,
-                           record_path=self.record_path)
+                           record_path=self.record_path, robot_rt_priority=EQUIPMENT_RT_PRIORITY)
         self.svc = self.run.service
         self.hub.attach(self.svc)
         self.max_age = cfg.service.max_frame_age_s
@@ -73,7 +83,8 @@ class SoakRig:
         ctx = multiprocessing.get_context("spawn")
         self._ctx = ctx
         self._conn, child = ctx.Pipe()
-        self._devices = ctx.Process(target=devices_main, args=(child, "127.0.0.1", self.hub.address[1], self.psk, 2),
+        self._devices = ctx.Process(target=devices_main, args=(child, "127.0.0.1", self.hub.address[1], self.psk, 2,
+                                                                EQUIPMENT_RT_PRIORITY),
                                     name="soak-devices", daemon=True)
         self._lock = threading.Lock()
 
@@ -168,6 +179,13 @@ class SoakRig:
         except urllib.error.HTTPError as e:
             return e.code
 
+    def scheduling(self) -> dict:
+        """How the OS schedules the threads that feed or watch the tick (each's own report)."""
+        loop = self.run.loop
+        return {"loop": loop.scheduling, "frames": self.run.frames.scheduling,
+                "udp_receiver": self.hub.scheduling,
+                "watchdog": loop.watchdog.scheduling if loop.watchdog is not None else None}
+
     def robot_notes(self) -> str:
         """Why each hosted arm cannot be enabled now, if it cannot (for a failure's message)."""
         host = self.run.robot_host
@@ -177,23 +195,26 @@ class SoakRig:
 
     def pedals(self, down: bool, timeout: float = 10.0) -> float:
         """Every device's pedal ``down`` (True) or up, and wait until the service's tick read it
-        (the command is repeated every second); returns the seconds it took (inf: never)."""
+        (the command is repeated every second); returns the seconds it took (inf: never). Reads
+        the tick's pedals (``Service.pedal``), not ``status()``: a status every 20 ms would take
+        the interpreter lock from the loop for the soak's own bookkeeping."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout:
             self.devices("pedal", down)
             end = time.monotonic() + 1.0
             while time.monotonic() < end:
-                if all(p == down for p in self.svc.status()["pedal"]):
+                if bool((self.svc.pedal == down).all()):
                     return time.monotonic() - t0
                 time.sleep(0.02)
         return float("inf")
 
     def steady(self, timeout: float) -> bool:
-        """Wait until every arm is coupled and nothing holds (True), or ``timeout`` s."""
-        end = time.monotonic() + timeout
+        """Wait until every arm is coupled and nothing holds (True), or ``timeout`` s. Reads the
+        last tick's hold mask, coupling and latched faults (``Service.hold_mask``,
+        ``coupled``, ``latched``: what ``status()`` names), not the whole status."""
+        svc, end = self.svc, time.monotonic() + timeout
         while time.monotonic() < end:
-            st = self.svc.status()
-            if not st["hold"] and all(st["coupled"]) and not st["latched_faults"]:
+            if not svc.hold_mask and bool(svc.coupled.all()) and not svc.latched:
                 return True
-            time.sleep(0.05)         # (status() takes the interpreter lock the loop wants)
+            time.sleep(0.05)
         return False

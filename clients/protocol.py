@@ -399,6 +399,30 @@ class Feedback:
                    v[19], v[20], v[21])
 
 
+class FeedbackWriter:
+    """FEEDBACK datagrams written into one buffer made once (``buf``): the bytes of
+    ``Feedback(...).encode(...)`` without the message object, its tuples and the concatenations
+    (the service's tick sends one per arm and tick). Each ``write`` overwrites the last; send it
+    before the next."""
+
+    def __init__(self):
+        self.buf = bytearray(SIZES[FEEDBACK])
+        self._body = memoryview(self.buf)[:-TAG_LEN]
+
+    def write(self, skey: bytes, device_id: int, session: int, seq: int, tick: int, t_tick_ns: int, t_sent_ns: int,
+              echo_seq: int, echo_t_client_ns: int, fx: float, fy: float, fz: float, px: float, py: float, pz: float,
+              rx: float, ry: float, rz: float, contact: int, fixture: int, robot_mode: int, link: int, hold: int,
+              error: int, slot: int, rejected: int) -> bytearray:
+        """The datagram (``buf``): force (N), proxy and robot (m, world) as ``Feedback``'s fields."""
+        M, buf = 0xFFFFFFFFFFFFFFFF, self.buf
+        HEADER.pack_into(buf, 0, MAGIC, VERSION, FEEDBACK, device_id & 0xFFFFFFFF, session & 0xFFFFFFFF, seq & M, 0)
+        P_FEEDBACK.pack_into(buf, HEADER_LEN, tick & M, t_tick_ns & M, t_sent_ns & M, echo_seq & M, echo_t_client_ns & M,
+                             fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, link, hold & 0xFFFFFFFF,
+                             error, slot, rejected & 0xFFFFFFFF, 0)
+        buf[-TAG_LEN:] = hmac.digest(skey, self._body, "sha256")[:TAG_LEN]
+        return buf
+
+
 @dataclass
 class Bye:
     """Either direction, session-tagged: the session ends now (``reason``: an E_* code, 0 normal)."""

@@ -63,6 +63,7 @@ from pointfence.kernels.errors import InputError
 
 from .age_hist import AgeHistogram
 from .masters import Master
+from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_ratelimit import SourceLimiter, poll_loop
 
@@ -225,9 +226,17 @@ class ItpReceiver:
             log.warning(self.warning)
         self._stop = threading.Event()
         self._thread = None
+        self.scheduling = "normal"        # the receiver thread's (set_rt_priority)
         if receiver:
             self._thread = threading.Thread(target=self._run, name="pointfence-itp-rx", daemon=True)
             self._thread.start()
+
+    def set_rt_priority(self, priority: int) -> str:
+        """SCHED_FIFO ``priority`` for the receiver thread where the OS allows it (0: leave it
+        normal), as ``UdpHub.set_rt_priority``; returns what was applied."""
+        if self._thread is not None and self._thread.is_alive():
+            self.scheduling = set_fifo(self._thread.native_id, priority)
+        return self.scheduling
 
     @property
     def address(self):
@@ -348,7 +357,7 @@ class ItpReceiver:
         src = self.source
         return {"address": list(self.address) if self.sock.fileno() >= 0 else None, "received": self.received,
                 "accepted": self.accepted, "rejected": dict(self.counters),
-                "receiver": "thread" if self._thread is not None else "pump",
+                "receiver": "thread" if self._thread is not None else "pump", "receiver_scheduling": self.scheduling,
                 "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
                 "authenticated": False, "exposed": self.exposed, "warning": self.warning,
                 "stale_ticks": self.stale_ticks, "state_age_ms": self.ages.summary(), "kernel_dropped": self.reader.dropped,

@@ -217,7 +217,7 @@ class HapticLoop:
         if self.watchdog_s > 0 and hasattr(self.target, "on_stall"):
             from .watchdog import TickWatchdog
 
-            self.watchdog = TickWatchdog(self, self.target, self.watchdog_s)
+            self.watchdog = TickWatchdog(self, self.target, self.watchdog_s, rt_priority=self.rt_priority)
             self.watchdog.start()
 
     def _run(self) -> None:

@@ -1,9 +1,11 @@
-"""The operating system's name of the calling thread, so that ``top -H``, ``perf sched`` and
-``ps -L`` tell the service's threads apart (Python 3.13 and older leave every thread named after
-the process). Linux keeps 15 bytes of it."""
+"""The operating system's view of the service's threads: the calling thread's name, so that
+``top -H``, ``perf sched`` and ``ps -L`` tell them apart (Python 3.13 and older leave every thread
+named after the process; Linux keeps 15 bytes of it), and a thread's real-time scheduling
+(``set_fifo``)."""
 from __future__ import annotations
 
 import ctypes
+import os
 import sys
 import threading
 
@@ -27,3 +29,16 @@ def os_thread_name(native_id: int | None = None) -> str | None:
             return f.read().strip()
     except OSError:
         return None
+
+
+def set_fifo(native_id: int, priority: int) -> str:
+    """``SCHED_FIFO`` ``priority`` for thread ``native_id`` of this process where the OS allows it
+    (0: leave it as it is); returns what applies, for a status: ``"SCHED_FIFO <p>"``, ``"normal"``
+    or ``"normal (SCHED_FIFO refused: <why>)"``."""
+    if priority <= 0:
+        return "normal"
+    try:
+        os.sched_setscheduler(int(native_id), os.SCHED_FIFO, os.sched_param(int(priority)))
+    except (AttributeError, OSError) as e:
+        return f"normal (SCHED_FIFO refused: {e})"
+    return f"SCHED_FIFO {int(priority)}"

@@ -21,9 +21,11 @@ class LiveRun:
 
     def __init__(self, cfg, masters, *, architecture: Optional[str] = None, backend: Optional[str] = None,
                  device: Optional[str] = None, record_s: float = 0.0, robots=None, sources=None,
-                 rt_priority: Optional[int] = None, record_path=None, ros2_telemetry: Optional[bool] = None):
+                 rt_priority: Optional[int] = None, record_path=None, ros2_telemetry: Optional[bool] = None,
+                 robot_rt_priority: int = 0):
         """``ros2_telemetry``: publish ROS 2 telemetry (``ros2/telemetry.py``, the ``[ros2]``
-        table's rates and names; None: ``[ros2] telemetry``)."""
+        table's rates and names; None: ``[ros2] telemetry``). ``robot_rt_priority``: SCHED_FIFO
+        priority of the hosted robot process (``robot.hosted.RobotHost``; 0, the default: normal)."""
         self.cfg = cfg
         self.clock = RealClock()
         sc = cfg.service
@@ -33,10 +35,12 @@ class LiveRun:
         if robots is None and sc.robot_process and cfg.robot.model != "none":
             from .robot.hosted import RobotHost
 
-            # normal priority: a SCHED_FIFO child would preempt the service's normal threads, and
-            # one that holds the interpreter lock would keep the loop waiting
+            # normal priority by default: a SCHED_FIFO child would preempt the service's threads
+            # that run at normal priority (a simulated arm stands for hardware with its own
+            # controller; a bench that shares the cores with it may raise it, robot_rt_priority)
             # its watchdog: [service] robot_watchdog_s (checked against its hard limit by config)
-            self.robot_host = RobotHost([cfg.robot.table()] * len(masters), timeout_s=sc.robot_watchdog_s)
+            self.robot_host = RobotHost([cfg.robot.table()] * len(masters), timeout_s=sc.robot_watchdog_s,
+                                        rt_priority=robot_rt_priority)
             robots = self.robot_host.robots
         try:
             self.service = Service(cfg, masters, robots=robots, backend=backend, device=device,
@@ -78,6 +82,16 @@ class LiveRun:
                                rt_priority=cfg.service.rt_priority if rt_priority is None else rt_priority)
         self._mark = (0, 0, 0, 0)
 
+    def _receivers(self) -> list:
+        """The masters' receiver objects with a thread of their own (``udp_server.UdpHub``,
+        ``itp.ItpReceiver``: a master's ``hub`` or ``receiver``), each once."""
+        out = []
+        for m in self.service.masters:
+            rx = getattr(m, "hub", None) or getattr(m, "receiver", None)
+            if callable(getattr(rx, "set_rt_priority", None)) and all(rx is not r for r in out):
+                out.append(rx)
+        return out
+
     def start(self, first_frame_timeout: float = 20.0) -> None:
         sc = self.cfg.service
         if self.service.backend.name == "opencl" and (sc.build_idle or sc.build_nice):
@@ -86,6 +100,8 @@ class LiveRun:
             lower_pool_priority(sc.build_nice, idle=sc.build_idle)
         self.frames.start()
         self.frames.set_rt_priority(sc.frames_rt_priority if sc.rt_priority else 0)
+        for rx in self._receivers():     # the masters' receiver threads feed every tick: as the frames'
+            rx.set_rt_priority(sc.frames_rt_priority if sc.rt_priority else 0)
         if not self.frames.wait_first_snapshot(first_frame_timeout):
             self.stop()
             raise RuntimeError(f"no snapshot within {first_frame_timeout} s: {self.frames.status(self.clock.now())}")

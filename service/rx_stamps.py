@@ -22,6 +22,8 @@ import time
 
 from pointfence.clients.client import realtime_minus_perf_ns
 
+from .held_io import Receiver
+
 #: the receive buffer asked for (Linux doubles it for its bookkeeping): 64 KiB hold about 150
 #: STATE datagrams on loopback (about 830 bytes of kernel memory each): 75 ms of two 1 kHz
 #: devices, or 8 ms of a 20,000 datagram/s flood
@@ -58,6 +60,11 @@ class StampedReader:
                 pass
         #: datagrams the kernel dropped for want of receive buffer (since the socket opened)
         self.dropped = 0
+        #: reads that keep the interpreter lock (``held_io``): a starved receiver is not made to
+        #: wait for the haptic tick between two queued datagrams; None: the socket's own reads
+        self._held = Receiver(sock, _ANC) if self.stamps else None
+        if self._held is not None and not self._held.held:
+            self._held = None
         self._off = 0
         self.begin()
 
@@ -82,7 +89,13 @@ class StampedReader:
                 if not self.stamps:
                     n, addr = sock.recvfrom_into(buf)
                     return n, addr, time.perf_counter_ns()
-                n, anc, _, addr = sock.recvmsg_into((buf,), _ANC)
+                if self._held is not None:
+                    got = self._held.read(buf)
+                    if got is None:
+                        return None
+                    n, addr, anc = got
+                else:
+                    n, anc, _, addr = sock.recvmsg_into((buf,), _ANC)
             except (BlockingIOError, InterruptedError):
                 return None
             except OSError:

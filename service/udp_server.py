@@ -34,6 +34,7 @@ that arm's robot and ramps its force to zero (``service.app``, hold reason "mast
 """
 from __future__ import annotations
 
+import math
 import os
 import socket
 import threading
@@ -46,7 +47,9 @@ from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
 from .age_hist import AgeHistogram
+from .held_io import Sender
 from .masters import Master
+from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
 from .udp_ratelimit import SourceLimiter, poll_loop
@@ -183,6 +186,8 @@ class UdpHub:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, int(port)))
         self.reader = StampedReader(self.sock, rcvbuf_bytes)
+        self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
+        self._fb = P.FeedbackWriter()     # the tick's FEEDBACK, written in place
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
@@ -218,6 +223,7 @@ class UdpHub:
         self.send_errors = 0
         self._stop = threading.Event()
         self._thread = None
+        self.scheduling = "normal"        # the receiver thread's (set_rt_priority)
         if receiver:
             self._thread = threading.Thread(target=self._run, name="pointfence-udp-rx", daemon=True)
             self._thread.start()
@@ -225,6 +231,17 @@ class UdpHub:
     @property
     def address(self):
         return self.sock.getsockname()
+
+    def set_rt_priority(self, priority: int) -> str:
+        """SCHED_FIFO ``priority`` for the receiver thread where the OS allows it (0: leave it
+        normal; ``runner.LiveRun`` gives it the frame threads'). Every tick reads its samples, and
+        it holds the interpreter lock while it works: at normal priority on a loaded machine it
+        waited for a core most of the time, fell behind the devices (samples tens of
+        milliseconds old, sessions timed out: arms held, S9) and, preempted with the lock, kept
+        the loop waiting. It blocks whenever its socket is empty. Returns what was applied."""
+        if self._thread is not None and self._thread.is_alive():
+            self.scheduling = set_fifo(self._thread.native_id, priority)
+        return self.scheduling
 
     def attach(self, service) -> None:
         """The service whose proxies, robots and status go into FEEDBACK messages."""
@@ -521,14 +538,15 @@ class UdpHub:
         return s.tx_seq
 
     def _send(self, addr, data: bytes) -> None:
-        try:
-            self.sock.sendto(data, addr)
-        except OSError:
+        if not self.sender.send(addr, data):
             self.send_errors += 1
 
     def send_feedback(self, m: UdpMaster, s: Session, f) -> None:
+        """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame; saturated at the
+        session's force limit, zero if not finite), with the proxy, robot, hold and fixture state of
+        its arm; written into one buffer (``P.FeedbackWriter``), sent keeping the interpreter lock."""
         fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
-        if not (np.isfinite(fx) and np.isfinite(fy) and np.isfinite(fz)):
+        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
             fx = fy = fz = 0.0
         n2 = fx * fx + fy * fy + fz * fz
         if n2 > s.max_force * s.max_force:
@@ -536,23 +554,25 @@ class UdpHub:
             fx, fy, fz = fx * k, fy * k, fz * k
         b = m.slot
         t = self.t or 0.0
-        fb = P.Feedback(tick=int(round(t * self.rate_hz)), t_tick_ns=(self._base_ns or 0) + int(round(t * 1e9)),
-                        echo_seq=s.seq, echo_t_client_ns=s.t_client_ns, force=(fx, fy, fz), slot=b,
-                        error=s.error, rejected=s.rejected)
+        px = py = pz = rx = ry = rz = 0.0
+        contact, robot_mode, hold, fixture = P.CONTACT_FREE, P.ROBOT_IDEAL, 0, 0
         svc = self.service
         if svc is not None:
             batch = svc.batch
             if batch is not None:
-                fb.proxy = tuple(float(v) for v in batch.positions[b])
-                fb.contact = int(batch.states[b])
-            fb.robot = tuple(float(v) for v in svc.xr[b])
+                px, py, pz = batch.positions[b].tolist()
+                contact = int(batch.states[b])
+            rx, ry, rz = svc.xr[b].tolist()
             r = svc.robots[b]
-            fb.robot_mode = P.ROBOT_IDEAL if r is None else (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)[int(r.state)]
-            fb.hold = int(svc.arm_hold[b])
-            fb.fixture = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
-                          | (P.FX_COUPLED if svc.coupled[b] else 0) | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
-        fb.t_sent_ns = time.perf_counter_ns()
-        self._send(s.addr, fb.encode(s.key, s.device_id, s.id, self._next_tx(s)))
+            robot_mode = P.ROBOT_IDEAL if r is None else (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)[int(r.state)]
+            hold = int(svc.arm_hold[b])
+            fixture = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
+                       | (P.FX_COUPLED if svc.coupled[b] else 0) | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
+        data = self._fb.write(s.key, s.device_id, s.id, self._next_tx(s), int(round(t * self.rate_hz)),
+                              (self._base_ns or 0) + int(round(t * 1e9)), time.perf_counter_ns(), s.seq, s.t_client_ns,
+                              fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, 0, hold, s.error, b,
+                              s.rejected)
+        self._send(s.addr, data)
         self.feedback_sent += 1
 
     # --- status -------------------------------------------------------------------------------------
@@ -569,6 +589,7 @@ class UdpHub:
             "sessions_timed_out": self.sessions_dropped, "sessions_closed": self.sessions_closed,
             "sessions_displaced": self.sessions_displaced, "feedback_sent": self.feedback_sent,
             "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
+            "receiver_scheduling": self.scheduling,
             "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
             "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
             "superseded": self.superseded, "stale_ticks": self.stale_ticks, "kernel_dropped": self.reader.dropped,

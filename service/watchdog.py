@@ -10,14 +10,16 @@ service zeroes the masters' forces at once and latches a fault that holds every 
 tick returns). A stall is therefore seen at most ``limit_s + poll_s`` after the tick started.
 The watchdog needs Python's interpreter lock to run: a stall inside a call that keeps the
 lock (no I/O, no wait) is seen when that call returns; device waits, sockets and sleeps give it
-up.
+up. With ``rt_priority`` (the loop's, where the loop runs SCHED_FIFO) it runs SCHED_FIFO too: at
+normal priority on a loaded machine it waited for a core for tens of milliseconds, and, preempted
+while it held the interpreter lock, kept the loop waiting for as long.
 """
 from __future__ import annotations
 
 import threading
 from typing import Optional
 
-from .osthread import name_this_thread
+from .osthread import name_this_thread, set_fifo
 
 
 class TickWatchdog:
@@ -29,9 +31,11 @@ class TickWatchdog:
         limit_s: a tick running longer than this is a stall (s).
         poll_s: how often the watchdog looks (s; default ``limit_s``: every wake-up takes the
             interpreter lock the loop wants, so the watchdog looks no more often than it must).
+        rt_priority: SCHED_FIFO priority of the watchdog's thread where the OS allows it (0:
+            normal); ``scheduling`` says what applied once the thread runs.
     """
 
-    def __init__(self, loop, target, limit_s: float, poll_s: Optional[float] = None):
+    def __init__(self, loop, target, limit_s: float, poll_s: Optional[float] = None, rt_priority: int = 0):
         poll_s = limit_s if poll_s is None else poll_s
         if not (limit_s > 0 and poll_s > 0):
             raise ValueError(f"watchdog limit_s = {limit_s!r}, poll_s = {poll_s!r}; expected both > 0 s")
@@ -39,6 +43,8 @@ class TickWatchdog:
         self.target = target
         self.limit_s = float(limit_s)
         self.poll_s = float(poll_s)
+        self.rt_priority = int(rt_priority)
+        self.scheduling = "normal"
         self.trips = 0
         self.last_stall_s = 0.0      # how long the last stalled tick had run when it was seen
         self._seen: Optional[float] = None
@@ -73,5 +79,6 @@ class TickWatchdog:
 
     def _run(self) -> None:
         name_this_thread("pf-watchdog")
+        self.scheduling = set_fifo(threading.get_native_id(), self.rt_priority)
         while not self._stop.wait(self.poll_s):
             self.check()

@@ -168,3 +168,64 @@ def test_a_clear_the_link_never_let_happen_is_availability():
     ev = Event("kernel_exception", 100, 300, None, None)
     fails = judge(FAULTS["kernel_exception"], ev, recording(holds=holds), 0.5, 0.05)["failures"]
     assert any(inv == "S3" and "never cleared" in what for inv, what in fails)
+
+
+def test_the_hold_bound_counts_the_ticks_the_loop_ran_not_the_periods_it_missed():
+    """A robot stall (detectable 110 ms after the injection: the robot watchdog's 100 ms and its
+    10 ms) held at the first tick the loop ran after a 19 ms gap of the machine is held in time;
+    held a tick later than that, it is not. Before, the gap's periods counted: 'held 123 ms after
+    the fault was detectable (bound 111 ms)'."""
+    from pointfence.service.holds import ROBOT
+
+    def stall(hold_row, gap=True):
+        keep = np.r_[0:204, 223:N] if gap else np.arange(N)    # periods 204..222 not run (a 19 ms gap)
+        holds = np.zeros((N, 3))
+        holds[:, 1:][np.arange(N) >= hold_row] = ROBOT
+        data = {"inputs": np.zeros((N, 8)), "masters": np.ones((N, 2, 5)), "robots": np.zeros((N, 2, 6)),
+                "rows": np.zeros((N, 22)), "holds": holds}
+        data["inputs"][:, 0] = np.arange(N)
+        data["inputs"][:, 4:7] = (3, 1, 1)
+        data["rows"][:, 0] = np.arange(N) * 1e-3
+        data["rows"][:hold_row, 18] = 2.0
+        data = {k: v[keep] for k, v in data.items()}
+        rec = Recording(data, 1000.0)
+        ev = Event("robot_process_stall", inject=100, restore=400, clear=450, recovered=460)
+        return judge(FAULTS["robot_process_stall"], ev, rec, 0.5, 0.05, robot_watchdog_s=0.1)
+
+    for k in (223, 224):          # the first tick run after the gap (past the 110 ms), or the next
+        on_time = stall(k)
+        assert not [w for _, w in on_time["failures"] if "held" in w], on_time["failures"]
+    assert on_time["detection_ms"] == 124.0
+    late = stall(225)             # one more tick run later
+    assert any(inv == "S3" and "held 125 ms" in w and "1 ticks run after" in w for inv, w in late["failures"])
+    assert not [w for _, w in stall(211, gap=False)["failures"] if "held" in w]   # no gap: as before,
+    assert any("held 112 ms" in w for _, w in stall(212, gap=False)["failures"])  # periods are ticks
+
+
+def test_a_fault_injected_while_its_arms_already_held_for_it_is_availability_not_handled():
+    """Snapshots already too old when the ingest thread is killed (a loaded machine): the hold
+    that follows cannot be told from the one before, so the event is the run's availability (a
+    failure, not handled), never a broken latch. Before: 'came back before the fault was cleared
+    (not latched)' when the earlier hold ended."""
+    holds = np.zeros((N, 3))
+    holds[90:180, 1:] = INGEST          # held for old snapshots from before the injection (100)
+    holds[200:420, 1:] = INGEST         # the death's latched hold
+    age = np.zeros((N, 8))
+    age[:, 0] = np.arange(N)
+    age[:, 4:7] = (3, 1, 1)
+    age[90:180, 3] = 0.6
+    age[200:420, 3] = 0.6
+    rec = recording(holds=holds, inputs=age)
+    ev = Event("ingest_thread_death", inject=100, restore=300, clear=400, recovered=430)
+    v = judge(FAULTS["ingest_thread_death"], ev, rec, 0.5, 0.05)
+    assert [inv for inv, _ in v["failures"]] == [AVAILABILITY]
+    assert "already held" in v["failures"][0][1]
+    clean = holds.copy()
+    clean[90:180] = 0                   # the same death on a steady run: judged, and handled
+    age[90:180, 3] = 0.0
+    rows = np.zeros((N, 22))
+    rows[:, 0] = np.arange(N) * 1e-3
+    rows[:200, 18] = 2.0                # the force is zero from the hold on
+    v = judge(FAULTS["ingest_thread_death"], Event("ingest_thread_death", 100, 300, 400, 430),
+              recording(holds=clean, inputs=age, rows=rows), 0.5, 0.05)
+    assert v["failures"] == [], v["failures"]
