@@ -235,12 +235,14 @@ class MotionEstimator:
         self._prev = None  # (time, summed-area table)
         nc = self.dims[0] * self.dims[1] * self.dims[2]
         self.state = np.zeros(nc, np.uint8)      # per motion cell: CELL_NONE / _PROPAGATED / _MEASURED
+        self.cell_motion = None                  # the last estimate's cell motions (``update``), or None
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
         o = np.array([(x, y, z) for z in (-1, 0, 1) for y in (-1, 0, 1) for x in (-1, 0, 1) if (x, y, z) != (0, 0, 0)])
         self._offsets = o
 
     def reset(self) -> None:
         self._prev = None
+        self.cell_motion = None
         self.state[:] = CELL_NONE
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
 
@@ -269,6 +271,7 @@ class MotionEstimator:
         sat = _sat(coarse, self.dims)
         prev, self._prev = self._prev, (float(t), sat)
         self.state[:] = CELL_NONE
+        self.cell_motion = None
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
         if prev is None:
             return None, 0.0
@@ -327,6 +330,7 @@ class MotionEstimator:
         out = np.zeros((moments.shape[0], CELL_MOTION), np.float32)
         out[fine] = pack_motion(vf, Wf)
         vmax = float(np.max(_box_speed(vf, Wf, self._corners[fine], self._corners[fine], self.grid.h), initial=0.0))
+        self.cell_motion = out
         return out, vmax
 
     def _propagate(self, occ, c, vc, W, ref, state) -> None:
