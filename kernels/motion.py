@@ -314,7 +314,11 @@ class MotionEstimator:
             state = np.where(measured, CELL_MEASURED, CELL_NONE).astype(np.uint8)
             if m.min_neighbours > 0:
                 self._propagate(occ, c, vc, W, ref, state)
-            slow = _box_speed(vc, W, ref, np.asarray(self.grid.origin) + c * span, span) < m.v_min
+            # a propagated field extrapolated over its cell obeys v_max as a measured one does
+            box = _box_speed(vc, W, ref, np.asarray(self.grid.origin) + c * span, span)
+            far = (state == CELL_PROPAGATED) & (box > m.v_max)
+            state[far] = CELL_NONE
+            slow = far | (box < m.v_min)
             vc[slow] = 0.0
             W[slow] = 0.0
             self.state[occ] = state
