@@ -414,7 +414,11 @@ def _affine_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float):
     both: each point of the new plane moves along n1 by its distance to the previous plane per
     gap (the module docstring), W = n1 (n0 - (n0 . n1) n1)^T / gap."""
     c1, nrm1, planar1 = _planes(b1, planarity)
-    c0, nrm0, planar0 = _planes(b0, planarity)
+    c0 = b0[:, 1:4] / b0[:, :1]
+    nrm0 = np.zeros_like(nrm1)
+    planar0 = np.zeros_like(planar1)
+    if planar1.any():                                 # the previous plane matters only where the new one is planar
+        _, nrm0[planar1], planar0[planar1] = _planes(b0[planar1], planarity)
     v = (c1 - c0) / gap
     W = np.zeros((len(b1), 3, 3))
     flat = planar1 & ~planar0
@@ -432,11 +436,15 @@ def _affine_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float):
 def _box_speed(v: np.ndarray, W: np.ndarray, ref: np.ndarray, lo: np.ndarray, size: float) -> np.ndarray:
     """Largest speed (M,) m/s of the affine fields v + W (p - ref) over the boxes [lo, lo +
     size]^3 (an affine field's largest norm over a box is at one of its 8 corners)."""
+    base = v + (W @ (lo - ref)[:, :, None])[:, :, 0]
+    col = W * size                                    # (M, 3, 3): the field's change along x, y, z
     out = np.zeros(len(v))
-    for corner in np.ndindex(2, 2, 2):
-        d = lo + np.asarray(corner) * size - ref
-        out = np.maximum(out, np.linalg.norm(v + np.einsum("mij,mj->mi", W, d), axis=1))
-    return out
+    for bx in (0, 1):
+        for by in (0, 1):
+            for bz in (0, 1):
+                u = base + bx * col[:, :, 0] + by * col[:, :, 1] + bz * col[:, :, 2]
+                out = np.maximum(out, np.einsum("mi,mi->m", u, u))
+    return np.sqrt(out)
 
 
 #: floats per hash cell of a cell motion: velocity at the cell's lower corner (x, y, z, 0) and the
