@@ -19,7 +19,9 @@ points:
   points are planar only the displacement along its normal is kept: sliding along a surface
   is not observable from its points, and the centroid's sideways jitter as pixel rays enter
   and leave a block would tear the predicted surface apart at cell borders;
-* where the block is planar in both snapshots its motion is affine, not one velocity: a point
+* where the block is planar in both snapshots, as thick (the noise across the plane) in both
+  within a factor ``THICKNESS_RATIO`` (a flat patch that folds or steps fits a thicker tilted
+  plane, not a turned one), its motion is affine, not one velocity: a point
   p of the new plane (normal n1, centroid c1) moves along n1 by its distance to the previous
   plane (normal n0, centroid c0) per ``gap``: v(p) = n1 (n0 . (p - c0)) / gap = v_c + W (p - c1),
   v_c = n1 (n0 . (c1 - c0)) / gap, W = n1 (n0 - (n0 . n1) n1)^T / gap (the in-plane gradient of
@@ -392,15 +394,23 @@ def _to_world(local: np.ndarray, corners: np.ndarray) -> np.ndarray:
 
 
 def _planes(b: np.ndarray, planarity: float):
-    """(centroids (M, 3), unit normals (M, 3), planar (M,)) of block moments (M, N_MOMENTS):
-    planar where the smallest covariance eigenvalue is below ``planarity`` times the middle one."""
+    """(centroids (M, 3), unit normals (M, 3), planar (M,), thickness (M,): the smallest
+    covariance eigenvalue, m^2) of block moments (M, N_MOMENTS): planar where the smallest
+    eigenvalue is below ``planarity`` times the middle one."""
     n = b[:, 0]
     cen = b[:, 1:4] / n[:, None]
     S = np.empty((len(b), 3, 3))
     for j, (a, k) in enumerate(_PAIRS):
         S[:, a, k] = S[:, k, a] = b[:, 4 + j] / n - cen[:, a] * cen[:, k]
     w, U = np.linalg.eigh(S)
-    return cen, U[:, :, 0], w[:, 0] < planarity * w[:, 1]
+    return cen, U[:, :, 0], w[:, 0] < planarity * w[:, 1], w[:, 0]
+
+
+#: a planar block turns rigidly only if its thickness (smallest covariance eigenvalue: the depth
+#: noise across the plane) stays within this factor, plus THICKNESS_FLOOR (m^2, (1 mm)^2):
+#: a flat patch that becomes a step or a fold fits a tilted plane that is thicker, not turned
+THICKNESS_RATIO = 2.0
+THICKNESS_FLOOR = 1e-6
 
 
 def _affine_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float):
@@ -412,13 +422,16 @@ def _affine_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float):
     points, the aperture problem, and the centroid's sideways jitter as pixel rays enter and
     leave the block would tear the predicted surface apart between cells), W = 0. Planar in
     both: each point of the new plane moves along n1 by its distance to the previous plane per
-    gap (the module docstring), W = n1 (n0 - (n0 . n1) n1)^T / gap."""
-    c1, nrm1, planar1 = _planes(b1, planarity)
+    gap (the module docstring), W = n1 (n0 - (n0 . n1) n1)^T / gap, where also its thickness
+    stayed (``THICKNESS_RATIO``; else a step or fold appeared in it: normal velocity only)."""
+    c1, nrm1, planar1, th1 = _planes(b1, planarity)
     c0 = b0[:, 1:4] / b0[:, :1]
     nrm0 = np.zeros_like(nrm1)
     planar0 = np.zeros_like(planar1)
+    th0 = np.zeros_like(th1)
     if planar1.any():                                 # the previous plane matters only where the new one is planar
-        _, nrm0[planar1], planar0[planar1] = _planes(b0[planar1], planarity)
+        _, nrm0[planar1], planar0[planar1], th0[planar1] = _planes(b0[planar1], planarity)
+    planar0 &= (th1 <= THICKNESS_RATIO * th0 + THICKNESS_FLOOR) & (th0 <= THICKNESS_RATIO * th1 + THICKNESS_FLOOR)
     v = (c1 - c0) / gap
     W = np.zeros((len(b1), 3, 3))
     flat = planar1 & ~planar0
