@@ -19,17 +19,32 @@ points:
   points are planar only the displacement along its normal is kept: sliding along a surface
   is not observable from its points, and the centroid's sideways jitter as pixel rays enter
   and leave a block would tear the predicted surface apart at cell borders;
+* where the block is planar in both snapshots, as thick (the noise across the plane) in both
+  within a factor ``THICKNESS_RATIO`` (a flat patch that folds or steps fits a thicker tilted
+  plane, not a turned one), its motion is affine, not one velocity: a point
+  p of the new plane (normal n1, centroid c1) moves along n1 by its distance to the previous
+  plane (normal n0, centroid c0) per ``gap``: v(p) = n1 (n0 . (p - c0)) / gap = v_c + W (p - c1),
+  v_c = n1 (n0 . (c1 - c0)) / gap, W = n1 (n0 - (n0 . n1) n1)^T / gap (the in-plane gradient of
+  the normal velocity: a turning surface, e.g. a platform rocking about a hinge, advances
+  faster far from the hinge; W's norm is the surface's turning rate, rad/s). A translating
+  plane (n0 = n1) gives W = 0, the velocity above. Each hash cell carries the field as its
+  velocity at its lower corner and W (``CELL_MOTION`` floats), each point gets
+  v + W (p - corner) (``expand``, the device kernels ``expand_velocity``);
 * the estimate is dropped (velocity 0, "unknown") where either block holds fewer than
   ``min_points`` points, where the two counts differ by more than ``count_ratio`` (the block
-  gained or lost surface: an edge, an occlusion, a hole), where it exceeds ``v_max`` (no
-  physical motion the block can capture), and where the snapshots are further apart than
-  ``max_gap``; speeds below ``v_min`` (depth noise) are set to 0;
-* an occupied cell left unknown takes the mean velocity of its measured neighbours (the 26
-  cells around it) where at least ``min_neighbours`` of them were measured and they agree
-  (every one within ``coherence`` times their mean speed, + ``v_min``, of the mean): a cell
-  that lost its estimate to a hole or to the surface crossing cells, inside a patch moving as
-  one (real frames: fast, rocking motion empties most blocks' counts agreement). Elsewhere it
-  stays at 0: a cell that cannot predict behaves as a fixture that does not try.
+  gained or lost surface: an edge, an occlusion, a hole), where it exceeds ``v_max`` anywhere
+  in the motion cell (no physical motion the block can capture), where the block turns faster
+  than ``w_max`` (a block whose contents changed, not a turning surface), and where the
+  snapshots are further apart than ``max_gap``; cells slower than ``v_min`` everywhere (depth
+  noise) are set to 0;
+* an occupied cell left unknown takes the mean motion of its measured neighbours (the 26
+  cells around it), each neighbour's field evaluated at the cell's own centroid, where at
+  least ``min_neighbours`` of them were measured and they agree (every one within
+  ``coherence`` times their mean speed, + ``v_min``, of the mean): a cell that lost its
+  estimate to a hole or to the surface crossing cells, inside a patch moving as one rigid
+  body (translating or turning: each neighbour's affine field extrapolates to the same
+  velocity). Elsewhere it stays at 0: a cell that cannot predict behaves as a fixture that
+  does not try.
 
 Each motion cell carries a state (``CELL_NONE``, ``CELL_PROPAGATED``, ``CELL_MEASURED``);
 ``summary()`` counts them and gives the measured speeds (for the service's status, computed
@@ -78,6 +93,8 @@ class MotionModel:
         cell takes (0: never propagate).
     coherence: the measured neighbours agree when each is within this fraction of their mean
         speed (+ v_min) of their mean velocity.
+    w_max: blocks whose planar fit turns faster than this (rad/s) between the snapshots are
+        discarded (0).
     """
 
     enabled: bool = False
@@ -93,10 +110,11 @@ class MotionModel:
     max_gap: float = 0.2
     min_neighbours: int = 3
     coherence: float = 0.25
+    w_max: float = 20.0
 
     def __post_init__(self):
         for key in ("latency", "max_age", "capture", "cell", "planarity", "count_ratio", "v_min", "v_max", "max_gap",
-                    "coherence"):
+                    "coherence", "w_max"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise InputError(f"motion {key} = {v!r}; expected a finite number >= 0")
@@ -219,12 +237,14 @@ class MotionEstimator:
         self._prev = None  # (time, summed-area table)
         nc = self.dims[0] * self.dims[1] * self.dims[2]
         self.state = np.zeros(nc, np.uint8)      # per motion cell: CELL_NONE / _PROPAGATED / _MEASURED
+        self.cell_motion = None                  # the last estimate's cell motions (``update``), or None
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
         o = np.array([(x, y, z) for z in (-1, 0, 1) for y in (-1, 0, 1) for x in (-1, 0, 1) if (x, y, z) != (0, 0, 0)])
         self._offsets = o
 
     def reset(self) -> None:
         self._prev = None
+        self.cell_motion = None
         self.state[:] = CELL_NONE
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
 
@@ -239,9 +259,11 @@ class MotionEstimator:
         return dict(self._summary)
 
     def update(self, moments: np.ndarray, t: float):
-        """Velocities (n_cells, 3) float32 for the snapshot with ``moments`` (per hash cell,
-        about the cell corners) taken at ``t`` and their largest speed (m/s); (None, 0.0) when
-        there is no estimate (first snapshot, gap)."""
+        """Cell motions (n_cells, ``CELL_MOTION``) float32 for the snapshot with ``moments``
+        (per hash cell, about the cell corners) taken at ``t`` (``pack_motion``: each cell's
+        velocity at its lower corner, m/s, and its velocity gradient W, 1/s) and the largest
+        speed (m/s) any point of an occupied cell can get; (None, 0.0) when there is no
+        estimate (first snapshot, gap)."""
         m = self.model
         fine = np.flatnonzero(moments[:, 0] > 0)
         wm = _to_world(np.asarray(moments[fine], np.float64), self._corners[fine])
@@ -251,6 +273,7 @@ class MotionEstimator:
         sat = _sat(coarse, self.dims)
         prev, self._prev = self._prev, (float(t), sat)
         self.state[:] = CELL_NONE
+        self.cell_motion = None
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
         if prev is None:
             return None, 0.0
@@ -259,7 +282,8 @@ class MotionEstimator:
             return None, 0.0
         occ = np.unique(self._coarse[fine])
         vc = np.zeros((occ.size, 3))
-        measured = np.zeros(occ.size, bool)
+        W = np.zeros((occ.size, 3, 3))
+        ref = coarse[occ, 1:4] / np.maximum(coarse[occ, :1], 1)   # each motion cell's centroid
         if occ.size:
             nx, ny, _ = self.dims
             c = np.stack([occ % nx, (occ // nx) % ny, occ // (nx * ny)], axis=1)
@@ -278,28 +302,47 @@ class MotionEstimator:
                 ok = enough & (n1 <= m.count_ratio * n0) & (n0 <= m.count_ratio * n1)
                 few[sel] = ~enough
                 good = sel[ok]
-                vc[good] = _normal_flow(b1[ok], b0[ok], gap, m.planarity)
+                v_at, W[good] = _affine_flow(b1[ok], b0[ok], gap, m.planarity)
+                # the field about the motion cell's own centroid (the block's is c1)
+                c1 = b1[ok, 1:4] / b1[ok, :1]
+                vc[good] = v_at + np.einsum("mij,mj->mi", W[good], ref[good] - c1)
                 todo[good] = False
-            speed = np.linalg.norm(vc, axis=1)
-            measured = ~todo & (speed <= m.v_max)
+            span = self.k * self.grid.h
+            speed = _box_speed(vc, W, ref, np.asarray(self.grid.origin) + c * span, span)
+            turn = np.linalg.norm(W, axis=(1, 2))
+            measured = ~todo & (speed <= m.v_max) & (turn <= m.w_max)
             vc[~measured] = 0.0
+            W[~measured] = 0.0
             state = np.where(measured, CELL_MEASURED, CELL_NONE).astype(np.uint8)
             if m.min_neighbours > 0:
-                self._propagate(occ, c, vc, state)
-            vc[np.linalg.norm(vc, axis=1) < m.v_min] = 0.0
+                self._propagate(occ, c, vc, W, ref, state)
+            # a propagated field extrapolated over its cell obeys v_max as a measured one does
+            box = _box_speed(vc, W, ref, np.asarray(self.grid.origin) + c * span, span)
+            far = (state == CELL_PROPAGATED) & (box > m.v_max)
+            state[far] = CELL_NONE
+            slow = far | (box < m.v_min)
+            vc[slow] = 0.0
+            W[slow] = 0.0
             self.state[occ] = state
             self._summary = _summary(state, np.linalg.norm(vc[state == CELL_MEASURED], axis=1))
             self._summary.update(rejected_few_points=int(np.count_nonzero(todo & few)),
                                  rejected_counts=int(np.count_nonzero(todo & ~few)),
-                                 rejected_v_max=int(np.count_nonzero(~todo & (speed > m.v_max))))
-        v = np.zeros((moments.shape[0], 3), np.float32)
-        v[fine] = vc[np.searchsorted(occ, self._coarse[fine])]
-        vmax = float(np.max(np.linalg.norm(vc, axis=1), initial=0.0))
-        return v, vmax
+                                 rejected_v_max=int(np.count_nonzero(~todo & (speed > m.v_max))),
+                                 rejected_w_max=int(np.count_nonzero(~todo & (speed <= m.v_max) & (turn > m.w_max))),
+                                 turn_max_radps=round(float(np.max(turn[state == CELL_MEASURED], initial=0.0)), 3))
+        i = np.searchsorted(occ, self._coarse[fine])
+        Wf = W[i]
+        vf = vc[i] + np.einsum("mij,mj->mi", Wf, self._corners[fine] - ref[i])
+        out = np.zeros((moments.shape[0], CELL_MOTION), np.float32)
+        out[fine] = pack_motion(vf, Wf)
+        vmax = float(np.max(_box_speed(vf, Wf, self._corners[fine], self._corners[fine], self.grid.h), initial=0.0))
+        self.cell_motion = out
+        return out, vmax
 
-    def _propagate(self, occ: np.ndarray, c: np.ndarray, vc: np.ndarray, state: np.ndarray) -> None:
-        """Unknown occupied cells take their measured neighbours' mean velocity where enough of
-        them agree (see the module docstring); in place on ``vc`` and ``state``."""
+    def _propagate(self, occ, c, vc, W, ref, state) -> None:
+        """Unknown occupied cells take their measured neighbours' mean motion where enough of
+        them agree at the cell's centroid (see the module docstring); in place on ``vc``,
+        ``W`` and ``state``."""
         m = self.model
         unknown = np.flatnonzero(state == CELL_NONE)
         if not unknown.size or not np.any(state == CELL_MEASURED):
@@ -313,12 +356,15 @@ class MotionEstimator:
         hit = inside & (occ[pos] == lin) & (state[pos] == CELL_MEASURED)
         w = hit.astype(np.float64)
         cnt = w.sum(1)
-        nv = vc[pos] * w[..., None]                                          # (U, 26, 3)
-        mean = nv.sum(1) / np.maximum(cnt, 1)[:, None]
-        dev = np.linalg.norm(vc[pos] - mean[:, None], axis=2)
+        # every neighbour's field at the unknown cell's centroid
+        at = vc[pos] + np.einsum("uaij,uaj->uai", W[pos], ref[unknown, None, :] - ref[pos])   # (U, 26, 3)
+        mean = (at * w[..., None]).sum(1) / np.maximum(cnt, 1)[:, None]
+        dev = np.linalg.norm(at - mean[:, None], axis=2)
         spread = np.max(np.where(hit, dev, 0.0), axis=1)
         ok = (cnt >= m.min_neighbours) & (spread <= m.coherence * np.linalg.norm(mean, axis=1) + m.v_min)
+        wmean = (W[pos] * w[..., None, None]).sum(1) / np.maximum(cnt, 1)[:, None, None]
         vc[unknown[ok]] = mean[ok]
+        W[unknown[ok]] = wmean[ok]
         state[unknown[ok]] = CELL_PROPAGATED
 
 
@@ -326,13 +372,15 @@ def _summary(state: np.ndarray, measured_speed: np.ndarray) -> dict:
     """Counts of the occupied motion cells per state and the measured speeds (m/s); ``update``
     adds why the unmeasured ones were not (rejected_few_points: fewer than min_points in the
     largest block; rejected_counts: its counts disagree by more than count_ratio: an edge, a
-    hole, the surface crossing cells; rejected_v_max)."""
+    hole, the surface crossing cells; rejected_v_max; rejected_w_max: its plane turned faster
+    than w_max) and the measured cells' fastest turning rate (turn_max_radps, rad/s)."""
     return {"cells_measured": int(np.count_nonzero(state == CELL_MEASURED)),
             "cells_propagated": int(np.count_nonzero(state == CELL_PROPAGATED)),
             "cells_unknown": int(np.count_nonzero(state == CELL_NONE)),
             "speed_max_mps": round(float(np.max(measured_speed, initial=0.0)), 4),
             "speed_median_mps": round(float(np.median(measured_speed)), 4) if measured_speed.size else 0.0,
-            "rejected_few_points": 0, "rejected_counts": 0, "rejected_v_max": 0}
+            "rejected_few_points": 0, "rejected_counts": 0, "rejected_v_max": 0, "rejected_w_max": 0,
+            "turn_max_radps": 0.0}
 
 
 def _to_world(local: np.ndarray, corners: np.ndarray) -> np.ndarray:
@@ -345,34 +393,106 @@ def _to_world(local: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return m
 
 
-def _normal_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float) -> np.ndarray:
-    """Velocities (M, 3) from block moments (M, N_MOMENTS) of the new and previous snapshot.
-
-    The centroid displacement over ``gap``; where the new block's points are planar (smallest
-    covariance eigenvalue below ``planarity`` times the middle one), only its component along
-    the plane's normal: motion along a surface is not observable from its points (the aperture
-    problem), and the centroid's sideways jitter (pixel rays entering and leaving the block)
-    would tear the predicted surface apart between cells."""
-    n1, n0 = b1[:, 0], b0[:, 0]
-    c1 = b1[:, 1:4] / n1[:, None]
-    v = (c1 - b0[:, 1:4] / n0[:, None]) / gap
-    S = np.empty((len(b1), 3, 3))
-    for j, (a, b) in enumerate(_PAIRS):
-        S[:, a, b] = S[:, b, a] = b1[:, 4 + j] / n1 - c1[:, a] * c1[:, b]
+def _planes(b: np.ndarray, planarity: float):
+    """(centroids (M, 3), unit normals (M, 3), planar (M,), thickness (M,): the smallest
+    covariance eigenvalue, m^2) of block moments (M, N_MOMENTS): planar where the smallest
+    eigenvalue is below ``planarity`` times the middle one."""
+    n = b[:, 0]
+    cen = b[:, 1:4] / n[:, None]
+    S = np.empty((len(b), 3, 3))
+    for j, (a, k) in enumerate(_PAIRS):
+        S[:, a, k] = S[:, k, a] = b[:, 4 + j] / n - cen[:, a] * cen[:, k]
     w, U = np.linalg.eigh(S)
-    planar = w[:, 0] < planarity * w[:, 1]
-    nrm = U[:, :, 0]
-    vn = np.einsum("ij,ij->i", v, nrm)
-    v[planar] = vn[planar, None] * nrm[planar]
-    return v
+    return cen, U[:, :, 0], w[:, 0] < planarity * w[:, 1], w[:, 0]
 
 
-def expand(cell_velocity: np.ndarray | None, cell_start: np.ndarray) -> np.ndarray | None:
-    """Per-point velocities (N, 3) float32 in cell-sorted order from per-cell ones."""
-    if cell_velocity is None:
+#: a planar block turns rigidly only if its thickness (smallest covariance eigenvalue: the depth
+#: noise across the plane) stays within this factor, plus THICKNESS_FLOOR (m^2, (1 mm)^2):
+#: a flat patch that becomes a step or a fold fits a tilted plane that is thicker, not turned
+THICKNESS_RATIO = 2.0
+THICKNESS_FLOOR = 1e-6
+
+
+def _affine_flow(b1: np.ndarray, b0: np.ndarray, gap: float, planarity: float):
+    """(velocity at the new block's centroid c1 (M, 3), gradient W (M, 3, 3)) from block
+    moments (M, N_MOMENTS) of the new and previous snapshot: a point p moves at v + W (p - c1).
+
+    Not planar now: the centroid displacement over ``gap``, W = 0. Planar now, not before: only
+    its component along the new normal n1 (motion along a surface is not observable from its
+    points, the aperture problem, and the centroid's sideways jitter as pixel rays enter and
+    leave the block would tear the predicted surface apart between cells), W = 0. Planar in
+    both: each point of the new plane moves along n1 by its distance to the previous plane per
+    gap (the module docstring), W = n1 (n0 - (n0 . n1) n1)^T / gap, where also its thickness
+    stayed (``THICKNESS_RATIO``; else a step or fold appeared in it: normal velocity only)."""
+    c1, nrm1, planar1, th1 = _planes(b1, planarity)
+    c0 = b0[:, 1:4] / b0[:, :1]
+    nrm0 = np.zeros_like(nrm1)
+    planar0 = np.zeros_like(planar1)
+    th0 = np.zeros_like(th1)
+    if planar1.any():                                 # the previous plane matters only where the new one is planar
+        _, nrm0[planar1], planar0[planar1], th0[planar1] = _planes(b0[planar1], planarity)
+    planar0 &= (th1 <= THICKNESS_RATIO * th0 + THICKNESS_FLOOR) & (th0 <= THICKNESS_RATIO * th1 + THICKNESS_FLOOR)
+    v = (c1 - c0) / gap
+    W = np.zeros((len(b1), 3, 3))
+    flat = planar1 & ~planar0
+    vn = np.einsum("ij,ij->i", v, nrm1)
+    v[flat] = vn[flat, None] * nrm1[flat]
+    both = planar1 & planar0
+    n1 = nrm1[both]
+    n0 = nrm0[both] * np.sign(np.einsum("ij,ij->i", nrm0[both], n1) + 1e-300)[:, None]  # eigenvector signs
+    v[both] = n1 * np.einsum("ij,ij->i", n0, c1[both] - c0[both])[:, None] / gap
+    tang = n0 - np.einsum("ij,ij->i", n0, n1)[:, None] * n1
+    W[both] = n1[:, :, None] * tang[:, None, :] / gap
+    return v, W
+
+
+def _box_speed(v: np.ndarray, W: np.ndarray, ref: np.ndarray, lo: np.ndarray, size: float) -> np.ndarray:
+    """Largest speed (M,) m/s of the affine fields v + W (p - ref) over the boxes [lo, lo +
+    size]^3 (an affine field's largest norm over a box is at one of its 8 corners)."""
+    base = v + (W @ (lo - ref)[:, :, None])[:, :, 0]
+    col = W * size                                    # (M, 3, 3): the field's change along x, y, z
+    out = np.zeros(len(v))
+    for bx in (0, 1):
+        for by in (0, 1):
+            for bz in (0, 1):
+                u = base + bx * col[:, :, 0] + by * col[:, :, 1] + bz * col[:, :, 2]
+                out = np.maximum(out, np.einsum("mi,mi->m", u, u))
+    return np.sqrt(out)
+
+
+#: floats per hash cell of a cell motion: velocity at the cell's lower corner (x, y, z, 0) and the
+#: three rows of its gradient W (each x, y, z, 0): four float4 for the device kernels
+CELL_MOTION = 16
+
+
+def pack_motion(v: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """Cell motions (M, CELL_MOTION) float32 from velocities at the cell corners (M, 3, m/s)
+    and gradients (M, 3, 3, 1/s)."""
+    out = np.zeros((len(v), 4, 4), np.float32)
+    out[:, 0, :3] = v
+    out[:, 1:, :3] = W
+    return out.reshape(len(v), CELL_MOTION)
+
+
+def expand(cell_motion: np.ndarray | None, cell_start: np.ndarray, points_sorted: np.ndarray,
+           grid: Grid) -> np.ndarray | None:
+    """Per-point velocities (N, 3) float32 in cell-sorted order from the cell motions (n_cells,
+    CELL_MOTION): v + W (p - corner), in float32 with the device kernels' order of operations
+    (corner = origin + index * (1 / inv_h), each row's products summed x, y, then z)."""
+    if cell_motion is None:
         return None
     counts = np.diff(cell_start).astype(np.int64)
-    return np.repeat(cell_velocity, counts, axis=0).astype(np.float32)
+    cell = np.repeat(np.arange(counts.size), counts)
+    nx, ny, _ = grid.dims
+    ijk = np.stack([cell % nx, (cell // nx) % ny, cell // (nx * ny)], axis=1).astype(np.float32)
+    h = np.float32(1.0) / grid.inv_h
+    d = np.asarray(points_sorted, np.float32)[:, :3] - (np.asarray(grid.origin, np.float32) + ijk * h)
+    cm = np.asarray(cell_motion, np.float32).reshape(-1, 4, 4)[cell]
+    out = np.empty((len(cell), 3), np.float32)
+    for r in range(3):
+        w = cm[:, 1 + r]
+        out[:, r] = cm[:, 0, r] + ((w[:, 0] * d[:, 0] + w[:, 1] * d[:, 1]) + w[:, 2] * d[:, 2])
+    return out
 
 
 def extra_span(vmax: float, dt: float) -> float:

@@ -28,7 +28,7 @@ class HostSnapshot:
         seq: snapshot counter.
         velocity: float32 (N, 3) or None: each point's estimated velocity, m/s (None: all 0;
             ``kernels/motion.py``).
-        vmax: the largest speed in ``velocity``, m/s.
+        vmax: at least the largest speed in ``velocity``, m/s (a bound over each cell's box).
     """
 
     points: np.ndarray

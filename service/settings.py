@@ -296,6 +296,7 @@ class MotionTable:
     min_neighbours: int = setting(MotionModel.min_neighbours, lo=0,
                                   doc="an unmeasured cell takes the velocity of at least this many agreeing measured neighbours (0: never)")
     coherence: float = setting(MotionModel.coherence, lo=0, doc="neighbours agree within this fraction of their mean speed")
+    w_max: float = setting(MotionModel.w_max, lo=0, doc="blocks whose surface turns faster are discarded (rad/s)")
 
     def __post_init__(self):
         self.model()

@@ -56,7 +56,10 @@ def test_estimated_velocity_is_the_planes_normal_velocity():
         hs.ingest([DepthFrame("cam0", depth, src.time_of(seq), seq)])
     snap = hs.pipeline.host_snapshot()
     v = snap.velocity
-    assert v is not None and snap.vmax == pytest.approx(np.max(np.linalg.norm(v, axis=1)))
+    # vmax bounds every point's speed (the hash search grows by vmax dt): each cell's affine
+    # field at its corners, a little above the fastest point's
+    fastest = np.max(np.linalg.norm(v, axis=1))
+    assert v is not None and fastest <= snap.vmax <= fastest + 0.01
     known = np.linalg.norm(v, axis=1) > 0
     assert known.mean() > 0.95
     np.testing.assert_allclose(np.median(v[known], axis=0), [0, 0, 0.3], atol=0.006)

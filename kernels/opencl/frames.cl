@@ -227,11 +227,30 @@ __kernel void cell_moments(__global const float4 *pts, __global const int *order
     for (int k = 0; k < 9; ++k) m[k + 1] = s[k];
 }
 
-// Every point's velocity, in the cell-sorted order of `order`, from its cell's velocity.
-__kernel void expand_velocity(__global const float4 *cell_vel, __global const int *start, int ncells,
+// Every point's velocity, in the cell-sorted order of `order`, from its cell's motion (4 float4
+// per cell: velocity at the cell's lower corner, then the rows of its gradient W):
+// v + W (p - corner), in the reference's order of operations (motion.expand), no contraction.
+__kernel void expand_velocity(__global const float4 *cell_motion, __global const float4 *pts,
+                              __global const int *order, __global const int *start, float4 grid, int4 dims,
                               __global float4 *vel) {
+    #pragma OPENCL FP_CONTRACT OFF
     int c = get_global_id(0);
+    int ncells = dims.x * dims.y * dims.z;
     if (c >= ncells) return;
-    float4 v = cell_vel[c];
-    for (int i = start[c]; i < start[c + 1]; ++i) vel[i] = v;
+    float h = 1.0f / grid.w;
+    int ix = c % dims.x, iy = (c / dims.x) % dims.y, iz = c / (dims.x * dims.y);
+    float ox = grid.x + ix * h, oy = grid.y + iy * h, oz = grid.z + iz * h;
+    float4 v = cell_motion[4 * c], w0 = cell_motion[4 * c + 1], w1 = cell_motion[4 * c + 2],
+           w2 = cell_motion[4 * c + 3];
+    for (int i = start[c]; i < start[c + 1]; ++i) {
+        float4 p = pts[order[i] & 0x7fffffff];
+        float x = p.x - ox, y = p.y - oy, z = p.z - oz;
+        float a = w0.x * x, b = w0.y * y, e = w0.z * z;
+        float vx = v.x + ((a + b) + e);
+        a = w1.x * x; b = w1.y * y; e = w1.z * z;
+        float vy = v.y + ((a + b) + e);
+        a = w2.x * x; b = w2.y * y; e = w2.z * z;
+        float vz = v.z + ((a + b) + e);
+        vel[i] = (float4)(vx, vy, vz, 0.0f);
+    }
 }

@@ -16,7 +16,7 @@ import numpy as np
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
 from ..errors import InputError, KernelError
-from ..motion import N_MOMENTS
+from ..motion import CELL_MOTION, N_MOMENTS
 from ..snapshot import HostSnapshot
 from ..yielding import checkpoint
 from .cell_sort import CellSort
@@ -117,9 +117,9 @@ class OpenCLPipeline(FramePipeline):
         self.cam_chunk = 4096 if backend.device.type & cl.device_type.CPU else 64
         if params.motion.enabled:
             self.moments = cl.Buffer(ctx, mf.READ_WRITE, 4 * N_MOMENTS * C)
-            self.cell_vel = cl.Buffer(ctx, mf.READ_ONLY, 16 * C)
+            self.cell_motion = cl.Buffer(ctx, mf.READ_ONLY, 4 * CELL_MOTION * C)
             self._moments_host = np.zeros((C, N_MOMENTS), np.float32)
-            self._cell_vel_host = np.zeros((C, 4), np.float32)
+            self._cell_motion_host = np.zeros((C, CELL_MOTION), np.float32)
         self.buffers = DoubleBuffer([_Slot(cl, ctx, npix, C, self.inline_ctx) for _ in range(2)])
         #: the cell sort (kernels/opencl/cell_sort.py): its ``shape`` is the backend's ``kernel_shape``
         #: resolved for the device ("gpu": runs ordered by their heads, no per-cell sort)
@@ -243,7 +243,7 @@ class OpenCLPipeline(FramePipeline):
         """Estimate the slot's velocities (kernels/motion.py) before it is published; return vmax."""
         if not self.params.motion.enabled:
             return 0.0
-        cl, q, C = self.cl, self.build_queue, np.int32(self.ncells)
+        cl, q = self.cl, self.build_queue
 
         def moments():
             self.k_moments(q, (_round_up(self.ncells),), None, slot.pts, slot.order, slot.start, self.gridf, self.dims,
@@ -251,13 +251,13 @@ class OpenCLPipeline(FramePipeline):
             cl.enqueue_copy(q, self._moments_host, self.moments, is_blocking=True)
             return self._moments_host.astype(np.float64)
 
-        cell_v, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
-        if cell_v is not None and vmax > 0:
-            self._cell_vel_host[:, :3] = cell_v
-            ev = cl.enqueue_copy(q, self.cell_vel, self._cell_vel_host, is_blocking=False)
-            self.k_expand(q, (_round_up(self.ncells),), None, self.cell_vel, slot.start, C, slot.vel)
+        cell_motion, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
+        if cell_motion is not None and vmax > 0:
+            self._cell_motion_host[:] = cell_motion
+            cl.enqueue_copy(q, self.cell_motion, self._cell_motion_host, is_blocking=False)   # (host array kept: an attribute)
+            self.k_expand(q, (_round_up(self.ncells),), None, self.cell_motion, slot.pts, slot.order, slot.start,
+                          self.gridf, self.dims, slot.vel)
             q.finish()
-            del ev
             return vmax
         return 0.0
 

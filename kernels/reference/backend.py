@@ -31,7 +31,7 @@ class NumpyPipeline(FramePipeline):
     def _build(self, frames, packed):
         snap = build_snapshot(self.rig, frames, self.params, self.grid, seq=self.seq + 1, packed=packed)
         cell_v, snap.vmax = self._estimate_motion(lambda: cell_moments(snap.points, snap.cell_start, self.grid), snap.timestamps)
-        snap.velocity = expand(cell_v, snap.cell_start)
+        snap.velocity = expand(cell_v, snap.cell_start, snap.points, self.grid)
         b = self.buffers.back()
         self.buffers.slots[b] = snap
         self.buffers.publish(b)

@@ -267,9 +267,26 @@ def cell_moments(sorted_pts: wp.array(dtype=wp.vec4), start: wp.array(dtype=int)
 
 
 @wp.kernel
-def expand_velocity(cell_vel: wp.array(dtype=wp.vec4), start: wp.array(dtype=int), sorted_vel: wp.array(dtype=wp.vec4)):
-    """Every sorted point's velocity from its cell's."""
+def expand_velocity(cell_motion: wp.array(dtype=wp.vec4), sorted_pts: wp.array(dtype=wp.vec4),
+                    start: wp.array(dtype=int), g: GridArgs, sorted_vel: wp.array(dtype=wp.vec4)):
+    """Every sorted point's velocity from its cell's motion (kernels/motion.py ``CELL_MOTION``:
+    4 vec4 per cell, the velocity at the cell's lower corner and the rows of its gradient W):
+    v + W (p - corner)."""
     c = wp.tid()
-    v = cell_vel[c]
+    h = 1.0 / g.inv_h
+    ix = c % g.nx
+    iy = (c / g.nx) % g.ny
+    iz = c / (g.nx * g.ny)
+    o = wp.vec3(g.origin[0] + float(ix) * h, g.origin[1] + float(iy) * h, g.origin[2] + float(iz) * h)
+    v = cell_motion[4 * c]
+    w0 = cell_motion[4 * c + 1]
+    w1 = cell_motion[4 * c + 2]
+    w2 = cell_motion[4 * c + 3]
     for i in range(start[c], start[c + 1]):
-        sorted_vel[i] = v
+        q = sorted_pts[i]
+        x = q[0] - o[0]
+        y = q[1] - o[1]
+        z = q[2] - o[2]
+        sorted_vel[i] = wp.vec4(v[0] + ((w0[0] * x + w0[1] * y) + w0[2] * z),
+                                v[1] + ((w1[0] * x + w1[1] * y) + w1[2] * z),
+                                v[2] + ((w2[0] * x + w2[1] * y) + w2[2] * z), 0.0)

@@ -18,7 +18,7 @@ import warp as wp
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
 from ..errors import KernelError
-from ..motion import N_MOMENTS
+from ..motion import CELL_MOTION, N_MOMENTS
 from ..neighbors import Neighbors, search_span
 from ..snapshot import HostSnapshot
 from . import frames as k
@@ -80,7 +80,7 @@ class WarpPipeline(FramePipeline):
         cam_of = np.repeat(np.arange(len(rig), dtype=np.int32), np.diff(rig.offsets))
         if params.motion.enabled:
             self.moments = wp.zeros((C, N_MOMENTS), dtype=float, device=dev)
-            self.cell_vel = wp.zeros(C, dtype=wp.vec4, device=dev)
+            self.cell_motion = wp.zeros(C * CELL_MOTION // 4, dtype=wp.vec4, device=dev)
         self.cam_of = wp.array(cam_of if npix else np.zeros(1, np.int32), dtype=int, device=dev)
         self.buffers = DoubleBuffer([_Slot(dev, npix, C), _Slot(dev, npix, C)])
         self._n_host = wp.zeros(1, dtype=int, device="cpu", pinned=self.cuda)
@@ -209,14 +209,13 @@ class WarpPipeline(FramePipeline):
                 wp.launch(k.cell_moments, dim=C, device=dev, inputs=[slot.sorted_pts, slot.start, self.grid_args, self.moments])
                 return self.moments.numpy().astype(np.float64)
 
-        cell_v, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
-        if cell_v is None or vmax <= 0:
+        cell_motion, vmax = self._estimate_motion(moments, tuple(float(f.timestamp) for f in frames))
+        if cell_motion is None or vmax <= 0:
             return 0.0
-        v4 = np.zeros((C, 4), np.float32)
-        v4[:, :3] = cell_v
         with self._stream(self.build_stream):
-            self.cell_vel.assign(v4)
-            wp.launch(k.expand_velocity, dim=C, device=dev, inputs=[self.cell_vel, slot.start, slot.sorted_vel])
+            self.cell_motion.assign(cell_motion.reshape(-1, 4))
+            wp.launch(k.expand_velocity, dim=C, device=dev,
+                      inputs=[self.cell_motion, slot.sorted_pts, slot.start, self.grid_args, slot.sorted_vel])
         if self.cuda:
             wp.synchronize_stream(self.build_stream)
         return vmax
