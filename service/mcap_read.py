@@ -48,7 +48,8 @@ class Recording:
         self.torn = torn                   # None, or why the file ends early
         self.messages = messages
         self.layout = TickLayout(int(meta["arms"]))
-        self.cameras = [c["name"] for c in meta.get("cameras", [])]
+        # (a camera's model is recorded with its first frame; until then, its name alone)
+        self.cameras = [c["name"] if isinstance(c, dict) else str(c) for c in meta.get("cameras", [])]
 
     def frame(self, cam_index: int, index: int, seq: int, stamp: float, pose=None) -> DepthFrame:
         """Camera ``cam_index``'s recorded frame number ``index`` (its running number in the file),

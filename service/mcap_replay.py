@@ -143,6 +143,9 @@ def recording_config(recording, radius: Optional[float] = None):
     doc = tomllib.loads(text)
     cams = []
     for c in meta.get("cameras", []):
+        if not isinstance(c, dict):      # (a camera's model is recorded with its first frame)
+            raise InputError(f"{recording.path}: camera {c!r} has no recorded model (the file ends before its first "
+                             "frame); record longer, past the cameras' first frames")
         cams.append({"name": c["name"], "source": c["source"], "rate_hz": c["rate_hz"], "fx": c["fx"], "fy": c["fy"],
                      "cx": c["cx"], "cy": c["cy"], "width": c["width"], "height": c["height"],
                      "depth_scale": c["depth_scale"], "T_world_cam": c["T_world_cam"], "dist": c["dist"],

@@ -5,6 +5,7 @@ the standard types with the right fields and units; a run from a recorded-depth 
 with the source gone; a damaged file is a clear InputError (S8)."""
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
@@ -403,6 +404,14 @@ def test_corrupt_or_truncated_files_are_clear_errors(served, tmp_path):
     head.write_bytes(data[:40])
     with pytest.raises(InputError, match="head.mcap: not a pointfence recording"):
         open_recording(head)
+    from pointfence.service.replay import replay_mcap   # (cut inside the first records: camera names, no models)
+    for cut in (600, 1500, 3000):
+        early = tmp_path / f"early{cut}.mcap"
+        early.write_bytes(data[:cut])
+        with pytest.raises(InputError, match=r"early\d+\.mcap: (no whole tick|camera .* has no recorded model|not a "
+                                             r"pointfence recording)"):
+            replay_mcap(argparse.Namespace(recording=str(early), out=str(tmp_path / "o"), architecture=None,
+                                           radius=None, backend=None, device=None))
     half = tmp_path / "half.mcap"                # cut in the middle of a chunk: the chunks before it read
     half.write_bytes(data[: len(data) // 2])
     r = open_recording(half)
