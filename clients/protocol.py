@@ -419,7 +419,7 @@ class FeedbackWriter:
         P_FEEDBACK.pack_into(buf, HEADER_LEN, tick & M, t_tick_ns & M, t_sent_ns & M, echo_seq & M, echo_t_client_ns & M,
                              fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, link, hold & 0xFFFFFFFF,
                              error, slot, rejected & 0xFFFFFFFF, 0)
-        buf[-TAG_LEN:] = hmac.digest(skey, self._body, "sha256")[:TAG_LEN]
+        buf[-TAG_LEN:] = tag(skey, self._body)
         return buf
 
 
