@@ -402,12 +402,18 @@ class Feedback:
 class FeedbackWriter:
     """FEEDBACK datagrams written into one buffer made once (``buf``): the bytes of
     ``Feedback(...).encode(...)`` without the message object, its tuples and the concatenations
-    (the service's tick sends one per arm and tick). Each ``write`` overwrites the last; send it
-    before the next."""
+    (the service's tick sends one per arm and tick). Header and payload are packed in one call,
+    and the tag starts from each session key's HMAC state computed once (``hmac.HMAC.copy``; up
+    to ``KEYS`` keys are kept). Each ``write`` overwrites the last; send it before the next."""
+
+    #: session keys whose HMAC state is kept (a service has one session per master)
+    KEYS = 64
+    _BODY = struct.Struct(HEADER.format + P_FEEDBACK.format[1:])     # both little-endian, unpadded
 
     def __init__(self):
         self.buf = bytearray(SIZES[FEEDBACK])
         self._body = memoryview(self.buf)[:-TAG_LEN]
+        self._macs: dict = {}            # session key -> its HMAC-SHA-256 state before any data
 
     def write(self, skey: bytes, device_id: int, session: int, seq: int, tick: int, t_tick_ns: int, t_sent_ns: int,
               echo_seq: int, echo_t_client_ns: int, fx: float, fy: float, fz: float, px: float, py: float, pz: float,
@@ -415,11 +421,18 @@ class FeedbackWriter:
               error: int, slot: int, rejected: int) -> bytearray:
         """The datagram (``buf``): force (N), proxy and robot (m, world) as ``Feedback``'s fields."""
         M, buf = 0xFFFFFFFFFFFFFFFF, self.buf
-        HEADER.pack_into(buf, 0, MAGIC, VERSION, FEEDBACK, device_id & 0xFFFFFFFF, session & 0xFFFFFFFF, seq & M, 0)
-        P_FEEDBACK.pack_into(buf, HEADER_LEN, tick & M, t_tick_ns & M, t_sent_ns & M, echo_seq & M, echo_t_client_ns & M,
+        self._BODY.pack_into(buf, 0, MAGIC, VERSION, FEEDBACK, device_id & 0xFFFFFFFF, session & 0xFFFFFFFF, seq & M, 0,
+                             tick & M, t_tick_ns & M, t_sent_ns & M, echo_seq & M, echo_t_client_ns & M,
                              fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, link, hold & 0xFFFFFFFF,
                              error, slot, rejected & 0xFFFFFFFF, 0)
-        buf[-TAG_LEN:] = tag(skey, self._body)
+        mac = self._macs.get(skey)
+        if mac is None:
+            if len(self._macs) >= self.KEYS:
+                self._macs.clear()
+            mac = self._macs[skey] = hmac.new(skey, digestmod="sha256")
+        mac = mac.copy()
+        mac.update(self._body)
+        buf[-TAG_LEN:] = mac.digest()[:TAG_LEN]
         return buf
 
 

@@ -114,6 +114,7 @@ _SIGNATURES = {
     "pf_poses_of": (None, [_D, _D, c_int64, _D]),
     "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
     "pf_pose_check": (c_int32, [c_void_p, c_double]),
+    "pf_proxy_unpack": (None, [_F, c_int64, _F, _F, _F, _I32, _I32, _U8]),
 }
 
 

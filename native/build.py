@@ -23,7 +23,7 @@ from pathlib import Path
 
 SOURCE = Path(__file__).with_name("tick_core.c")
 #: the headers tick_core.c includes (part of the source: hashed with it), found in this folder
-HEADERS = (Path(__file__).with_name("tick_quat.h"),)
+HEADERS = (Path(__file__).with_name("tick_quat.h"), Path(__file__).with_name("proxy_out.h"))
 #: -ffp-contract=off: every expression is evaluated as written (no fused multiply-add), so the
 #: results do not depend on the compiler's choices
 CFLAGS = ("-O2", "-fPIC", "-shared", "-std=c99", "-ffp-contract=off", "-fno-fast-math")

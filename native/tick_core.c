@@ -66,6 +66,7 @@ static void shrink3(double *v, double length) {
 }
 
 #include "tick_quat.h"
+#include "proxy_out.h"
 
 /* --- teleoperation (service/teleop.py) ---------------------------------------------------- */
 

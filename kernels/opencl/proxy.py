@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pointfence.native import lib, ptr
+
 from ..errors import KernelError
 from ..motion import extra_span
 from ..neighbors import search_span
@@ -145,7 +147,10 @@ class OpenCLProxies(ProxyBatch):
             self._out_host = np.zeros((cap, 8), np.float32)
             self._hips = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
             self._out = cl.Buffer(ctx, mf.WRITE_ONLY, 32 * cap)
-        self._info = self._out_host[:, 7].view(np.int32)
+        self._unpack = (ptr(self._out_host, np.float32, "proxy output"), ptr(self._positions, np.float32, "positions"),
+                        ptr(self._nearest, np.float32, "nearest"), ptr(self._normals, np.float32, "normals"),
+                        ptr(self._states, np.int32, "states"), ptr(self._steps, np.int32, "steps"),
+                        ptr(self._converged, np.bool_, "converged"))
         self._arg_slot = None
         self._set_batch_args()
 
@@ -230,16 +235,6 @@ class OpenCLProxies(ProxyBatch):
                                   f"({self.device_kind}): {e}") from e
         finally:
             buf.release(i)
-        np.copyto(self._positions[:n], out[:n, :3])
-        np.copyto(self._nearest[:n], out[:n, 3])
-        np.copyto(self._normals[:n], out[:n, 4:7])
-        info = self._info[:n]
-        np.bitwise_and(info, 3, out=self._states[:n])
-        np.right_shift(info, 3, out=self._steps[:n])
-        np.not_equal(np.bitwise_and(info, 4, out=self._tmp[:n]), 0, out=self._converged[:n])
+        u = self._unpack       # out's rows into positions, nearest, normals, states, steps, converged
+        lib.pf_proxy_unpack(u[0], n, u[1], u[2], u[3], u[4], u[5], u[6])
 
-    def _alloc(self, n: int):
-        grew = n > self._cap
-        super()._alloc(n)
-        if grew:
-            self._tmp = np.zeros(self._cap, np.int32)
