@@ -34,7 +34,6 @@ that arm's robot and ramps its force to zero (``service.app``, hold reason "mast
 """
 from __future__ import annotations
 
-import math
 import os
 import socket
 import threading
@@ -52,11 +51,9 @@ from .masters import Master
 from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
+from .udp_feedback import FeedbackFields, write_feedback
 from .udp_ratelimit import SourceLimiter, poll_loop
 from .udp_session import Session
-
-#: FEEDBACK's robot mode for each ``RobotMode`` value (ENABLED, HOLDING, FAULT)
-_ROBOT_MODES = (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)
 
 
 #: drains per window of the deadline-grid estimate (UdpHub.tick)
@@ -146,7 +143,7 @@ class UdpMaster(Master):
         self.force[:] = f
         s = self.session
         if s is not None and s.has_state:
-            self.hub.send_feedback(self, s, f)
+            self.hub.send_feedback(self, s, self.force)
 
 
 class UdpHub:
@@ -191,8 +188,8 @@ class UdpHub:
         self.reader = StampedReader(self.sock, rcvbuf_bytes)
         self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
         self._fb = P.FeedbackWriter()     # the tick's FEEDBACK, written in place
-        self._arms, self._arms_ns = None, -1   # every arm's FEEDBACK fields this tick (``_arm_view``)
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
+        self._fields = FeedbackFields(len(self.masters))    # every arm's FEEDBACK fields, once a tick
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
         self.cookies = CookieJar()
@@ -249,7 +246,7 @@ class UdpHub:
 
     def attach(self, service) -> None:
         """The service whose proxies, robots and status go into FEEDBACK messages."""
-        self.service = service
+        self.service = self._fields.service = service
 
     def close(self) -> None:
         """Stop the receiver, end every session (BYE) and close the socket."""
@@ -546,50 +543,13 @@ class UdpHub:
             self.send_errors += 1
 
     def send_feedback(self, m: UdpMaster, s: Session, f) -> None:
-        """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame; saturated at the
-        session's force limit, zero if not finite), with the proxy, robot, hold and fixture state of
-        its arm (the service's ``out`` of this tick, read once per tick for every arm); written into
-        one buffer (``P.FeedbackWriter``), sent keeping the interpreter lock."""
-        fx, fy, fz = f.tolist()
-        if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-            fx = fy = fz = 0.0
-        n2 = fx * fx + fy * fy + fz * fz
-        mf = s.max_force
-        if n2 > mf * mf:
-            k = mf / n2 ** 0.5
-            fx, fy, fz = fx * k, fy * k, fz * k
-        b = m.slot
-        arms = self._arms
-        if arms is None or self._arms_ns != self.t_ns:
-            arms = self._arms = self._arm_view()
-            self._arms_ns = self.t_ns
-        proxies, contacts, robots, modes, holds, fixtures = arms
-        px, py, pz = proxies[b]
-        rx, ry, rz = robots[b]
+        """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame), with its arm's
+        state from the service's output of this tick (``udp_feedback``), sent keeping the lock."""
         t = self.t or 0.0
-        s.tx_seq += 1
-        data = self._fb.write(s.key, s.device_id, s.id, s.tx_seq, int(round(t * self.rate_hz)),
-                              (self._base_ns or 0) + int(round(t * 1e9)), time.perf_counter_ns(), s.seq, s.t_client_ns,
-                              fx, fy, fz, px, py, pz, rx, ry, rz, contacts[b], fixtures[b], modes[b], 0, holds[b],
-                              s.error, b, s.rejected)
+        data = write_feedback(self._fb, s, m.slot, f, self._fields.of(self.t_ns), int(round(t * self.rate_hz)),
+                              (self._base_ns or 0) + int(round(t * 1e9)))
         self._send(s.addr, data)
         self.feedback_sent += 1
-
-    def _arm_view(self) -> tuple:
-        """Every arm's proxy, contact, robot position, robot mode, hold mask and fixture flags as
-        FEEDBACK carries them, from the service's output of this tick (lists, read once a tick)."""
-        n = len(self.masters)
-        svc = self.service
-        if svc is None:
-            zero = [(0.0, 0.0, 0.0)] * n
-            return zero, [P.CONTACT_FREE] * n, zero, [P.ROBOT_IDEAL] * n, [0] * n, [0] * n
-        out = svc.out
-        modes = [P.ROBOT_IDEAL if r is None else _ROBOT_MODES[int(r.state)] for r in svc.robots]
-        flags = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
-                 | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
-        fixtures = [flags | (P.FX_COUPLED if c else 0) for c in out.coupled.tolist()]
-        return (out.proxy.tolist(), out.state.tolist(), out.robot_pos.tolist(), modes, out.arm_hold.tolist(),
-                fixtures)
 
     # --- status -------------------------------------------------------------------------------------
     def status(self) -> dict:
