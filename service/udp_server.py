@@ -1,7 +1,7 @@
 """The service side of the wire protocol: authenticated UDP clients as masters of the haptic loop.
 
-``UdpHub`` owns one UDP socket and ``slots`` :class:`UdpMaster` objects (one per proxy of the
-service). See ``clients/PROTOCOL.md``. Two sides, two threads:
+``UdpHub`` owns one UDP socket and ``slots`` ``udp_master.UdpMaster`` objects (one per proxy of
+the service). See ``clients/PROTOCOL.md``. Two sides, two threads:
 
 * **The receiver** (a thread of its own, or ``pump()`` called by the owner outside the tick when
   built with ``receiver=False``) drains the socket without blocking, each datagram with the time
@@ -25,8 +25,11 @@ A session that has not proved its key with a valid STATE (``proven``) never make
 ``busy`` and gives up its slot to a new handshake after ``PROOF_S``; a captured HELLO replayed
 after its cookie expired, after a restart or inside the validity opens nothing.
 
-A datagram that is truncated, oversized or malformed, fails authentication, replays or is older
-than the newest sample, belongs to no session, or carries non-finite or out-of-workspace values
+A session is locked to the address its handshake came from: a STATE or BYE from any other
+address names no session (``no_session``, refused before its tag is computed), so a replay that
+overtakes the original cannot move the session. A datagram that is truncated, oversized or
+malformed, fails authentication, replays or is older than the newest sample, belongs to no
+session of its address, or carries non-finite or out-of-workspace values
 is counted (``counters``, per reason) and dropped: it never touches a slot's sample, so it never
 changes a robot command. A session silent for longer than its timeout (default 50 ms, measured
 in loop time by the tick) is dropped: its master reports ``ok = False``, so the service holds
@@ -40,18 +43,16 @@ import threading
 import time
 from typing import Optional
 
-import numpy as np
-
 from pointfence.clients import protocol as P
 from pointfence.kernels.errors import InputError
 
 from .age_hist import AgeHistogram
 from .held_io import Sender
-from .masters import Master
 from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
 from .udp_feedback import FeedbackFields, write_feedback
+from .udp_master import UdpMaster
 from .udp_ratelimit import SourceLimiter, poll_loop
 from .udp_session import Session
 
@@ -68,82 +69,6 @@ BATCH = 256
 #: a drain applies what it holds at least this often (s of the receiver's clock): under a flood
 #: that keeps the socket from ever emptying, the newest sample is still published every drain
 DRAIN_S = 0.5e-3
-
-
-class UdpMaster(Master):
-    """Slot ``slot`` of a :class:`UdpHub`: the master of one proxy, driven by whichever client
-    holds the slot (``ok`` is False while no fresh authenticated sample exists)."""
-
-    name = "udp"
-
-    def __init__(self, hub: "UdpHub", slot: int):
-        super().__init__()
-        self.hub = hub
-        self.slot = slot
-        self.name = f"udp{slot}"
-        self.ok = False
-        self.clutch = False
-        self.orientation = np.array([1.0, 0.0, 0.0, 0.0])
-        self.grasp = 0.0
-        self.session: Optional[Session] = None
-
-    def poll(self, t: float) -> None:
-        """The tick's read: copy the slot's newest sample (loop time ``t``, s), decide its timeout."""
-        hub = self.hub
-        if t != hub.t:
-            hub.tick(t)
-        s = self.session
-        if s is None or not isinstance(s, Session):
-            self.ok = False
-            self.clutch = False
-            return
-        if s.n != s.seen:
-            with s.lock:
-                n = s.n
-                x, y, z = s.s_pos
-                flags = s.s_flags
-                buttons = s.s_buttons
-                qw, qx, qy, qz = s.s_quat
-                grasp = s.s_grasp
-                seq = s.s_seq
-                t_client = s.s_t_client
-                rx_ns = s.s_rx_ns
-            pos = self.position
-            pos[0], pos[1], pos[2] = x, y, z
-            self.clutch = bool(flags & P.F_CLUTCH)
-            self.buttons = buttons
-            if flags & P.F_ORIENTATION:
-                o = self.orientation
-                o[0], o[1], o[2], o[3] = qw, qx, qy, qz
-            if flags & P.F_GRASP:
-                self.grasp = grasp
-            s.seen = n
-            s.seq = seq
-            s.t_client_ns = t_client
-            s.rx_ns = rx_ns
-            s.last_rx_t = t
-            s.has_state = True
-        elif s.last_rx_t is None:
-            s.last_rx_t = t                      # a new session: its silence counts from this tick
-        if t - s.last_rx_t > s.timeout_s:
-            hub.drop(s)
-            self.ok = False
-            self.clutch = False
-            return
-        if s.has_state:
-            age = hub.t_ns - s.rx_ns
-            hub.ages.record(age)
-            if age > s.max_age_ns:       # a sample that waited longer than the timeout: none (S9)
-                hub.stale_ticks += 1
-                self.ok = False
-                return
-        self.ok = s.has_state
-
-    def send_force(self, f: np.ndarray) -> None:
-        self.force[:] = f
-        s = self.session
-        if s is not None and s.has_state:
-            self.hub.send_feedback(self, s, self.force)
 
 
 class UdpHub:
@@ -309,7 +234,7 @@ class UdpHub:
             session = None
             try:
                 h = P.parse_header(view)
-                session = self._session_of(h)
+                session = self._session_of(h, addr)
                 session.window.check(h.seq)           # replayed or stale: no MAC (RFC 4303 3.4.3)
                 if h.seq <= session.window.top:
                     raise P.ProtocolError(P.E_STALE, "older than the newest sample")
@@ -347,7 +272,7 @@ class UdpHub:
             h = P.parse_header(data)
             typ = h.type
             if typ == P.STATE:
-                session = self._session_of(h)
+                session = self._session_of(h, addr)
                 self._state(session, h.seq, data, addr, time.perf_counter_ns() if rx_ns is None else rx_ns)
                 return P.E_OK
             if typ == P.HELLO:
@@ -361,7 +286,7 @@ class UdpHub:
                 return P.E_OK
             if typ == P.BYE:
                 session = self.sessions.get(h.session)
-                if session is None or session.device_id != h.device_id:
+                if session is None or session.device_id != h.device_id or session.addr != addr:
                     session = None
                     raise P.ProtocolError(P.E_NO_SESSION)
                 P.verify(data, session.key)
@@ -376,11 +301,14 @@ class UdpHub:
             self._count(e, session)
             return e.code
 
-    def _session_of(self, h) -> Session:
-        """The live session a STATE's header names; raises E_NO_SESSION."""
+    def _session_of(self, h, addr) -> Session:
+        """The live session a STATE's or BYE's header names, sent from the address its handshake
+        came from (a session is locked to it: an authentic datagram replayed from elsewhere, even
+        ahead of the original, cannot move the session or its FEEDBACK); raises
+        E_NO_SESSION."""
         session = self.sessions.get(h.session)
-        if session is None or session.device_id != h.device_id:
-            raise P.ProtocolError(P.E_NO_SESSION)
+        if session is None or session.device_id != h.device_id or session.addr != addr:
+            raise P.ProtocolError(P.E_NO_SESSION, "no such session for this device and address")
         return session
 
     def _state(self, session: Session, seq: int, data, addr, rx_ns: int) -> None:
@@ -397,7 +325,6 @@ class UdpHub:
             raise P.ProtocolError(P.E_STALE, "older than the newest sample")
         session.publish(seq, st, rx_ns)
         session.proven = True
-        session.addr = addr
         session.accepted += 1
         self.accepted += 1
 

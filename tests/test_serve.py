@@ -111,8 +111,9 @@ def test_spoofed_replayed_stale_and_invalid_datagrams_never_move_the_robot(tmp_p
                     P.Hello(os.urandom(16)).encode(bytes(32), 2, 1),                  # spoofed HELLO
                     P.Bye().encode(bytes(32), 1, c.session, c.seq + 5),               # spoofed BYE
                 ]
-                for d in bad:
-                    sock.sendto(d, target)
+                for d in bad:              # spoofing the device's own address: every check but the address's
+                    c.sock.send(d)
+                sock.sendto(old[k - 1], target)     # from another address: no session of that address
             rig.tick()
             c.poll()
             path.append(np.concatenate([rig.robot(), rig.svc.f_out[0]]))
