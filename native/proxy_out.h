@@ -1,6 +1,7 @@
-/* The proxy kernels' packed output, unpacked into a proxy batch's arrays (kernels/proxy.py).
+/* The OpenCL proxy kernels' packed output, unpacked into the batch's arrays (kernels/proxy.py,
+ * kernels/opencl/proxy.py).
  *
- * Every backend's proxy kernel writes one row of 8 float32 per proxy: the position (world, m),
+ * The kernel (proxy.cl, proxy_gpu.cl) writes one row of 8 float32 per proxy: the position (world, m),
  * the distance to the nearest point (m), the contact normal, and, in the last float's bits, an
  * int32 of the contact state (bits 0-1), the converged flag (bit 2) and the steps taken (bits 3
  * and up). Included by tick_core.c (one library). */
