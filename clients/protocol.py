@@ -135,6 +135,19 @@ def tag(key: bytes, body) -> bytes:
     return hmac.digest(key, body, "sha256")[:TAG_LEN]
 
 
+class KeyTag:
+    """``tag(key, body)`` for one ``key``, from its HMAC-SHA-256 state computed once (a datagram
+    then costs the hash of its body alone)."""
+
+    def __init__(self, key: bytes):
+        self._mac = hmac.new(key, digestmod="sha256")
+
+    def __call__(self, body) -> bytes:
+        mac = self._mac.copy()
+        mac.update(body)
+        return mac.digest()[:TAG_LEN]
+
+
 # --- header --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Header:
@@ -403,8 +416,7 @@ class FeedbackWriter:
     """FEEDBACK datagrams written into one buffer made once (``buf``): the bytes of
     ``Feedback(...).encode(...)`` without the message object, its tuples and the concatenations
     (the service's tick sends one per arm and tick). Header and payload are packed in one call,
-    and the tag starts from each session key's HMAC state computed once (``hmac.HMAC.copy``; up
-    to ``KEYS`` keys are kept). Each ``write`` overwrites the last; send it before the next."""
+    and each session key's tag is a ``KeyTag`` (up to ``KEYS`` keys are kept). Each ``write`` overwrites the last; send it before the next."""
 
     #: session keys whose HMAC state is kept (a service has one session per master)
     KEYS = 64
@@ -413,7 +425,7 @@ class FeedbackWriter:
     def __init__(self):
         self.buf = bytearray(SIZES[FEEDBACK])
         self._body = memoryview(self.buf)[:-TAG_LEN]
-        self._macs: dict = {}            # session key -> its HMAC-SHA-256 state before any data
+        self._tags: dict = {}            # session key -> its KeyTag
 
     def write(self, skey: bytes, device_id: int, session: int, seq: int, tick: int, t_tick_ns: int, t_sent_ns: int,
               echo_seq: int, echo_t_client_ns: int, fx: float, fy: float, fz: float, px: float, py: float, pz: float,
@@ -425,14 +437,12 @@ class FeedbackWriter:
                              tick & M, t_tick_ns & M, t_sent_ns & M, echo_seq & M, echo_t_client_ns & M,
                              fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, link, hold & 0xFFFFFFFF,
                              error, slot, rejected & 0xFFFFFFFF, 0)
-        mac = self._macs.get(skey)
-        if mac is None:
-            if len(self._macs) >= self.KEYS:
-                self._macs.clear()
-            mac = self._macs[skey] = hmac.new(skey, digestmod="sha256")
-        mac = mac.copy()
-        mac.update(self._body)
-        buf[-TAG_LEN:] = mac.digest()[:TAG_LEN]
+        sign = self._tags.get(skey)
+        if sign is None:
+            if len(self._tags) >= self.KEYS:
+                self._tags.clear()
+            sign = self._tags[skey] = KeyTag(skey)
+        buf[-TAG_LEN:] = sign(self._body)
         return buf
 
 

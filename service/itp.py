@@ -127,10 +127,8 @@ class ItpArmMaster(Master):
         self.arm = arm
         self.name = f"itp{arm}"
         self.poll_also = poll_also
-        self.ok = False
+        self.ok = False                  # (no sample yet; orientation and grasp: the base's defaults)
         self.clutch = False
-        self.orientation = np.array([1.0, 0.0, 0.0, 0.0])
-        self.grasp = 0.0
         self.seen = 0                    # the receiver's sample count at the last copy
         self.last_t = -math.inf          # loop time of the tick that first saw the newest sample, s
         self.rx_ns = 0                   # kernel arrival of its newest packet (perf_counter ns)

@@ -19,21 +19,21 @@ ROBOT_MODES = (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)
 
 class FeedbackFields:
     """Every arm's FEEDBACK fields of the current tick, read from the service once per tick
-    (``of(tick_ns)``: the tick is named by its start, perf_counter ns)."""
+    (``of(service, tick_ns)``: the tick is named by its start, perf_counter ns)."""
 
     def __init__(self, n: int):
         self.n = int(n)
-        self.service = None
         self._fields, self._ns = None, -1
 
-    def of(self, tick_ns: int) -> tuple:
-        """(proxies, contacts, robots, modes, holds, fixtures): lists, one entry per arm."""
-        if self._fields is None or self._ns != tick_ns:
-            self._fields, self._ns = self._read(), tick_ns
+    def of(self, svc, tick_ns: int) -> tuple:
+        """(proxies, contacts, robots, modes, holds, fixtures) of service ``svc`` (None: none
+        attached): lists, one entry per arm."""
+        if self._ns != tick_ns:
+            self._fields, self._ns = self._read(svc), tick_ns
         return self._fields
 
-    def _read(self) -> tuple:
-        n, svc = self.n, self.service
+    def _read(self, svc) -> tuple:
+        n = self.n
         if svc is None:
             zero = [(0.0, 0.0, 0.0)] * n
             return zero, [P.CONTACT_FREE] * n, zero, [P.ROBOT_IDEAL] * n, [0] * n, [0] * n
@@ -60,8 +60,7 @@ def write_feedback(writer: P.FeedbackWriter, s, slot: int, f, fields: tuple, tic
     proxies, contacts, robots, modes, holds, fixtures = fields
     px, py, pz = proxies[slot]
     rx, ry, rz = robots[slot]
-    s.tx_seq += 1
-    return writer.write(s.key, s.device_id, s.id, s.tx_seq, tick, t_tick_ns, time.perf_counter_ns(), s.seq,
+    return writer.write(s.key, s.device_id, s.id, s.next_tx(), tick, t_tick_ns, time.perf_counter_ns(), s.seq,
                         s.t_client_ns, fx, fy, fz, px, py, pz, rx, ry, rz, contacts[slot], fixtures[slot], modes[slot],
                         0, holds[slot], s.error, slot, s.rejected)
 

@@ -25,10 +25,8 @@ class UdpMaster(Master):
         self.hub = hub
         self.slot = slot
         self.name = f"udp{slot}"
-        self.ok = False
+        self.ok = False                  # (no sample yet; orientation and grasp: the base's defaults)
         self.clutch = False
-        self.orientation = np.array([1.0, 0.0, 0.0, 0.0])
-        self.grasp = 0.0
         self.session: Optional[Session] = None
 
     def poll(self, t: float) -> None:

@@ -171,7 +171,7 @@ class UdpHub:
 
     def attach(self, service) -> None:
         """The service whose proxies, robots and status go into FEEDBACK messages."""
-        self.service = self._fields.service = service
+        self.service = service
 
     def close(self) -> None:
         """Stop the receiver, end every session (BYE) and close the socket."""
@@ -180,7 +180,7 @@ class UdpHub:
             self._thread.join(2.0)
         if self.sock.fileno() >= 0:
             for s in list(self.sessions.values()):
-                self._send(s.addr, P.Bye(P.E_OK).encode(s.key, s.device_id, s.id, self._next_tx(s)))
+                self._send(s.addr, P.Bye(P.E_OK).encode(s.key, s.device_id, s.id, s.next_tx()))
                 self._end(s)
             self.sock.close()
 
@@ -285,10 +285,7 @@ class UdpHub:
                 self._hello(h, hello, addr)
                 return P.E_OK
             if typ == P.BYE:
-                session = self.sessions.get(h.session)
-                if session is None or session.device_id != h.device_id or session.addr != addr:
-                    session = None
-                    raise P.ProtocolError(P.E_NO_SESSION)
+                session = self._session_of(h, addr)     # (unset if not: no session to count against)
                 P.verify(data, session.key)
                 session.window.check(h.seq)
                 P.Bye.decode(data)
@@ -461,10 +458,6 @@ class UdpHub:
         self.sessions_dropped += 1
         self._end(s)
 
-    def _next_tx(self, s: Session) -> int:
-        s.tx_seq += 1
-        return s.tx_seq
-
     def _send(self, addr, data: bytes) -> None:
         if not self.sender.send(addr, data):
             self.send_errors += 1
@@ -473,7 +466,7 @@ class UdpHub:
         """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame), with its arm's
         state from the service's output of this tick (``udp_feedback``), sent keeping the lock."""
         t = self.t or 0.0
-        data = write_feedback(self._fb, s, m.slot, f, self._fields.of(self.t_ns), int(round(t * self.rate_hz)),
+        data = write_feedback(self._fb, s, m.slot, f, self._fields.of(self.service, self.t_ns), int(round(t * self.rate_hz)),
                               (self._base_ns or 0) + int(round(t * 1e9)))
         self._send(s.addr, data)
         self.feedback_sent += 1

@@ -56,6 +56,11 @@ class Session:
         self.rx_ns = 0                   # tick: arrival of the sample it uses (perf_counter ns)
         self.tx_seq = 0
 
+    def next_tx(self) -> int:
+        """The sequence number of the next datagram the service sends in this session."""
+        self.tx_seq += 1
+        return self.tx_seq
+
     def publish(self, seq: int, st: P.State, rx_ns: int) -> None:
         """Receiver: make ``st`` (checked; arrived at ``rx_ns``, perf_counter ns) the session's latest sample."""
         p, q = st.position, st.orientation
