@@ -20,6 +20,7 @@ import struct
 import time
 
 from pointfence.clients import protocol as P
+from pointfence.service.udp_native import Sample
 
 PSK = bytes(range(100, 132))
 
@@ -40,6 +41,7 @@ class Fuzzer:
         second = hello.encode(PSK, 77, 2)
         assert self.hub.handle(second, self.addr) == P.E_OK
         self.session = next(iter(self.hub.sessions.values()))
+        self._sample = Sample()       # the C receiver's copy of the session's sample
         self.master = self.hub.masters[self.session.slot]
         s = self.session
         self.seq = 1
@@ -118,8 +120,9 @@ class Fuzzer:
 
     def sample(self):
         """The session's published sample (what the tick would copy into the master)."""
-        s = self.session
-        return (s.n, tuple(s.s_pos), s.s_flags, s.s_buttons, tuple(s.s_quat), s.s_grasp)
+        s, c = self.session, self._sample
+        n = self.hub.rx.sample(s.slot, s.id, c)
+        return (n, tuple(c.pos), c.flags, c.buttons, tuple(c.quat), c.grasp)
 
     def close(self) -> None:
         self.hub.close()

@@ -1,6 +1,7 @@
-"""Build and load pointfence's compiled tick core (``tick_core.c``).
+"""Build and load pointfence's compiled libraries: the tick core (``tick_core.c``) and the UDP
+receiver (``udp_rx.c``, with the C client's SHA-256 from ``clients/c``).
 
-The library is compiled once with the machine's C compiler (``$CC``, else ``cc``) the first
+Each library is compiled once with the machine's C compiler (``$CC``, else ``cc``) the first
 time it is needed and kept in a cache named after a hash of the source and the flags, so a
 changed source builds again (and the earlier build is removed) and an unchanged one loads at
 once. The cache is ``_build/``
@@ -20,10 +21,15 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import Optional
 
-SOURCE = Path(__file__).with_name("tick_core.c")
+_HERE = Path(__file__).parent
+SOURCE = _HERE / "tick_core.c"
 #: the headers tick_core.c includes (part of the source: hashed with it), found in this folder
-HEADERS = (Path(__file__).with_name("tick_quat.h"), Path(__file__).with_name("proxy_out.h"))
+HEADERS = (_HERE / "tick_quat.h", _HERE / "proxy_out.h")
+#: the C client's folder (``pointfence.clients``' ``c/``: a sibling package in a checkout and
+#: in an installation alike)
+_CLIENT_C = _HERE.parent / "clients" / "c"
 #: -ffp-contract=off: every expression is evaluated as written (no fused multiply-add), so the
 #: results do not depend on the compiler's choices
 CFLAGS = ("-O2", "-fPIC", "-shared", "-std=c99", "-ffp-contract=off", "-fno-fast-math")
@@ -58,11 +64,29 @@ def _compiler() -> str:
     return found
 
 
-def library_path() -> Path:
-    """The compiled library for this source and platform, built now if it is not cached."""
-    src = SOURCE.read_bytes() + b"".join(h.read_bytes() for h in HEADERS)
+class _Lib:
+    """One library: its name, C sources, the headers they include (hashed with them), include
+    folders and linker flags."""
+
+    def __init__(self, name: str, sources, headers, includes, libs):
+        self.name, self.sources, self.headers, self.includes, self.libs = name, sources, headers, includes, libs
+
+
+def _tick_core() -> _Lib:
+    return _Lib("libpf_tick_core", (SOURCE,), HEADERS, (HEADERS[0].parent,), ("-lm",))
+
+
+UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha256.c"),
+              (_CLIENT_C / "include" / "pointfence_client.h",), (_CLIENT_C / "include",), ("-lm", "-pthread"))
+
+
+def library_path(lib: Optional[_Lib] = None) -> Path:
+    """The compiled library (default: the tick core) for its sources and this platform, built
+    now if it is not cached."""
+    lib = lib if lib is not None else _tick_core()
+    src = b"".join(p.read_bytes() for p in (*lib.sources, *lib.headers))
     tag = hashlib.sha256(src + " ".join(CFLAGS).encode() + platform.machine().encode()).hexdigest()[:16]
-    out = _cache_dir() / f"libpf_tick_core-{tag}.so"
+    out = _cache_dir() / f"{lib.name}-{tag}.so"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -70,12 +94,12 @@ def library_path() -> Path:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
-        r = subprocess.run([cc, *CFLAGS, "-I", str(HEADERS[0].parent), "-o", tmp, str(SOURCE), "-lm"],
-                           capture_output=True, text=True)
+        inc = [a for d in lib.includes for a in ("-I", str(d))]
+        r = subprocess.run([cc, *CFLAGS, *inc, "-o", tmp, *map(str, lib.sources), *lib.libs], capture_output=True, text=True)
         if r.returncode != 0:
-            raise NativeBuildError(f"compiling {SOURCE} with {cc} failed (exit {r.returncode}):\n{r.stderr.strip()}")
+            raise NativeBuildError(f"compiling {lib.sources[0]} with {cc} failed (exit {r.returncode}):\n{r.stderr.strip()}")
         os.replace(tmp, out)
-        for old in out.parent.glob("libpf_tick_core-*.so"):     # builds of earlier sources
+        for old in out.parent.glob(f"{lib.name}-*.so"):     # builds of earlier sources
             if old != out:
                 old.unlink(missing_ok=True)
     finally:
@@ -96,6 +120,19 @@ def load() -> ctypes.CDLL:
         raise NativeBuildError(f"loading the tick core {path} failed: {e}; delete it to rebuild") from None
 
 
+def load_udp_rx():
+    """Build (if needed) and load the UDP receiver twice: ``(waiting, held)``. Calls through
+    ``waiting`` (``ctypes.CDLL``) hand the interpreter lock over while they run, for the calls
+    that wait for data; calls through ``held`` (``ctypes.PyDLL``) keep it, for the tick's copy of
+    a sample and the other calls of microseconds."""
+    path = library_path(UDP_RX)
+    try:
+        return ctypes.CDLL(str(path)), ctypes.PyDLL(str(path))
+    except OSError as e:
+        raise NativeBuildError(f"loading the UDP receiver {path} failed: {e}; delete it to rebuild") from None
+
+
 if __name__ == "__main__":      # `python -m pointfence.native.build`: build now, print where
     print(library_path())
+    print(library_path(UDP_RX))
     sys.exit(0)

@@ -62,7 +62,7 @@ def write_feedback(writer: P.FeedbackWriter, s, slot: int, f, fields: tuple, tic
     rx, ry, rz = robots[slot]
     return writer.write(s.key, s.device_id, s.id, s.next_tx(), tick, t_tick_ns, time.perf_counter_ns(), s.seq,
                         s.t_client_ns, fx, fy, fz, px, py, pz, rx, ry, rz, contacts[slot], fixtures[slot], modes[slot],
-                        0, holds[slot], s.error, slot, s.rejected)
+                        0, holds[slot], s.tick_error, slot, s.tick_rejected)
 
 
 __all__ = ["FeedbackFields", "ROBOT_MODES", "write_feedback"]

@@ -11,6 +11,7 @@ import numpy as np
 from pointfence.clients import protocol as P
 
 from .masters import Master
+from .udp_native import BUSY, Sample
 from .udp_session import Session
 
 
@@ -28,6 +29,7 @@ class UdpMaster(Master):
         self.ok = False                  # (no sample yet; orientation and grasp: the base's defaults)
         self.clutch = False
         self.session: Optional[Session] = None
+        self._sample = Sample()          # the tick's copy of the slot's latest sample
 
     def poll(self, t: float) -> None:
         """The tick's read: copy the slot's newest sample (loop time ``t``, s), decide its timeout."""
@@ -39,30 +41,28 @@ class UdpMaster(Master):
             self.ok = False
             self.clutch = False
             return
-        if s.n != s.seen:
-            with s.lock:
-                n = s.n
-                x, y, z = s.s_pos
-                flags = s.s_flags
-                buttons = s.s_buttons
-                qw, qx, qy, qz = s.s_quat
-                grasp = s.s_grasp
-                seq = s.s_seq
-                t_client = s.s_t_client
-                rx_ns = s.s_rx_ns
-            pos = self.position
-            pos[0], pos[1], pos[2] = x, y, z
+        c = self._sample
+        n = hub.rx.sample(self.slot, s.id, c)
+        if n == BUSY:                            # being written: the last copy stands this tick
+            n = s.seen
+        elif n:
+            s.tick_rejected = c.rejected
+            s.tick_error = c.error
+        if n and n != s.seen:
+            pos, q = self.position, c.quat
+            pos[0], pos[1], pos[2] = c.pos
+            flags = c.flags
             self.clutch = bool(flags & P.F_CLUTCH)
-            self.buttons = buttons
+            self.buttons = c.buttons
             if flags & P.F_ORIENTATION:
                 o = self.orientation
-                o[0], o[1], o[2], o[3] = qw, qx, qy, qz
+                o[0], o[1], o[2], o[3] = q[0], q[1], q[2], q[3]
             if flags & P.F_GRASP:
-                self.grasp = grasp
+                self.grasp = c.grasp
             s.seen = n
-            s.seq = seq
-            s.t_client_ns = t_client
-            s.rx_ns = rx_ns
+            s.seq = c.seq
+            s.t_client_ns = c.t_client
+            s.rx_ns = c.rx_ns
             s.last_rx_t = t
             s.has_state = True
         elif s.last_rx_t is None:

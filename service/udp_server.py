@@ -3,19 +3,20 @@
 ``UdpHub`` owns one UDP socket and ``slots`` ``udp_master.UdpMaster`` objects (one per proxy of
 the service). See ``clients/PROTOCOL.md``. Two sides, two threads:
 
-* **The receiver** (a thread of its own, or ``pump()`` called by the owner outside the tick when
-  built with ``receiver=False``) drains the socket without blocking, each datagram with the time
-  the kernel received it (``rx_stamps.StampedReader``; a receive buffer of tens of milliseconds,
-  not seconds), drops floods per source address before any header or tag is read
-  (``udp_ratelimit.SourceLimiter``), answers handshakes and BYEs in arrival order, and of each
-  session's STATEs in the drain checks the newest first (header, window, tag, values): the first
-  one accepted becomes the session's latest sample (a few floats written under the session's
-  own short lock, ``udp_session.Session``); the older ones are checked after it and counted
-  (``superseded`` when authentic), never used. A backlog that queued while the receiver was
-  starved is never handed to the tick in order.
-* **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot under that lock
-  (no socket, no HMAC, no allocation), decides timeouts in loop time, and uses the sample only
-  if it reached the socket no longer than the session's timeout before the tick (else the master
+* **The receiver**, in two parts. A C thread (``udp_native``, ``native/udp_rx.c``) reads the
+  socket with each datagram's kernel arrival time, never taking the interpreter lock. It drops
+  floods per source address before any header is read (token buckets, ``source_rate``) and
+  applies every STATE that names a live session from that session's own address: of each
+  session's STATEs in one read it checks the newest first (window, tag, values) and makes the
+  first one accepted the session's latest sample; the older ones are checked after it and
+  counted (``superseded`` when authentic), never used. A flood, an operator action or a control
+  request that keeps the interpreter busy therefore never delays a device's samples. Every
+  other datagram is queued (bounded) for the hub's Python thread, which limits handshakes per
+  source and answers handshakes and BYEs in arrival order. Built with ``receiver=False`` the
+  owner calls ``pump()`` outside the tick instead, which reads through the same C path.
+* **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot from the C
+  receiver (a seqlock it never waits on; no socket, no HMAC, no allocation), decides timeouts
+  in loop time, and uses the sample only if it reached the socket no longer than the session's timeout before the tick (else the master
   reports ``ok = False``: the arm holds, S9; ``stale_ticks``); it records each sample's age
   (``ages``, status ``state_age_ms``) and sends FEEDBACK (non-blocking ``sendto``).
 
@@ -53,7 +54,8 @@ from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
 from .udp_feedback import FeedbackFields, write_feedback
 from .udp_master import UdpMaster
-from .udp_ratelimit import SourceLimiter, poll_loop
+from .udp_native import NOT_MINE, NativeReceiver
+from .udp_ratelimit import SourceLimiter
 from .udp_session import Session
 
 
@@ -63,12 +65,11 @@ BASE_WINDOW = 1000
 #: the service two MACs and an answer (a flood of replayed HELLOs is dropped before them)
 HELLO_RATE, HELLO_BURST = 20.0, 10.0
 _TYPE_AT = 3       # offset of the message type in the header (magic 2 bytes, version 1 byte)
-#: STATE datagrams a drain holds before it applies them (each session's newest first); a
-#: receive buffer of RCVBUF_BYTES holds fewer
-BATCH = 256
-#: a drain applies what it holds at least this often (s of the receiver's clock): under a flood
-#: that keeps the socket from ever emptying, the newest sample is still published every drain
-DRAIN_S = 0.5e-3
+#: per source address: datagrams/s on average, at once, and the silence after which its bucket
+#: may go to a new source (s)
+SOURCE_RATE, SOURCE_BURST, SOURCE_IDLE_S = 4000.0, 400.0, 10.0
+#: how long the Python receiver waits for a queued datagram before it looks at its stop flag (ms)
+WAIT_MS = 50
 
 
 class UdpHub:
@@ -83,10 +84,10 @@ class UdpHub:
         max_force: the service's force limit, N (the lower of it and the device's is used).
         receiver: run the receiver thread (default); False: the owner calls ``pump()`` itself,
             outside the tick (deterministic tests on a simulated clock).
-        limiter: the per-source rate limiter (default: 4,000 datagrams/s, bursts of 400).
+        source_rate, source_burst: every source address may send this many datagrams/s on
+            average, and at once (the C receiver drops the rest before reading any header).
         rcvbuf_bytes: the socket's receive buffer (default ``rx_stamps.RCVBUF_BYTES``: tens of
             milliseconds of traffic, not seconds).
-        drain_s: a drain applies what it holds at least this often (s; default ``DRAIN_S``).
         max_age_ms: a sample that reached the socket longer than this before the tick is not used
             (the master reports ``ok = False``: its arm holds); default: the session's timeout.
             At most MAX_TIMEOUT_MS. (A run on a simulated clock, whose loop time is not the wall
@@ -95,8 +96,9 @@ class UdpHub:
 
     def __init__(self, psk: bytes, slots: int = 1, host: str = "127.0.0.1", port: int = 0,
                  timeout_ms: int = P.DEFAULT_TIMEOUT_MS, rate_hz: float = 1000.0, max_force: float = 10.0,
-                 receiver: bool = True, limiter: Optional[SourceLimiter] = None, rcvbuf_bytes: int = RCVBUF_BYTES,
-                 drain_s: float = DRAIN_S, max_age_ms: Optional[int] = None):
+                 receiver: bool = True, source_rate: float = SOURCE_RATE,
+                 source_burst: float = SOURCE_BURST, rcvbuf_bytes: int = RCVBUF_BYTES,
+                 max_age_ms: Optional[int] = None):
         self.psk = P.check_key(psk)
         if int(slots) < 1:
             raise InputError(f"slots = {slots}; expected at least one master slot")
@@ -110,7 +112,8 @@ class UdpHub:
         self.max_force = float(max_force)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, int(port)))
-        self.reader = StampedReader(self.sock, rcvbuf_bytes)
+        self.reader = StampedReader(self.sock, rcvbuf_bytes)    # the socket's options (stamps, buffer)
+        self.rx = NativeReceiver(self.sock, int(slots))          # the STATE path (its reads), in C
         self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
         self._fb = P.FeedbackWriter()     # the tick's FEEDBACK, written in place
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
@@ -118,14 +121,11 @@ class UdpHub:
         self.sessions: dict = {}          # session id -> Session
         self.by_device: dict = {}         # device id -> Session
         self.cookies = CookieJar()
-        self.limiter = limiter if limiter is not None else SourceLimiter()
+        self.rx.limits(source_rate, source_burst, SOURCE_IDLE_S)
         #: handshakes per source (a device needs a few; each costs two MACs and an answer)
         self.hello_limiter = SourceLimiter(rate=HELLO_RATE, burst=HELLO_BURST)
         self._lock = threading.Lock()     # session table changes (receiver: open, BYE; tick: timeout)
         self._buf = bytearray(P.MAX_DATAGRAM)
-        self._slots = [bytearray(P.MAX_DATAGRAM) for _ in range(BATCH)]   # a drain's STATE datagrams
-        self.drain_s = float(drain_s)
-        self._pending: dict = {}          # session -> [(seq, slot index, size, address, arrival ns)]
         self.t = None                     # loop time of the last tick
         self.t_ns = 0                     # its start (perf_counter ns): the "now" of the samples' ages
         self.ages = AgeHistogram()        # ages of the samples the ticks used (kernel arrival -> tick)
@@ -133,12 +133,10 @@ class UdpHub:
         self._base_win = [None, None]     # minima of the current and the previous window of ticks
         self._base_n = 0
         self.service = None
-        self.counters = {name: 0 for name in P.ERROR_NAMES.values() if name != "ok"}
-        self.counters["rate_limited"] = 0
-        self.accepted = 0                 # STATE messages accepted
-        self.superseded = 0               # authentic STATEs a newer one of their session beat in the same drain
+        #: rejections counted by this Python side, per reason (``counters`` adds the C receiver's)
+        self._counts = {name: 0 for name in P.ERROR_NAMES.values() if name != "ok"}
+        self._counts["rate_limited"] = 0
         self.stale_ticks = 0              # master reads whose newest sample was older than the timeout
-        self.received = 0                 # datagrams read from the socket
         self.hellos = 0
         self.cookies_sent = 0
         self.sessions_opened = 0
@@ -149,24 +147,54 @@ class UdpHub:
         self.send_errors = 0
         self._stop = threading.Event()
         self._thread = None
-        self.scheduling = "normal"        # the receiver thread's (set_rt_priority)
+        self.scheduling = "normal"        # the receiver threads' (set_rt_priority)
         if receiver:
+            self.rx.start()
             self._thread = threading.Thread(target=self._run, name="pointfence-udp-rx", daemon=True)
             self._thread.start()
+
+    @property
+    def counters(self) -> dict:
+        """Datagrams refused so far, per reason (the C receiver's and this side's)."""
+        rx = self.rx.stats()
+        codes = rx["codes"]
+        out = dict(self._counts)
+        out["rate_limited"] += rx["rate_limited"]
+        for code, n in enumerate(codes):
+            if n:
+                out[P.ERROR_NAMES[code]] += n
+        return out
+
+    @property
+    def accepted(self) -> int:
+        """STATEs accepted as a session's sample."""
+        return self.rx.stats()["accepted"]
+
+    @property
+    def superseded(self) -> int:
+        """Authentic STATEs a newer one of their session beat in the same read."""
+        return self.rx.stats()["superseded"]
+
+    @property
+    def received(self) -> int:
+        """Datagrams read from the socket."""
+        return self.rx.stats()["received"]
 
     @property
     def address(self):
         return self.sock.getsockname()
 
     def set_rt_priority(self, priority: int) -> str:
-        """SCHED_FIFO ``priority`` for the receiver thread where the OS allows it (0: leave it
-        normal; ``runner.LiveRun`` gives it the frame threads'). Every tick reads its samples, and
-        it holds the interpreter lock while it works: at normal priority on a loaded machine it
-        waited for a core most of the time, fell behind the devices (samples tens of
-        milliseconds old, sessions timed out: arms held, S9) and, preempted with the lock, kept
-        the loop waiting. It blocks whenever its socket is empty. Returns what was applied."""
+        """SCHED_FIFO ``priority`` for both receiver threads where the OS allows it (0: leave them
+        normal; ``runner.LiveRun`` gives them the frame threads'). The C thread carries every
+        tick's samples: at normal priority on a loaded machine it would wait for a core behind
+        other processes. The Python thread holds the interpreter lock while it works: preempted
+        with it, it would keep the loop waiting. Both block whenever they have nothing to read.
+        Returns what was applied."""
+        if self.rx.thread_id is not None:
+            self.scheduling = set_fifo(self.rx.thread_id, priority)
         if self._thread is not None and self._thread.is_alive():
-            self.scheduling = set_fifo(self._thread.native_id, priority)
+            set_fifo(self._thread.native_id, priority)
         return self.scheduling
 
     def attach(self, service) -> None:
@@ -176,6 +204,7 @@ class UdpHub:
     def close(self) -> None:
         """Stop the receiver, end every session (BYE) and close the socket."""
         self._stop.set()
+        self.rx.stop()
         if self._thread is not None:
             self._thread.join(2.0)
         if self.sock.fileno() >= 0:
@@ -186,83 +215,42 @@ class UdpHub:
 
     # --- receiver (outside the tick) ------------------------------------------------------------------
     def _run(self) -> None:
-        poll_loop(self.sock, self._stop, self.pump)
+        """The Python receiver thread: the datagrams the C thread queued (the wait hands the lock over)."""
+        buf, nxt = self._buf, self.rx.next
+        while not self._stop.is_set():
+            got = nxt(buf, WAIT_MS)
+            if got is False:
+                return
+            while got:
+                self._apply(buf, got)
+                if self._stop.is_set():
+                    return
+                got = nxt(buf, 0)
 
     def pump(self, limit: int = 4096) -> int:
-        """Drain the waiting datagrams (at most ``limit``) and apply them; returns how many were
-        read. Handshakes and BYEs are applied in arrival order; of each session's STATEs only the
-        newest authentic one is (verified newest first by sequence, ``_resolve``): a backlog that
-        waited in the socket while the receiver was starved is never handed to the tick in order."""
-        self.reader.begin()
-        k, more = 0, True
-        while more and k < limit and not self._stop.is_set():
-            got, more = self._drain(limit - k)
+        """Without the receiver threads: read what waits in the socket (at most ``limit``
+        datagrams) through the C path (STATEs of live sessions applied there, each session's
+        newest first) and handle the rest here; returns how many were read."""
+        buf, nxt, k = self._buf, self.rx.next, 0
+        while k < limit and not self._stop.is_set():
+            got = self.rx.poll(limit - k)
             k += got
-            self._resolve()
+            item = nxt(buf, 0)
+            while item:
+                self._apply(buf, item)
+                item = nxt(buf, 0)
+            if got == 0:
+                break
         return k
 
-    def _drain(self, limit: int):
-        """Read up to ``limit`` datagrams, until BATCH STATEs are held or for DRAIN_S: (read, maybe
-        more wait).
-        Floods are cut per source before any header is read; STATEs that could still be new for a
-        live session are held for ``_resolve``; everything else is handled at once."""
-        slots, read, pending = self._slots, self.reader.read, self._pending
-        allow, hello_allow = self.limiter.allow, self.hello_limiter.allow
-        held = k = 0
-        end = time.monotonic() + self.drain_s
-        while k < limit:
-            if held == len(slots) or self._stop.is_set():
-                return k, True
-            buf = slots[held]
-            got = read(buf)
-            if got is None:
-                return k, False
-            n, addr, rx_ns = got
-            k += 1
-            self.received += 1
-            now = time.monotonic()
-            if now > end:
-                limit = k                             # the last one of this drain
-            typ = buf[_TYPE_AT] if n > _TYPE_AT else -1
-            if not allow(addr, now) or (typ == P.HELLO and not hello_allow(addr, now)):
-                self.counters["rate_limited"] += 1
-                continue
-            view = memoryview(buf)[:n]
-            if typ != P.STATE:
-                self.handle(view, addr, rx_ns)
-                continue
-            session = None
-            try:
-                h = P.parse_header(view)
-                session = self._session_of(h, addr)
-                session.window.check(h.seq)           # replayed or stale: no MAC (RFC 4303 3.4.3)
-                if h.seq <= session.window.top:
-                    raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-            except P.ProtocolError as e:
-                self._count(e, session)
-                continue
-            pending.setdefault(session, []).append((h.seq, held, n, addr, rx_ns))
-            held += 1
-        return k, True
-
-    def _resolve(self) -> None:
-        """Apply the held STATEs: per session, newest first, until one is accepted; the older
-        ones are checked after it (``_older``: a forgery is counted as any other) and never used."""
-        slots = self._slots
-        for session, held in self._pending.items():
-            held.sort(key=lambda c: c[0], reverse=True)
-            live = self.sessions.get(session.id) is session      # (a BYE in the same drain ends it)
-            for seq, i, n, addr, rx_ns in held:
-                try:
-                    if not live:
-                        raise P.ProtocolError(P.E_NO_SESSION)
-                    if seq < session.window.top:           # below the sample accepted just now
-                        self._older(session, seq, memoryview(slots[i])[:n])
-                        continue
-                    self._state(session, seq, memoryview(slots[i])[:n], addr, rx_ns)
-                except P.ProtocolError as e:
-                    self._count(e, session if live else None)
-        self._pending.clear()
+    def _apply(self, buf, got) -> None:
+        """One queued datagram (``got``: size, address, arrival; the C receiver already applied the
+        per-source rate limit): handshakes limited per source, then handled in arrival order."""
+        n, addr, rx_ns = got
+        if n > _TYPE_AT and buf[_TYPE_AT] == P.HELLO and not self.hello_limiter.allow(addr, time.monotonic()):
+            self._counts["rate_limited"] += 1
+            return
+        self.handle(memoryview(buf)[:n], addr, rx_ns)
 
     def handle(self, data, addr, rx_ns: Optional[int] = None) -> int:
         """Check and apply one datagram from ``addr`` (arrived at ``rx_ns``, perf_counter ns;
@@ -271,10 +259,12 @@ class UdpHub:
         try:
             h = P.parse_header(data)
             typ = h.type
-            if typ == P.STATE:
-                session = self._session_of(h, addr)
-                self._state(session, h.seq, data, addr, time.perf_counter_ns() if rx_ns is None else rx_ns)
-                return P.E_OK
+            if typ == P.STATE:      # a live session's own: the C receiver applies and counts it
+                code = self.rx.feed(data, addr, time.perf_counter_ns() if rx_ns is None else rx_ns)
+                if code != NOT_MINE:
+                    return code
+                session = self._session_of(h, addr)     # (raises: no session of this address)
+                raise P.ProtocolError(P.E_NO_SESSION, "no such session for this device and address")
             if typ == P.HELLO:
                 P.verify(data, self.psk)
                 try:
@@ -308,44 +298,11 @@ class UdpHub:
             raise P.ProtocolError(P.E_NO_SESSION, "no such session for this device and address")
         return session
 
-    def _state(self, session: Session, seq: int, data, addr, rx_ns: int) -> None:
-        """Check one STATE of ``session`` and make it the session's sample; raises ProtocolError."""
-        # the anti-replay window first (RFC 4303 3.4.3): a replayed or stale datagram costs no
-        # MAC, nor does one older than the newest sample (it could never be used); the window
-        # only moves once the MAC has been verified (commit below)
-        session.window.check(seq)
-        if seq <= session.window.top:
-            raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-        P.verify(data, session.key)
-        st = P.State.decode(data, session.workspace)
-        if not session.window.commit(seq):
-            raise P.ProtocolError(P.E_STALE, "older than the newest sample")
-        session.publish(seq, st, rx_ns)
-        session.proven = True
-        session.accepted += 1
-        self.accepted += 1
-
-    def _older(self, session: Session, seq: int, data) -> None:
-        """A STATE older than the one its drain just accepted (it was new when the drain began):
-        checked as any other (tag, values; a replay inside the window; raises ProtocolError) and
-        recorded in the window where it still fits, but never used: ``superseded``. (The sample
-        is published before these MACs are computed.)"""
-        w = session.window
-        inside = w.top - seq < w.size
-        if inside:
-            w.check(seq)
-        P.verify(data, session.key)
-        P.State.decode(data, session.workspace)
-        if inside:
-            w.commit(seq)
-        self.superseded += 1
-
     def _count(self, e: P.ProtocolError, session: Optional[Session]) -> None:
         """A rejected datagram: counted per reason, and against its session if it named a live one."""
-        self.counters[P.ERROR_NAMES[e.code]] += 1
+        self._counts[P.ERROR_NAMES[e.code]] += 1
         if session is not None:
-            session.rejected += 1
-            session.error = e.code
+            self.rx.note(session.slot, session.id, e.code)
 
     def _hello(self, h, hello: P.Hello, addr) -> None:
         self.hellos += 1
@@ -406,9 +363,10 @@ class UdpHub:
         server_nonce = os.urandom(16)
         key = P.session_key(self.psk, hello.nonce, server_nonce, dev, sid)
         tmo = min(hello.timeout_ms or self.timeout_ms, self.timeout_ms)
-        s = Session(sid, dev, slot, key, addr, hello, tmo / 1000.0, min(hello.max_force, self.max_force), now)
+        s = Session(sid, dev, slot, key, addr, hello, tmo / 1000.0, min(hello.max_force, self.max_force), now, self.rx)
         if self.max_age_ms is not None:
             s.max_age_ns = self.max_age_ms * 1_000_000
+        self.rx.open(slot, sid, dev, key, addr, hello.workspace_min, hello.workspace_max)   # before WELCOME
         self.sessions[sid] = s
         self.by_device[dev] = s
         self.masters[slot].session = s
@@ -433,6 +391,7 @@ class UdpHub:
         m = self.masters[s.slot]
         if m.session is s:
             m.session = None
+        self.rx.close(s.slot, s.id)
 
     # --- the tick ------------------------------------------------------------------------------------
     def tick(self, t: float) -> None:
@@ -454,7 +413,7 @@ class UdpHub:
 
     def drop(self, s: Session) -> None:
         """The tick: session ``s`` was silent longer than its timeout (loop time)."""
-        self.counters["timeout"] += 1
+        self._counts["timeout"] += 1
         self.sessions_dropped += 1
         self._end(s)
 
@@ -473,6 +432,7 @@ class UdpHub:
 
     # --- status -------------------------------------------------------------------------------------
     def status(self) -> dict:
+        rx, counters = self.rx.stats(), self.counters
         return {
             "address": list(self.address) if self.sock.fileno() >= 0 else None,
             "slots": len(self.masters),
@@ -480,15 +440,16 @@ class UdpHub:
                           "proven": s.proven, "accepted": s.accepted, "rejected": s.rejected,
                           "timeout_ms": round(s.timeout_s * 1000)}
                          for s in list(self.sessions.values())],
-            "accepted": self.accepted, "received": self.received, "hellos": self.hellos,
+            "accepted": rx["accepted"], "received": rx["received"], "hellos": self.hellos,
             "cookies_sent": self.cookies_sent, "sessions_opened": self.sessions_opened,
             "sessions_timed_out": self.sessions_dropped, "sessions_closed": self.sessions_closed,
             "sessions_displaced": self.sessions_displaced, "feedback_sent": self.feedback_sent,
             "send_errors": self.send_errors, "receiver": "thread" if self._thread is not None else "pump",
             "receiver_scheduling": self.scheduling,
-            "rate_limited_sources": len(self.limiter), "rate_limit_overflow": self.limiter.overflowed,
-            "rejected": dict(self.counters), "rejected_total": sum(v for k, v in self.counters.items() if k != "timeout"),
-            "superseded": self.superseded, "stale_ticks": self.stale_ticks, "kernel_dropped": self.reader.dropped,
+            "rate_limited_sources": rx["sources"], "rate_limit_overflow": rx["overflowed"],
+            "rejected": counters, "rejected_total": sum(v for k, v in counters.items() if k != "timeout"),
+            "superseded": rx["superseded"], "stale_ticks": self.stale_ticks, "kernel_dropped": rx["kernel_dropped"],
+            "queue_dropped": rx["queue_dropped"],
             "rcvbuf_bytes": self.reader.rcvbuf if self.sock.fileno() >= 0 else None,
             "state_age_ms": self.ages.summary(),
         }

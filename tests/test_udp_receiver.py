@@ -39,7 +39,7 @@ def test_a_backlog_queued_while_the_receiver_was_paused_gives_the_tick_only_its_
     one drain accepts the newest authentic one only (the forgery fails its tag; the 99 older
     ones are checked after it and superseded: never used, no error against the session). Before:
     all 100 were accepted one after the other, each in turn the sample a tick would read."""
-    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000, drain_s=5.0)    # one drain, however loaded the machine
+    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000)
     try:
         c = connected(hub, 1000)
         for k in range(1, 101):
@@ -93,20 +93,20 @@ def test_a_sample_older_than_the_timeout_holds_the_arm_and_a_fresh_one_resumes()
 
 
 def test_a_forged_flood_on_a_starved_receiver_never_makes_the_genuine_sample_old(monkeypatch):
-    """The receiver is slowed to >= 50 us a datagram (a starved CPU: it drains fewer than the
-    ~20,000 forged datagrams/s one source floods) while the genuine device sends at 1 kHz: every
-    sample a tick uses was sent less than the timeout (100 ms) before it. Before: the socket's
-    4 MiB buffer queued seconds of flood and the ticks used samples seconds old."""
+    """The hub's Python is slowed to >= 50 us a datagram (a starved CPU: it handles fewer than
+    the ~20,000 forged datagrams/s one source floods) while the genuine device sends at 1 kHz:
+    every sample a tick uses was sent less than the timeout (100 ms) before it. Before: the
+    socket's 4 MiB buffer queued seconds of flood and the ticks used samples seconds old."""
     hub = UdpHub(KEY, 1, timeout_ms=100)
-    real_allow = hub.limiter.allow
+    real_handle = hub.handle
 
-    def slow_allow(addr, now):
+    def slow_handle(data, addr, rx_ns=None):
         end = time.perf_counter() + 50e-6
         while time.perf_counter() < end:
             pass
-        return real_allow(addr, now)
+        return real_handle(data, addr, rx_ns)
 
-    monkeypatch.setattr(hub.limiter, "allow", slow_allow)
+    monkeypatch.setattr(hub, "handle", slow_handle)
     stop = threading.Event()
     ages, ticks = [], [0, 0]
     proc = None
@@ -160,19 +160,47 @@ def test_a_forged_flood_on_a_starved_receiver_never_makes_the_genuine_sample_old
         hub.close()
 
 
-def test_a_drain_that_never_finds_the_socket_empty_still_publishes_every_drain_s():
-    """A flood that keeps the socket from ever emptying must not hold the genuine sample back
-    until the drain's limit (4,096 datagrams: 200 ms of a 20,000/s flood): a drain applies what
-    it holds every ``drain_s``. Here a drain of 0 s applies after each datagram read."""
-    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000, drain_s=0.0)
+_SENDER = """
+import socket, sys, time
+from pointfence.clients import protocol as P
+fd, key, dev, sid, seq0, n = int(sys.argv[1]), bytes.fromhex(sys.argv[2]), *map(int, sys.argv[3:7])
+sock = socket.socket(fileno=fd)
+sys.stdin.readline()
+for k in range(1, n + 1):
+    sock.send(P.State(time.perf_counter_ns(), 0, (0.0001 * k, 0.0, 0.0)).encode(key, dev, sid, seq0 + k))
+    time.sleep(0.001)
+"""
+
+
+def test_a_device_s_samples_reach_the_tick_while_the_interpreter_is_held():
+    """The receiver applies STATEs without the interpreter lock: while this process's interpreter
+    is held for 400 ms (a flood, a control request, a long Python call elsewhere), a device that
+    sends 200 samples from another process has them accepted as they arrive, and the tick then
+    reads the newest. Before, the receiver waited for the lock: nothing was accepted during the
+    hold, and the backlog gave one sample afterwards."""
+    import ctypes
+    import ctypes.util
+
+    hub = UdpHub(KEY, 1, timeout_ms=1000)
+    held = ctypes.PyDLL(ctypes.util.find_library("c") or "libc.so.6").usleep     # keeps the lock while it sleeps
     try:
-        c = connected(hub, 1000)
-        for k in range(1, 11):
-            c.send_state((0.001 * k, 0.0, 0.0))
-        hub.pump()
+        c = Client(*hub.address, KEY, DEV, timeout_ms=1000)
+        c.connect()
         s = hub.sessions[c.session]
-        assert s.accepted == 10 and hub.superseded == 0
-        c.close()
+        proc = subprocess.Popen([sys.executable, "-c", _SENDER, str(c.sock.fileno()), c.key.hex(), str(DEV),
+                                 str(c.session), str(c.seq), "200"], stdin=subprocess.PIPE, pass_fds=[c.sock.fileno()])
+        before = hub.accepted
+        proc.stdin.write(b"go\n")
+        proc.stdin.flush()
+        held(400_000)
+        during = hub.accepted - before
+        assert proc.wait(30) == 0
+        time.sleep(0.05)
+        m = hub.masters[s.slot]
+        m.poll(1.0)
+        assert during >= 50, f"{during} samples accepted while the interpreter was held"
+        assert m.ok and abs(m.position[0] - 0.02) < 1e-12 and s.seq == c.seq + 200
+        assert s.rejected == 0 and hub.status()["queue_dropped"] == 0
     finally:
         hub.close()
 
