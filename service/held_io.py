@@ -7,11 +7,13 @@ both sides:
 
 * the tick's FEEDBACK send (``UdpHub.send_feedback``): the tick hands the lock to whichever
   thread wants it and waits to get it back, up to that thread's switch interval;
-* the UDP receiver's reads (``rx_stamps.StampedReader``): each read of a queued datagram hands
-  the lock to the waiting tick, and the receiver waits for the tick to end before it reads the
-  next one. On two loaded cores it read about one datagram per tick gap, fell behind two 1 kHz
-  devices, and the kernel dropped what its receive buffer could not hold: the samples the ticks
-  used were tens of milliseconds old and the sessions timed out (arms held, S9).
+* a Python receiver's reads (``rx_stamps.StampedReader``, the ITP adapter's): each read of a
+  queued datagram hands the lock to the waiting tick, and the receiver waits for the tick to end
+  before it reads the next one. On two loaded cores the UDP hub's Python receiver read about one
+  datagram per tick gap, fell behind two 1 kHz devices, and the kernel dropped what its receive
+  buffer could not hold: the samples the ticks used were tens of milliseconds old and the
+  sessions timed out (arms held, S9). (The hub's STATEs are now read by a C thread that never
+  takes the lock: ``udp_native``.)
 
 Here the same calls go through the C library loaded as ``ctypes.PyDLL``, whose calls keep the
 lock, with ``MSG_DONTWAIT``: they never block, so keeping the lock costs no other thread more
