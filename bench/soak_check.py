@@ -209,10 +209,14 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, robot_watchdog_s, ou
             elif not (rec.arm_hold[h:end, b] & bit).all():
                 fails.append(("S3", f"{fault.name}: arm {b} came back before the fault was cleared (not latched)"))
         if b == 0:
+            # the force is zero by the first tick the loop ran once force_ramp_s (and one tick of
+            # rounding) had passed: periods the machine did not run the loop are its misses
+            # (loop_miss_ratio), as for the hold's latency above
             zero = np.flatnonzero(rec.force0[h:] == 0.0)
             ramp = (rec.k[h + int(zero[0])] - rec.k[h]) * ms if len(zero) else None
             out["force_zero_after_ms"] = ramp
-            if ramp is None or ramp > force_ramp_s * 1e3 + ms:
+            due = rec.at(rec.k[h] + int(round(force_ramp_s * 1e3 / ms)) + 1)
+            if ramp is None or h + int(zero[0]) > due:
                 fails.append(("S3", f"{fault.name}: force not zero within force_ramp_s ({ramp} ms)"))
     out["hold_latency_ms"] = latency
     out["robot_motion_during_hold_mm"] = round(motion * 1e3, 4)

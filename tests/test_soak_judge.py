@@ -59,6 +59,30 @@ def test_every_way_to_break_a_fault_contract_is_named():
     assert any("did not recover" in what for _, what in v["failures"])
 
 
+def test_a_ramp_is_judged_on_the_ticks_the_loop_ran():
+    """The machine did not run the loop for 12 periods at the end of a 50 ms ramp (a hypervisor
+    stall): the force is zero at the first tick run after force_ramp_s, so the ramp kept its
+    contract (the stall is the loop's misses). A ramp still above zero at that tick fails."""
+    keep = np.ones(N, bool)
+    keep[147:159] = False                       # periods 147..158 not run
+    for ramp, ok in ((47, True), (62, False)):
+        holds = np.zeros((N, 3))
+        holds[100:400, 1:] = KERNEL
+        rows = np.zeros((N, 22))
+        rows[:, 0] = np.arange(N) * 1e-3
+        rows[:100, 18] = 2.0
+        rows[100:100 + ramp, 18] = np.linspace(2.0, 0.0, ramp, endpoint=False) + 0.01
+        inputs = np.zeros((N, 8))
+        inputs[:, 0] = np.arange(N)
+        inputs[:, 4:7] = (3, 1, 1)
+        gap = recording(holds=holds[keep], rows=rows[keep], inputs=inputs[keep], masters=np.ones((keep.sum(), 2, 5)),
+                        robots=np.zeros((keep.sum(), 2, 6)))
+        v = judge(FAULTS["kernel_exception"], Event("kernel_exception", 100, 300, 400, 410), gap, 0.5, 0.05)
+        failed = [what for _, what in v["failures"] if "force not zero" in what]
+        assert (failed == []) == ok, (ramp, v)
+        assert v["force_zero_after_ms"] == (59.0 if ramp == 47 else 62.0)
+
+
 def test_a_frame_fault_is_timed_from_the_tick_the_frames_became_too_old():
     inputs = np.zeros((N, 8))
     inputs[:, 0] = np.arange(N)
