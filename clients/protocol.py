@@ -135,19 +135,6 @@ def tag(key: bytes, body) -> bytes:
     return hmac.digest(key, body, "sha256")[:TAG_LEN]
 
 
-class KeyTag:
-    """``tag(key, body)`` for one ``key``, from its HMAC-SHA-256 state computed once (a datagram
-    then costs the hash of its body alone)."""
-
-    def __init__(self, key: bytes):
-        self._mac = hmac.new(key, digestmod="sha256")
-
-    def __call__(self, body) -> bytes:
-        mac = self._mac.copy()
-        mac.update(body)
-        return mac.digest()[:TAG_LEN]
-
-
 # --- header --------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Header:
@@ -410,40 +397,6 @@ class Feedback:
         _finite(v[5:14], "FEEDBACK value")
         return cls(v[0], v[1], v[2], v[3], v[4], v[5:8], v[8:11], v[11:14], v[14], v[15], v[16], v[17], v[18],
                    v[19], v[20], v[21])
-
-
-class FeedbackWriter:
-    """FEEDBACK datagrams written into one buffer made once (``buf``): the bytes of
-    ``Feedback(...).encode(...)`` without the message object, its tuples and the concatenations
-    (the service's tick sends one per arm and tick). Header and payload are packed in one call,
-    and each session key's tag is a ``KeyTag`` (up to ``KEYS`` keys are kept). Each ``write`` overwrites the last; send it before the next."""
-
-    #: session keys whose HMAC state is kept (a service has one session per master)
-    KEYS = 64
-    _BODY = struct.Struct(HEADER.format + P_FEEDBACK.format[1:])     # both little-endian, unpadded
-
-    def __init__(self):
-        self.buf = bytearray(SIZES[FEEDBACK])
-        self._body = memoryview(self.buf)[:-TAG_LEN]
-        self._tags: dict = {}            # session key -> its KeyTag
-
-    def write(self, skey: bytes, device_id: int, session: int, seq: int, tick: int, t_tick_ns: int, t_sent_ns: int,
-              echo_seq: int, echo_t_client_ns: int, fx: float, fy: float, fz: float, px: float, py: float, pz: float,
-              rx: float, ry: float, rz: float, contact: int, fixture: int, robot_mode: int, link: int, hold: int,
-              error: int, slot: int, rejected: int) -> bytearray:
-        """The datagram (``buf``): force (N), proxy and robot (m, world) as ``Feedback``'s fields."""
-        M, buf = 0xFFFFFFFFFFFFFFFF, self.buf
-        self._BODY.pack_into(buf, 0, MAGIC, VERSION, FEEDBACK, device_id & 0xFFFFFFFF, session & 0xFFFFFFFF, seq & M, 0,
-                             tick & M, t_tick_ns & M, t_sent_ns & M, echo_seq & M, echo_t_client_ns & M,
-                             fx, fy, fz, px, py, pz, rx, ry, rz, contact, fixture, robot_mode, link, hold & 0xFFFFFFFF,
-                             error, slot, rejected & 0xFFFFFFFF, 0)
-        sign = self._tags.get(skey)
-        if sign is None:
-            if len(self._tags) >= self.KEYS:
-                self._tags.clear()
-            sign = self._tags[skey] = KeyTag(skey)
-        buf[-TAG_LEN:] = sign(self._body)
-        return buf
 
 
 @dataclass

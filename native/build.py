@@ -1,5 +1,5 @@
 """Build and load pointfence's compiled libraries: the tick core (``tick_core.c``) and the UDP
-receiver (``udp_rx.c``, with the C client's SHA-256 from ``clients/c``).
+receiver (``udp_rx.c``, with the C client's SHA-256 and codec from ``clients/c``).
 
 Each library is compiled once with the machine's C compiler (``$CC``, else ``cc``) the first
 time it is needed and kept in a cache named after a hash of the source and the flags, so a
@@ -76,8 +76,9 @@ def _tick_core() -> _Lib:
     return _Lib("libpf_tick_core", (SOURCE,), HEADERS, (HEADERS[0].parent,), ("-lm",))
 
 
-UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha256.c"),
-              (_CLIENT_C / "include" / "pointfence_client.h",), (_CLIENT_C / "include",), ("-lm", "-pthread"))
+UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha256.c", _CLIENT_C / "src" / "pf_protocol.c"),
+              (_HERE / "udp_rx_session.h", _CLIENT_C / "include" / "pointfence_client.h"), (_HERE, _CLIENT_C / "include"),
+              ("-lm", "-pthread"))
 
 
 def library_path(lib: Optional[_Lib] = None) -> Path:

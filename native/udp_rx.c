@@ -9,16 +9,15 @@
  * names a live session from that session's own address: window, tag (HMAC-SHA256 truncated to
  * 16 bytes), values, then the session's latest sample (a seqlock the tick reads without
  * waiting). Within one read batch each session's STATEs are taken newest first; the older ones
- * are checked after it and counted as superseded, never used (as the Python drain did).
- * Everything else (handshakes, BYEs, datagrams from elsewhere, malformed ones) is queued for
- * the hub's Python thread, which rate-limits, answers and counts them as before; the queue is
- * bounded (a full queue drops the newest, counted).
+ * are checked after it and counted as superseded, never used (as the Python drain did). Before
+ * any of that, every source address has a token bucket: a flood is dropped before its header is
+ * read. Everything else (handshakes, BYEs, datagrams from elsewhere, malformed ones) is queued
+ * for the hub's Python thread, which answers and counts them; the queue is bounded (a full
+ * queue drops the newest, counted). The tick also sends each session's FEEDBACK through here
+ * (pf_rx_feedback: the session's key and address, copied without waiting).
  *
- * Layout of a STATE (clients/PROTOCOL.md; little-endian): header magic "PF" @0, version u8 @2,
- * type u8 @3, device u32 @4, session u32 @8, seq u64 @12, reserved u32 @20; payload t_client
- * u64 @24, t_echo u64 @32, position 3 f64 @40 (m), increment 3 f64 @64 (m), quaternion w x y z
- * 4 f64 @88, grasp f64 @120, buttons u32 @128, flags u16 @132, reserved u16 @134; tag @136..152.
- * Addresses are IPv4, host byte order. Times are CLOCK_MONOTONIC ns (Python's perf_counter_ns).
+ * The checks of one session's STATE are in udp_rx_session.h. Addresses are IPv4, host byte
+ * order. Times are CLOCK_MONOTONIC ns (Python's perf_counter_ns).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -35,32 +34,12 @@
 #include <unistd.h>
 
 #include "pointfence_client.h"
-
-/* protocol constants beyond the C client's header (clients/protocol.py) */
-#define PF_BODY (PF_STATE_SIZE - PF_TAG_LEN)   /* bytes under the tag */
-#define PF_FLAG_MASK 0x7u
-#define PF_WS_MARGIN 0.001          /* WORKSPACE_MARGIN_M */
-#define PF_QUAT_TOL 1e-3
-#define N_CODES (PF_E_COOKIE + 1)
+#include "udp_rx_session.h"
 
 #define BATCH 256                   /* datagrams per recvmmsg: more than the receive buffer holds */
 #define NOT_MINE (-1)
-
-typedef struct {
-    /* the session (set by pf_rx_open under the mutex) */
-    uint32_t live, sid, dev, ip, port;
-    pf_sha256_ctx ictx, octx;       /* HMAC key pads, hashed once per session */
-    double ws_lo[3], ws_hi[3];
-    uint64_t top, bits;             /* anti-replay window (RFC 4303 3.4.3), under the mutex */
-    uint64_t accepted, rejected, superseded;
-    int32_t error, proven;
-    /* the latest sample: seqlock (odd while written) */
-    uint64_t sl;
-    uint64_t n, seq, t_client;
-    int64_t rx_ns;
-    double pos[3], quat[4], grasp;
-    uint32_t flags, buttons;
-} slot_t;
+#define PF_RX_BUSY UINT64_MAX       /* pf_rx_sample: the sample was being written each time */
+#define PF_RX_TRIES 16              /* seqlock reads the tick tries before it gives up */
 
 /* what the tick copies (service/udp_native.py mirrors it) */
 typedef struct {
@@ -112,11 +91,6 @@ typedef struct {
     uint8_t ctl[BATCH][64];
     int64_t arrival[BATCH];         /* perf_counter ns */
 } pf_rx;
-
-static uint64_t rd64(const uint8_t *p) { uint64_t v; memcpy(&v, p, 8); return v; }
-static uint32_t rd32(const uint8_t *p) { uint32_t v; memcpy(&v, p, 4); return v; }
-static uint16_t rd16(const uint8_t *p) { uint16_t v; memcpy(&v, p, 2); return v; }
-static double rdf(const uint8_t *p) { double v; memcpy(&v, p, 8); return v; }
 
 static int64_t clock_ns(clockid_t c) {
     struct timespec ts;
@@ -189,9 +163,10 @@ pf_rx *pf_rx_new(int fd, int nslots, int cap) {
 }
 
 /* slot ``k`` now holds session ``sid`` of device ``dev`` from ip:port (host order); key: the
- * session key; ws: workspace min x y z, max x y z (m). Its window, sample and counts start anew. */
+ * session key; ws: workspace min x y z, max x y z (m); max_force: N. Its window, sample, counts
+ * and sequence numbers start anew. */
 void pf_rx_open(pf_rx *r, int k, uint32_t sid, uint32_t dev, const uint8_t *key, int keylen, uint32_t ip,
-                uint32_t port, const double *ws) {
+                uint32_t port, const double *ws, double max_force) {
     uint8_t kb[64], pad[64];
     slot_t *s;
     int i;
@@ -203,6 +178,8 @@ void pf_rx_open(pf_rx *r, int k, uint32_t sid, uint32_t dev, const uint8_t *key,
     __atomic_store_n(&s->sl, s->sl + 1, __ATOMIC_RELEASE);     /* odd: the tick keeps its last copy */
     __atomic_store_n(&s->live, 0, __ATOMIC_RELEASE);
     s->sid = sid; s->dev = dev; s->ip = ip; s->port = port;
+    memcpy(s->key, kb, sizeof s->key); s->keylen = keylen;
+    s->max_force = max_force; s->tx = 0;
     for (i = 0; i < 64; i++) pad[i] = (uint8_t)(kb[i] ^ 0x36);
     pf_sha256_init(&s->ictx); pf_sha256_update(&s->ictx, pad, 64);
     for (i = 0; i < 64; i++) pad[i] = (uint8_t)(kb[i] ^ 0x5c);
@@ -240,27 +217,6 @@ static slot_t *held(pf_rx *r, int k, uint32_t sid) {
     return &r->slots[k];
 }
 
-static int window_check(const slot_t *s, uint64_t seq) {
-    uint64_t d;
-    if (seq == 0) return PF_E_STALE;
-    if (seq > s->top) return PF_OK;
-    d = s->top - seq;
-    if (d >= PF_WINDOW) return PF_E_STALE;
-    if (s->bits >> d & 1u) return PF_E_REPLAY;
-    return PF_OK;
-}
-
-static int window_commit(slot_t *s, uint64_t seq) {
-    if (seq > s->top) {
-        uint64_t shift = seq - s->top;
-        s->bits = shift < 64 ? (s->bits << shift) | 1u : 1u;
-        s->top = seq;
-        return 1;
-    }
-    s->bits |= (uint64_t)1 << (s->top - seq);
-    return 0;
-}
-
 /* The hub's BYE: check (commit 0) or record (commit 1) ``seq`` in the window of the session
  * ``sid`` on slot ``k``; returns an E_* code (PF_E_NO_SESSION if the slot holds another). */
 int pf_rx_window(pf_rx *r, int k, uint32_t sid, uint64_t seq, int commit) {
@@ -286,58 +242,6 @@ void pf_rx_note(pf_rx *r, int k, uint32_t sid, int code) {
     s = held(r, k, sid);
     if (s != NULL) { s->rejected += 1; s->error = code; }
     pthread_mutex_unlock(&r->mu);
-}
-
-/* --- one STATE ------------------------------------------------------------------------------ */
-
-static int tag_ok(const slot_t *s, const uint8_t *d) {
-    pf_sha256_ctx c;
-    uint8_t inner[32], mac[32];
-    unsigned diff = 0;
-    int i;
-    c = s->ictx; pf_sha256_update(&c, d, PF_BODY); pf_sha256_final(&c, inner);
-    c = s->octx; pf_sha256_update(&c, inner, 32); pf_sha256_final(&c, mac);
-    for (i = 0; i < PF_TAG_LEN; i++) diff |= (unsigned)(mac[i] ^ d[PF_BODY + i]);
-    return diff == 0;
-}
-
-/* the value checks of protocol.State.decode and check_state_values */
-static int values_ok(const slot_t *s, const uint8_t *d) {
-    double v[11], nq;
-    uint32_t flags = rd16(d + 132);
-    int i;
-    if (rd16(d + 134) != 0 || (flags & ~PF_FLAG_MASK)) return PF_E_MALFORMED;
-    for (i = 0; i < 11; i++) {
-        v[i] = rdf(d + 40 + 8 * i);
-        if (!isfinite(v[i])) return PF_E_NON_FINITE;
-    }
-    for (i = 0; i < 3; i++) {
-        if (!(s->ws_lo[i] - PF_WS_MARGIN <= v[i] && v[i] <= s->ws_hi[i] + PF_WS_MARGIN)) return PF_E_WORKSPACE;
-        if (fabs(v[3 + i]) > s->ws_hi[i] - s->ws_lo[i] + 2 * PF_WS_MARGIN) return PF_E_WORKSPACE;
-    }
-    if (flags & PF_F_ORIENTATION) {
-        nq = sqrt(v[6] * v[6] + v[7] * v[7] + v[8] * v[8] + v[9] * v[9]);
-        if (fabs(nq - 1.0) > PF_QUAT_TOL) return PF_E_WORKSPACE;
-    }
-    return PF_OK;
-}
-
-static void publish(slot_t *s, const uint8_t *d, int64_t rx_ns) {
-    uint32_t flags = rd16(d + 132);
-    int i;
-    __atomic_store_n(&s->sl, s->sl + 1, __ATOMIC_RELAXED);
-    __atomic_thread_fence(__ATOMIC_RELEASE);
-    s->seq = rd64(d + 12);
-    for (i = 0; i < 3; i++) s->pos[i] = rdf(d + 40 + 8 * i);
-    if (flags & PF_F_ORIENTATION) for (i = 0; i < 4; i++) s->quat[i] = rdf(d + 88 + 8 * i);
-    if (flags & PF_F_GRASP) s->grasp = rdf(d + 120);
-    s->flags = flags;
-    s->buttons = rd32(d + 128);
-    s->t_client = rd64(d + 24);
-    s->rx_ns = rx_ns;
-    s->n += 1;
-    __atomic_thread_fence(__ATOMIC_RELEASE);
-    __atomic_store_n(&s->sl, s->sl + 1, __ATOMIC_RELEASE);
 }
 
 /* Check one STATE of ``s`` (the mutex held). newest: it may become the sample (else it is older
@@ -565,8 +469,6 @@ void pf_rx_free(pf_rx *r) {
  * published so far (0: none, or another session), or PF_RX_BUSY: the sample was being written
  * each time it looked (keep the last copy). It never waits for the writer: the receiver may be
  * preempted mid-write by the very thread that reads. */
-#define PF_RX_BUSY UINT64_MAX
-#define PF_RX_TRIES 16
 uint64_t pf_rx_sample(pf_rx *r, int k, uint32_t sid, pf_rx_sample_t *out) {
     slot_t *s;
     uint64_t a, b;
@@ -592,6 +494,61 @@ uint64_t pf_rx_sample(pf_rx *r, int k, uint32_t sid, pf_rx_sample_t *out) {
         if (a == b) return out->n;
     }
     return PF_RX_BUSY;
+}
+
+/* The session's next outgoing sequence number (its FEEDBACKs and the service's BYE), or 0 if
+ * slot k holds another session. */
+uint64_t pf_rx_next_tx(pf_rx *r, int k, uint32_t sid) {
+    slot_t *s;
+    uint64_t seq = 0;
+    pthread_mutex_lock(&r->mu);
+    s = held(r, k, sid);
+    if (s != NULL) seq = __atomic_add_fetch(&s->tx, 1, __ATOMIC_RELAXED);
+    pthread_mutex_unlock(&r->mu);
+    return seq;
+}
+
+/* The tick: FEEDBACK ``m`` to session ``sid`` on slot k, its force saturated at the session's
+ * limit (zero if not finite), stamped (t_sent_ns, perf_counter ns), tagged and sent without
+ * blocking. Never waits for the receiver (the slot's key and address are copied under its
+ * seqlock). Returns 1 sent, 0 the send failed, -1 no such session (or it was being replaced). */
+int pf_rx_feedback(pf_rx *r, int k, uint32_t sid, pf_feedback *m) {
+    slot_t *s;
+    uint8_t key[PF_KEY_MAX], out[PF_FEEDBACK_SIZE];
+    uint32_t dev = 0, ip = 0, port = 0, live = 0, ssid = 0;
+    int32_t keylen = 0;
+    double mf = 0.0, n2;
+    uint64_t a, b;
+    struct sockaddr_in to;
+    size_t n;
+    int i, got = 0;
+    if (k < 0 || k >= r->nslots) return -1;
+    s = &r->slots[k];
+    for (i = 0; i < PF_RX_TRIES && !got; i++) {
+        a = __atomic_load_n(&s->sl, __ATOMIC_ACQUIRE);
+        if (a & 1u) continue;
+        live = s->live; ssid = s->sid; dev = s->dev; ip = s->ip; port = s->port;
+        keylen = s->keylen; mf = s->max_force;
+        memcpy(key, s->key, sizeof key);
+        __atomic_thread_fence(__ATOMIC_ACQUIRE);
+        b = __atomic_load_n(&s->sl, __ATOMIC_RELAXED);
+        got = a == b;
+    }
+    if (!got || !live || ssid != sid) return -1;
+    if (!(isfinite(m->force[0]) && isfinite(m->force[1]) && isfinite(m->force[2])))
+        m->force[0] = m->force[1] = m->force[2] = 0.0;
+    n2 = m->force[0] * m->force[0] + m->force[1] * m->force[1] + m->force[2] * m->force[2];
+    if (n2 > mf * mf) {
+        double c = mf / sqrt(n2);
+        for (i = 0; i < 3; i++) m->force[i] *= c;
+    }
+    m->t_sent_ns = (uint64_t)clock_ns(CLOCK_MONOTONIC);
+    n = pf_encode_feedback(out, sizeof out, key, (size_t)keylen, dev, sid, __atomic_add_fetch(&s->tx, 1, __ATOMIC_RELAXED), m);
+    memset(key, 0, sizeof key);
+    if (n == 0) return 0;
+    memset(&to, 0, sizeof to);
+    to.sin_family = AF_INET; to.sin_addr.s_addr = htonl(ip); to.sin_port = htons((uint16_t)port);
+    return sendto(r->fd, out, n, MSG_DONTWAIT | MSG_NOSIGNAL, (struct sockaddr *)&to, sizeof to) == (ssize_t)n ? 1 : 0;
 }
 
 /* slot k's session counts: accepted, rejected, superseded, error, proven (all 0 if it holds another) */

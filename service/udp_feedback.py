@@ -1,17 +1,16 @@
 """The tick's FEEDBACK datagrams (``udp_server.UdpHub.send_feedback``).
 
-One per arm and tick: the force to display (saturated at the session's force limit, zero if not
-finite) with the state behind it, that is the arm's proxy, robot position, contact, hold mask,
-robot mode and fixture flags. The service's output of the tick (``Service.out``) holds them;
-``FeedbackFields`` reads them once a tick for every arm, as plain lists, and ``write_feedback``
-writes one arm's datagram into the ``FeedbackWriter``'s buffer (no allocation but the tag).
+One per arm and tick: the force to display with the state behind it, that is the arm's proxy,
+robot position, contact, hold mask, robot mode and fixture flags. The service's output of the
+tick (``Service.out``) holds them; ``FeedbackFields`` reads them once a tick for every arm, as
+plain lists, and ``fill`` writes one arm's into the ``udp_native.Feedback`` struct that the C
+receiver saturates (the session's force limit; zero if not finite), stamps, tags and sends.
 """
 from __future__ import annotations
 
-import math
-import time
-
 from pointfence.clients import protocol as P
+
+from .udp_native import Feedback
 
 #: FEEDBACK's robot mode for each ``RobotMode`` value (ENABLED, HOLDING, FAULT)
 ROBOT_MODES = (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)
@@ -46,23 +45,18 @@ class FeedbackFields:
                 fixtures)
 
 
-def write_feedback(writer: P.FeedbackWriter, s, slot: int, f, fields: tuple, tick: int, t_tick_ns: int) -> bytearray:
-    """Arm ``slot``'s FEEDBACK to session ``s`` (its next sequence number), force ``f`` (N,
-    master frame), into ``writer``'s buffer, which it returns: send it before the next write."""
-    fx, fy, fz = f.tolist()
-    if not (math.isfinite(fx) and math.isfinite(fy) and math.isfinite(fz)):
-        fx = fy = fz = 0.0
-    n2 = fx * fx + fy * fy + fz * fz
-    mf = s.max_force
-    if n2 > mf * mf:
-        k = mf / n2 ** 0.5
-        fx, fy, fz = fx * k, fy * k, fz * k
+def fill(fb: Feedback, s, slot: int, f, fields: tuple, tick: int, t_tick_ns: int) -> Feedback:
+    """Arm ``slot``'s FEEDBACK to session ``s``, force ``f`` (N, master frame, (3,)), into ``fb``
+    (returned): the tick ``tick`` that started at ``t_tick_ns`` (the deadline grid), the sample it
+    used (sequence, client time) and ``fields`` (``FeedbackFields.of``)."""
     proxies, contacts, robots, modes, holds, fixtures = fields
-    px, py, pz = proxies[slot]
-    rx, ry, rz = robots[slot]
-    return writer.write(s.key, s.device_id, s.id, s.next_tx(), tick, t_tick_ns, time.perf_counter_ns(), s.seq,
-                        s.t_client_ns, fx, fy, fz, px, py, pz, rx, ry, rz, contacts[slot], fixtures[slot], modes[slot],
-                        0, holds[slot], s.tick_error, slot, s.tick_rejected)
+    fb.tick, fb.t_tick_ns, fb.echo_seq, fb.echo_t_client_ns = tick, t_tick_ns, s.seq, s.t_client_ns
+    fb.force[0], fb.force[1], fb.force[2] = f.tolist()
+    fb.proxy[0], fb.proxy[1], fb.proxy[2] = proxies[slot]
+    fb.robot[0], fb.robot[1], fb.robot[2] = robots[slot]
+    fb.contact, fb.fixture, fb.robot_mode, fb.hold = contacts[slot], fixtures[slot], modes[slot], holds[slot]
+    fb.error, fb.slot, fb.rejected = s.tick_error, slot, s.tick_rejected & 0xFFFFFFFF
+    return fb
 
 
-__all__ = ["FeedbackFields", "ROBOT_MODES", "write_feedback"]
+__all__ = ["FeedbackFields", "ROBOT_MODES", "fill"]

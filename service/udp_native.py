@@ -41,11 +41,25 @@ class Sample(Structure):
                 ("buttons", c_uint32), ("rejected", c_uint64), ("error", c_int32), ("pad", c_int32)]
 
 
+class Feedback(Structure):
+    """``pf_feedback`` (clients/c/include/pointfence_client.h): one FEEDBACK's fields. Force in N
+    (master frame), proxy and robot in m (world frame); ``t_sent_ns`` is set when it is sent."""
+
+    _fields_ = [("tick", c_uint64), ("t_tick_ns", c_uint64), ("t_sent_ns", c_uint64), ("echo_seq", c_uint64),
+                ("echo_t_client_ns", c_uint64), ("force", c_double * 3), ("proxy", c_double * 3),
+                ("robot", c_double * 3), ("contact", c_uint8), ("fixture", c_uint8), ("robot_mode", c_uint8),
+                ("link", c_uint8), ("hold", c_uint32), ("error", ctypes.c_uint16), ("slot", ctypes.c_uint16),
+                ("rejected", c_uint32)]
+
+
 def _declare(lib) -> None:
     P_ = POINTER
     sigs = {
         "pf_rx_new": ([c_int, c_int, c_int], c_void_p),
-        "pf_rx_open": ([c_void_p, c_int, c_uint32, c_uint32, P_(c_uint8), c_int, c_uint32, c_uint32, P_(c_double)], None),
+        "pf_rx_open": ([c_void_p, c_int, c_uint32, c_uint32, P_(c_uint8), c_int, c_uint32, c_uint32, P_(c_double),
+                        c_double], None),
+        "pf_rx_next_tx": ([c_void_p, c_int, c_uint32], c_uint64),
+        "pf_rx_feedback": ([c_void_p, c_int, c_uint32, P_(Feedback)], c_int),
         "pf_rx_close": ([c_void_p, c_int, c_uint32], None),
         "pf_rx_window": ([c_void_p, c_int, c_uint32, c_uint64, c_int], c_int),
         "pf_rx_note": ([c_void_p, c_int, c_uint32, c_int], None),
@@ -92,11 +106,16 @@ class NativeReceiver:
         self.thread_id = None                # the C thread's OS id once started
 
     # --- sessions (the hub, under its lock) ----------------------------------------------------------
-    def open(self, slot: int, sid: int, device_id: int, key: bytes, addr, ws_min, ws_max) -> None:
+    def open(self, slot: int, sid: int, device_id: int, key: bytes, addr, ws_min, ws_max, max_force: float) -> None:
+        """Slot ``slot`` holds session ``sid`` of ``device_id`` from ``addr`` from now on: its
+        STATEs are checked against ``key`` and the workspace (m), its FEEDBACK saturated at
+        ``max_force`` (N)."""
+        if not 1 <= len(key) <= 64:
+            raise ValueError(f"a session key of {len(key)} bytes; expected 1..64")
         ip, port = _ip(addr)
         kb = (c_uint8 * len(key)).from_buffer_copy(key)
         ws = (c_double * 6)(*ws_min, *ws_max)
-        self._lib.pf_rx_open(self._h, slot, sid, device_id, kb, len(key), ip, port, ws)
+        self._lib.pf_rx_open(self._h, slot, sid, device_id, kb, len(key), ip, port, ws, float(max_force))
 
     def limits(self, rate: float, burst: float, idle_s: float) -> None:
         """Per source address, before any header is read: ``rate`` datagrams/s on average and
@@ -161,6 +180,15 @@ class NativeReceiver:
         (0: none or another session), or BUSY (being written: keep the last copy)."""
         return self._lib.pf_rx_sample(self._h, slot, sid, out)
 
+    def feedback(self, slot: int, sid: int, fb: Feedback) -> int:
+        """The tick: send FEEDBACK ``fb`` to the session (its force saturated at the session's
+        limit, stamped, tagged; never blocks): 1 sent, 0 the send failed, -1 no such session."""
+        return self._lib.pf_rx_feedback(self._h, slot, sid, fb)
+
+    def next_tx(self, slot: int, sid: int) -> int:
+        """The session's next outgoing sequence number (0: the slot holds another session)."""
+        return self._lib.pf_rx_next_tx(self._h, slot, sid)
+
     # --- the thread --------------------------------------------------------------------------------------
     def start(self) -> int:
         """Start the C thread; its OS thread id (for its scheduling)."""
@@ -218,4 +246,4 @@ class NativeWindow:
             raise P.ProtocolError(code, f"sequence {seq}: {P.ERROR_NAMES[code]}")
 
 
-__all__ = ["NativeReceiver", "NativeWindow", "Sample", "NOT_MINE", "BUSY", "QUEUE"]
+__all__ = ["Feedback", "NativeReceiver", "NativeWindow", "Sample", "NOT_MINE", "BUSY", "QUEUE"]

@@ -52,9 +52,9 @@ from .held_io import Sender
 from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, StampedReader
 from .udp_cookies import CookieJar
-from .udp_feedback import FeedbackFields, write_feedback
+from .udp_feedback import FeedbackFields, fill
 from .udp_master import UdpMaster
-from .udp_native import NOT_MINE, NativeReceiver
+from .udp_native import NOT_MINE, Feedback, NativeReceiver
 from .udp_ratelimit import SourceLimiter
 from .udp_session import Session
 
@@ -115,7 +115,7 @@ class UdpHub:
         self.reader = StampedReader(self.sock, rcvbuf_bytes)    # the socket's options (stamps, buffer)
         self.rx = NativeReceiver(self.sock, int(slots))          # the STATE path (its reads), in C
         self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
-        self._fb = P.FeedbackWriter()     # the tick's FEEDBACK, written in place
+        self._fb = Feedback()             # the tick's FEEDBACK fields, written in place
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self._fields = FeedbackFields(len(self.masters))    # every arm's FEEDBACK fields, once a tick
         self.sessions: dict = {}          # session id -> Session
@@ -366,7 +366,7 @@ class UdpHub:
         s = Session(sid, dev, slot, key, addr, hello, tmo / 1000.0, min(hello.max_force, self.max_force), now, self.rx)
         if self.max_age_ms is not None:
             s.max_age_ns = self.max_age_ms * 1_000_000
-        self.rx.open(slot, sid, dev, key, addr, hello.workspace_min, hello.workspace_max)   # before WELCOME
+        self.rx.open(slot, sid, dev, key, addr, hello.workspace_min, hello.workspace_max, s.max_force)  # before WELCOME
         self.sessions[sid] = s
         self.by_device[dev] = s
         self.masters[slot].session = s
@@ -423,12 +423,15 @@ class UdpHub:
 
     def send_feedback(self, m: UdpMaster, s: Session, f) -> None:
         """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame), with its arm's
-        state from the service's output of this tick (``udp_feedback``), sent keeping the lock."""
+        state from the service's output of this tick (``udp_feedback``), sent by the C receiver
+        (tagged with the session's key; a send that never blocks)."""
         t = self.t or 0.0
-        data = write_feedback(self._fb, s, m.slot, f, self._fields.of(self.service, self.t_ns), int(round(t * self.rate_hz)),
-                              (self._base_ns or 0) + int(round(t * 1e9)))
-        self._send(s.addr, data)
-        self.feedback_sent += 1
+        fb = fill(self._fb, s, m.slot, f, self._fields.of(self.service, self.t_ns), int(round(t * self.rate_hz)),
+                  (self._base_ns or 0) + int(round(t * 1e9)))
+        if self.rx.feedback(m.slot, s.id, fb) > 0:
+            self.feedback_sent += 1
+        else:
+            self.send_errors += 1
 
     # --- status -------------------------------------------------------------------------------------
     def status(self) -> dict:

@@ -14,12 +14,11 @@ from .udp_native import NativeReceiver, NativeWindow
 class Session:
     """One authenticated client bound to a slot. ``proven``, ``accepted``, ``rejected`` and
     ``error`` are the C receiver's (read when asked); written by the tick: ``seen``,
-    ``last_rx_t``, ``has_state``, ``seq``, ``t_client_ns``, ``rx_ns``, ``tx_seq`` and the
-    rejections as of its last copy (``tick_rejected``, ``tick_error``: what FEEDBACK reports)."""
+    ``last_rx_t``, ``has_state``, ``seq``, ``t_client_ns``, ``rx_ns`` and the rejections as of its last copy (``tick_rejected``, ``tick_error``: what FEEDBACK reports)."""
 
     __slots__ = ("id", "device_id", "slot", "key", "addr", "window", "workspace", "timeout_s", "max_age_ns", "max_force",
-                 "hello", "t_open", "rx", "seen", "last_rx_t", "has_state", "seq", "t_client_ns", "rx_ns", "tx_seq",
-                 "tick_rejected", "tick_error")
+                 "hello", "t_open", "rx", "seen", "last_rx_t", "has_state", "seq", "t_client_ns", "rx_ns", "tick_rejected",
+                 "tick_error")
 
     def __init__(self, sid, device_id, slot, key, addr, hello: P.Hello, timeout_s, max_force, t_open: float,
                  rx: NativeReceiver):
@@ -43,14 +42,13 @@ class Session:
         self.seq = 0
         self.t_client_ns = 0
         self.rx_ns = 0                   # tick: arrival of the sample it uses (perf_counter ns)
-        self.tx_seq = 0
         self.tick_rejected = 0
         self.tick_error = P.E_OK
 
     def next_tx(self) -> int:
-        """The sequence number of the next datagram the service sends in this session."""
-        self.tx_seq += 1
-        return self.tx_seq
+        """The sequence number of the next datagram the service sends in this session (its
+        FEEDBACKs and BYE; counted by the C receiver, which sends the FEEDBACKs)."""
+        return self.rx.next_tx(self.slot, self.id)
 
     @property
     def accepted(self) -> int:

@@ -76,3 +76,34 @@ def test_feedback_carries_this_ticks_proxy_robot_contact_hold_and_flags(tmp_path
         svc.close()
     # the run went through both sides of each field (the comparisons above were not all of zeros)
     assert seen == {"coupled": {False, True}, "hold": {False, True}, "contact": {False, True}}, seen
+
+
+def test_feedback_force_is_saturated_at_the_session_limit_and_zero_when_not_finite():
+    """The C receiver sends the tick's FEEDBACK: the force is scaled down to the session's force
+    limit (the lower of the device's and the service's) along its direction, a non-finite force
+    is sent as zero, and the device accepts every one (its tag under the session key, its sequence
+    number new in the device's window)."""
+    hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000, max_force=10.0)
+    c = Client(*hub.address, KEY, 9, timeout_ms=1000, max_force=2.0)
+    try:
+        c.hello_send()
+        hub.pump()
+        assert c.hello_wait(0.0) is None
+        hub.pump()
+        assert c.hello_wait(2.0) is not None
+        c.send_state((0.0, 0.0, 0.0))
+        hub.pump()
+        m = hub.masters[0]
+        m.poll(0.001)
+        s = m.session
+        assert s.max_force == 2.0
+        for k, (f, want) in enumerate((((3.0, 4.0, 0.0), (1.2, 1.6, 0.0)), ((0.5, -1.0, 0.25), (0.5, -1.0, 0.25)),
+                                       ((np.nan, 1.0, 0.0), (0.0, 0.0, 0.0)), ((np.inf, 0.0, 0.0), (0.0, 0.0, 0.0)))):
+            hub.tick(0.001 * (k + 2))
+            m.send_force(np.array(f))
+            fb = _wait_feedback(c, k + 2)
+            assert np.allclose(fb.force, want, atol=1e-12), (f, fb.force)
+        assert hub.feedback_sent == 4 and hub.send_errors == 0
+    finally:
+        c.close()
+        hub.close()

@@ -156,30 +156,3 @@ def test_key_file_table_shared_with_the_c_sdk(tmp_path):
 def test_key_file_that_is_not_a_regular_file(tmp_path):
     with pytest.raises(P.PointfenceError, match="not a regular file"):
         P.load_key(tmp_path)
-
-
-def test_feedback_writer_gives_the_bytes_of_feedback_encode_for_random_and_edge_fields():
-    """The service's tick writes FEEDBACK in place (``FeedbackWriter``): byte for byte what
-    ``Feedback(...).encode`` gives, on random fields and on the edges (masked negative and huge
-    integers, extreme reals), and the buffer is reused, not regrown."""
-    import random
-
-    rnd = random.Random(18)
-    w = P.FeedbackWriter()
-    buf_id = id(w.buf)
-    edge_ints = [0, 1, -1, 2 ** 64 - 1, 2 ** 63, 2 ** 32 + 5]
-    for k in range(300):
-        key = bytes(rnd.getrandbits(8) for _ in range(32))
-        ints = [rnd.choice(edge_ints) if k % 3 == 0 else rnd.getrandbits(63) for _ in range(5)]
-        reals = [rnd.choice([0.0, -0.0, 1e-300, -1e300, rnd.uniform(-20, 20)]) for _ in range(9)]
-        small = [rnd.randrange(256) for _ in range(4)]
-        hold, err, slot, rej = rnd.choice([0, 5, 2 ** 32 + 3]), rnd.randrange(65536), rnd.randrange(65536), \
-            rnd.choice([0, 7, 2 ** 33])
-        dev, sess, seq = rnd.getrandbits(32), rnd.getrandbits(32), rnd.choice([1, 2 ** 64 + 9, rnd.getrandbits(64)])
-        want = P.Feedback(*ints, tuple(reals[0:3]), tuple(reals[3:6]), tuple(reals[6:9]), *small, hold, err, slot,
-                          rej).encode(key, dev, sess, seq)
-        got = w.write(key, dev, sess, seq, *ints, *reals, *small, hold, err, slot, rej)
-        assert bytes(got) == want, k
-        assert id(got) == buf_id and len(got) == P.SIZES[P.FEEDBACK]
-        fb = P.Feedback.decode(got)
-        assert fb.force == tuple(reals[0:3]) and fb.slot == slot
