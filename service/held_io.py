@@ -5,8 +5,9 @@ non-blocking one that takes microseconds. In a process whose haptic loop keeps t
 whole tick (``loop.py``: a 5 ms switch interval while a tick runs), that hand-over is costly on
 both sides:
 
-* the tick's FEEDBACK send (``UdpHub.send_feedback``): the tick hands the lock to whichever
-  thread wants it and waits to get it back, up to that thread's switch interval;
+* a send (the UDP hub's answers to handshakes and its BYEs; its tick's FEEDBACK went this way
+  until the hub's C receiver took it over): the sender hands the lock to whichever thread wants
+  it and waits to get it back, up to that thread's switch interval;
 * a Python receiver's reads (``rx_stamps.StampedReader``, the ITP adapter's): each read of a
   queued datagram hands the lock to the waiting tick, and the receiver waits for the tick to end
   before it reads the next one. On two loaded cores the UDP hub's Python receiver read about one

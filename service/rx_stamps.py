@@ -1,4 +1,5 @@
-"""Datagrams with the time the kernel received them (the receivers of ``udp_server`` and ``itp``).
+"""Datagrams with the time the kernel received them (the ITP adapter's receiver; the UDP hub's
+C receiver reads the same stamps from a socket set up by ``stamp_socket``).
 
 A datagram that waited in a socket's receive queue is as old as its arrival says, not as its
 read says: a receiver starved of CPU reads seconds-old master samples as if they were new.
@@ -35,6 +36,28 @@ _U32 = struct.Struct("@I")
 _ANC = (socket.CMSG_SPACE(16) + socket.CMSG_SPACE(4)) if hasattr(socket, "CMSG_SPACE") else 64
 
 
+def stamp_socket(sock: socket.socket, rcvbuf_bytes: int = RCVBUF_BYTES) -> bool:
+    """Make ``sock`` non-blocking with a receive buffer of ``rcvbuf_bytes`` (asked; the kernel may
+    round or cap it) and, on Linux, each datagram's arrival stamp (``SO_TIMESTAMPNS``) and the
+    count of datagrams dropped for want of buffer (``SO_RXQ_OVFL``); whether stamps are on."""
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(rcvbuf_bytes))
+    except OSError:
+        pass
+    sock.setblocking(False)
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    except OSError:
+        return False
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+    except OSError:
+        pass
+    return True
+
+
 class StampedReader:
     """Non-blocking reads of ``sock`` with each datagram's arrival time.
 
@@ -45,19 +68,7 @@ class StampedReader:
 
     def __init__(self, sock: socket.socket, rcvbuf_bytes: int = RCVBUF_BYTES):
         self.sock = sock
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(rcvbuf_bytes))
-        except OSError:
-            pass
-        sock.setblocking(False)
-        self.stamps = False
-        if sys.platform.startswith("linux"):
-            try:
-                sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-                self.stamps = True
-                sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
-            except OSError:
-                pass
+        self.stamps = stamp_socket(sock, rcvbuf_bytes)
         #: datagrams the kernel dropped for want of receive buffer (since the socket opened)
         self.dropped = 0
         #: reads that keep the interpreter lock (``held_io``): a starved receiver is not made to

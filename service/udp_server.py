@@ -16,9 +16,10 @@ the service). See ``clients/PROTOCOL.md``. Two sides, two threads:
   owner calls ``pump()`` outside the tick instead, which reads through the same C path.
 * **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot from the C
   receiver (a seqlock it never waits on; no socket, no HMAC, no allocation), decides timeouts
-  in loop time, and uses the sample only if it reached the socket no longer than the session's timeout before the tick (else the master
-  reports ``ok = False``: the arm holds, S9; ``stale_ticks``); it records each sample's age
-  (``ages``, status ``state_age_ms``) and sends FEEDBACK (non-blocking ``sendto``).
+  in loop time, and uses the sample only if it reached the socket no longer than the session's
+  timeout before the tick (else the master reports ``ok = False``: the arm holds, S9;
+  ``stale_ticks``); it records each sample's age (``ages``, status ``state_age_ms``) and sends
+  FEEDBACK through the C receiver (tagged there, a ``sendto`` that never blocks).
 
 Handshake (PROTOCOL.md section 6): a HELLO without a valid cookie is answered with a COOKIE
 (``udp_cookies.CookieJar``; no state kept); the HELLO that repeats the cookie opens a session.
@@ -50,7 +51,7 @@ from pointfence.kernels.errors import InputError
 from .age_hist import AgeHistogram
 from .held_io import Sender
 from .osthread import set_fifo
-from .rx_stamps import RCVBUF_BYTES, StampedReader
+from .rx_stamps import RCVBUF_BYTES, stamp_socket
 from .udp_cookies import CookieJar
 from .udp_feedback import FeedbackFields, fill
 from .udp_master import UdpMaster
@@ -112,9 +113,9 @@ class UdpHub:
         self.max_force = float(max_force)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, int(port)))
-        self.reader = StampedReader(self.sock, rcvbuf_bytes)    # the socket's options (stamps, buffer)
-        self.rx = NativeReceiver(self.sock, int(slots))          # the STATE path (its reads), in C
-        self.sender = Sender(self.sock)   # sends that keep the interpreter lock (the tick's FEEDBACK)
+        self.stamps = stamp_socket(self.sock, rcvbuf_bytes)     # kernel arrival stamps (Linux)
+        self.rx = NativeReceiver(self.sock, int(slots))          # every read, and the STATE path, in C
+        self.sender = Sender(self.sock)   # the handshake's answers (sends that keep the interpreter lock)
         self._fb = Feedback()             # the tick's FEEDBACK fields, written in place
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self._fields = FeedbackFields(len(self.masters))    # every arm's FEEDBACK fields, once a tick
@@ -453,6 +454,6 @@ class UdpHub:
             "rejected": counters, "rejected_total": sum(v for k, v in counters.items() if k != "timeout"),
             "superseded": rx["superseded"], "stale_ticks": self.stale_ticks, "kernel_dropped": rx["kernel_dropped"],
             "queue_dropped": rx["queue_dropped"],
-            "rcvbuf_bytes": self.reader.rcvbuf if self.sock.fileno() >= 0 else None,
+            "rcvbuf_bytes": self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) if self.sock.fileno() >= 0 else None,
             "state_age_ms": self.ages.summary(),
         }

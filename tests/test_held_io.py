@@ -1,6 +1,6 @@
 """UDP calls that keep the interpreter lock (``service/held_io.py``): they read and send what the
-socket's own methods do, and no other thread runs while one is made (the haptic tick's FEEDBACK
-send and the UDP receiver's reads: issue 18, a receiver starved between two queued datagrams).
+socket's own methods do, and no other thread runs while one is made (a send from the tick and a
+Python receiver's reads: issue 18, a receiver starved between two queued datagrams).
 Loopback only."""
 import socket
 import sys
@@ -11,7 +11,7 @@ import pytest
 
 from pointfence.clients import Client
 from pointfence.service import held_io
-from pointfence.service.rx_stamps import SO_TIMESTAMPNS, StampedReader
+from pointfence.service.rx_stamps import SO_TIMESTAMPNS
 from pointfence.service.udp_server import UdpHub
 
 pytestmark = pytest.mark.skipif(held_io._CALLS is None, reason="the lock-keeping calls are Linux, 64-bit")
@@ -146,13 +146,14 @@ def test_reads_and_sends_keep_the_interpreter_lock_where_the_sockets_own_calls_h
         tx.close()
 
 
-def test_the_hub_reads_and_answers_through_them_with_stamps_and_kernel_drops_as_before():
-    """A UdpHub (pumped, no receiver thread) opens a session, accepts states and sends FEEDBACK
-    through the lock-keeping calls; arrivals carry the kernel's stamps."""
+def test_the_hub_answers_through_them_and_its_reads_carry_the_kernel_stamps():
+    """A UdpHub (pumped, no receiver thread) answers the handshake through the lock-keeping
+    calls, accepts states read by its C receiver with the kernel's arrival stamps, and sends
+    FEEDBACK."""
     hub = UdpHub(KEY, 1, receiver=False, timeout_ms=1000)
     c = Client(*hub.address, KEY, 5, timeout_ms=1000)
     try:
-        assert isinstance(hub.reader, StampedReader) and hub.sender.held
+        assert hub.stamps and hub.sender.held
         c.hello_send()
         hub.pump()
         assert c.hello_wait(0.0) is None

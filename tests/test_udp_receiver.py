@@ -165,6 +165,7 @@ import socket, sys, time
 from pointfence.clients import protocol as P
 fd, key, dev, sid, seq0, n = int(sys.argv[1]), bytes.fromhex(sys.argv[2]), *map(int, sys.argv[3:7])
 sock = socket.socket(fileno=fd)
+print("ready", flush=True)
 sys.stdin.readline()
 for k in range(1, n + 1):
     sock.send(P.State(time.perf_counter_ns(), 0, (0.0001 * k, 0.0, 0.0)).encode(key, dev, sid, seq0 + k))
@@ -188,7 +189,9 @@ def test_a_device_s_samples_reach_the_tick_while_the_interpreter_is_held():
         c.connect()
         s = hub.sessions[c.session]
         proc = subprocess.Popen([sys.executable, "-c", _SENDER, str(c.sock.fileno()), c.key.hex(), str(DEV),
-                                 str(c.session), str(c.seq), "200"], stdin=subprocess.PIPE, pass_fds=[c.sock.fileno()])
+                                 str(c.session), str(c.seq), "200"], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                pass_fds=[c.sock.fileno()])
+        assert proc.stdout.readline().strip() == b"ready"       # (its imports done: it sends at once)
         before = hub.accepted
         proc.stdin.write(b"go\n")
         proc.stdin.flush()
@@ -231,13 +234,14 @@ def test_the_receive_buffer_holds_tens_of_milliseconds_and_arrivals_are_kernel_s
     hub = UdpHub(KEY, 1, receiver=False)
     try:
         assert hub.status()["rcvbuf_bytes"] <= 4 * rx_stamps.RCVBUF_BYTES
-        if hub.reader.stamps:
+        if hub.stamps:
             tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             t0 = time.perf_counter_ns()
             tx.sendto(b"x", hub.address)
             time.sleep(0.05)
-            n, _, rx_ns = hub.reader.read(bytearray(64))
-            assert n == 1 and t0 <= rx_ns < t0 + 40_000_000
+            assert hub.rx.poll(10) == 1
+            n, addr, rx_ns = hub.rx.next(bytearray(64), 0)
+            assert n == 1 and addr == tx.getsockname() and t0 <= rx_ns < t0 + 40_000_000
             tx.close()
     finally:
         hub.close()
