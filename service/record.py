@@ -107,7 +107,7 @@ class Recorder:
         self._flushed = 0         # rows before this one are in the file
         self._meta: Optional[dict] = None
         self._frames_src: Optional[dict] = None
-        self._frames_done: set = set()
+        self._frames_last = None  # the newest snapshot whose frames were written
         self._counts_done: dict = {}
         self._stop = threading.Event()
         self._thread = None
@@ -190,6 +190,25 @@ class Recorder:
             self._flush(final=False)
         self._flush(final=True)
 
+    def _new_snapshots(self, src: dict) -> list:
+        """The snapshots added to ``src`` since the last flush, oldest first. Snapshot numbers
+        only grow and the dict keeps them in insertion order, so this walks back from the newest
+        and stops at the last one written: the work is the new entries', not the whole run's (a
+        copy of every entry each flush grew with the run and, by its allocations, made the garbage
+        collector run ever longer in this thread, holding the interpreter lock: issue 18)."""
+        last = self._frames_last
+        for _ in range(3):   # the ingest thread may add one while this reads
+            new = []
+            try:
+                for seq in reversed(src):
+                    if last is not None and seq <= last:
+                        break
+                    new.append(seq)
+                return new[::-1]
+            except RuntimeError:
+                continue
+        return []
+
     def _flush(self, final: bool) -> None:
         f = self._file
         try:
@@ -197,16 +216,9 @@ class Recorder:
             add = {}
             src = self._frames_src
             if src is not None:
-                for _ in range(3):   # the ingest thread may add one while this copies
-                    try:
-                        items = list(src.items())
-                        break
-                    except RuntimeError:
-                        items = []
-                for seq, frames in items:
-                    if seq not in self._frames_done:
-                        self._frames_done.add(seq)
-                        add[str(int(seq))] = [int(x) for x in frames]
+                for seq in self._new_snapshots(src):
+                    add[str(int(seq))] = [int(x) for x in src[seq]]
+                    self._frames_last = seq
             counts = {"ticks_recorded": self.ticks_recorded, "ticks_lost": self.ticks_lost}
             if meta is not None or add or counts != self._counts_done:
                 self._counts_done = counts
