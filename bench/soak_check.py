@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pointfence.service.holds import INGEST, MASTER, OVERRUN, STALE, WATCHDOG, reason_names
+from pointfence.service.holds import INGEST, MASTER, OVERRUN, ROBOT, STALE, WATCHDOG, reason_names
 
 #: robot motion allowed while an arm holds, and by an operator action alone (m)
 MAX_HOLD_MOTION = 1e-4
@@ -127,8 +127,16 @@ def judge(fault, ev, rec: Recording, max_age: float, force_ramp_s: float, robot_
                                         f"({len(lost)} ticks)"))
         held = np.flatnonzero((masks & ~LOAD).any(axis=1))
         if len(held):
-            fails.append((fault.invariant, f"{fault.kind} {fault.name}: an arm held at tick {rec.k[i0 + held[0]]} "
-                                           f"(mask {int(masks[held[0]].max())})"))
+            first = i0 + int(held[0])
+            stall = _stall_ms(rec, first, robot_watchdog_s)
+            if not (masks[held[0]] & ~(LOAD | ROBOT)).any() and stall >= robot_watchdog_s * 1e3 - 10.0:
+                # the loop did not run for about the robot's command watchdog just before: the
+                # robot stopped because its commands stopped (S9 as designed), whatever ran then
+                fails.append((AVAILABILITY, f"{fault.name}: a robot's command watchdog held an arm at tick "
+                                            f"{rec.k[first]} after the loop did not run for {stall:.0f} ms"))
+            else:
+                fails.append((fault.invariant, f"{fault.kind} {fault.name}: an arm held at tick {rec.k[first]} "
+                                               f"(mask {int(masks[held[0]].max())})"))
         if fault.still:     # from the tick the action took effect (its request is applied between ticks)
             changed = np.flatnonzero((rec.law[i0:i1] != rec.law[i0]).any(axis=1))
             i0 = i0 + int(changed[0]) - 1 if len(changed) else i0
@@ -224,6 +232,13 @@ def _judge_fault(fault, ev, rec, i0, max_age, force_ramp_s, robot_watchdog_s, ou
     if "watchdog_seen_after_ms" in ev.notes:
         out["hold_latency_ms"] = max(latency, ev.notes["watchdog_seen_after_ms"] or 0.0)
     return fails
+
+
+def _stall_ms(rec: Recording, row: int, window_s: float) -> float:
+    """The longest time (ms) the loop ran no tick in the ``window_s`` (plus 20 ms) before row ``row``."""
+    lo = rec.at(rec.k[row] - int(round((window_s + 0.02) * 1e3 / rec.ms)))
+    k = rec.k[lo:row + 1]
+    return float((np.diff(k).max() - 1) * rec.ms) if len(k) > 1 else 0.0
 
 
 def penetration(rec: Recording, region, every: int = 5) -> float:

@@ -6,7 +6,7 @@ import numpy as np
 
 from pointfence.bench.soak_check import AVAILABILITY, Recording, judge, penetration
 from pointfence.bench.soak_faults import FAULTS, Event
-from pointfence.service.holds import INGEST, KERNEL, MASTER, OVERRUN
+from pointfence.service.holds import INGEST, KERNEL, MASTER, OVERRUN, ROBOT
 
 N = 600
 
@@ -130,6 +130,30 @@ def test_attacks_and_actions_change_nothing():
     robots[200:, 1, 5] = 0.0002                 # the command moved after it: the switch moved a robot
     v = judge(a, Event(a.name, 100, 300, None, 310), recording(inputs=inputs, robots=robots), 0.5, 0.05)
     assert any(inv == "S1" and "command 0.200 mm" in what for inv, what in v["failures"])
+
+
+def test_a_robot_watchdog_after_a_stall_of_the_loop_is_availability_during_an_attack():
+    """The machine did not run the loop for 95 periods during a flood: the robot's command
+    watchdog (100 ms) stopped the arms (ROBOT with the masters' timeout), as S9 wants. That is
+    the machine's availability, not the attack's doing; the same ROBOT hold without the stall is
+    the contract broken (S6)."""
+    keep = np.ones(N, bool)
+    keep[150:245] = False                       # periods 150..244 not run
+    holds = np.zeros((N, 3))
+    holds[245:290, 1:] = ROBOT | MASTER
+    masters = np.ones((N, 2, 5))
+    masters[245:290, :, 4] = 0
+    inputs = np.zeros((N, 8))
+    inputs[:, 0] = np.arange(N)
+    inputs[:, 4:7] = (3, 1, 1)
+    ev = Event("replayed_flood", 100, 300, None, 310)
+    stalled = recording(holds=holds[keep], masters=masters[keep], inputs=inputs[keep], rows=np.zeros((keep.sum(), 22)),
+                        robots=np.zeros((keep.sum(), 2, 6)))
+    v = judge(FAULTS["replayed_flood"], ev, stalled, 0.5, 0.05, robot_watchdog_s=0.1)
+    assert [inv for inv, _ in v["failures"]] == [AVAILABILITY, AVAILABILITY], v["failures"]
+    assert "after the loop did not run for 95 ms" in v["failures"][1][1]
+    v = judge(FAULTS["replayed_flood"], ev, recording(holds=holds, masters=masters), 0.5, 0.05, robot_watchdog_s=0.1)
+    assert any(inv == "S6" and "held at tick 245" in what for inv, what in v["failures"]), v["failures"]
 
 
 def test_penetration_is_the_deepest_any_arm_went():
