@@ -185,7 +185,7 @@ void pf_rx_open(pf_rx *r, int k, uint32_t sid, uint32_t dev, const uint8_t *key,
     for (i = 0; i < 64; i++) pad[i] = (uint8_t)(kb[i] ^ 0x5c);
     pf_sha256_init(&s->octx); pf_sha256_update(&s->octx, pad, 64);
     for (i = 0; i < 3; i++) { s->ws_lo[i] = ws[i]; s->ws_hi[i] = ws[3 + i]; }
-    s->top = s->bits = 0;
+    s->win.top = s->win.bits = 0;
     s->accepted = s->rejected = s->superseded = 0;
     s->error = PF_OK; s->proven = 0;
     s->n = 0;
@@ -224,8 +224,8 @@ int pf_rx_window(pf_rx *r, int k, uint32_t sid, uint64_t seq, int commit) {
     int code;
     pthread_mutex_lock(&r->mu);
     s = held(r, k, sid);
-    code = s == NULL ? PF_E_NO_SESSION : window_check(s, seq);
-    if (code == PF_OK && commit) window_commit(s, seq);
+    code = s == NULL ? PF_E_NO_SESSION : pf_window_check(&s->win, seq);
+    if (code == PF_OK && commit) pf_window_commit(&s->win, seq);
     pthread_mutex_unlock(&r->mu);
     return code;
 }
@@ -250,21 +250,21 @@ static int take(pf_rx *r, slot_t *s, const uint8_t *d, int64_t rx_ns, int newest
     uint64_t seq = rd64(d + 12);
     int code, inside = 1;
     if (newest) {
-        code = window_check(s, seq);
-        if (code == PF_OK && seq <= s->top) code = PF_E_STALE;      /* older than the newest sample */
+        code = pf_window_check(&s->win, seq);
+        if (code == PF_OK && seq <= s->win.top) code = PF_E_STALE;      /* older than the newest sample */
     } else {
-        inside = s->top - seq < PF_WINDOW;
-        code = inside ? window_check(s, seq) : PF_OK;
+        inside = s->win.top - seq < PF_WINDOW;
+        code = inside ? pf_window_check(&s->win, seq) : PF_OK;
     }
     if (code == PF_OK && !tag_ok(s, d)) code = PF_E_AUTH;
     if (code == PF_OK) code = values_ok(s, d);
     if (code != PF_OK) { reject(r, s, code); return code; }
     if (!newest) {
-        if (inside) window_commit(s, seq);
+        if (inside) pf_window_commit(&s->win, seq);
         s->superseded += 1; r->superseded += 1;
         return PF_OK;
     }
-    window_commit(s, seq);
+    pf_window_commit(&s->win, seq);
     publish(s, d, rx_ns);
     s->proven = 1;
     s->accepted += 1; r->accepted += 1;
@@ -368,8 +368,8 @@ static int read_batch(pf_rx *r) {
         who[i] = candidate(r, r->bufs[i], (int)r->msgs[i].msg_len, ip, port);
         if (who[i] != NULL) {      /* replayed, stale or older than the sample before this read: no MAC */
             uint64_t seq = rd64(r->bufs[i] + 12);
-            int code = window_check(who[i], seq);
-            if (code == PF_OK && seq <= who[i]->top) code = PF_E_STALE;
+            int code = pf_window_check(&who[i]->win, seq);
+            if (code == PF_OK && seq <= who[i]->win.top) code = PF_E_STALE;
             if (code != PF_OK) { reject(r, who[i], code); who[i] = NULL; }
             continue;
         }

@@ -32,7 +32,7 @@ typedef struct {
     uint64_t tx;                    /* the service's last sequence number in this session */
     pf_sha256_ctx ictx, octx;       /* HMAC key pads, hashed once per session */
     double ws_lo[3], ws_hi[3];
-    uint64_t top, bits;             /* anti-replay window (RFC 4303 3.4.3), under the mutex */
+    pf_window win;                  /* anti-replay window (the C client's), under the mutex */
     uint64_t accepted, rejected, superseded;
     int32_t error, proven;
     /* the latest sample: seqlock (odd while written) */
@@ -47,27 +47,6 @@ static uint64_t rd64(const uint8_t *p) { uint64_t v; memcpy(&v, p, 8); return v;
 static uint32_t rd32(const uint8_t *p) { uint32_t v; memcpy(&v, p, 4); return v; }
 static uint16_t rd16(const uint8_t *p) { uint16_t v; memcpy(&v, p, 2); return v; }
 static double rdf(const uint8_t *p) { double v; memcpy(&v, p, 8); return v; }
-
-static int window_check(const slot_t *s, uint64_t seq) {
-    uint64_t d;
-    if (seq == 0) return PF_E_STALE;
-    if (seq > s->top) return PF_OK;
-    d = s->top - seq;
-    if (d >= PF_WINDOW) return PF_E_STALE;
-    if (s->bits >> d & 1u) return PF_E_REPLAY;
-    return PF_OK;
-}
-
-static int window_commit(slot_t *s, uint64_t seq) {
-    if (seq > s->top) {
-        uint64_t shift = seq - s->top;
-        s->bits = shift < 64 ? (s->bits << shift) | 1u : 1u;
-        s->top = seq;
-        return 1;
-    }
-    s->bits |= (uint64_t)1 << (s->top - seq);
-    return 0;
-}
 
 static int tag_ok(const slot_t *s, const uint8_t *d) {
     pf_sha256_ctx c;

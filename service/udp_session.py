@@ -50,22 +50,11 @@ class Session:
         FEEDBACKs and BYE; counted by the C receiver, which sends the FEEDBACKs)."""
         return self.rx.next_tx(self.slot, self.id)
 
-    @property
-    def accepted(self) -> int:
-        """STATEs accepted as the session's sample."""
-        return self.rx.session_stats(self.slot, self.id)[0]
+    def _stat(self, i: int):
+        """Field ``i`` of the C receiver's counts for this session (``NativeReceiver.session_stats``)."""
+        return self.rx.session_stats(self.slot, self.id)[i]
 
-    @property
-    def rejected(self) -> int:
-        """Datagrams of this session refused (tag, window, values, ...)."""
-        return self.rx.session_stats(self.slot, self.id)[1]
-
-    @property
-    def error(self) -> int:
-        """The E_* code of the last refused one (E_OK: none)."""
-        return self.rx.session_stats(self.slot, self.id)[3]
-
-    @property
-    def proven(self) -> bool:
-        """A valid STATE arrived: the client holds the session key."""
-        return self.rx.session_stats(self.slot, self.id)[4]
+    accepted = property(lambda self: self._stat(0), doc="STATEs accepted as the session's sample.")
+    rejected = property(lambda self: self._stat(1), doc="Datagrams of this session refused (tag, window, values, ...).")
+    error = property(lambda self: self._stat(3), doc="The E_* code of the last refused one (E_OK: none).")
+    proven = property(lambda self: self._stat(4), doc="A valid STATE arrived: the client holds the session key.")
