@@ -152,6 +152,25 @@ class LiveRun:
                 raise RuntimeError(f"haptic loop thread ended: {self.loop.error}")
             time.sleep(min(0.05, max(0.0, end - time.monotonic())))
 
+    def wait_clear(self, clear_s: float, timeout: float = 10.0) -> None:
+        """Wait until no arm has held for ``clear_s`` seconds on end (the service's status:
+        start-up holds such as an old first snapshot have cleared); RuntimeError after
+        ``timeout`` s, naming what still holds."""
+        end = time.monotonic() + timeout
+        since = None
+        while True:
+            st = self.service.status()
+            now = time.monotonic()
+            if st["hold"] or any(st["arms_holding"]):
+                since = None
+            elif since is None:
+                since = now
+            elif now - since >= clear_s:
+                return
+            if now > end:
+                raise RuntimeError(f"the service still holds after {timeout:g} s: {st['hold_causes'] or st['hold']}")
+            self.wait(0.005)
+
     def timing(self):
         return self.loop.timing(self._mark)
 

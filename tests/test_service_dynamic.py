@@ -307,6 +307,35 @@ def test_live_run_judge_names_stalls_and_old_snapshots():
     assert fell_behind({"tick_gap_ms_max": 3.0, "frame_age_ms_max": 40.0}, 0.1, 1 / 30) == []
     old = fell_behind({"tick_gap_ms_max": 1.0, "frame_age_ms_max": 120.0}, 0.5, 1 / 30)
     assert len(old) == 1 and "120 ms" in old[0] and "67 ms" in old[0]
+    held = fell_behind({"tick_gap_ms_max": 1.0, "frame_age_ms_max": 40.0, "held_ticks": 12}, 0.5, 1 / 30)
+    assert len(held) == 1 and "held for 12 ticks" in held[0]
+
+
+@needs_opencl
+def test_live_plane_run_starts_when_the_service_runs_clear(monkeypatch):
+    """A start-up that takes long (kernels built on a cold cache: seconds) must not move the
+    experiment: the real-time camera's clock starts at its first frame, and a plane that rose
+    from then on was 0.5 m away by the time the loop ran (the demo printed 400-1000 mm). The plane
+    and the scripted master start once the service runs clear, so the figure is the fixture's."""
+    import time
+
+    from pointfence.service import dynamic_demo as dd
+    from pointfence.service.frames import LiveFrames
+
+    first = LiveFrames.wait_first_snapshot
+
+    def slow_start(self, timeout=10.0):
+        ok = first(self, timeout)
+        time.sleep(1.0)                      # a cold kernel cache's start-up
+        return ok
+
+    monkeypatch.setattr(LiveFrames, "wait_first_snapshot", slow_start)
+    res = dd.service_plane(False, live=True)
+    assert res["fell_behind"] or res.get("held_ticks", 0) == 0
+    if not res["fell_behind"]:
+        # 30 Hz frames of a plane rising at 0.5 m/s: about one frame period of travel (17 mm)
+        assert 8.0 < res["penetration_mm_proxy"] < 30.0, res
+        assert 8.0 < res["penetration_mm_robot"] < 30.0, res
 
 
 def test_demo_prints_when_the_live_run_fell_behind(monkeypatch):

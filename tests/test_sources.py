@@ -175,6 +175,17 @@ def test_translating_plane_moves_speed_times_dt_between_frames():
     assert max(abs(scene.offset(t)) for t in np.linspace(0, 10, 501)) <= 0.1 + 1e-12  # reverses at travel / 2
 
 
+def test_translating_plane_rests_until_its_start():
+    scene = make_scene("translating_plane", speed=0.5, travel=0.0, start=2.0)
+    assert [scene.offset(t) for t in (0.0, 1.9, 2.0)] == [0.0, 0.0, 0.0]
+    assert scene.offset(2.5) == pytest.approx(0.25)
+    scene.start = float("inf")               # a live run holds it until its loop runs
+    assert scene.offset(100.0) == 0.0
+    assert make_scene("translating_plane", speed=0.5, travel=0.0).offset(-0.2) == pytest.approx(-0.1)   # no start
+    with pytest.raises(InputError, match="start"):
+        make_scene("translating_plane", start=float("nan"))
+
+
 def test_rocking_platform_tilts_sinusoidally():
     scene = make_scene("rocking_platform", amplitude_deg=10, period=2.0)
     n = scene.normal([[0, 0, 0.05]], 0.5)[0]  # quarter period: full tilt about y

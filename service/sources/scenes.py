@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import ClassVar
+from typing import ClassVar, Optional
 
 import numpy as np
 
@@ -313,12 +313,16 @@ class TranslatingPlaneScene(Scene):
     """A horizontal plane moving along its normal (world z) at ``speed`` m/s, starting through
     ``position`` at t = 0 and moving up. With ``travel`` > 0 (m) it reverses at
     position.z +- travel/2 (a triangle wave); with ``travel`` = 0 it keeps going. A red disc of
-    ``disc_radius`` around the moving anchor point is protected."""
+    ``disc_radius`` around the moving anchor point is protected. ``start`` (s, None: always
+    moving): the scene time at which the motion begins; before it the plane rests through
+    ``position``. A live experiment sets it once its loop runs (``math.inf`` until then), so
+    the motion begins with the experiment whatever the start-up (kernel builds) took."""
 
     name: ClassVar[str] = "translating_plane"
     speed: float = 0.08
     travel: float = 0.2
     disc_radius: float = 0.05
+    start: Optional[float] = None
     moving: ClassVar[bool] = True
 
     def check(self):
@@ -327,6 +331,10 @@ class TranslatingPlaneScene(Scene):
 
     def offset(self, t: float) -> float:
         """Displacement (m) of the plane along +z at time ``t`` (s)."""
+        if self.start is not None:
+            if not t > self.start:
+                return 0.0
+            t = t - self.start
         u = self.speed * t
         if self.travel <= 0 or self.speed == 0:
             return u
