@@ -10,17 +10,14 @@ kinematics and the camera registration.
 Why a filter on the frames rather than a stage inside every backend's pipeline: the result is
 the same (a dropped pixel is a hole, exactly like an invalid reading, in every backend and in
 the motion estimate), it needs no change to three kernel sets, and it is cheap: per capsule
-every pixel's ray is first tested against the capsule's bounding sphere (one dot product per
-pixel, rays precomputed per camera, so lens distortion is exact), and only the pixels whose ray
-passes through that sphere are deprojected and tested against the capsule. The ray test itself
-only looks at the image window that can see the capsule: the capsule is the convex hull of its
+only the image window that can see the capsule is tested: the capsule is the convex hull of its
 two end balls, so the window is the union of theirs, each the bounding box of the projected
 corners of the ball's bounding cube (a projection keeps convex hulls), widened to whole pixel
-rows and columns through each row's and column's ray extent, so distortion cannot hide a
-pixel from it. A tool covers a small part of the image, so both tests run on a few thousand
-pixels (about 0.2 ms per 640x480 frame instead of 5 ms of NumPy over every pixel, time that
-the ingest thread would spend holding Python's interpreter lock). The frames are copied only
-when a pixel is dropped.
+rows and columns through each row's and column's ray extent (rays precomputed per camera), so
+distortion cannot hide a pixel from it. Each window pixel's reading is deprojected along its
+ray and tested against the capsule by compiled code (``native/selffilter.c``) that runs without
+Python's interpreter lock: the haptic loop never waits for a frame thread's filter. The frames
+are copied only when a pixel is dropped.
 """
 from __future__ import annotations
 
@@ -67,6 +64,21 @@ def segment_distance(points, a, b) -> np.ndarray:
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
 
 
+_PIXEL_TEST = None
+
+
+def _pixel_test():
+    """The compiled per-capsule pixel test (``native/selffilter.c``: every pixel of a window
+    whose point lies within reach of a segment), built on first use. It runs without the
+    interpreter lock, beside the haptic loop that needs it."""
+    global _PIXEL_TEST
+    if _PIXEL_TEST is None:
+        from pointfence.native.build import load_self_filter
+
+        _PIXEL_TEST = load_self_filter().pf_selffilter_capsule
+    return _PIXEL_TEST
+
+
 _CUBE = np.array([(x, y, z) for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
 
 
@@ -86,16 +98,15 @@ class SelfFilter:
         self._rays = {}
         self.removed = 0  # pixels dropped by the last apply()
 
-    def _unit_rays(self, cam: Camera):
-        """(rays (H, W, 3) with z = 1, unit rays (H, W, 3), extents) of ``cam``; extents: each
-        column's x range and each row's y range of the normalised rays."""
+    def _rays_of(self, cam: Camera):
+        """(rays (H, W, 3) with z = 1, extents) of ``cam``; extents: each column's x range and
+        each row's y range of the normalised rays."""
         r = self._rays.get(cam.name)
         if r is None:
             xy = cam.ray_table().astype(np.float64)
             rays = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2)  # z = 1: the ray parameter is the depth
-            unit = rays / np.linalg.norm(rays, axis=2, keepdims=True)
             ext = (xy[:, :, 0].min(axis=0), xy[:, :, 0].max(axis=0), xy[:, :, 1].min(axis=1), xy[:, :, 1].max(axis=1))
-            r = self._rays[cam.name] = (rays, unit, ext)
+            r = self._rays[cam.name] = (np.ascontiguousarray(rays), ext)
         return r
 
     @staticmethod
@@ -123,35 +134,26 @@ class SelfFilter:
         cam = self.cameras.get(frame.camera)
         if cam is None:
             raise InputError(f"self-filter: frame from unknown camera {frame.camera!r}; cameras: {sorted(self.cameras)}")
-        rays, unit, ext = self._unit_rays(cam)
+        rays, ext = self._rays_of(cam)
         T = np.asarray(frame.T_world_cam if frame.T_world_cam is not None else cam.T_world_cam, np.float64)
         R, t = T[:3, :3], T[:3, 3]
-        depth = frame.depth
+        depth = np.ascontiguousarray(frame.depth, np.uint16)
         out = np.zeros(depth.shape, bool)
         for c in capsules:
             checkpoint()
             a_c = R.T @ (np.asarray(c.a) - t)
             b_c = R.T @ (np.asarray(c.b) - t)
             reach = c.radius + self.margin
-            center = (a_c + b_c) / 2
-            bound = np.linalg.norm(b_c - a_c) / 2 + reach
             # the capsule is the convex hull of its end balls, and its image the hull of theirs:
             # the window bounds both (a shaft seen end-on is small, its bounding sphere is not)
             rs, cs = self._window(ext, ((a_c, reach), (b_c, reach)))
-            d = depth[rs, cs]
-            if not d.size:
+            r0, r1, _ = rs.indices(depth.shape[0])
+            c0, c1, _ = cs.indices(depth.shape[1])
+            if r1 <= r0 or c1 <= c0:
                 continue
-            along = unit[rs, cs] @ center
-            near = (d != 0) & (along > -bound) & (center @ center - along * along <= bound * bound)
-            if not near.any():
-                continue
-            z = d[near].astype(np.float64) * cam.depth_scale
-            p_cam = rays[rs, cs][near] * z[:, None]
-            on = segment_distance(p_cam, a_c, b_c) <= reach
-            win = out[rs, cs]          # a view: writes land in out
-            hit = np.zeros(near.sum(), bool)
-            hit[on] = True
-            win[near] |= hit
+            a_c, b_c = np.ascontiguousarray(a_c, np.float64), np.ascontiguousarray(b_c, np.float64)
+            _pixel_test()(depth.ctypes.data, rays.ctypes.data, depth.shape[1], r0, r1, c0, c1, float(cam.depth_scale),
+                          a_c.ctypes.data, b_c.ctypes.data, float(reach), out.ctypes.data)
         return out
 
     def apply(self, frames: Sequence[DepthFrame], capsules: Sequence[Capsule]) -> list:

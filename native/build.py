@@ -1,5 +1,6 @@
-"""Build and load pointfence's compiled libraries: the tick core (``tick_core.c``) and the UDP
-receiver (``udp_rx.c``, with the C client's SHA-256 and codec from ``clients/c``).
+"""Build and load pointfence's compiled libraries: the tick core (``tick_core.c``), the UDP
+receiver (``udp_rx.c``, with the C client's SHA-256 and codec from ``clients/c``) and the
+self-filter's pixel test (``selffilter.c``).
 
 Each library is compiled once with the machine's C compiler (``$CC``, else ``cc``) the first
 time it is needed and kept in a cache named after a hash of the source and the flags, so a
@@ -81,6 +82,10 @@ UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha25
               ("-lm", "-pthread"))
 
 
+#: the robot self-filter's pixel test (kernels/selffilter.py)
+SELF_FILTER = _Lib("libpf_selffilter", (_HERE / "selffilter.c",), (), (), ("-lm",))
+
+
 def library_path(lib: Optional[_Lib] = None) -> Path:
     """The compiled library (default: the tick core) for its sources and this platform, built
     now if it is not cached."""
@@ -133,7 +138,25 @@ def load_udp_rx():
         raise NativeBuildError(f"loading the UDP receiver {path} failed: {e}; delete it to rebuild") from None
 
 
+def load_self_filter() -> ctypes.CDLL:
+    """Build (if needed) and load the self-filter's pixel test. Its calls hand the interpreter
+    lock over while they run (``ctypes.CDLL``): it runs on a frame thread, for tens to hundreds
+    of microseconds, beside the haptic loop that needs the lock."""
+    path = library_path(SELF_FILTER)
+    try:
+        dll = ctypes.CDLL(str(path))
+    except OSError as e:
+        raise NativeBuildError(f"loading the self-filter {path} failed: {e}; delete it to rebuild") from None
+    P = ctypes.c_void_p
+    fn = dll.pf_selffilter_capsule
+    fn.restype = ctypes.c_int64
+    fn.argtypes = [P, P, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+                   ctypes.c_double, P, P, ctypes.c_double, P]
+    return dll
+
+
 if __name__ == "__main__":      # `python -m pointfence.native.build`: build now, print where
     print(library_path())
     print(library_path(UDP_RX))
+    print(library_path(SELF_FILTER))
     sys.exit(0)

@@ -118,3 +118,25 @@ def test_image_window_drops_exactly_what_a_test_of_every_pixel_drops(dist):
         assert np.array_equal(got, want)
         hits += int(want.any())
     assert hits > 10   # the capsules did cut into the depth image
+
+
+def test_compiled_pixel_test_drops_what_numpy_drops_on_a_real_frame(shared_data):
+    """A real Kinect frame (7-Scenes kitchen, its recorded pose) and random capsules around a
+    surface point it sees, some cutting into the surface, some in front of it: the compiled
+    test's mask equals the every-pixel NumPy test's, pixel for pixel."""
+    from pointfence.service import dynamic_real_rig as drr
+
+    R = drr.rig(1, shared_data)
+    frame = R.a.frame(0, 0.0)
+    f = SelfFilter([R.a.camera], margin=0.003)
+    rng = np.random.default_rng(5)
+    hits = 0
+    for _ in range(40):
+        tip = R.site.point + R.site.view * rng.uniform(-0.02, 0.05) + rng.normal(0.0, 0.03, 3)
+        axis = R.site.view + rng.normal(0.0, 0.3, 3)
+        caps = [Capsule(tuple(tip), tuple(tip + 0.15 * axis / np.linalg.norm(axis)), float(rng.uniform(0.003, 0.02)))]
+        got = f.mask(frame, caps)
+        want = _mask_every_pixel(R.a.camera, frame, caps, 0.003)
+        assert np.array_equal(got, want)
+        hits += int(want.sum() > 20)
+    assert hits > 10   # the capsules did cut into the real surface
