@@ -18,6 +18,7 @@ gone), and checks that can only be made live (HTTP answers) in ``ev.failures``.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Optional
@@ -167,6 +168,16 @@ def _robot(kind: str):
         host = rig.run.robot_host
         ev.inject = rig.tick()
         host.inject(kind, 0 if kind == "nan" else None)
+        if kind == "nan":
+            # the fault went in when the robot process published it (its own period, at its own
+            # priority: the request may wait there for milliseconds); the tick due just before
+            # that is the first that can have seen it (started late). A stop or a kill is the
+            # signal itself
+            end = time.monotonic() + 0.3
+            while not math.isfinite(host.injected_at(0)) and time.monotonic() < end:
+                rig.sleep(0.0005)
+            if math.isfinite(host.injected_at(0)):
+                ev.inject = max(ev.inject, rig.tick_at(host.injected_at(0)))
         rig.sleep(0.3)
         if kind == "kill":
             host.restart()
@@ -248,7 +259,7 @@ FAULTS = {f.name: f for f in (
     Fault("replayed_flood", "attack", "S6", _flood("replay")),
     Fault("robot_process_kill", "fault", "S9", _robot("kill"), bit=ROBOT, latched=True, detect_s="robot_watchdog"),
     Fault("robot_process_stall", "fault", "S9", _robot("stall"), bit=ROBOT, latched=True, detect_s="robot_watchdog"),
-    Fault("robot_state_nan", "fault", "S3", _robot("nan"), bit=ROBOT, arms=(0,), latched=True, detect_s=0.01),
+    Fault("robot_state_nan", "fault", "S3", _robot("nan"), bit=ROBOT, arms=(0,), latched=True, detect_s=0.002),
     Fault("haptics_off_while_pushing", "action", "S1", _haptics_off, still=True),
     Fault("architecture_switch_while_pushing", "action", "S1", _arch_switch, still=True),
     Fault("unauthenticated_control_request", "action", "S4", _unauthenticated),

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
+import math
 import threading
 import time
 import urllib.error
@@ -120,6 +121,12 @@ class SoakRig:
     def tick(self) -> int:
         """The loop's current tick number."""
         return int(self.run.loop.k)
+
+    def tick_at(self, t: float) -> int:
+        """The last tick due at or before time ``t`` (the loop's clock, s): the first that can
+        have seen what happened at ``t``, if it started late."""
+        loop = self.run.loop
+        return int(math.floor((t - loop.t0) / loop.period + 1e-9))
 
     def now(self) -> float:
         return self.run.clock.now()

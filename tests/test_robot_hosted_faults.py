@@ -73,9 +73,14 @@ def test_nan_state_faults_the_arm_and_a_faulted_arm_never_moves(host):
         r.resume()
     tick(host, 20)
     x0, s0 = a.measured_cp()[:3, 3].copy(), a.setpoint_cp()[:3, 3].copy()
+    assert np.isnan(host.injected_at(0))
+    t_inject = time.perf_counter()
     host.inject("nan", arm=0)
     k = tick_until(host, lambda: a.state is RobotMode.FAULT)
     assert k < 2000                                     # bounded: a few control periods, not a timeout
+    # when the child published the NaN state: after the request, before the service saw it (the
+    # soak judges the hold's latency from it); the other arm was not injected
+    assert t_inject < host.injected_at(0) < time.perf_counter() and np.isnan(host.injected_at(1))
     assert a.fault_reason == "robot state non-finite: q, T_meas (arm 0)"
     assert b.state is RobotMode.ENABLED and b.fault_reason is None    # the other arm is healthy
     assert np.isfinite(a.measured_cp()).all() and np.isfinite(a.measured_js().position).all()

@@ -156,6 +156,7 @@ class RobotHost:
     def _spawn(self, start_q: Optional[list]) -> None:
         """Start the child on a zeroed block and wait until it has built the arms."""
         self._blk.raw[:] = 0                       # no command of a previous child
+        self._blk.inject_t[:] = math.nan           # (and no injection that took effect)
         self._cmds.rec[:] = 0
         self._servo_sent = [0] * self.n            # setpoints and mode commands sent (the record's counts)
         self._modes_sent = [0] * self.n
@@ -289,6 +290,7 @@ class RobotHost:
             raise InputError("inject: the robot host is closed")
         if kind in ("nan", "none"):
             for b in arms:
+                self._blk.inject_t[b] = math.nan
                 self._blk.inject[b] = INJECT_NAN if kind == "nan" else INJECT_NONE
         if self._proc.poll() is None:
             sig = {"stall": signal.SIGSTOP, "kill": signal.SIGKILL, "none": signal.SIGCONT}.get(kind)
@@ -296,6 +298,13 @@ class RobotHost:
                 os.kill(self._proc.pid, sig)
         if kind == "kill":
             self._proc.wait(timeout=5.0)
+
+    def injected_at(self, arm: int) -> float:
+        """When the child first published arm ``arm``'s injected NaN state (``time.perf_counter``
+        s, the service's clock); NaN before it did, or without a NaN injection."""
+        if self._blk is None:
+            raise InputError("injected_at: the robot host is closed")
+        return float(self._blk.inject_t[int(arm)])
 
     def restart(self) -> None:
         """Start a new robot process after the last one ended (a ``kill``, a crash), its arms at

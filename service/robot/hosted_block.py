@@ -66,10 +66,13 @@ def _channel_dtype(row: np.dtype, n: int) -> np.dtype:
 
 def block_dtype(n: int, dof: int) -> np.dtype:
     """The whole shared block for ``n`` arms of ``dof`` joints: control words (``CONTROL``),
-    per-arm fault injection codes (``INJECT_*``), the state channel (child -> service: ``n`` rows
-    of ``state_dtype(dof)``), the command channel (service -> child: ``n`` rows of ``COMMAND``)
-    and per arm two texts (fault reason, last error; UTF-8, ``TEXT`` bytes each)."""
-    return np.dtype([("ctl", CONTROL), ("inject", "i8", (n,)), ("state", _channel_dtype(state_dtype(dof), n)),
+    per-arm fault injection codes (``INJECT_*``) and the time each injection took effect
+    (``inject_t``: when the child first published the injected state, ``time.perf_counter`` s,
+    the service's clock: both read CLOCK_MONOTONIC; NaN until then), the state channel (child ->
+    service: ``n`` rows of ``state_dtype(dof)``), the command channel (service -> child: ``n`` rows
+    of ``COMMAND``) and per arm two texts (fault reason, last error; UTF-8, ``TEXT`` bytes each)."""
+    return np.dtype([("ctl", CONTROL), ("inject", "i8", (n,)), ("inject_t", "f8", (n,)),
+                     ("state", _channel_dtype(state_dtype(dof), n)),
                      ("cmd", _channel_dtype(COMMAND, n)), ("text", "u1", (n, 2, TEXT))])
 
 
@@ -155,7 +158,7 @@ class Channel:
 class Block:
     """The shared block for ``n`` arms of ``dof`` joints (``block_dtype``) over ``buf`` (None: a
     private zeroed copy). Its regions, by name: ``ctl`` (``CONTROL``: ``ctl["ticks"]`` etc.),
-    ``ctl_words`` (the same as int64), ``inject`` (n), ``state`` and ``cmd`` (``Channel``: rows of
+    ``ctl_words`` (the same as int64), ``inject`` and ``inject_t`` (n), ``state`` and ``cmd`` (``Channel``: rows of
     ``S`` and ``C`` floats per arm, read through ``layout`` and ``command_layout``), ``text``
     (n, 2, TEXT)."""
 
@@ -172,6 +175,7 @@ class Block:
         #: the control words as a memoryview of int64 (``ctl_words[TICKS]``: a Python int)
         self.ctl_words = memoryview(self.ctl.reshape(1).view(np.int64))
         self.inject = rec["inject"]
+        self.inject_t = rec["inject_t"]
         self.state = Channel(rec["state"])
         self.cmd = Channel(rec["cmd"])
         self.text = rec["text"]

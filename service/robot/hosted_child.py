@@ -14,6 +14,7 @@ import json
 import math
 import os
 import sys
+import time
 from multiprocessing import shared_memory
 from typing import Optional
 
@@ -72,6 +73,9 @@ class ChildArms:
             write_state(blk.layout, self.state[b], blk.text[b], r, tuple(self.seen[b]), self.texts[b],
                         blk.inject[b] == INJECT_NAN)
         blk.state.write(self.state.reshape(-1))
+        for b in range(len(self.robots)):      # when an injection took effect (fault-injection benchmarks)
+            if blk.inject[b] == INJECT_NAN and blk.inject_t[b] != blk.inject_t[b]:
+                blk.inject_t[b] = time.perf_counter()
 
     def period(self, dt: float) -> None:
         got = self.blk.cmd.read(self.cmds.rec)     # else (lapped) this period keeps the last commands
