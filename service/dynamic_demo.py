@@ -59,7 +59,7 @@ def service_plane(predict: bool, *, speed: float = 0.5, backend: str = "opencl",
         doc["service"]["max_lateness_s"] = 0.02
     cfg = config.parse(doc, "chapter-6 service run")
     master = ScriptedMaster(np.array([0.0, 0.1, 10.0]), np.array([[0, 0, 0], [0, 0, -0.19], [0, 0, -0.19]], float))
-    start, go = 0.0, 0.0   # scene time (s) at which the plane starts to rise; loop time of the master's
+    start, go = 0.0, 0.0   # when the plane starts to rise (scene time, s) and the master's script (loop time, s)
     if live:
         # The experiment starts once the service runs clear: a real-time camera's clock starts at
         # its first frame and the start-up builds kernels, so the loop may start on an old snapshot
