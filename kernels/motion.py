@@ -44,7 +44,13 @@ points:
   estimate to a hole or to the surface crossing cells, inside a patch moving as one rigid
   body (translating or turning: each neighbour's affine field extrapolates to the same
   velocity). Elsewhere it stays at 0: a cell that cannot predict behaves as a fixture that
-  does not try.
+  does not try;
+* a cell measured in this estimate and the last one, whose two fields agree at its new centroid
+  within ``smooth_gate`` (a fraction of the larger speed, + ``v_min``), takes their weighted
+  mean (``smoothing``: the new estimate's weight; the mean carries on, an exponential mean over
+  the frames the cell keeps its motion). One estimate's error is its block's centroid noise
+  over one frame gap (on real surfaces sliding through a block, 10-30 % of the speed from one
+  pair of frames to the next); a change of motion beyond the gate is taken at once.
 
 Each motion cell carries a state (``CELL_NONE``, ``CELL_PROPAGATED``, ``CELL_MEASURED``);
 ``summary()`` counts them and gives the measured speeds (for the service's status, computed
@@ -95,6 +101,12 @@ class MotionModel:
         speed (+ v_min) of their mean velocity.
     w_max: blocks whose planar fit turns faster than this (rad/s) between the snapshots are
         discarded (0).
+    smoothing: weight of a cell's new estimate against its previous one (1: none). A cell
+        measured in two estimates in a row takes ``smoothing * new + (1 - smoothing) * previous``
+        (fields, each at the cell's new centroid) where the two agree within ``smooth_gate``.
+    smooth_gate: the two estimates agree when they differ by at most this fraction of the
+        larger speed (+ ``v_min``); otherwise the surface changed its motion and the new
+        estimate is taken as it is.
     """
 
     enabled: bool = False
@@ -111,15 +123,19 @@ class MotionModel:
     min_neighbours: int = 3
     coherence: float = 0.25
     w_max: float = 20.0
+    smoothing: float = 0.5
+    smooth_gate: float = 0.15
 
     def __post_init__(self):
         for key in ("latency", "max_age", "capture", "cell", "planarity", "count_ratio", "v_min", "v_max", "max_gap",
-                    "coherence", "w_max"):
+                    "coherence", "w_max", "smoothing", "smooth_gate"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise InputError(f"motion {key} = {v!r}; expected a finite number >= 0")
         if self.count_ratio < 1:
             raise InputError(f"motion count_ratio = {self.count_ratio}; expected >= 1")
+        if not 0 < self.smoothing <= 1:
+            raise InputError(f"motion smoothing = {self.smoothing}; expected a weight in (0, 1] (1: no smoothing)")
         if self.v_min > self.v_max:
             raise InputError(f"motion v_min = {self.v_min} > v_max = {self.v_max} m/s")
         for key, lo in (("min_points", 1), ("min_neighbours", 0)):
@@ -235,6 +251,8 @@ class MotionEstimator:
         self._corners = np.asarray(grid.origin) + ijk * grid.h
         self.max_block = max(1, int(math.ceil(model.capture / (k * grid.h) - 1e-9)))
         self._prev = None  # (time, summed-area table)
+        self._last = None  # the last estimate's measured cells: (motion cells, v at centroid, W, centroid)
+        self._smoothed = 0  # measured cells the last estimate averaged with the one before
         nc = self.dims[0] * self.dims[1] * self.dims[2]
         self.state = np.zeros(nc, np.uint8)      # per motion cell: CELL_NONE / _PROPAGATED / _MEASURED
         self.cell_motion = None                  # the last estimate's cell motions (``update``), or None
@@ -244,6 +262,7 @@ class MotionEstimator:
 
     def reset(self) -> None:
         self._prev = None
+        self._last = None
         self.cell_motion = None
         self.state[:] = CELL_NONE
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
@@ -275,6 +294,7 @@ class MotionEstimator:
         self.state[:] = CELL_NONE
         self.cell_motion = None
         self._summary = _summary(np.zeros(0, np.uint8), np.zeros(0))
+        last, self._last = self._last, None
         if prev is None:
             return None, 0.0
         gap = float(t) - prev[0]
@@ -313,6 +333,7 @@ class MotionEstimator:
             measured = ~todo & (speed <= m.v_max) & (turn <= m.w_max)
             vc[~measured] = 0.0
             W[~measured] = 0.0
+            self._smooth(occ, measured, vc, W, ref, last)
             state = np.where(measured, CELL_MEASURED, CELL_NONE).astype(np.uint8)
             if m.min_neighbours > 0:
                 self._propagate(occ, c, vc, W, ref, state)
@@ -329,6 +350,7 @@ class MotionEstimator:
                                  rejected_counts=int(np.count_nonzero(todo & ~few)),
                                  rejected_v_max=int(np.count_nonzero(~todo & (speed > m.v_max))),
                                  rejected_w_max=int(np.count_nonzero(~todo & (speed <= m.v_max) & (turn > m.w_max))),
+                                 cells_smoothed=self._smoothed,
                                  turn_max_radps=round(float(np.max(turn[state == CELL_MEASURED], initial=0.0)), 3))
         i = np.searchsorted(occ, self._coarse[fine])
         Wf = W[i]
@@ -338,6 +360,37 @@ class MotionEstimator:
         vmax = float(np.max(_box_speed(vf, Wf, self._corners[fine], self._corners[fine], self.grid.h), initial=0.0))
         self.cell_motion = out
         return out, vmax
+
+    def _smooth(self, occ, measured, vc, W, ref, last) -> None:
+        """Cells measured in this estimate and the last one, whose two fields agree at the cell's
+        new centroid, take their weighted mean (``smoothing``, ``smooth_gate``; the module
+        docstring); in place on ``vc`` and ``W``. Keeps the measured cells' fields (the means
+        where taken) for the next estimate."""
+        m = self.model
+        cells = occ[measured]
+        self._last = (cells, vc[measured], W[measured], ref[measured])    # (copies: fancy indexing)
+        self._smoothed = 0
+        if last is None or m.smoothing >= 1.0 or not cells.size:
+            return
+        l_cells, l_v, l_W, l_ref = last
+        if not l_cells.size:
+            return
+        pos = np.minimum(np.searchsorted(l_cells, cells), l_cells.size - 1)
+        both = l_cells[pos] == cells
+        if not np.any(both):
+            return
+        i = np.flatnonzero(measured)[both]
+        j = pos[both]
+        old = l_v[j] + np.einsum("mij,mj->mi", l_W[j], ref[i] - l_ref[j])    # the last field at the new centroid
+        new = vc[i]
+        diff = np.linalg.norm(new - old, axis=1)
+        agree = diff <= m.smooth_gate * np.maximum(np.linalg.norm(new, axis=1), np.linalg.norm(old, axis=1)) + m.v_min
+        a = m.smoothing
+        k = i[agree]
+        vc[k] = a * new[agree] + (1.0 - a) * old[agree]
+        W[k] = a * W[k] + (1.0 - a) * l_W[j[agree]]
+        self._last = (cells, vc[measured], W[measured], ref[measured])    # the means carry on
+        self._smoothed = int(k.size)
 
     def _propagate(self, occ, c, vc, W, ref, state) -> None:
         """Unknown occupied cells take their measured neighbours' mean motion where enough of

@@ -297,6 +297,10 @@ class MotionTable:
                                   doc="an unmeasured cell takes the velocity of at least this many agreeing measured neighbours (0: never)")
     coherence: float = setting(MotionModel.coherence, lo=0, doc="neighbours agree within this fraction of their mean speed")
     w_max: float = setting(MotionModel.w_max, lo=0, doc="blocks whose surface turns faster are discarded (rad/s)")
+    smoothing: float = setting(MotionModel.smoothing, lo=0, hi=1,
+                               doc="weight of a cell's new estimate against its previous one (1: none)")
+    smooth_gate: float = setting(MotionModel.smooth_gate, lo=0,
+                                 doc="estimates differing by more than this fraction of the speed are not averaged")
 
     def __post_init__(self):
         self.model()
