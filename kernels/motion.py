@@ -368,29 +368,23 @@ class MotionEstimator:
         where taken) for the next estimate."""
         m = self.model
         cells = occ[measured]
-        self._last = (cells, vc[measured], W[measured], ref[measured])    # (copies: fancy indexing)
         self._smoothed = 0
-        if last is None or m.smoothing >= 1.0 or not cells.size:
-            return
-        l_cells, l_v, l_W, l_ref = last
-        if not l_cells.size:
-            return
-        pos = np.minimum(np.searchsorted(l_cells, cells), l_cells.size - 1)
-        both = l_cells[pos] == cells
-        if not np.any(both):
-            return
-        i = np.flatnonzero(measured)[both]
-        j = pos[both]
-        old = l_v[j] + np.einsum("mij,mj->mi", l_W[j], ref[i] - l_ref[j])    # the last field at the new centroid
-        new = vc[i]
-        diff = np.linalg.norm(new - old, axis=1)
-        agree = diff <= m.smooth_gate * np.maximum(np.linalg.norm(new, axis=1), np.linalg.norm(old, axis=1)) + m.v_min
-        a = m.smoothing
-        k = i[agree]
-        vc[k] = a * new[agree] + (1.0 - a) * old[agree]
-        W[k] = a * W[k] + (1.0 - a) * l_W[j[agree]]
-        self._last = (cells, vc[measured], W[measured], ref[measured])    # the means carry on
-        self._smoothed = int(k.size)
+        if last is not None and m.smoothing < 1.0 and cells.size and last[0].size:
+            l_cells, l_v, l_W, l_ref = last
+            pos = np.minimum(np.searchsorted(l_cells, cells), l_cells.size - 1)
+            both = l_cells[pos] == cells
+            i = np.flatnonzero(measured)[both]
+            j = pos[both]
+            old = l_v[j] + np.einsum("mij,mj->mi", l_W[j], ref[i] - l_ref[j])    # the last field at the new centroid
+            new = vc[i]
+            gate = m.smooth_gate * np.maximum(np.linalg.norm(new, axis=1), np.linalg.norm(old, axis=1)) + m.v_min
+            agree = np.linalg.norm(new - old, axis=1) <= gate
+            a = m.smoothing
+            k = i[agree]
+            vc[k] = a * new[agree] + (1.0 - a) * old[agree]
+            W[k] = a * W[k] + (1.0 - a) * l_W[j[agree]]
+            self._smoothed = int(k.size)
+        self._last = (cells, vc[measured], W[measured], ref[measured])    # (copies: fancy indexing)
 
     def _propagate(self, occ, c, vc, W, ref, state) -> None:
         """Unknown occupied cells take their measured neighbours' mean motion where enough of

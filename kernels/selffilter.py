@@ -151,7 +151,6 @@ class SelfFilter:
             c0, c1, _ = cs.indices(depth.shape[1])
             if r1 <= r0 or c1 <= c0:
                 continue
-            a_c, b_c = np.ascontiguousarray(a_c, np.float64), np.ascontiguousarray(b_c, np.float64)
             _pixel_test()(depth.ctypes.data, rays.ctypes.data, depth.shape[1], r0, r1, c0, c1, float(cam.depth_scale),
                           a_c.ctypes.data, b_c.ctypes.data, float(reach), out.ctypes.data)
         return out

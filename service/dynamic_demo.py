@@ -18,6 +18,8 @@ from .record import INPUT_COLUMNS
 INPUT_AGE, INPUT_DT = INPUT_COLUMNS.index("frame_age"), INPUT_COLUMNS.index("dt")
 #: a live run whose longest stall let the plane move further than this (mm) fell behind
 LIVE_MAX_TRAVEL_MM = 1.0
+#: how long a live run waits for the service to run clear before its experiment starts (s)
+LIVE_CLEAR_TIMEOUT_S = 10.0
 
 #: the service-level run: a plane rising at ``speed`` through z = -0.1 m at t = 0 under a 160x120
 #: camera 0.5 m above it, all protected by a 2 cm fixture; architecture III with an ideal robot
@@ -69,10 +71,10 @@ def service_plane(predict: bool, *, speed: float = 0.5, backend: str = "opencl",
         sources = cfg.open_sources(realtime=True)
         sources[0].scene.start = math.inf
         master.t0 = math.inf
-        run = LiveRun(cfg, [master], record_s=duration + 12.0, sources=sources)
+        run = LiveRun(cfg, [master], record_s=duration + LIVE_CLEAR_TIMEOUT_S + 2.0, sources=sources)
         run.start()
         try:
-            run.wait_clear(0.05, timeout=10.0)
+            run.wait_clear(0.05, timeout=LIVE_CLEAR_TIMEOUT_S)
             at = run.clock.now() + 1.0 / cfg.cameras[0].rate_hz
             master.t0, start = at - run.loop.t0, at - run.frames.clock_minus_stamp
             sources[0].scene.start = start

@@ -7,7 +7,9 @@ import gc
 import time
 from typing import Optional
 
-from .app import Service
+import numpy as np
+
+from .app import Service, reason_names
 from .clock import RealClock
 from .frames import LiveFrames
 from .loop import HapticLoop
@@ -153,22 +155,24 @@ class LiveRun:
             time.sleep(min(0.05, max(0.0, end - time.monotonic())))
 
     def wait_clear(self, clear_s: float, timeout: float = 10.0) -> None:
-        """Wait until no arm has held for ``clear_s`` seconds on end (the service's status:
-        start-up holds such as an old first snapshot have cleared); RuntimeError after
-        ``timeout`` s, naming what still holds."""
+        """Wait until no arm has held for ``clear_s`` seconds on end (start-up holds such as an
+        old first snapshot have cleared); RuntimeError after ``timeout`` s, naming what still
+        holds. Reads the last tick's hold masks (``Service.hold_mask``, ``arm_hold``), not
+        ``status()``, which would take the interpreter lock from the loop every poll."""
+        svc = self.service
         end = time.monotonic() + timeout
         since = None
         while True:
-            st = self.service.status()
             now = time.monotonic()
-            if st["hold"] or any(st["arms_holding"]):
+            if svc.hold_mask or svc.arm_hold.any():
                 since = None
             elif since is None:
                 since = now
             elif now - since >= clear_s:
                 return
             if now > end:
-                raise RuntimeError(f"the service still holds after {timeout:g} s: {st['hold_causes'] or st['hold']}")
+                raise RuntimeError(f"the service still holds after {timeout:g} s: "
+                                   f"{reason_names(int(svc.hold_mask) | int(np.bitwise_or.reduce(svc.arm_hold)))}")
             self.wait(0.005)
 
     def timing(self):

@@ -362,3 +362,22 @@ def test_demo_prints_when_the_live_run_fell_behind(monkeypatch):
     lines.clear()
     dd.run(live=False, out=lines.append)    # the simulated clock: no live figures to judge
     assert not any("live run" in ln for ln in lines)
+
+
+def test_wait_clear_needs_a_clear_stretch_and_names_what_holds():
+    """``LiveRun.wait_clear`` returns only after no arm held for the whole stretch, and after its
+    timeout raises naming the hold (the last tick's masks, not the status)."""
+    import time
+    from types import SimpleNamespace
+
+    from pointfence.service.holds import INGEST
+    from pointfence.service.runner import LiveRun
+
+    svc = SimpleNamespace(hold_mask=0, arm_hold=np.zeros(2, np.int64))
+    run = SimpleNamespace(service=svc, wait=time.sleep)
+    t0 = time.monotonic()
+    LiveRun.wait_clear(run, 0.05, timeout=1.0)
+    assert time.monotonic() - t0 >= 0.05
+    svc.arm_hold[1] = int(INGEST)
+    with pytest.raises(RuntimeError, match="still holds after 0.1 s: .*snapshots not published"):
+        LiveRun.wait_clear(run, 0.05, timeout=0.1)
