@@ -246,10 +246,23 @@ def test_the_hosted_arm_runs_in_the_robot_process_end_to_end(ros2_env):
         assert until(arm, lambda: np.linalg.norm(arm.measured_cp()[:3, 3] - goal) < 5e-4), arm.fault_reason
         with pytest.raises(InputError, match="outside the workspace"):   # refused in the service's process
             arm.servo_cp([0.5, 0.0, 0.0])
-        proc.kill()
-        proc.wait(timeout=10)
-        assert until(arm, lambda: arm.state == RobotMode.FAULT)
-        assert "no fresh measured_" in (arm.fault_reason or "")   # (measured_cp or measured_js: whichever aged first)
+        first = []
+        for attempt in range(3):
+            proc.kill()
+            proc.wait(timeout=10)
+            assert until(arm, lambda: arm.state == RobotMode.FAULT)
+            if "no fresh measured_" in (arm.fault_reason or "") or "not answering" not in (arm.fault_reason or ""):
+                break
+            # A loaded 2-core machine paused the robot process past its 250 ms watchdog before the
+            # arm's own timeout ran out (a CI machine did): that FAULT latched first. Bring the
+            # sim-arm back, clear the fault and kill the sim-arm again.
+            first.append(arm.fault_reason)
+            proc = start_sim_arm(ros2_env, "PSM3", "--state-type", "string")
+            assert until(arm, lambda: host.ready(0) is None, 30), host.ready(0)
+            arm.enable()
+            assert until(arm, lambda: arm.state == RobotMode.ENABLED, 30), arm.last_error
+        # (measured_cp or measured_js: whichever aged first)
+        assert "no fresh measured_" in (arm.fault_reason or ""), (arm.fault_reason, first)
         assert arm.servo_cp(goal) is False
     finally:
         host.close()

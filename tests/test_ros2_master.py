@@ -486,7 +486,8 @@ def test_the_jaw_follows_the_mtm_gripper_rate_limited_and_a_nan_gripper_holds_it
     cfg = balloon_config(tmp_path, arch="III", robot=POINT_MASS, extra="max_lateness_s = 1.0\n")
     lab = subprocess.Popen([sys.executable, "-c", GRIP_LAB], env={**os.environ, **ros2_env}, stdin=subprocess.PIPE,
                            text=True, bufsize=1)
-    host = CrtkMasterHost([CrtkDevice("GMTM", clutch_topic="/gmtm/deadman", pedal="couples", timeout_ms=100)])
+    # (a master silent for 1 s reads stale: the lab's process shares 2 cores with the service here)
+    host = CrtkMasterHost([CrtkDevice("GMTM", clutch_topic="/gmtm/deadman", pedal="couples", timeout_ms=1000)])
     m = host.masters[0]
     run = None
 
@@ -508,14 +509,23 @@ def test_the_jaw_follows_the_mtm_gripper_rate_limited_and_a_nan_gripper_holds_it
         run.start()
         assert wait_for(lambda: run.service.out.coupled[0] and abs(jaw()[1] - 0.2) < 1e-12, 15), jaw()
         vmax, dt = run.service.cfg.teleop.max_jaw_speed, run.service.dt
-        tell(0.8)                                     # 0.6 rad at 3 rad/s: 0.2 s of ramp
-        seen, end = [jaw()], time.monotonic() + 10.0
-        while seen[-1][1] < 0.8 - 1e-12 and time.monotonic() < end:
-            time.sleep(0.0002)           # (a busy poll would take the interpreter from the loop)
-            s = jaw()
-            if s[0] != seen[-1][0]:
-                seen.append(s)
-        assert abs(seen[-1][1] - 0.8) < 1e-12, (seen[-5:], run.service.status()["arms_holding"])
+        stuck = []
+        for _ in range(3):
+            tell(0.8)                                 # 0.6 rad at 3 rad/s: 0.2 s of ramp
+            seen, end = [jaw()], time.monotonic() + 5.0
+            while seen[-1][1] < 0.8 - 1e-12 and time.monotonic() < end:
+                time.sleep(0.0002)       # (a busy poll would take the interpreter from the loop)
+                s = jaw()
+                if s[0] != seen[-1][0]:
+                    seen.append(s)
+            if abs(seen[-1][1] - 0.8) < 1e-12:
+                break
+            # A hold in the ramp (a stall of this loaded machine) re-anchored the arm: its jaw waits
+            # for the grasp to come back to it, as the dVRK's does. Bring the grasp back and ramp again.
+            stuck.append((seen[-1], run.service.status()["arms_holding"]))
+            tell(0.2)
+            assert wait_for(lambda: abs(jaw()[1] - 0.2) < 1e-12, 15), (jaw(), stuck)
+        assert abs(seen[-1][1] - 0.8) < 1e-12, (seen[-5:], stuck)
         ramp = [j for _, j in seen if 0.2 + 1e-9 < j < 0.8 - 1e-9]
         assert len(ramp) >= 3, seen                  # it ramped (not a jump)
         for (k0, j0), (k1, j1) in zip(seen, seen[1:]):

@@ -91,9 +91,10 @@ def test_architecture_iii_keeps_a_ros2_arm_out_of_a_fixture_seen_through_a_ros2_
     region = measures.region_for(cfg, canned_sources(cfg, 1))   # the scene's true fixture (signed distance, m)
     # Safety is checked on every run. A run in which the arm never pressed (its watchdog faulted
     # it while this 2-core machine ran the service and three ROS processes: a latched hold that
-    # only an operator's clear-faults ends) is run again, up to three runs in all.
+    # only an operator's clear-faults ends) is run again, up to five runs in all (a CI machine
+    # once faulted the arm or stalled the loop in three runs in a row).
     pressed = []
-    for attempt in range(3):
+    for attempt in range(5):
         xr, xm, coupled, frames, st, ended = _run(cfg, cfg_path, arm_path, tmp_path / f"run{attempt}", ros2_env)
         assert not ended, f"equipment processes ended during the run: {ended}"
         assert frames > 60, f"the ROS camera delivered {frames} frames in 9 s"

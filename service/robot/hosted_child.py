@@ -125,7 +125,9 @@ def main(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: int
         blk = Block(shm.buf, len(tables), dof)
         robots = [robot_from_config(t) for t in tables]
         for r, q in zip(robots, start_q or []):
-            if q is not None and getattr(r, "simulated", True):   # (a real arm, crtk, is where it is)                # (within the limits: a joint read at a limit may lie past it by rounding)
+            # a real arm (crtk) is where it is; a simulated one is placed within its limits (a joint
+            # read at a limit may lie past it by rounding)
+            if q is not None and getattr(r, "simulated", True):
                 r.reset(np.clip(q, *r.joint_limits))
         if rt_priority > 0:
             try:
