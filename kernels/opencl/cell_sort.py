@@ -6,12 +6,13 @@ Two shapes give the same ``order`` and ``start``, entry for entry (``kernel_shap
 proxy and neighbour kernels: kernels/opencl/kernel_shape.py; "auto" runs "gpu" on GPU devices):
 
 * ``"cpu"`` (frames.cl): a counting sort whose work-items each walk ``CPU_RUN`` pixels (1 where
-  this shape is forced on a GPU) and take one atomic a run of equal cells, a scatter into a
-  scratch array whose order within a cell follows the atomics, then ``sort_cells``, one
-  work-item a cell copying its entries into the snapshot's ``order`` in pixel order: the
-  scatter leaves a cell as stretches of consecutive pixels, disjoint intervals, which it orders
-  by their first pixel (a heapsort where a cell has more than ``SORT_STRETCHES``: right for
-  PoCL's few threads, a long serial chain for one GPU thread).
+  this shape is forced on a GPU) and take one atomic a run of equal cells, a scatter whose order
+  within a cell follows the atomics, then ``sort_cells``, one work-item a cell putting its
+  entries into pixel order: the scatter leaves a cell as stretches of consecutive pixels,
+  disjoint intervals, which it orders by their first pixel (through a scratch copy of the cell;
+  a cell already in order is left alone, a heapsort where a cell has more than
+  ``SORT_STRETCHES`` stretches): right for PoCL's few threads, a long serial chain for one GPU
+  thread.
 * ``"gpu"`` (cell_sort_gpu.cl): the pixels are cut into runs (stretches of one cell, at most
   ``RUN_MAX`` pixels, never crossing a multiple of it); a run's head counts the whole run into
   its cell with one atomic and takes an index among its cell's runs with another
@@ -75,7 +76,7 @@ class CellSort:
         else:
             self.program = pipeline.prg
             self.pix_rank = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)
-            self.scattered = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)    # the scatter's order, before sort_cells
+            self.scratch = cl.Buffer(ctx, mf.READ_WRITE, 4 * n)      # sort_cells' copy of a cell out of order
             # Pixels per count_runs work-item: long runs on CPUs (fewer atomics), 1 on GPUs.
             self.per = CPU_RUN if backend.device.type & cl.device_type.CPU else 1
             self.n_runs = (npix + self.per - 1) // self.per
@@ -110,8 +111,8 @@ class CellSort:
                     k(self.program, "order_runs", gpix, pix_cell, pix_prot, npix, C, self.counts, start, self.head_pix,
                       self.head_len, self.run_len, order)]
         else:
-            out += [k(frames_prg, "scatter", gpix, pix_cell, self.pix_rank, pix_prot, npix, start, self.scattered),
-                    k(frames_prg, "sort_cells", gcells, start, C, self.scattered, order)]
+            out += [k(frames_prg, "scatter", gpix, pix_cell, self.pix_rank, pix_prot, npix, start, order),
+                    k(frames_prg, "sort_cells", gcells, start, C, order, self.scratch)]
         return out
 
     def enqueue(self, q, slot: int):

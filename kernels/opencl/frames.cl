@@ -5,8 +5,7 @@
 //   cami = pixel offset in the rig, pixel count, max_code, camera index
 // The hash is a counting sort of pixel indices: classify (attributes and cell per pixel, written
 // in pixel order), then the cell sort (kernels/opencl/cell_sort.py): here its CPU shape, count_runs,
-// scan, scatter (4-byte entries only, into a scratch array), sort_cells (from it into the
-// snapshot's order); its GPU shape is cell_sort_gpu.cl. A snapshot is
+// scan, scatter (4-byte entries only), sort_cells; its GPU shape is cell_sort_gpu.cl. A snapshot is
 //   pts[pix] = (x, y, z, r_f) and sigma[pix] for every surviving pixel (pixel order), and
 //   order[start[c] .. start[c+1]) = entries of cell c, entry = pix | protected << 31, in
 //   ascending pixel order within the cell (the reference's stable sort: camera, then pixel).
@@ -180,35 +179,39 @@ inline void sift_down(__global int *o, int i, int n) {
 // a cell cut into more (cells alternating pixel by pixel) is heapsorted instead.
 #define SORT_STRETCHES 256
 
-// Every cell's entries into ascending pixel order, one work-item per cell, from the scatter's
-// `in` (where the atomics put them) into `out`. Pixels are unique, so the result does not depend
-// on the order the scatter left (deterministic by construction). The scatter leaves a cell's
-// entries as stretches of consecutive pixels (one atomic a run of equal cells in count_runs, a
-// run being an interval of pixels); stretches of one cell are disjoint intervals, so ordering
-// them by their first pixel and copying each in turn gives the pixel order: O(n) a cell plus the
-// stretches' insertion sort (they arrive nearly in order). A cell of more stretches than
-// SORT_STRETCHES is copied and heapsorted in place (O(n log n), whatever the order).
-__kernel void sort_cells(__global const int *start, int ncells, __global const int *in, __global int *out) {
+// Every cell's entries into ascending pixel order, in place in `order`, one work-item per cell.
+// Pixels are unique, so the result does not depend on the order the scatter left (deterministic
+// by construction). The scatter leaves a cell's entries as stretches of consecutive pixels (one
+// atomic a run of equal cells in count_runs, a run being an interval of pixels); stretches of one
+// cell are disjoint intervals, so ordering them by their first pixel and copying each in turn
+// gives the pixel order: O(n) a cell plus an insertion sort of the stretches (they arrive nearly
+// in order). A cell already in order is left alone; another is copied to its slot range of
+// `scratch` and written back in order. A cell of more than SORT_STRETCHES stretches is heapsorted
+// in place instead (O(n log n), whatever the order).
+__kernel void sort_cells(__global const int *start, int ncells, __global int *order, __global int *scratch) {
     int c = get_global_id(0);
     if (c >= ncells) return;
     int a = start[c], n = start[c + 1] - a;
-    if (n < 1) return;
-    __global const int *src = in + a;
-    __global int *o = out + a;
+    if (n < 2) return;
+    __global int *o = order + a;
     int head[SORT_STRETCHES], at[SORT_STRETCHES];
-    int m = 0, prev = -2;
-    for (int i = 0; i < n; ++i) {
-        int p = entry_pixel(src[i]);
+    int m = 0, prev = -2, moved = 0;
+    for (int i = 0; i < n && m <= SORT_STRETCHES; ++i) {
+        int p = entry_pixel(o[i]);
         if (p != prev + 1) {                       // a new stretch starts at i
-            if (m == SORT_STRETCHES) { m = -1; break; }
+            if (m == SORT_STRETCHES) { ++m; break; }
             int j = m++;                           // insertion by first pixel
             while (j > 0 && head[j - 1] > p) { head[j] = head[j - 1]; at[j] = at[j - 1]; --j; }
+            moved |= j != m - 1;
             head[j] = p;
             at[j] = i;
         }
         prev = p;
     }
-    if (m >= 0) {
+    if (m <= SORT_STRETCHES) {
+        if (!moved) return;                        // already in pixel order
+        __global int *src = scratch + a;
+        for (int i = 0; i < n; ++i) src[i] = o[i];
         int k = 0;
         for (int s = 0; s < m; ++s) {
             int i = at[s], p = head[s];
@@ -216,7 +219,6 @@ __kernel void sort_cells(__global const int *start, int ncells, __global const i
         }
         return;
     }
-    for (int i = 0; i < n; ++i) o[i] = src[i];
     for (int i = n / 2 - 1; i >= 0; --i) sift_down(o, i, n);
     for (int end = n - 1; end > 0; --end) {
         int t = o[0]; o[0] = o[end]; o[end] = t;
