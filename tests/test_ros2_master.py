@@ -252,7 +252,9 @@ def test_a_labs_rclpy_node_drives_a_live_run_and_reads_forces_and_faults_hold_th
         run = LiveRun(cfg, host.masters, sources=canned_sources(cfg, 10))
         run.start()
         run.wait_ticks(200)
-        assert not holding()
+        # not holding: the lab's samples arrive (on a loaded machine a 100-ms gap in them holds the
+        # arm for a while; it is released once they come again)
+        assert wait_for(lambda: not holding(), 5), run.service.status()
         tell("push")
         assert wait_for(lambda: report()["max"] > 0.5, 15, 0.2), (report(), run.service.status())
         got = report()
