@@ -10,6 +10,9 @@ hand out the atomics' ranges in a different order from build to build, which the
 undo. ``POINTFENCE_OPENCL_DEVICE=nvidia`` runs the same tests on an NVIDIA GPU.
 """
 import dataclasses
+import subprocess
+import sys
+import textwrap
 import zlib
 
 import numpy as np
@@ -241,3 +244,20 @@ def test_frames_written_into_depth_staging_give_the_same_snapshot(pinned):
     dev.ingest(mixed)
     assert_same_snapshot(dev, ref, "mixed")
     np.testing.assert_array_equal(views[1], frames[1].depth)   # its own array was copied into the view
+
+
+def test_a_real_rocking_run_builds_its_snapshots(shared_data):
+    """apc rocking at 0.1 m/s (chapter 6 on real frames, issue 23): a grid of 16,359 cells. The
+    per-cell sort once kept each cell's stretch list in private arrays (2 KB a work-item), which
+    PoCL replicates for every work-item of a work-group: this run's first build crashed the
+    process (SIGSEGV). Run in a process of its own, so that a crash fails this test only."""
+    code = textwrap.dedent("""
+        import math
+        from pointfence.service import dynamic_real as dr
+        res = dr.sweep(("apc_shelfbin_50f",), speeds=(0.1,), radii=(0.01,), cases=(("rocking", "push"),))
+        (row,) = [r for r in res["rows"] if r["scene"].startswith("apc")]
+        assert math.isfinite(row["proxy_mm_with"]) and math.isfinite(row["proxy_mm_without"]), row
+        print("built", row["proxy_mm_with"])
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0 and "built" in proc.stdout, (proc.returncode, proc.stderr[-2000:])

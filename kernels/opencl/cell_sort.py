@@ -9,8 +9,9 @@ proxy and neighbour kernels: kernels/opencl/kernel_shape.py; "auto" runs "gpu" o
   this shape is forced on a GPU) and take one atomic a run of equal cells, a scatter whose order
   within a cell follows the atomics, then ``sort_cells``, one work-item a cell putting its
   entries into pixel order: the scatter leaves a cell as stretches of consecutive pixels,
-  disjoint intervals, which it orders by their first pixel (through a scratch copy of the cell;
-  a cell already in order is left alone, a heapsort where a cell has more than
+  disjoint intervals, which it orders by their first pixel (their starts listed in
+  ``pix_rank``, free once the scatter has read it, and the cell copied to a scratch range; a
+  cell already in order is left alone, a heapsort where a cell has more than
   ``SORT_STRETCHES`` stretches): right for PoCL's few threads, a long serial chain for one GPU
   thread.
 * ``"gpu"`` (cell_sort_gpu.cl): the pixels are cut into runs (stretches of one cell, at most
@@ -112,7 +113,7 @@ class CellSort:
                       self.head_len, self.run_len, order)]
         else:
             out += [k(frames_prg, "scatter", gpix, pix_cell, self.pix_rank, pix_prot, npix, start, order),
-                    k(frames_prg, "sort_cells", gcells, start, C, order, self.scratch)]
+                    k(frames_prg, "sort_cells", gcells, start, C, order, self.pix_rank, self.scratch)]
         return out
 
     def enqueue(self, q, slot: int):

@@ -175,8 +175,8 @@ inline void sift_down(__global int *o, int i, int n) {
     o[i] = v;
 }
 
-// Most stretches of one cell a sort_cells work-item orders by their first pixel (private arrays);
-// a cell cut into more (cells alternating pixel by pixel) is heapsorted instead.
+// Most stretches of one cell sort_cells orders by their first pixel; a cell cut into more (cells
+// alternating pixel by pixel) is heapsorted instead.
 #define SORT_STRETCHES 256
 
 // Every cell's entries into ascending pixel order, in place in `order`, one work-item per cell.
@@ -185,25 +185,27 @@ inline void sift_down(__global int *o, int i, int n) {
 // atomic a run of equal cells in count_runs, a run being an interval of pixels); stretches of one
 // cell are disjoint intervals, so ordering them by their first pixel and copying each in turn
 // gives the pixel order: O(n) a cell plus an insertion sort of the stretches (they arrive nearly
-// in order). A cell already in order is left alone; another is copied to its slot range of
-// `scratch` and written back in order. A cell of more than SORT_STRETCHES stretches is heapsorted
-// in place instead (O(n log n), whatever the order).
-__kernel void sort_cells(__global const int *start, int ncells, __global int *order, __global int *scratch) {
+// in order). The stretches' starts are listed in the cell's slot range of `starts` (count_runs'
+// ranks, which the scatter has read), in global memory: a private list a work-item would be
+// replicated for every work-item of PoCL's work-groups. A cell already in order is left alone;
+// another is copied to its slot range of `scratch` and written back stretch by stretch. A cell of
+// more than SORT_STRETCHES stretches is heapsorted in place (O(n log n), whatever the order).
+__kernel void sort_cells(__global const int *start, int ncells, __global int *order, __global int *starts,
+                         __global int *scratch) {
     int c = get_global_id(0);
     if (c >= ncells) return;
     int a = start[c], n = start[c + 1] - a;
     if (n < 2) return;
     __global int *o = order + a;
-    int head[SORT_STRETCHES], at[SORT_STRETCHES];
+    __global int *at = starts + a;                 // stretch starts (indices into o), by first pixel
     int m = 0, prev = -2, moved = 0;
-    for (int i = 0; i < n && m <= SORT_STRETCHES; ++i) {
+    for (int i = 0; i < n; ++i) {
         int p = entry_pixel(o[i]);
         if (p != prev + 1) {                       // a new stretch starts at i
             if (m == SORT_STRETCHES) { ++m; break; }
             int j = m++;                           // insertion by first pixel
-            while (j > 0 && head[j - 1] > p) { head[j] = head[j - 1]; at[j] = at[j - 1]; --j; }
+            while (j > 0 && entry_pixel(o[at[j - 1]]) > p) { at[j] = at[j - 1]; --j; }
             moved |= j != m - 1;
-            head[j] = p;
             at[j] = i;
         }
         prev = p;
@@ -214,7 +216,7 @@ __kernel void sort_cells(__global const int *start, int ncells, __global int *or
         for (int i = 0; i < n; ++i) src[i] = o[i];
         int k = 0;
         for (int s = 0; s < m; ++s) {
-            int i = at[s], p = head[s];
+            int i = at[s], p = entry_pixel(src[i]);
             do { o[k++] = src[i++]; } while (i < n && entry_pixel(src[i]) == ++p);
         }
         return;
