@@ -8,9 +8,9 @@ reads afterwards.
 from __future__ import annotations
 
 import json
+import math
 import multiprocessing
 import os
-import math
 import threading
 import time
 import urllib.error

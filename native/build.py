@@ -114,16 +114,21 @@ def library_path(lib: Optional[_Lib] = None) -> Path:
     return out
 
 
+def _open(path: Path, what: str, kind):
+    """Library ``path`` loaded as ``kind`` (``ctypes.CDLL`` or ``ctypes.PyDLL``); a load that
+    fails names ``what`` and the file to delete."""
+    try:
+        return kind(str(path))
+    except OSError as e:
+        raise NativeBuildError(f"loading the {what} {path} failed: {e}; delete it to rebuild") from None
+
+
 def load() -> ctypes.CDLL:
     """Build (if needed) and load the tick core. Its functions run for microseconds inside the
     tick: they are called holding the interpreter lock (``ctypes.PyDLL``), since releasing it
     around each call would let another thread (frame ingest, UDP receiver, recorder) take it and
     keep the tick waiting for it back."""
-    path = library_path()
-    try:
-        return ctypes.PyDLL(str(path))
-    except OSError as e:
-        raise NativeBuildError(f"loading the tick core {path} failed: {e}; delete it to rebuild") from None
+    return _open(library_path(), "tick core", ctypes.PyDLL)
 
 
 def load_udp_rx():
@@ -132,21 +137,14 @@ def load_udp_rx():
     that wait for data; calls through ``held`` (``ctypes.PyDLL``) keep it, for the tick's copy of
     a sample and the other calls of microseconds."""
     path = library_path(UDP_RX)
-    try:
-        return ctypes.CDLL(str(path)), ctypes.PyDLL(str(path))
-    except OSError as e:
-        raise NativeBuildError(f"loading the UDP receiver {path} failed: {e}; delete it to rebuild") from None
+    return _open(path, "UDP receiver", ctypes.CDLL), _open(path, "UDP receiver", ctypes.PyDLL)
 
 
 def load_self_filter() -> ctypes.CDLL:
     """Build (if needed) and load the self-filter's pixel test. Its calls hand the interpreter
     lock over while they run (``ctypes.CDLL``): it runs on a frame thread, for tens to hundreds
     of microseconds, beside the haptic loop that needs the lock."""
-    path = library_path(SELF_FILTER)
-    try:
-        dll = ctypes.CDLL(str(path))
-    except OSError as e:
-        raise NativeBuildError(f"loading the self-filter {path} failed: {e}; delete it to rebuild") from None
+    dll = _open(library_path(SELF_FILTER), "self-filter", ctypes.CDLL)
     P = ctypes.c_void_p
     fn = dll.pf_selffilter_capsule
     fn.restype = ctypes.c_int64

@@ -69,13 +69,18 @@ class ChildArms:
 
     def publish(self) -> None:
         blk = self.blk
+        first = 0          # arms whose injected NaN state goes out for the first time (a bit each)
         for b, r in enumerate(self.robots):
-            write_state(blk.layout, self.state[b], blk.text[b], r, tuple(self.seen[b]), self.texts[b],
-                        blk.inject[b] == INJECT_NAN)
+            nan = blk.inject[b] == INJECT_NAN
+            write_state(blk.layout, self.state[b], blk.text[b], r, tuple(self.seen[b]), self.texts[b], nan)
+            if nan and math.isnan(blk.inject_t[b]):
+                first |= 1 << b
         blk.state.write(self.state.reshape(-1))
-        for b in range(len(self.robots)):      # when an injection took effect (fault-injection benchmarks)
-            if blk.inject[b] == INJECT_NAN and blk.inject_t[b] != blk.inject_t[b]:
-                blk.inject_t[b] = time.perf_counter()
+        if first:          # when the injection took effect: now that it is published (fault-injection benchmarks)
+            t = time.perf_counter()
+            for b in range(len(self.robots)):
+                if first >> b & 1:
+                    blk.inject_t[b] = t
 
     def period(self, dt: float) -> None:
         got = self.blk.cmd.read(self.cmds.rec)     # else (lapped) this period keeps the last commands
