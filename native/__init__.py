@@ -93,7 +93,39 @@ class StepCore(Structure):
                 ("robot_jaw", _D), ("orientation", _D), ("jaw", _D)]
 
 
+class ChannelCore(Structure):
+    """``pf_channel``: a channel's words in a shared block (``service/robot/hosted_block.py``
+    ``Channel``)."""
+
+    _fields_ = [("meta", _I64), ("sums", _I64), ("slots", _D), ("size", c_int64)]
+
+
+class HostLayout(Structure):
+    """``pf_host_layout``: field indices of a state row and a command row (``hosted_block``)."""
+
+    _fields_ = [(f, c_int32) for f in ("t", "mode", "rejected", "ignored", "servo_seq", "mode_seq", "fault_ver",
+                                       "error_ver", "q", "dq", "tau", "q_d", "T_meas", "T_d", "jaw", "jaw_known",
+                                       "dof", "c_servo_seq", "c_mode_seq", "c_pose", "c_jaw_seq", "c_jaw")]
+
+
+class HostCore(Structure):
+    """``pf_host``: see ``service/robot/hosted.py`` (``RobotHost``)."""
+
+    _fields_ = [("n", c_int64), ("S", c_int64), ("C", c_int64), ("state", ChannelCore), ("cmd", ChannelCore),
+                ("ticks", _I64), ("buf", _D), ("taken", _D), ("cmds", _D), ("T_d", _D), ("q_d", _D), ("mode", _D),
+                ("versions", _D), ("rejected_seen", _D), ("ws", _D), ("took", _I64), ("has_ws", _U8),
+                ("latched", _U8), ("finite", _U8), ("fresh", _U8), ("L", HostLayout), ("timeout_s", c_double),
+                ("rigid_tol", c_double), ("enabled_mode", c_double), ("ticks_at", c_double), ("read_at", c_double),
+                ("silent", c_double), ("unread", c_double), ("ticks_last", c_int64), ("reads", c_int64),
+                ("nonfinite", c_int64), ("texts", c_int64), ("staged", c_int32), ("got", c_int32), ("alive", c_int32)]
+
+
+#: ``pf_host_step`` / ``pf_host_sync`` flags, and ``pf_host_servo`` codes (``shm_exchange.c``)
+HOST_LOST, HOST_NONFINITE, HOST_TEXTS = 1, 2, 4
+SERVO_QUEUED, SERVO_BAD_POSE, SERVO_WORKSPACE, SERVO_IGNORED, SERVO_REJECTED = 0, 1, 2, 3, 4
+
 _T, _H, _FC, _S = POINTER(TeleopCore), POINTER(HealthCore), POINTER(ForcesCore), POINTER(StepCore)
+_CH, _HO = POINTER(ChannelCore), POINTER(HostCore)
 _SIGNATURES = {
     "pf_teleop_map_masters": (None, [_T, _D, _D, _D, _U8, _U8]),
     "pf_teleop_update_hip": (None, [_T, _D]),
@@ -115,6 +147,13 @@ _SIGNATURES = {
     "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
     "pf_pose_check": (c_int32, [c_void_p, c_double]),
     "pf_proxy_unpack": (None, [_F, c_int64, _F, _F, _F, _I32, _I32, _U8]),
+    "pf_crc32": (ctypes.c_uint32, [c_void_p, c_int64]),
+    "pf_chan_write": (None, [_CH, c_void_p]),
+    "pf_chan_read": (c_int32, [_CH, c_void_p, c_int32]),
+    "pf_host_publish": (None, [_HO]),
+    "pf_host_servo": (c_int32, [_HO, c_int64, c_void_p]),
+    "pf_host_step": (c_int32, [_HO, c_int64, c_double]),
+    "pf_host_sync": (c_int32, [_HO, c_double]),
 }
 
 
@@ -128,4 +167,6 @@ def _bind(dll: ctypes.CDLL):
 #: the loaded library (built on first import: ``build.py``)
 lib = _bind(load())
 
-__all__ = ["ForcesCore", "HealthCore", "NativeBuildError", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]
+__all__ = ["ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore",
+           "HostLayout", "NativeBuildError", "SERVO_BAD_POSE", "SERVO_IGNORED", "SERVO_QUEUED", "SERVO_REJECTED",
+           "SERVO_WORKSPACE", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]

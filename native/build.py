@@ -1,4 +1,5 @@
-"""Build and load pointfence's compiled libraries: the tick core (``tick_core.c``), the UDP
+"""Build and load pointfence's compiled libraries: the tick core (``tick_core.c``, with the robot
+process's shared-memory exchange ``shm_exchange.c``), the UDP
 receiver (``udp_rx.c``, with the C client's SHA-256 and codec from ``clients/c``) and the
 self-filter's pixel test (``selffilter.c``).
 
@@ -26,6 +27,8 @@ from typing import Optional
 
 _HERE = Path(__file__).parent
 SOURCE = _HERE / "tick_core.c"
+#: the tick core's other source: the robot process's shared-memory exchange
+EXCHANGE = _HERE / "shm_exchange.c"
 #: the headers tick_core.c includes (part of the source: hashed with it), found in this folder
 HEADERS = (_HERE / "tick_quat.h", _HERE / "proxy_out.h")
 #: the C client's folder (``pointfence.clients``' ``c/``: a sibling package in a checkout and
@@ -74,7 +77,7 @@ class _Lib:
 
 
 def _tick_core() -> _Lib:
-    return _Lib("libpf_tick_core", (SOURCE,), HEADERS, (HEADERS[0].parent,), ("-lm",))
+    return _Lib("libpf_tick_core", (SOURCE, EXCHANGE), HEADERS, (HEADERS[0].parent,), ("-lm",))
 
 
 UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha256.c", _CLIENT_C / "src" / "pf_protocol.c"),

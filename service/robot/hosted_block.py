@@ -14,10 +14,12 @@ must see the NaN to fault on it (hosted.py reports a non-finite state as a robot
 """
 from __future__ import annotations
 
-import zlib
+import ctypes
 from typing import Optional
 
 import numpy as np
+
+from pointfence.native import ChannelCore, lib, ptr
 
 #: mode commands (service -> child), in a ring per arm
 HOLD, RESUME, ENABLE, FAULT = 1, 2, 3, 4
@@ -114,6 +116,9 @@ class Channel:
     ever waits for the other: a reader only retries if the writer lapped it (two whole writes
     during one copy), and a writer preempted mid-write leaves the previous record readable.
 
+    The protocol is the compiled core's (``native/shm_exchange.c``: ``pf_chan_write``,
+    ``pf_chan_read``; its CRC-32 is zlib's), one implementation for both sides of every block.
+
     ``region``: the channel's part of the block (a ``_channel_dtype`` record over the buffer)."""
 
     def __init__(self, region: np.ndarray):
@@ -122,37 +127,35 @@ class Channel:
         self.data = data.view(np.float64).reshape(2, self.size)   # the two slots as flat floats
         self.meta = region["meta"]              # counter of slot 0, of slot 1, slot to read
         self.sums = region["sums"]              # CRC-32 of each slot's bytes
-        # the same words as memoryviews, made once: an element of one is a Python int or float
-        # (a tenth of a NumPy scalar's cost) and a slice assignment is a plain copy
-        self._meta = memoryview(self.meta)
-        self._sums = memoryview(self.sums)
-        self._slots = (memoryview(self.data[0]), memoryview(self.data[1]))
+        self.core = ChannelCore(ptr(self.meta, np.int64, "channel meta"), ptr(self.sums, np.int64, "channel sums"),
+                                ptr(self.data, np.float64, "channel slots"), self.size)
+        self._core = ctypes.byref(self.core)
+        self._addresses: dict = {}              # id -> (record, its data address): ``_address``
+
+    def _address(self, rec) -> int:
+        """The data address of ``rec`` (``size`` contiguous float64: an array, or a memoryview of
+        one), kept per object (the entry holds it, so its id is not reused while cached)."""
+        got = self._addresses.get(id(rec))
+        if got is None or got[0] is not rec:
+            a = np.frombuffer(rec, np.float64) if type(rec) is memoryview else rec
+            if not isinstance(a, np.ndarray) or a.dtype != np.float64 or not a.flags.c_contiguous or a.size != self.size:
+                raise TypeError(f"Channel: a record is {self.size} contiguous float64; got "
+                                f"{getattr(a, 'dtype', type(a).__name__)} of size {getattr(a, 'size', '?')}")
+            if len(self._addresses) >= 16:
+                self._addresses.clear()
+            got = self._addresses[id(rec)] = (rec, a.ctypes.data)
+        return got[1]
 
     def write(self, rec) -> None:
-        """Publish ``rec`` (``size`` contiguous float64: an array or a memoryview of one)."""
-        meta = self._meta
-        w = 1 - meta[2]
-        meta[w] += 1
-        self._slots[w][:] = rec
-        self._sums[w] = zlib.crc32(rec)
-        meta[w] += 1
-        meta[2] = w
+        """Publish ``rec`` (``size`` contiguous float64: an array or a memoryview of one; pass the
+        same object every time: its address is looked up once)."""
+        lib.pf_chan_write(self._core, self._address(rec))
 
     def read(self, out, tries: int = 8) -> bool:
-        """Copy the latest whole record into ``out`` (``size`` contiguous float64: an array, or a
-        memoryview of one, which saves making one per call); False if none was consistent in
-        ``tries`` attempts (the writer lapped this reader)."""
-        meta, sums, slots = self._meta, self._sums, self._slots
-        dst = out if type(out) is memoryview else memoryview(out)
-        for _ in range(tries):
-            i = meta[2]
-            s1 = meta[i]
-            if s1 & 1:
-                continue
-            dst[:] = slots[i]
-            if meta[i] == s1 and zlib.crc32(dst) == sums[i]:
-                return True
-        return False
+        """Copy the latest whole record into ``out`` (``size`` contiguous float64: an array or a
+        memoryview of one; the same object every time); False if none was consistent in ``tries``
+        attempts (the writer lapped this reader)."""
+        return bool(lib.pf_chan_read(self._core, self._address(out), tries))
 
 
 class Block:

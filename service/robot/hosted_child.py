@@ -65,6 +65,7 @@ class ChildArms:
         self.jaw_seen = [0] * n                      # jaw setpoints applied, per arm
         self.texts = [[None, None] for _ in robots]
         self.state = np.zeros((n, blk.S))
+        self._state_flat = self.state.reshape(-1)    # (one view: the channel looks its address up once)
         self.cmds = Commands(n)
 
     def publish(self) -> None:
@@ -75,7 +76,7 @@ class ChildArms:
             write_state(blk.layout, self.state[b], blk.text[b], r, tuple(self.seen[b]), self.texts[b], nan)
             if nan and math.isnan(blk.inject_t[b]):
                 first |= 1 << b
-        blk.state.write(self.state.reshape(-1))
+        blk.state.write(self._state_flat)
         if first:          # when the injection took effect: now that it is published (fault-injection benchmarks)
             t = time.perf_counter()
             for b in range(len(self.robots)):
