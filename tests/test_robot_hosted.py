@@ -96,6 +96,41 @@ def test_bad_setpoints_are_refused_here_and_never_reach_the_robot(host, bad, mes
     assert np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4 and a.rejected_commands == 1
 
 
+def _bad_pose(T, kind):
+    T = T.copy()
+    if kind == "nan":
+        T[1, 3] = np.nan
+    elif kind == "workspace":
+        T[2, 3] = 0.5
+    elif kind == "scaled":
+        T[:3, :3] *= 1.01
+    elif kind == "reflection":
+        T[:3, 0] *= -1.0
+    elif kind == "last row":
+        T[3, 0] = 0.1
+    return T
+
+
+@pytest.mark.parametrize("kind, message", [("nan", "not finite"), ("workspace", "outside the workspace"),
+                                           ("scaled", "orthonormal"), ("reflection", "reflection"),
+                                           ("last row", "last row")])
+def test_a_bad_4x4_setpoint_is_refused_by_the_compiled_check_with_the_same_message(host, kind, message):
+    a = host.robots[0]                          # (a 4x4 float64 array: the compiled path, pf_host_servo)
+    a.resume()
+    T0, s0 = a.measured_cp(), a.setpoint_cp()
+    sent = host.sent(0)[0]
+    with pytest.raises(InputError, match=message):
+        a.servo_cp(_bad_pose(T0, kind))
+    assert host.sent(0)[0] == sent and a.rejected_commands == 1
+    tick(host, 20)
+    np.testing.assert_allclose(a.setpoint_cp(), s0, atol=1e-12)
+    T1 = T0.copy()
+    T1[0, 3] += 0.002
+    assert a.servo_cp(T1) is True and host.sent(0)[0] == sent + 1       # a good one goes through
+    a.hold()
+    assert a.servo_cp(T1) is False and host.sent(0)[0] == sent + 1 and a.ignored_commands == 1
+
+
 def test_an_unreachable_setpoint_is_rejected_by_the_robot_and_reported_by_a_later_servo_cp():
     table = dict(TABLE)
     del table["workspace_min"], table["workspace_max"]
@@ -106,7 +141,7 @@ def test_an_unreachable_setpoint_is_rejected_by_the_robot_and_reported_by_a_late
         x0, s0 = a.measured_cp()[:3, 3].copy(), a.setpoint_cp()[:3, 3].copy()
         a.servo_cp(x0 + [0.0, 0.0, 0.5])          # the insertion joint cannot reach it
         end = time.monotonic() + 10.0              # (a loaded machine may delay the robot process)
-        while a._child_rejected == 0 and time.monotonic() < end:
+        while a.rejected_commands == 0 and time.monotonic() < end:
             tick(h)
         with pytest.raises(InputError, match="out of reach"):
             a.servo_cp(x0)

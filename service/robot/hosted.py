@@ -8,9 +8,11 @@ carries the service's commands one way and the measured state the other. In the 
 arm is a ``HostedRobot``: the robot interface the service and the self-filter use, spelt out
 (nothing is forwarded implicitly), over a local instance of the same model (kinematics, limits,
 workspace, tool geometry) whose state the arm's ``step`` takes from the child, and whose commands
-go to the child. A haptic tick then spends about 15 us per arm instead of the
-simulation's 70 us (closed-form IK, joint PID, forward kinematics, all in Python), and the
-simulation runs on another core, without the interpreter lock of the service's process.
+go to the child. The simulation (closed-form IK, joint PID, forward kinematics, in Python)
+then runs on another core, without the interpreter lock of the service's process, and a haptic
+tick only exchanges records with it: per arm one compiled call checks and queues the setpoint
+(``pf_host_servo``) and one sends it and takes the newest state (``pf_host_step``, both in
+native/shm_exchange.c); Python acts only on what they report.
 
 Differences from an in-process robot (offline runs and replays keep that one, which steps in
 the tick and is deterministic):
@@ -53,6 +55,7 @@ ends when its parent does.
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
@@ -66,11 +69,13 @@ from typing import Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.errors import InputError
+from pointfence.native import HOST_LOST, HOST_NONFINITE, HOST_TEXTS, HostCore, HostLayout, lib, ptr
 
 from ..child_pipe import stop_by_flag
+from .base import RIGID_TOL, RobotMode
 from .factory import robot_from_config
 from .hosted_arm import HostedRobot
-from .hosted_block import FAULT, INJECT_NAN, INJECT_NONE, RING, TICKS, Block, Commands, get_text
+from .hosted_block import FAULT, INJECT_NAN, INJECT_NONE, RING, Block, Commands, get_text
 
 LOST = "robot process not answering"
 NONFINITE = "robot state non-finite"
@@ -130,25 +135,53 @@ class RobotHost:
         self._proc = None
         self._shm = shared_memory.SharedMemory(create=True, size=Block.nbytes(self.n, dof))
         self._blk = Block(self._shm.buf, self.n, dof)   # a new shared memory object reads as zeros
-        self._L = self._blk.layout
-        L, n = self._L, self.n
-        self._buf = np.zeros((n, self._blk.S))           # the last state record read
-        self._buf_mv = memoryview(self._buf.reshape(-1))  # (made once: Channel.read copies into it)
-        self._row_arrays = [self._buf[b] for b in range(n)]
-        # each arm's poses in it, as memoryviews (16 floats: the arm copies them)
-        self._T_meas = [memoryview(self._buf[b, L.T_meas]) for b in range(n)]
-        self._T_d = [memoryview(self._buf[b, L.T_d]) for b in range(n)]
-        self._rows: list = [None] * n                    # each arm's row of the last read, as floats
-        self._finite = [True] * n
-        self._got = False                                # whether the last read succeeded
-        self._reads = 0                                  # reads of the record so far
-        self._took = [0] * n                             # the read arm b took last (== _reads: the last)
+        self._L = L = self._blk.layout
+        n, S = self.n, self._blk.S
+        # the compiled exchange's arrays (native/shm_exchange.c, ``pf_host``), allocated once
+        self._buf = np.zeros((n, S))                     # the state record last read
+        self._taken = np.zeros((n, S))                   # each arm's row as it last took one
         self._cmds = Commands(n)                         # the commands written so far (this side's copy)
+        self._T_d = np.zeros((n, 16))                    # each arm's setpoint (world, row-major)
+        self._q_d = np.zeros((n, dof))
+        self._mode = np.zeros(n)                         # each arm's RobotMode
+        self._versions = np.zeros((n, 2))                # fault and error text versions last seen
+        self._rejected_seen = np.zeros(n)                # the child's rejections servo_cp reported
+        self._ws = np.zeros((n, 6))                      # each arm's workspace box (min xyz, max xyz)
+        self._has_ws = np.array([r.workspace is not None for r in local], bool)
+        for b, r in enumerate(local):
+            if r.workspace is not None:
+                self._ws[b] = np.concatenate(r.workspace)
+        self._took = np.zeros(n, np.int64)               # the read each arm took last
+        self._latched = np.zeros(n, bool)                # the arm is latched in FAULT (HostedRobot sets it)
+        self._finite = np.zeros(n, bool)                 # the arm's row of the last read was finite
+        self._fresh = np.zeros(n, bool)                  # the arm took a row its model has not adopted
+        C = self._blk.command_layout
+        start = lambda f: f if isinstance(f, int) else f.start       # noqa: E731
+        layout = HostLayout(*[start(getattr(L, f)) for f in ("t", "mode", "rejected", "ignored", "servo_seq",
+                                                             "mode_seq", "fault_ver", "error_ver", "q", "dq", "tau",
+                                                             "q_d", "T_meas", "T_d", "jaw", "jaw_known")],
+                            dof, C.servo_seq, C.mode_seq, C.pose.start, C.jaw_seq, C.jaw)
+        self.core = HostCore(n=n, S=S, C=C.size, state=self._blk.state.core, cmd=self._blk.cmd.core,
+                             ticks=ptr(self._blk.heartbeat, np.int64, "heartbeat"),
+                             buf=ptr(self._buf, np.float64, "buf"), taken=ptr(self._taken, np.float64, "taken"),
+                             cmds=ptr(self._cmds.rec, np.float64, "commands"), T_d=ptr(self._T_d, np.float64, "T_d"),
+                             q_d=ptr(self._q_d, np.float64, "q_d"), mode=ptr(self._mode, np.float64, "mode"),
+                             versions=ptr(self._versions, np.float64, "versions"),
+                             rejected_seen=ptr(self._rejected_seen, np.float64, "rejected_seen"),
+                             ws=ptr(self._ws, np.float64, "workspace"), took=ptr(self._took, np.int64, "took"),
+                             has_ws=ptr(self._has_ws, bool, "has_ws"), latched=ptr(self._latched, bool, "latched"),
+                             finite=ptr(self._finite, bool, "finite"), fresh=ptr(self._fresh, bool, "fresh"),
+                             L=layout, timeout_s=self.timeout_s, rigid_tol=RIGID_TOL,
+                             enabled_mode=float(RobotMode.ENABLED))
+        self._core = ctypes.byref(self.core)
         self._cmds_mv = memoryview(self._cmds.rec)
-        self._pose_rows = [memoryview(self._cmds.pose[b]) for b in range(n)]   # (16 floats each)
-        self._servo_seq_at = [b * self._blk.C + self._blk.command_layout.servo_seq for b in range(n)]
-        self._jaw_at = [(b * self._blk.C + self._blk.command_layout.jaw_seq, b * self._blk.C + self._blk.command_layout.jaw)
-                        for b in range(n)]
+        self._servo_seq_at = [b * C.size + C.servo_seq for b in range(n)]
+        self._jaw_at = [(b * C.size + C.jaw_seq, b * C.size + C.jaw) for b in range(n)]
+        self._addresses: dict = {}                       # id -> (pose, its data address): ``_pose_address``
+        for b, r in enumerate(local):                    # until the first read: the local model's state
+            self._taken[b, L.T_meas] = r.measured_cp().reshape(16)
+            self._taken[b, L.q] = r.measured_js().position
+            self.set_local(b, int(r.state), r.setpoint_cp(), r.setpoint_js().position)
         self._spawn(None)
         self.robots = [HostedRobot(self, b, r) for b, r in enumerate(local)]
         self.sync()
@@ -157,12 +190,11 @@ class RobotHost:
         """Start the child on a zeroed block and wait until it has built the arms."""
         self._blk.raw[:] = 0                       # no command of a previous child
         self._blk.inject_t[:] = math.nan           # (and no injection that took effect)
-        self._cmds.rec[:] = 0
-        self._servo_sent = [0] * self.n            # setpoints and mode commands sent (the record's counts)
-        self._modes_sent = [0] * self.n
-        self._jaw_sent = [0] * self.n              # jaw setpoints sent
-        self._staged = False
-        self._versions = [(0.0, 0.0)] * self.n
+        self._cmds.rec[:] = 0                      # (setpoints, mode commands, jaw setpoints sent: 0)
+        self._versions[:] = 0.0
+        self._rejected_seen[:] = 0.0               # (the new child counts its rejections from 0)
+        self._taken[:, self._L.rejected] = 0.0
+        self.core.staged = 0
         # a fresh interpreter (no fork of a process that runs OpenCL and CUDA threads, and none of
         # the parent's main module imported again, as multiprocessing's spawn would)
         self._proc = subprocess.Popen(
@@ -177,71 +209,106 @@ class RobotHost:
                 raise RuntimeError(f"the robot process did not start (exit code {code}); run the robots "
                                    "in the haptic loop instead with [service] robot_process = false")
             time.sleep(0.005)
-        self._ticks, self._ticks_at = -1, time.monotonic()
-        self._read_at = self._ticks_at
-        self._alive = True
+        c = self.core
+        c.ticks_last, c.ticks_at = -1, time.monotonic()
+        c.read_at, c.alive = c.ticks_at, 1
 
     # --- service side ---------------------------------------------------------------------------
     def sync(self) -> None:
         """Read the child's latest state (after the watchdog) and give every arm its row."""
-        self._read()
-        for b in range(self.n):
-            self._give(b)
+        if self._blk is not None:
+            self._after_read(lib.pf_host_sync(self._core, time.monotonic()))
 
     def step_arm(self, b: int) -> None:
         """Arm ``b``'s step: send every queued setpoint, read the child's record again if this arm
         has taken the last read (else the read of this tick, by an arm stepped before it), and
-        give the arm its row. Right in any order of the arms' steps (module docstring)."""
-        if self._staged:
-            self.publish()
-        if self._took[b] == self._reads:
-            self._read()
-        self._give(b)
-
-    def _read(self) -> None:
-        """Read the state record, after the watchdog: a child that has not stepped, or whose state
-        record has not read, for ``timeout_s`` faults every arm; an arm whose state is not finite
-        faults. Every arm may take this read once (``_give``)."""
-        blk = self._blk
-        self._reads += 1
-        if blk is None:                    # closed: the arms keep their last state
-            self._got = False
+        give the arm its row (where the child answers, the row is finite and the arm is not
+        latched). Right in any order of the arms' steps (module docstring). The compiled
+        exchange does it all (``pf_host_step``); Python acts only on what its flags report."""
+        if self._blk is None:              # closed: the arms keep their last state
             return
-        now = time.monotonic()
-        ticks = blk.ctl_words[TICKS]
-        if ticks != self._ticks:
-            self._ticks, self._ticks_at = ticks, now
-        got = self._got = blk.state.read(self._buf_mv)
-        if got:
-            self._read_at = now
-        silent, unread = now - self._ticks_at, now - self._read_at
-        self._alive = silent <= self.timeout_s and unread <= self.timeout_s
-        if not self._alive and not all(r.latched for r in self.robots):
-            self._lost(silent, unread)
-        if not got:                        # lapped (this thread was preempted): the next read
-            return
-        L, rows, finite, versions = self._L, self._rows, self._finite, self._versions
-        fault_ver, error_ver = L.fault_ver, L.error_ver
-        for b, arr in enumerate(self._row_arrays):
-            row = rows[b] = arr.tolist()
-            # (a NaN or an infinity anywhere makes the sum non-finite)
-            ok = finite[b] = math.isfinite(sum(row))
-            if not ok:
-                if not self.robots[b].latched:
-                    self.robots[b].latch_fault(f"{NONFINITE}: {', '.join(L.nonfinite_fields(arr))} (arm {b})")
-                continue
-            v = (row[fault_ver], row[error_ver])
-            if v != versions[b]:           # a fault reason or an error message changed
-                versions[b] = v
-                self.robots[b].take_texts(get_text(blk.text[b, 0]), get_text(blk.text[b, 1]))
+        flags = lib.pf_host_step(self._core, b, time.monotonic())
+        if flags:
+            self._after_read(flags)
 
-    def _give(self, b: int) -> None:
-        """Arm ``b`` takes its row of the last read (where it read, the child answers and the row
-        is finite)."""
-        self._took[b] = self._reads
-        if self._got and self._alive and self._finite[b]:
-            self.robots[b].take_state(self._rows[b], self._T_meas[b], self._T_d[b], self._servo_sent[b],
-                                      self._modes_sent[b])
+    def _after_read(self, flags: int) -> None:
+        """What a read of the state record reported: a child that has not stepped, or whose state
+        record has not read, for ``timeout_s`` faults every arm; an arm whose state is not
+        finite faults; a changed fault reason or error message goes to its arm."""
+        c = self.core
+        if flags & HOST_LOST and not all(r.latched for r in self.robots):
+            self._lost(c.silent, c.unread)
+        if flags & HOST_NONFINITE:
+            for b in range(self.n):
+                if c.nonfinite >> b & 1 and not self.robots[b].latched:
+                    self.robots[b].latch_fault(f"{NONFINITE}: {', '.join(self._L.nonfinite_fields(self._buf[b]))} "
+                                               f"(arm {b})")
+        if flags & HOST_TEXTS:
+            text = self._blk.text
+            for b in range(self.n):
+                if c.texts >> b & 1:
+                    self.robots[b].take_texts(get_text(text[b, 0]), get_text(text[b, 1]))
+
+    # --- each arm's exchange (HostedRobot's calls) -------------------------------------------------
+    def taken_row(self, b: int) -> np.ndarray:
+        """Arm ``b``'s state row as it last took one (a view, S floats: ``layout`` gives the
+        fields), updated in place by every ``step_arm`` that gives the arm a row."""
+        return self._taken[b]
+
+    def take_fresh(self, b: int) -> bool:
+        """Whether arm ``b`` took a row since the last call (its model adopts it then)."""
+        if self._fresh[b]:
+            self._fresh[b] = False
+            return True
+        return False
+
+    def setpoint_of(self, b: int) -> tuple:
+        """Arm ``b``'s setpoint as the exchange holds it: (pose (16,) world row-major, joints
+        (dof,)), views; and its mode (``RobotMode``)."""
+        return self._T_d[b], self._q_d[b], RobotMode(int(self._mode[b]))
+
+    def mode_of_all(self) -> np.ndarray:
+        """Every arm's mode as the exchange holds it ((n,) floats, ``RobotMode`` values; a view)."""
+        return self._mode
+
+    def set_local(self, b: int, mode: int, T_d, q_d) -> None:
+        """Arm ``b``'s mode and setpoint as its model has them after a command of this side
+        (hold, resume, enable, fault): pose ``T_d`` (4x4 or 16, world), joints ``q_d``."""
+        self._mode[b] = float(mode)
+        self._T_d[b] = np.reshape(T_d, 16)
+        self._q_d[b] = q_d
+
+    def set_latched(self, b: int, latched: bool) -> None:
+        """Whether arm ``b`` is latched in FAULT (then it takes no row)."""
+        self._latched[b] = latched
+
+    def _pose_address(self, T) -> Optional[int]:
+        """The data address of ``T`` if it is a C-contiguous 4x4 float64 array (else None: the
+        caller takes the checked Python path), kept per array."""
+        got = self._addresses.get(id(T))
+        if got is None or got[0] is not T:
+            if type(T) is not np.ndarray or T.shape != (4, 4) or T.dtype != np.float64 or not T.flags.c_contiguous:
+                return None
+            if len(self._addresses) >= 64:
+                self._addresses.clear()
+            got = self._addresses[id(T)] = (T, T.ctypes.data)
+        return got[1]
+
+    def servo(self, b: int, T) -> int:
+        """Arm ``b``'s setpoint through the compiled check (``pf_host_servo``): a ``SERVO_*``
+        code of ``pointfence.native`` (-1: ``T`` is not a 4x4 array the core reads, or the host
+        is closed; the caller checks it in Python)."""
+        addr = self._pose_address(T)
+        if addr is None or self._blk is None:
+            return -1
+        return lib.pf_host_servo(self._core, b, addr)
+
+    def child_rejections(self, b: int) -> tuple:
+        """(rejections arm ``b``'s child counted, of which ``servo_cp`` reported)."""
+        return int(self._taken[b, self._L.rejected]), int(self._rejected_seen[b])
+
+    def note_rejection_reported(self, b: int) -> None:
+        self._rejected_seen[b] = self._taken[b, self._L.rejected]
 
     def _lost(self, silent: float, unread: float) -> None:
         """Every arm FAULT: the child has not stepped for ``silent`` s, or its state record has not
@@ -259,15 +326,16 @@ class RobotHost:
         and stepping, and the arm's latest state finite."""
         if self._blk is None or self._proc is None or self._proc.poll() is not None:
             return f"{LOST}: the robot process has ended (restart() starts a new one)"
-        if not self._alive:
-            return f"{LOST}: no step for {1e3 * (time.monotonic() - self._ticks_at):.0f} ms"
+        if not self.core.alive:
+            return f"{LOST}: no step for {1e3 * (time.monotonic() - self.core.ticks_at):.0f} ms"
         if not self._finite[b]:
             return f"{NONFINITE}: {', '.join(self._L.nonfinite_fields(self._buf[b]))} (arm {b})"
         return None
 
     def sent(self, b: int) -> tuple:
         """(setpoints, mode commands) sent to arm ``b`` so far."""
-        return self._servo_sent[b], self._modes_sent[b]
+        c = self._cmds
+        return int(c.servo_seq[b]), int(c.mode_seq[b])
 
     @property
     def pid(self) -> Optional[int]:
@@ -329,46 +397,43 @@ class RobotHost:
             self.send_mode(b, FAULT)       # the new process starts braked, as the arms read here
 
     def stage_pose(self, b: int, pose) -> None:
-        """Queue arm b's setpoint (4x4 world: an array, or a memoryview of its 16 floats, row-major);
-        ``publish`` sends every queued one at once."""
-        self._pose_rows[b][:] = pose if type(pose) is memoryview else memoryview(np.ascontiguousarray(pose).reshape(16))
-        k = self._servo_sent[b] = self._servo_sent[b] + 1
-        self._cmds_mv[self._servo_seq_at[b]] = float(k)
-        self._staged = True
+        """Queue arm b's setpoint (4x4 world: an array, or a memoryview of its 16 floats, row-major),
+        already checked; ``publish`` sends every queued one at once (``servo`` checks and queues
+        in one compiled call)."""
+        self._cmds.pose[b] = np.reshape(pose, 16) if type(pose) is not memoryview else np.frombuffer(pose)
+        self._cmds.servo_seq[b] += 1.0
+        self._T_d[b] = self._cmds.pose[b]
+        self.core.staged = 1
 
     def stage_jaw(self, b: int, angle: float) -> None:
         """Queue arm b's jaw setpoint (rad); ``publish`` sends it with the poses."""
         seq_at, jaw_at = self._jaw_at[b]
-        k = self._jaw_sent[b] = self._jaw_sent[b] + 1
-        self._cmds_mv[jaw_at] = float(angle)
-        self._cmds_mv[seq_at] = float(k)
-        self._staged = True
+        mv = self._cmds_mv
+        mv[jaw_at] = float(angle)
+        mv[seq_at] = mv[seq_at] + 1.0
+        self.core.staged = 1
 
     def publish(self) -> None:
         """Send the queued setpoints (one sequence-locked write for all arms)."""
-        blk = self._blk
-        if not self._staged or blk is None:
-            return
-        blk.cmd.write(self._cmds_mv)
-        self._staged = False
+        if self._blk is not None:
+            lib.pf_host_publish(self._core)
 
     def send_mode(self, b: int, code: int) -> None:
         """Send a mode command (``HOLD``, ``RESUME``, ``ENABLE``, ``FAULT``) now (with any queued
         setpoints: they come first)."""
-        blk = self._blk
-        if blk is None:
+        if self._blk is None:
             return
         c = self._cmds
-        i = self._modes_sent[b]
+        i = int(c.mode_seq[b])
         c.ring[b, i % RING] = code
-        c.mode_seq[b] = self._modes_sent[b] = i + 1
-        blk.cmd.write(self._cmds_mv)
-        self._staged = False
+        c.mode_seq[b] = i + 1
+        self.core.staged = 1
+        lib.pf_host_publish(self._core)
 
     @property
     def alive(self) -> bool:
         """The robot process runs and stepped within the watchdog time (as of the last read)."""
-        return self._alive and self._proc is not None and self._proc.poll() is None
+        return bool(self.core.alive) and self._proc is not None and self._proc.poll() is None
 
     def close(self) -> None:
         """Stop the child (it finishes its period) and free the shared memory. Idempotent."""
@@ -385,7 +450,9 @@ class RobotHost:
             except (FileNotFoundError, BufferError):
                 pass
             self._shm = None
-        self._alive = False
+        core = getattr(self, "core", None)
+        if core is not None:
+            core.alive = 0
 
     def __del__(self):
         try:

@@ -10,6 +10,7 @@ from typing import Optional
 import numpy as np
 
 from pointfence.kernels.errors import InputError
+from pointfence.native import SERVO_IGNORED, SERVO_QUEUED, SERVO_REJECTED
 
 from .base import JointState, RobotMode, RobotState
 from .hosted_block import ENABLE, FAULT, HOLD, RESUME
@@ -24,8 +25,10 @@ class HostedRobot:
     Geometry (``kin``, ``joint_limits``, ``workspace``, ``T_world_base``, ``home``, the
     kinematics) is the local model's, which never changes. Reads (``t``, ``state``,
     ``fault_reason``, ``measured_cp``, ``measured_js``, ``setpoint_cp`` ...) are the child's state
-    as of this arm's last ``step``. Commands (``servo_cp``, ``hold``, ``resume``, ``enable``,
-    ``fault``) go to the child. A FAULT of the robot process itself (silent, dead, non-finite
+    as of this arm's last ``step``: the tick's reads (``state``, ``measured_cp``, ``measured_jaw``,
+    ``measured_jp_into``) straight from the row the compiled exchange gave the arm, the others
+    from the local model, which adopts that row when one of them asks (``_sync``). Commands
+    (``servo_cp``, ``hold``, ``resume``, ``enable``, ``fault``) go to the child. A FAULT of the robot process itself (silent, dead, non-finite
     state) is latched here: the arm reads FAULT with that reason, sends nothing, and only
     ``enable()`` clears it, once ``RobotHost.ready`` allows. ``rejected_commands`` and
     ``ignored_commands`` count the child's and this side's (a setpoint refused or ignored here
@@ -41,18 +44,20 @@ class HostedRobot:
         self.dof: int = local.dof
         self.joint_names: tuple = local.joint_names
         self.control_period: float = local.control_period
-        self._child_rejected = 0          # setpoints the child rejected (out of reach)
-        self._rejected_seen = 0           # ... of which servo_cp has reported
         self._local_rejected = 0          # setpoints refused here (malformed, workspace)
-        self._child_ignored = 0           # commands the child ignored
         self._local_ignored = 0           # setpoints not sent: the arm was not ENABLED here
         self._last_error: Optional[str] = None
         self._latched: Optional[str] = None   # FAULT of the robot process (reason), until enable()
-        self._pose = np.eye(4)            # the setpoint being sent (scratch), and its 16 floats
-        self._pose16 = memoryview(self._pose.reshape(16))
+        self._pose = np.eye(4)            # the setpoint being sent (scratch, the checked path)
         #: (lo, hi) the jaw's range (rad) where the model has a jaw, else None
         self.jaw_limits = local.jaw_limits
-        self._jaw = math.nan              # the child's measured jaw (rad; NaN: none or not known)
+        L = self._L
+        row = host.taken_row(index)       # the row this arm took last (the exchange writes it)
+        self._row = memoryview(row)       # (an element of a memoryview is a Python float)
+        self._T_meas4 = row[L.T_meas].reshape(4, 4)
+        self._T_meas16 = memoryview(row[L.T_meas])
+        self._q_row = row[L.q]
+        self._mode = memoryview(host.mode_of_all())[index:index + 1]
 
     def __repr__(self) -> str:
         return f"HostedRobot({self.model!r}, arm {self._b}, process {self._host.pid})"
@@ -87,14 +92,30 @@ class HostedRobot:
         return self._r.inverse_kinematics(T, seed)
 
     # --- state: the child's, as of this arm's last step ------------------------------------------
+    def _sync(self) -> None:
+        """The local model takes the row this arm took last, if it has not yet, and the setpoint
+        and mode the exchange holds (the reads that are not the tick's, and this side's mode
+        commands, work on the model)."""
+        host, b, r, L = self._host, self._b, self._r, self._L
+        T_d, q_d, mode = host.setpoint_of(b)
+        if host.take_fresh(b):             # (else the model has the row, and the mode: this side set it)
+            row = self._row
+            r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], self._T_meas16, mode)
+        r.adopt_setpoint(memoryview(T_d), q_d.tolist())
+
+    def _push(self) -> None:
+        """Give the exchange the local model's mode and setpoint after a command of this side."""
+        r = self._r
+        self._host.set_local(self._b, int(r.state), r.setpoint_cp(), r.setpoint_js().position)
+
     @property
     def t(self) -> float:
         """The child's time (s) of the state last taken."""
-        return self._r.t
+        return self._row[self._L.t]
 
     @property
     def state(self) -> RobotMode:
-        return self._r.state
+        return _MODES[int(self._mode[0])]
 
     @property
     def fault_reason(self) -> Optional[str]:
@@ -106,11 +127,11 @@ class HostedRobot:
 
     @property
     def rejected_commands(self) -> int:
-        return self._child_rejected + self._local_rejected
+        return int(self._row[self._L.rejected]) + self._local_rejected
 
     @property
     def ignored_commands(self) -> int:
-        return self._child_ignored + self._local_ignored
+        return int(self._row[self._L.ignored]) + self._local_ignored
 
     @property
     def latched(self) -> bool:
@@ -118,45 +139,37 @@ class HostedRobot:
         return self._latched is not None
 
     def measured_cp(self, out: Optional[np.ndarray] = None) -> np.ndarray:
-        return self._r.measured_cp(out)
+        if out is None:
+            return self._T_meas4.copy()
+        np.copyto(out, self._T_meas4)
+        return out
 
     def measured_cp_position(self) -> np.ndarray:
-        return self._r.measured_cp_position()
+        return self._T_meas4[:3, 3].copy()
 
     def measured_jp_into(self, out: np.ndarray) -> None:
-        self._r.measured_jp_into(out)
+        out[: self.dof] = self._q_row
 
     def measured_js(self) -> JointState:
+        self._sync()
         return self._r.measured_js()
 
     def setpoint_cp(self, out: Optional[np.ndarray] = None) -> np.ndarray:
+        self._sync()
         return self._r.setpoint_cp(out)
 
     def setpoint_js(self) -> JointState:
+        self._sync()
         return self._r.setpoint_js()
 
     def read_state(self) -> RobotState:
+        self._sync()
         st = self._r.read_state()
         st.rejected_commands, st.ignored_commands, st.last_error = (self.rejected_commands, self.ignored_commands,
                                                                     self._last_error)
         return st
 
     # --- RobotHost's calls ----------------------------------------------------------------------
-    def take_state(self, row: list, T_meas, T_d, servo_sent: int, modes_sent: int) -> None:
-        """Take the child's state row (``row`` as floats; ``T_meas`` and ``T_d``: its two poses, 16
-        floats each, as memoryviews or arrays), given the setpoints and mode commands sent to this arm so far.
-        Nothing while latched."""
-        if self._latched is not None:
-            return                         # latched until the host answers again and enable() is called
-        r, L = self._r, self._L
-        mode = _MODES[int(row[L.mode])] if row[L.mode_seq] >= modes_sent else None   # our mode commands applied
-        r.adopt_state(row[L.t], row[L.q], row[L.dq], row[L.tau], T_meas, mode)
-        self._child_rejected = int(row[L.rejected])
-        self._child_ignored = int(row[L.ignored])
-        if row[L.servo_seq] >= servo_sent:  # else keep the setpoint just sent
-            r.adopt_setpoint(T_d, row[L.q_d])
-        self._jaw = row[L.jaw] if row[L.jaw_known] == 1.0 else math.nan
-
     def take_texts(self, fault: Optional[str], err: Optional[str]) -> None:
         """Take the child's fault reason and last error (a latched reason stays)."""
         self._r.adopt_texts(self._r.fault_reason if self._latched is not None else fault, err)
@@ -166,8 +179,11 @@ class HostedRobot:
         """Latch a FAULT of the robot process (the first reason stays) and brake the child's arm."""
         if self._latched is not None:
             return
+        self._sync()
         self._latched = why
+        self._host.set_latched(self._b, True)
         self._r.fault(why)                 # local copy: FAULT, joints stopped; servo_cp sends nothing
+        self._push()
         self._host.send_mode(self._b, FAULT)
 
     # --- the robot interface: commands ----------------------------------------------------------
@@ -182,27 +198,41 @@ class HostedRobot:
         """Send a Cartesian setpoint (4x4 world pose, or a position (3,) with the setpoint's
         orientation); it leaves at this arm's ``step``. Raises InputError, sending nothing, on a
         malformed or non-finite pose, a workspace violation, or when the child rejected the previous
-        setpoint (its message). Returns False, sending nothing, unless the arm is ENABLED."""
-        r = self._r
-        if self._child_rejected > self._rejected_seen:
-            self._rejected_seen = self._child_rejected
+        setpoint (its message). Returns False, sending nothing, unless the arm is ENABLED.
+
+        A 4x4 float64 array is checked and queued in one compiled call (``RobotHost.servo``);
+        anything else, and any pose that fails the check, takes the Python path, which names
+        what is wrong."""
+        code = self._host.servo(self._b, T)
+        if code == SERVO_QUEUED:
+            return True
+        if code == SERVO_IGNORED:
+            self._local_ignored += 1
+            return False
+        if code == SERVO_REJECTED:
             raise InputError(self._last_error or "servo_cp: the robot rejected the previous setpoint")
+        host, b = self._host, self._b
+        child, seen = host.child_rejections(b)
+        if child > seen:
+            host.note_rejection_reported(b)
+            raise InputError(self._last_error or "servo_cp: the robot rejected the previous setpoint")
+        self._sync()
         try:
-            r.checked_setpoint(T, out=self._pose)    # checks it into the scratch, as the arm in the tick does
+            self._r.checked_setpoint(T, out=self._pose)   # checks it into the scratch, naming what is wrong
         except InputError as e:
             self._local_rejected += 1
             self._last_error = str(e)
             raise
-        if self._latched is not None or r.state is not RobotMode.ENABLED:
+        if self._latched is not None or self.state is not RobotMode.ENABLED:
             self._local_ignored += 1
             return False
-        self._host.stage_pose(self._b, self._pose16)
-        r.adopt_setpoint(self._pose16)
+        host.stage_pose(b, self._pose)
         return True
 
     def measured_jaw(self) -> float:
         """The child's measured jaw angle (rad; NaN: the model has none, or has not reported it)."""
-        return self._jaw
+        row, L = self._row, self._L
+        return row[L.jaw] if row[L.jaw_known] == 1.0 else math.nan
 
     def servo_jaw(self, angle: float) -> bool:
         """Send a jaw setpoint (rad, within ``jaw_limits``); it leaves at this arm's ``step``.
@@ -215,7 +245,7 @@ class HostedRobot:
             self._last_error = (f"servo_jaw: a {self.model} robot has no jaw" if lim is None else
                                 f"servo_jaw: angle = {angle!r} rad; expected a finite number in [{lim[0]:g}, {lim[1]:g}]")
             raise InputError(self._last_error)
-        if self._latched is not None or self._r.state is not RobotMode.ENABLED:
+        if self._latched is not None or self.state is not RobotMode.ENABLED:
             self._local_ignored += 1
             return False
         self._host.stage_jaw(self._b, angle)
@@ -227,7 +257,9 @@ class HostedRobot:
 
     def _mode_cmd(self, code: int, local) -> None:
         self._host.send_mode(self._b, code)
+        self._sync()
         local()
+        self._push()
 
     def hold(self) -> None:
         self._mode_cmd(HOLD, self._r.hold)
@@ -245,6 +277,7 @@ class HostedRobot:
                 self._last_error = f"enable refused: {why}"
                 return
             self._latched = None
+            self._host.set_latched(self._b, False)
         self._mode_cmd(ENABLE, self._r.enable)
 
     def fault(self, reason: str) -> None:

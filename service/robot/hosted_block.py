@@ -177,6 +177,8 @@ class Block:
         self.ctl = rec["ctl"]
         #: the control words as a memoryview of int64 (``ctl_words[TICKS]``: a Python int)
         self.ctl_words = memoryview(self.ctl.reshape(1).view(np.int64))
+        #: the heartbeat word alone, as an int64 array of one (the compiled exchange reads it)
+        self.heartbeat = self.ctl.reshape(1).view(np.int64)[TICKS:TICKS + 1]
         self.inject = rec["inject"]
         self.inject_t = rec["inject_t"]
         self.state = Channel(rec["state"])
