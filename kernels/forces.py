@@ -28,7 +28,7 @@ import ctypes
 
 import numpy as np
 
-from pointfence.native import ForcesCore, lib, ptr
+from pointfence.native import ForcesCore, fast, lib, ptr
 
 from .errors import InputError
 from .params_haptics import HapticParams
@@ -133,7 +133,7 @@ class ForceRenderer:
         """``update`` on pointers bound once (``native.ptr``: (B, 3) float32 proxies, (B, 3)
         float64 HIPs, (B,) int32 states): the tick's path. Returns the core's code (0: done,
         1: a proxy, 2: a HIP not finite; nothing changed then)."""
-        return lib.pf_forces_update(self.ref, proxies_f32, 1, hips, states)
+        return fast.pf_forces_update(self.ref, proxies_f32, 1, hips, states)
 
 
 __all__ = ["ForceRenderer", "fir_lowpass"]

@@ -167,6 +167,57 @@ def _bind(dll: ctypes.CDLL):
 #: the loaded library (built on first import: ``build.py``)
 lib = _bind(load())
 
-__all__ = ["ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore",
+
+class _Functions:
+    """A namespace of the core's functions (``fast``)."""
+
+
+def _unchecked(dll: ctypes.CDLL) -> _Functions:
+    ns = _Functions()
+    for name, (res, _) in _SIGNATURES.items():
+        fn = dll[name]                       # (a function object of its own: lib's keeps its argtypes)
+        fn.restype = res
+        setattr(ns, name, fn)
+    return ns
+
+
+#: The same functions for the 1 kHz tick's calls: without ``argtypes``, so ctypes converts no
+#: argument (the conversion through ``argtypes`` costs about a microsecond a call, several when
+#: the tick runs with cold caches, and the tick makes about a dozen calls). Every argument must
+#: then already be what the signature says: a pointer (``ptr``) or ``ctypes.byref`` of the
+#: struct, a ``c_int64`` / ``c_double`` / ``c_void_p`` object, a Python int for ``c_int32``.
+#: ``check_calls()`` (the test suite runs under it) makes each function check that first.
+fast = _unchecked(lib)
+_RAW = _unchecked(lib)
+_BYREF = type(ctypes.byref(c_int32()))
+
+
+def _fits(a, t) -> bool:
+    """Whether argument ``a`` is passed as type ``t`` of a signature without conversion."""
+    if isinstance(t, type(ctypes._Pointer)) and issubclass(t, ctypes._Pointer):
+        return isinstance(a, t) or (isinstance(a, _BYREF) and isinstance(a._obj, t._type_))
+    if t is c_void_p:
+        return isinstance(a, (c_void_p, ctypes._Pointer)) or (isinstance(a, _BYREF))
+    if t is c_int32:
+        return isinstance(a, c_int32) or (type(a) in (int, bool) and -2 ** 31 <= a < 2 ** 31)
+    return type(a) is t
+
+
+def check_calls() -> None:
+    """Make every function of ``fast`` check its arguments against its signature before it
+    calls the compiled code (a TypeError names the function and the argument); the test suite
+    runs under it, so a call that would pass a wrong type fails there, not in the tick."""
+    for name, (_, types) in _SIGNATURES.items():
+        def checked(*args, _raw=getattr(_RAW, name), _name=name, _types=types):
+            if len(args) != len(_types):
+                raise TypeError(f"{_name}: {len(args)} arguments; expected {len(_types)}")
+            for i, (a, t) in enumerate(zip(args, _types)):
+                if not _fits(a, t):
+                    raise TypeError(f"{_name}: argument {i} is {type(a).__name__}; expected {t.__name__} "
+                                    "(native.fast converts nothing)")
+            return _raw(*args)
+        setattr(fast, name, checked)
+
+__all__ = ["check_calls", "fast", "ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore",
            "HostLayout", "NativeBuildError", "SERVO_BAD_POSE", "SERVO_IGNORED", "SERVO_QUEUED", "SERVO_REJECTED",
            "SERVO_WORKSPACE", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]

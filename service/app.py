@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import ctypes
 import threading
+from operator import is_
 from collections import deque
 from typing import Optional, Sequence
 
@@ -44,7 +45,7 @@ import numpy as np
 from pointfence.kernels import get_backend
 from pointfence.kernels.errors import InputError, KernelError
 from pointfence.kernels.params_haptics import HapticParams
-from pointfence.native import StepCore, as_array, lib, ptr
+from pointfence.native import StepCore, as_array, fast, lib, ptr
 
 from .devices import Devices
 from .haptic_scene import HapticScene
@@ -179,7 +180,7 @@ class Service:
         arrays = (inp.master_pos, inp.pedal, inp.master_ok, inp.robot_pos, inp.robot_fault, inp.master_orientation,
                   inp.grasp, inp.robot_orientation, inp.robot_jaw)
         bound = self._bound_inp
-        if bound and bound[0] and all(a is b for a, b in zip(arrays, bound[0])):
+        if bound and bound[0] and all(map(is_, arrays, bound[0])):
             return bound[1]
         n, c = self.n, self._core
         want = ((float, (n, 3)), (bool, (n,)), (bool, (n,)), (float, (n, 3)), (bool, (n,)), (float, (n, 4)),
@@ -356,7 +357,7 @@ class Service:
         # teleoperation: a held arm's X_m does not follow the master (re-coupling must not replay its
         # motion); coupling; S1: an arm that (re)couples, and every arm at a change of control law,
         # starts from where its robot is commanded; the HIP; where the proxies move
-        reseat = lib.pf_step_pre(self._core_ref, tp.ref, health.ref, proxies, int(law_change), int(inp.teleop))
+        reseat = fast.pf_step_pre(self._core_ref, tp.ref, health.ref, proxies, int(law_change), int(inp.teleop))
         hip = tp.hip
         if inp.haptics and (not scene.running or (tp.arch == 3 and reseat)):
             # re-anchored arms' proxies start on the command in III (the proxy is the goal there:
@@ -386,8 +387,8 @@ class Service:
                                f"{self.cfg.service.max_lateness_s * 1e3:g} ms")
         # force gains (ramping over force_ramp_s) and frames; robot commands: the goal by
         # architecture, rate-limited, for coupled arms; a robot that decouples stops where it is
-        lib.pf_step_post(self._core_ref, tp.ref, health.ref, scene.renderer.ref, proxies, states, int(inp.haptics),
-                         inp.dt / self.cfg.service.force_ramp_s)
+        fast.pf_step_post(self._core_ref, tp.ref, health.ref, scene.renderer.ref, proxies, states, int(inp.haptics),
+                          ctypes.c_double(inp.dt / self.cfg.service.force_ramp_s))
         out.hold = health.mask
         out.frame_seq = scene.frame_seq
         return out
@@ -423,7 +424,7 @@ class Service:
         self.ticks += 1
         p = self._published
         with self._pub_lock:
-            lib.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state,
+            fast.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state,
             #                                                       orientation, jaw
             np.copyto(self._pub_master, inp.master_pos)
             np.copyto(self._pub_master_ok, inp.master_ok)

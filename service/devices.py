@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import math
 import threading
+from ctypes import c_int64
 from typing import Optional, Sequence
 
 import numpy as np
 
 from pointfence.kernels.errors import InputError
-from pointfence.native import lib, ptr
+from pointfence.native import fast, lib, ptr
 
 from .robot.base import RobotMode
 from .tick_io import TickInput, TickOutput
@@ -48,6 +49,7 @@ class Devices:
         self._tip_rows = list(self._tips)
         self._zero3 = np.zeros(3)
         self._T4p = ptr(self._T4, np.float64, "poses")
+        self._n64, self._four = c_int64(n), c_int64(4)      # (the core's int64 arguments, made once)
         #: the tick's commanded poses (n, 4, 4), world: the command's position and orientation
         self._cmd4 = np.zeros((n, 4, 4))
         self._cmd4_rows = list(self._cmd4)
@@ -95,8 +97,8 @@ class Devices:
         okp = self._ptrs.get("master_ok")
         if okp is None or okp[0] is not ok:
             okp = self._ptrs["master_ok"] = (ok, ptr(ok, bool, "master_ok"))
-        lib.pf_masters_valid(bound(pos, "master_pos"), bound(quat, "master_orientation"), bound(grasp, "grasp"),
-                             self.n, okp[1])
+        fast.pf_masters_valid(bound(pos, "master_pos"), bound(quat, "master_orientation"), bound(grasp, "grasp"),
+                              self._n64, okp[1])
 
     def read_robots(self, inp: TickInput, ideal_pos: np.ndarray, ideal_quat: np.ndarray = None,
                     ideal_jaw: np.ndarray = None) -> None:
@@ -116,10 +118,10 @@ class Devices:
         qp = self._bound(quat, "robot_orientation")
         if self._all_real:
             np.copyto(inp.robot_pos, self._tips)
-            lib.pf_quats_of_matrices(self._T4p, 4, self.n, qp)
+            fast.pf_quats_of_matrices(self._T4p, self._four, self._n64, qp)
         else:
             np.copyto(inp.robot_pos, ideal_pos)
-            lib.pf_quats_of_matrices(self._T4p, 4, self.n, self._q4p)
+            fast.pf_quats_of_matrices(self._T4p, self._four, self._n64, self._q4p)
             if ideal_quat is None:
                 quat[:] = (1.0, 0.0, 0.0, 0.0)
             else:
@@ -178,8 +180,8 @@ class Devices:
             self.refused[:] = False
             self._refused_any = False
         coupled, engage, release = out.coupled.tolist(), out.engage.tolist(), out.release.tolist()
-        lib.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
-                        self.n, self._cmd4p)
+        fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
+                         self._n64, self._cmd4p)
         poses = self._cmd4_rows
         for b, r in self.real:
             if coupled[b]:

@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 
-from pointfence.native import HealthCore, lib, ptr, ptr_to
+from pointfence.native import HealthCore, fast, lib, ptr, ptr_to
 
 from .holds import LATCHED, REASONS, HoldReason
 from .tick_io import TickInput
@@ -77,7 +77,7 @@ class Health:
         n = self.n
         ok, fault = bound if bound is not None else (ptr_to(inp.master_ok, bool, (n,), "master_ok"),
                                                      ptr_to(inp.robot_fault, bool, (n,), "robot_fault"))
-        lib.pf_health_assess(self.ref, t, ok, fault)
+        fast.pf_health_assess(self.ref, ctypes.c_double(t), ok, fault)
 
     def seen(self, reason: HoldReason, t: float) -> None:
         """Condition ``reason`` (a global one) was seen at loop time ``t`` (s)."""

@@ -3,6 +3,12 @@ from pathlib import Path
 
 import pytest
 
+from pointfence.native import check_calls
+
+# the tick's compiled calls (native.fast) convert no argument; under the tests each checks its
+# arguments against its signature first, so a wrong type fails a test instead of the tick
+check_calls()
+
 #: Real depth recordings (SPEC section 8) live beside the project, never inside it.
 SHARED_DATA = Path(__file__).parents[1].parent / "shared" / "data"
 

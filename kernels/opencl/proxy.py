@@ -19,9 +19,11 @@ GPU-shaped ``proxy_tick_wg`` (a work-group a proxy, its working set in local mem
 """
 from __future__ import annotations
 
+from ctypes import c_int64
+
 import numpy as np
 
-from pointfence.native import lib, ptr
+from pointfence.native import fast, ptr
 
 from ..errors import KernelError
 from ..motion import extra_span
@@ -236,5 +238,5 @@ class OpenCLProxies(ProxyBatch):
         finally:
             buf.release(i)
         u = self._unpack       # out's rows into positions, nearest, normals, states, steps, converged
-        lib.pf_proxy_unpack(u[0], n, u[1], u[2], u[3], u[4], u[5], u[6])
+        fast.pf_proxy_unpack(u[0], c_int64(n), u[1], u[2], u[3], u[4], u[5], u[6])
 

@@ -69,7 +69,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.errors import InputError
-from pointfence.native import HOST_LOST, HOST_NONFINITE, HOST_TEXTS, HostCore, HostLayout, lib, ptr
+from pointfence.native import HOST_LOST, HOST_NONFINITE, HOST_TEXTS, HostCore, HostLayout, fast, ptr
 
 from ..child_pipe import stop_by_flag
 from .base import RIGID_TOL, RobotMode
@@ -178,6 +178,7 @@ class RobotHost:
         self._servo_seq_at = [b * C.size + C.servo_seq for b in range(n)]
         self._jaw_at = [(b * C.size + C.jaw_seq, b * C.size + C.jaw) for b in range(n)]
         self._addresses: dict = {}                       # id -> (pose, its data address): ``_pose_address``
+        self._arm64 = [ctypes.c_int64(b) for b in range(n)]   # (the core's arm arguments, made once)
         for b, r in enumerate(local):                    # until the first read: the local model's state
             self._taken[b, L.T_meas] = r.measured_cp().reshape(16)
             self._taken[b, L.q] = r.measured_js().position
@@ -217,7 +218,7 @@ class RobotHost:
     def sync(self) -> None:
         """Read the child's latest state (after the watchdog) and give every arm its row."""
         if self._blk is not None:
-            self._after_read(lib.pf_host_sync(self._core, time.monotonic()))
+            self._after_read(fast.pf_host_sync(self._core, ctypes.c_double(time.monotonic())))
 
     def step_arm(self, b: int) -> None:
         """Arm ``b``'s step: send every queued setpoint, read the child's record again if this arm
@@ -227,7 +228,7 @@ class RobotHost:
         exchange does it all (``pf_host_step``); Python acts only on what its flags report."""
         if self._blk is None:              # closed: the arms keep their last state
             return
-        flags = lib.pf_host_step(self._core, b, time.monotonic())
+        flags = fast.pf_host_step(self._core, self._arm64[b], ctypes.c_double(time.monotonic()))
         if flags:
             self._after_read(flags)
 
@@ -282,7 +283,7 @@ class RobotHost:
         """Whether arm ``b`` is latched in FAULT (then it takes no row)."""
         self._latched[b] = latched
 
-    def _pose_address(self, T) -> Optional[int]:
+    def _pose_address(self, T) -> Optional[ctypes.c_void_p]:
         """The data address of ``T`` if it is a C-contiguous 4x4 float64 array (else None: the
         caller takes the checked Python path), kept per array."""
         got = self._addresses.get(id(T))
@@ -291,7 +292,7 @@ class RobotHost:
                 return None
             if len(self._addresses) >= 64:
                 self._addresses.clear()
-            got = self._addresses[id(T)] = (T, T.ctypes.data)
+            got = self._addresses[id(T)] = (T, ctypes.c_void_p(T.ctypes.data))
         return got[1]
 
     def servo(self, b: int, T) -> int:
@@ -301,7 +302,7 @@ class RobotHost:
         addr = self._pose_address(T)
         if addr is None or self._blk is None:
             return -1
-        return lib.pf_host_servo(self._core, b, addr)
+        return fast.pf_host_servo(self._core, self._arm64[b], addr)
 
     def child_rejections(self, b: int) -> tuple:
         """(rejections arm ``b``'s child counted, of which ``servo_cp`` reported)."""
@@ -416,7 +417,7 @@ class RobotHost:
     def publish(self) -> None:
         """Send the queued setpoints (one sequence-locked write for all arms)."""
         if self._blk is not None:
-            lib.pf_host_publish(self._core)
+            fast.pf_host_publish(self._core)
 
     def send_mode(self, b: int, code: int) -> None:
         """Send a mode command (``HOLD``, ``RESUME``, ``ENABLE``, ``FAULT``) now (with any queued
@@ -428,7 +429,7 @@ class RobotHost:
         c.ring[b, i % RING] = code
         c.mode_seq[b] = i + 1
         self.core.staged = 1
-        lib.pf_host_publish(self._core)
+        fast.pf_host_publish(self._core)
 
     @property
     def alive(self) -> bool:

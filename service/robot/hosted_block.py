@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-from pointfence.native import ChannelCore, lib, ptr
+from pointfence.native import ChannelCore, fast, ptr
 
 #: mode commands (service -> child), in a ring per arm
 HOLD, RESUME, ENABLE, FAULT = 1, 2, 3, 4
@@ -132,7 +132,7 @@ class Channel:
         self._core = ctypes.byref(self.core)
         self._addresses: dict = {}              # id -> (record, its data address): ``_address``
 
-    def _address(self, rec) -> int:
+    def _address(self, rec) -> ctypes.c_void_p:
         """The data address of ``rec`` (``size`` contiguous float64: an array, or a memoryview of
         one), kept per object (the entry holds it, so its id is not reused while cached)."""
         got = self._addresses.get(id(rec))
@@ -143,19 +143,19 @@ class Channel:
                                 f"{getattr(a, 'dtype', type(a).__name__)} of size {getattr(a, 'size', '?')}")
             if len(self._addresses) >= 16:
                 self._addresses.clear()
-            got = self._addresses[id(rec)] = (rec, a.ctypes.data)
+            got = self._addresses[id(rec)] = (rec, ctypes.c_void_p(a.ctypes.data))
         return got[1]
 
     def write(self, rec) -> None:
         """Publish ``rec`` (``size`` contiguous float64: an array or a memoryview of one; pass the
         same object every time: its address is looked up once)."""
-        lib.pf_chan_write(self._core, self._address(rec))
+        fast.pf_chan_write(self._core, self._address(rec))
 
     def read(self, out, tries: int = 8) -> bool:
         """Copy the latest whole record into ``out`` (``size`` contiguous float64: an array or a
         memoryview of one; the same object every time); False if none was consistent in ``tries``
         attempts (the writer lapped this reader)."""
-        return bool(lib.pf_chan_read(self._core, self._address(out), tries))
+        return bool(fast.pf_chan_read(self._core, self._address(out), tries))
 
 
 class Block:
