@@ -251,6 +251,11 @@ class RobotHost:
                     self.robots[b].take_texts(get_text(text[b, 0]), get_text(text[b, 1]))
 
     # --- each arm's exchange (HostedRobot's calls) -------------------------------------------------
+    @property
+    def layout(self):
+        """The state row's layout (``hosted_block.RowLayout``: each field's index or slice)."""
+        return self._L
+
     def taken_row(self, b: int) -> np.ndarray:
         """Arm ``b``'s state row as it last took one (a view, S floats: ``layout`` gives the
         fields), updated in place by every ``step_arm`` that gives the arm a row."""

@@ -28,18 +28,18 @@ class HostedRobot:
     as of this arm's last ``step``: the tick's reads (``state``, ``measured_cp``, ``measured_jaw``,
     ``measured_jp_into``) straight from the row the compiled exchange gave the arm, the others
     from the local model, which adopts that row when one of them asks (``_sync``). Commands
-    (``servo_cp``, ``hold``, ``resume``, ``enable``, ``fault``) go to the child. A FAULT of the robot process itself (silent, dead, non-finite
-    state) is latched here: the arm reads FAULT with that reason, sends nothing, and only
-    ``enable()`` clears it, once ``RobotHost.ready`` allows. ``rejected_commands`` and
-    ``ignored_commands`` count the child's and this side's (a setpoint refused or ignored here
-    never reaches the child).
+    (``servo_cp``, ``hold``, ``resume``, ``enable``, ``fault``) go to the child. A FAULT of the
+    robot process itself (silent, dead, non-finite state) is latched here: the arm reads FAULT
+    with that reason, sends nothing, and only ``enable()`` clears it, once ``RobotHost.ready``
+    allows. ``rejected_commands`` and ``ignored_commands`` count the child's and this side's (a
+    setpoint refused or ignored here never reaches the child).
     """
 
     hosted = True
 
     def __init__(self, host, index: int, local):
         self._host, self._b, self._r = host, index, local
-        self._L = host._L
+        self._L = host.layout
         self.model: str = local.model
         self.dof: int = local.dof
         self.joint_names: tuple = local.joint_names
