@@ -106,10 +106,22 @@ _add_reduce = np.add.reduce
 
 def _finite_rows(a, n: int) -> bool:
     """Whether ``a`` is already a finite float (n, 3) array (checked without a temporary array)."""
-    # (np.add.reduce, not a.sum(): the method's Python wrapper costs 0.7 us of a 1 kHz tick; a
-    # finite array whose sum overflows takes the slow path, which accepts it)
-    return (isinstance(a, np.ndarray) and a.shape == (n, 3) and a.dtype.kind == "f"
-            and math.isfinite(_add_reduce(a, None)))
+    if not (type(a) is np.ndarray and a.shape == (n, 3) and a.dtype.kind == "f"):
+        return False
+    # (a finite array whose sum overflows takes the slow path, which accepts it.) A tick's few
+    # rows are summed as Python floats: the first NumPy reduction of a tick runs through code
+    # the frame threads have pushed out of the caches, several times the cost of the sum;
+    # np.add.reduce, not a.sum(), for many rows (the method's Python wrapper costs more)
+    if n <= _FEW:
+        s = 0.0
+        for x, y, z in a.tolist():
+            s += x + y + z
+        return math.isfinite(s)
+    return math.isfinite(_add_reduce(a, None))
+
+
+#: rows up to which ``_finite_rows`` sums in Python
+_FEW = 16
 
 
 def fixture_r_max(pipeline_params) -> float:

@@ -168,27 +168,37 @@ def _bind(dll: ctypes.CDLL):
 lib = _bind(load())
 
 
-class _Functions:
-    """A namespace of the core's functions (``fast``)."""
+class Functions:
+    """A namespace of compiled functions called without ``argtypes`` (``fast``, ``unchecked``)."""
 
 
-def _unchecked(dll: ctypes.CDLL) -> _Functions:
-    ns = _Functions()
-    for name, (res, _) in _SIGNATURES.items():
-        fn = dll[name]                       # (a function object of its own: lib's keeps its argtypes)
-        fn.restype = res
-        setattr(ns, name, fn)
+#: every namespace ``unchecked`` made: (namespace, raw functions, signatures)
+_NAMESPACES: list = []
+_checking = False
+
+
+def unchecked(dll: ctypes.CDLL, signatures: dict) -> Functions:
+    """The functions of ``signatures`` (name -> (restype, argtypes)) of ``dll`` for the 1 kHz
+    tick's calls: without ``argtypes``, so ctypes converts no argument (the conversion through
+    ``argtypes`` costs about a microsecond a call, several when the tick runs with cold caches,
+    and the tick makes a dozen calls or more). Every argument must then already be what the
+    signature says: a pointer (``ptr``) or ``ctypes.byref`` of the right type, a ``c_int64`` /
+    ``c_double`` / ``c_void_p`` object, a Python int for ``c_int32`` and ``c_int``.
+    ``check_calls()`` (the test suite runs under it) makes each function check that first."""
+    ns, raw = Functions(), Functions()
+    for name, (res, _) in signatures.items():
+        for target in (ns, raw):
+            fn = dll[name]                   # (a function object of its own: getattr's keeps its argtypes)
+            fn.restype = res
+            setattr(target, name, fn)
+    _NAMESPACES.append((ns, raw, signatures))
+    if _checking:
+        _check(ns, raw, signatures)
     return ns
 
 
-#: The same functions for the 1 kHz tick's calls: without ``argtypes``, so ctypes converts no
-#: argument (the conversion through ``argtypes`` costs about a microsecond a call, several when
-#: the tick runs with cold caches, and the tick makes about a dozen calls). Every argument must
-#: then already be what the signature says: a pointer (``ptr``) or ``ctypes.byref`` of the
-#: struct, a ``c_int64`` / ``c_double`` / ``c_void_p`` object, a Python int for ``c_int32``.
-#: ``check_calls()`` (the test suite runs under it) makes each function check that first.
-fast = _unchecked(lib)
-_RAW = _unchecked(lib)
+#: the tick core's functions for the tick's calls (see ``unchecked``)
+fast = unchecked(lib, _SIGNATURES)
 _BYREF = type(ctypes.byref(c_int32()))
 
 
@@ -197,27 +207,36 @@ def _fits(a, t) -> bool:
     if isinstance(t, type(ctypes._Pointer)) and issubclass(t, ctypes._Pointer):
         return isinstance(a, t) or (isinstance(a, _BYREF) and isinstance(a._obj, t._type_))
     if t is c_void_p:
-        return isinstance(a, (c_void_p, ctypes._Pointer)) or (isinstance(a, _BYREF))
-    if t is c_int32:
-        return isinstance(a, c_int32) or (type(a) in (int, bool) and -2 ** 31 <= a < 2 ** 31)
+        return isinstance(a, (c_void_p, ctypes._Pointer, _BYREF))
+    if t in (c_int32, ctypes.c_int):
+        return isinstance(a, t) or (type(a) in (int, bool) and -2 ** 31 <= a < 2 ** 31)
     return type(a) is t
 
 
-def check_calls() -> None:
-    """Make every function of ``fast`` check its arguments against its signature before it
-    calls the compiled code (a TypeError names the function and the argument); the test suite
-    runs under it, so a call that would pass a wrong type fails there, not in the tick."""
-    for name, (_, types) in _SIGNATURES.items():
-        def checked(*args, _raw=getattr(_RAW, name), _name=name, _types=types):
+def _check(ns: Functions, raw: Functions, signatures: dict) -> None:
+    for name, (_, types) in signatures.items():
+        def checked(*args, _raw=getattr(raw, name), _name=name, _types=types):
             if len(args) != len(_types):
                 raise TypeError(f"{_name}: {len(args)} arguments; expected {len(_types)}")
             for i, (a, t) in enumerate(zip(args, _types)):
                 if not _fits(a, t):
                     raise TypeError(f"{_name}: argument {i} is {type(a).__name__}; expected {t.__name__} "
-                                    "(native.fast converts nothing)")
+                                    "(an unchecked call converts nothing)")
             return _raw(*args)
-        setattr(fast, name, checked)
+        setattr(ns, name, checked)
 
-__all__ = ["check_calls", "fast", "ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore",
+
+def check_calls() -> None:
+    """Make every function of every ``unchecked`` namespace (those made later too) check its
+    arguments against its signature before it calls the compiled code (a TypeError names the
+    function and the argument); the test suite runs under it, so a call that would pass a wrong
+    type fails there, not in the tick."""
+    global _checking
+    _checking = True
+    for ns, raw, signatures in _NAMESPACES:
+        _check(ns, raw, signatures)
+
+
+__all__ = ["Functions", "check_calls", "fast", "unchecked", "ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore",
            "HostLayout", "NativeBuildError", "SERVO_BAD_POSE", "SERVO_IGNORED", "SERVO_QUEUED", "SERVO_REJECTED",
            "SERVO_WORKSPACE", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]

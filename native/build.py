@@ -81,7 +81,8 @@ def _tick_core() -> _Lib:
 
 
 UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha256.c", _CLIENT_C / "src" / "pf_protocol.c"),
-              (_HERE / "udp_rx_session.h", _CLIENT_C / "include" / "pointfence_client.h"), (_HERE, _CLIENT_C / "include"),
+              (_HERE / "udp_rx_session.h", _HERE / "udp_tick.h", _CLIENT_C / "include" / "pointfence_client.h"),
+              (_HERE, _CLIENT_C / "include"),
               ("-lm", "-pthread"))
 
 

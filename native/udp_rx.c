@@ -572,3 +572,5 @@ void pf_rx_stats(pf_rx *r, uint64_t out[8 + N_CODES]) {
     for (i = 0; i < N_CODES; i++) out[8 + i] = r->counts[i];
     pthread_mutex_unlock(&r->mu);
 }
+
+#include "udp_tick.h"   /* the tick's take of a sample and its FEEDBACK (uses pf_rx_sample, pf_rx_feedback) */

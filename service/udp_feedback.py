@@ -2,61 +2,77 @@
 
 One per arm and tick: the force to display with the state behind it, that is the arm's proxy,
 robot position, contact, hold mask, robot mode and fixture flags. The service's output of the
-tick (``Service.out``) holds them; ``FeedbackFields`` reads them once a tick for every arm, as
-plain lists, and ``fill`` writes one arm's into the ``udp_native.Feedback`` struct that the C
-receiver saturates (the session's force limit; zero if not finite), stamps, tags and sends.
+tick (``Service.out``) holds them: ``FeedbackFields`` points a ``udp_native.FeedbackSource`` at
+its arrays (bound once) and sets, once a tick, what is not in them (the tick's number and start,
+the service's fixture flags, each arm's robot mode); the C receiver then fills each arm's
+FEEDBACK from it (``NativeReceiver.send_arm``, native/udp_tick.h), saturates the force (the
+session's limit; zero if not finite), stamps, tags and sends it.
 """
 from __future__ import annotations
 
-from pointfence.clients import protocol as P
+import ctypes
 
-from .udp_native import Feedback
+import numpy as np
+
+from pointfence.clients import protocol as P
+from pointfence.native import ptr
+
+from .udp_native import FeedbackSource
 
 #: FEEDBACK's robot mode for each ``RobotMode`` value (ENABLED, HOLDING, FAULT)
 ROBOT_MODES = (P.ROBOT_ENABLED, P.ROBOT_HOLDING, P.ROBOT_FAULT)
 
 
 class FeedbackFields:
-    """Every arm's FEEDBACK fields of the current tick, read from the service once per tick
-    (``of(service, tick_ns)``: the tick is named by its start, perf_counter ns)."""
+    """Every arm's FEEDBACK fields of the current tick (``of(service, tick, t_tick_ns)``, once a
+    tick: the tick's number and start on the deadline grid, ns), as ``byref`` of a
+    ``FeedbackSource`` for ``NativeReceiver.send_arm``."""
 
     def __init__(self, n: int):
-        self.n = int(n)
-        self._fields, self._ns = None, -1
+        self.n = n = int(n)
+        self.src = FeedbackSource(n=n)
+        self.ref = ctypes.byref(self.src)
+        self._modes = np.full(n, P.ROBOT_IDEAL, np.uint8)
+        self._mode_list = [P.ROBOT_IDEAL] * n
+        self._zero3, self._zero_i32 = np.zeros((n, 3)), np.zeros(n, np.int32)
+        self._zero_i64, self._zero_b = np.zeros(n, np.int64), np.zeros(n, bool)
+        self._bound_to = ()               # the output arrays the source points at
+        self._keep = ()
+        self._bind(None)
+        self.src.mode = ptr(self._modes, np.uint8, "modes")
+        self._ns = -1
 
-    def of(self, svc, tick_ns: int) -> tuple:
-        """(proxies, contacts, robots, modes, holds, fixtures) of service ``svc`` (None: none
-        attached): lists, one entry per arm."""
+    def _bind(self, out) -> None:
+        """Point the source at ``out``'s arrays (None: zeros, no service attached)."""
+        arrays = ((self._zero3, self._zero3, self._zero_i32, self._zero_i64, self._zero_b) if out is None else
+                  (out.proxy, out.robot_pos, out.state, out.arm_hold, out.coupled))
+        if all(map(lambda a, b: a is b, arrays, self._bound_to)) and self._bound_to:
+            return
+        src = self.src
+        src.proxy, src.robot = ptr(arrays[0], np.float64, "proxy"), ptr(arrays[1], np.float64, "robot_pos")
+        src.contact, src.hold = ptr(arrays[2], np.int32, "state"), ptr(arrays[3], np.int64, "arm_hold")
+        src.coupled = ptr(arrays[4], bool, "coupled")
+        self._bound_to = arrays           # (kept alive: the struct holds only their addresses)
+
+    def of(self, svc, tick: int, t_tick_ns: int, tick_ns: int):
+        """The source for service ``svc`` (None: none attached) at the tick that started at
+        ``tick_ns`` (perf_counter ns): set once for that tick."""
         if self._ns != tick_ns:
-            self._fields, self._ns = self._read(svc), tick_ns
-        return self._fields
-
-    def _read(self, svc) -> tuple:
-        n = self.n
-        if svc is None:
-            zero = [(0.0, 0.0, 0.0)] * n
-            return zero, [P.CONTACT_FREE] * n, zero, [P.ROBOT_IDEAL] * n, [0] * n, [0] * n
-        out = svc.out
-        modes = [P.ROBOT_IDEAL if r is None else ROBOT_MODES[int(r.state)] for r in svc.robots]
-        flags = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
-                 | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
-        fixtures = [flags | (P.FX_COUPLED if c else 0) for c in out.coupled.tolist()]
-        return (out.proxy.tolist(), out.state.tolist(), out.robot_pos.tolist(), modes, out.arm_hold.tolist(),
-                fixtures)
-
-
-def fill(fb: Feedback, s, slot: int, f, fields: tuple, tick: int, t_tick_ns: int) -> Feedback:
-    """Arm ``slot``'s FEEDBACK to session ``s``, force ``f`` (N, master frame, (3,)), into ``fb``
-    (returned): the tick ``tick`` that started at ``t_tick_ns`` (the deadline grid), the sample it
-    used (sequence, client time) and ``fields`` (``FeedbackFields.of``)."""
-    proxies, contacts, robots, modes, holds, fixtures = fields
-    fb.tick, fb.t_tick_ns, fb.echo_seq, fb.echo_t_client_ns = tick, t_tick_ns, s.seq, s.t_client_ns
-    fb.force[0], fb.force[1], fb.force[2] = f.tolist()
-    fb.proxy[0], fb.proxy[1], fb.proxy[2] = proxies[slot]
-    fb.robot[0], fb.robot[1], fb.robot[2] = robots[slot]
-    fb.contact, fb.fixture, fb.robot_mode, fb.hold = contacts[slot], fixtures[slot], modes[slot], holds[slot]
-    fb.error, fb.slot, fb.rejected = s.tick_error, slot, s.tick_rejected & 0xFFFFFFFF
-    return fb
+            self._ns = tick_ns
+            src = self.src
+            src.tick, src.t_tick_ns = tick, t_tick_ns
+            if svc is None:
+                self._bind(None)
+                src.fixture = 0
+                return self.ref
+            self._bind(svc.out)
+            src.fixture = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
+                           | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
+            modes = self._mode_list
+            for b, r in enumerate(svc.robots):
+                modes[b] = P.ROBOT_IDEAL if r is None else ROBOT_MODES[int(r.state)]
+            self._modes[:] = modes
+        return self.ref
 
 
-__all__ = ["FeedbackFields", "ROBOT_MODES", "fill"]
+__all__ = ["FeedbackFields", "ROBOT_MODES"]

@@ -8,10 +8,10 @@ from typing import Optional
 
 import numpy as np
 
-from pointfence.clients import protocol as P
+from pointfence.native import ptr
 
 from .masters import Master
-from .udp_native import BUSY, Sample
+from .udp_native import TAKE_SILENT, TAKE_STALE
 from .udp_session import Session
 
 
@@ -28,64 +28,52 @@ class UdpMaster(Master):
         self.name = f"udp{slot}"
         self.ok = False                  # (no sample yet; orientation and grasp: the base's defaults)
         self.clutch = False
-        self.session: Optional[Session] = None
-        self._sample = Sample()          # the tick's copy of the slot's latest sample
+        self._session: Optional[Session] = None
+        self._pos_p = ptr(self.position, np.float64, "position")      # (the take writes a new sample here)
+        self._quat_p = ptr(self.orientation, np.float64, "orientation")
+        self._force_p = ptr(self.force, np.float64, "force")
+
+    @property
+    def session(self):
+        """The session that holds the slot (a ``Session``; None: none; the service may put a
+        placeholder of its own while it reserves the slot)."""
+        return self._session
+
+    @session.setter
+    def session(self, s) -> None:
+        if isinstance(s, Session):       # its take writes into this master's arrays
+            tk = s.take
+            tk.pos, tk.quat, tk.grasp, tk.buttons = self._pos_p, self._quat_p, self.grasp, self.buttons
+        self._session = s
 
     def poll(self, t: float) -> None:
-        """The tick's read: copy the slot's newest sample (loop time ``t``, s), decide its timeout."""
+        """The tick's read: take the slot's newest sample (loop time ``t``, s) and decide its
+        timeout and age, in one compiled call (``NativeReceiver.take``, native/udp_tick.h)."""
         hub = self.hub
         if t != hub.t:
             hub.tick(t)
-        s = self.session
+        s = self._session
         if s is None or not isinstance(s, Session):
             self.ok = False
             self.clutch = False
             return
-        c = self._sample
-        n = hub.rx.sample(self.slot, s.id, c)
-        if n == BUSY:                            # being written: the last copy stands this tick
-            n = s.seen
-        elif n:
-            s.tick_rejected = c.rejected
-            s.tick_error = c.error
-        if n and n != s.seen:
-            pos, q = self.position, c.quat
-            pos[0], pos[1], pos[2] = c.pos
-            flags = c.flags
-            self.clutch = bool(flags & P.F_CLUTCH)
-            self.buttons = c.buttons
-            if flags & P.F_ORIENTATION:
-                o = self.orientation
-                o[0], o[1], o[2], o[3] = q[0], q[1], q[2], q[3]
-            if flags & P.F_GRASP:
-                self.grasp = c.grasp
-            s.seen = n
-            s.seq = c.seq
-            s.t_client_ns = c.t_client
-            s.rx_ns = c.rx_ns
-            s.last_rx_t = t
-            s.has_state = True
-        elif s.last_rx_t is None:
-            s.last_rx_t = t                      # a new session: its silence counts from this tick
-        if t - s.last_rx_t > s.timeout_s:
+        tk = s.take
+        code = hub.rx.take(self.slot, s.take_ref, t, hub.t_ns)
+        self.clutch, self.buttons, self.grasp, self.ok = tk.clutch != 0, tk.buttons, tk.grasp, tk.ok != 0
+        if code == TAKE_SILENT:
             hub.drop(s)
-            self.ok = False
-            self.clutch = False
             return
-        if s.has_state:
-            age = hub.t_ns - s.rx_ns
+        age = tk.age_ns
+        if age >= 0:
             hub.ages.record(age)
-            if age > s.max_age_ns:       # a sample that waited longer than the timeout: none (S9)
-                hub.stale_ticks += 1
-                self.ok = False
-                return
-        self.ok = s.has_state
+        if code == TAKE_STALE:           # a sample that waited longer than the timeout: none (S9)
+            hub.stale_ticks += 1
 
     def send_force(self, f: np.ndarray) -> None:
         self.force[:] = f
-        s = self.session
-        if s is not None and s.has_state:
-            self.hub.send_feedback(self, s, self.force)
+        s = self._session
+        if s is not None and isinstance(s, Session) and s.take.has_state:
+            self.hub.send_feedback(self, s, self._force_p)
 
 
 __all__ = ["UdpMaster"]

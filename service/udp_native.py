@@ -19,6 +19,7 @@ import struct
 from ctypes import POINTER, Structure, c_double, c_int, c_int32, c_int64, c_uint8, c_uint32, c_uint64, c_void_p
 
 from pointfence.clients import protocol as P
+from pointfence.native import unchecked
 from pointfence.native.build import load_udp_rx
 
 #: the queue of datagrams for the hub's Python (each up to MAX_DATAGRAM bytes): a flood beyond
@@ -50,6 +51,39 @@ class Feedback(Structure):
                 ("robot", c_double * 3), ("contact", c_uint8), ("fixture", c_uint8), ("robot_mode", c_uint8),
                 ("link", c_uint8), ("hold", c_uint32), ("error", ctypes.c_uint16), ("slot", ctypes.c_uint16),
                 ("rejected", c_uint32)]
+
+
+class Take(Structure):
+    """``pf_rx_take_t`` (native/udp_tick.h): a session's tick state, what earlier ticks took of it
+    (``udp_session.Session``'s tick fields read it) and what this tick takes; ``pos`` and ``quat``
+    point at the master's own arrays (m, master frame; w x y z)."""
+
+    _fields_ = [("sid", c_uint32), ("has_state", c_int32), ("timeout_s", c_double), ("max_age_ns", c_int64),
+                ("seen", c_uint64), ("seq", c_uint64), ("t_client", c_uint64), ("rx_ns", c_int64),
+                ("last_rx_t", c_double), ("tick_rejected", c_uint64), ("tick_error", c_int32), ("clutch", c_int32),
+                ("ok", c_int32), ("buttons", c_uint32), ("grasp", c_double), ("age_ns", c_int64),
+                ("pos", POINTER(c_double)), ("quat", POINTER(c_double))]
+
+
+class FeedbackSource(Structure):
+    """``pf_fb_src_t`` (native/udp_tick.h): every arm's FEEDBACK fields of the tick, pointing at
+    the service's output (``tick_io.TickOutput``, bound once) and the robot modes the hub sets once
+    a tick."""
+
+    _fields_ = [("tick", c_uint64), ("t_tick_ns", c_uint64), ("fixture", c_uint32), ("n", c_uint32),
+                ("proxy", POINTER(c_double)), ("robot", POINTER(c_double)), ("contact", POINTER(c_int32)),
+                ("hold", POINTER(c_int64)), ("coupled", POINTER(c_uint8)), ("mode", POINTER(c_uint8))]
+
+
+#: ``NativeReceiver.take``'s answers: taken (``Take.ok`` says whether the master has a valid
+#: sample); the session was silent past its timeout (the hub drops it); the newest sample is
+#: older than the session's ``max_age_ns`` (not used, S9)
+TAKE_OK, TAKE_SILENT, TAKE_STALE = 0, 1, 2
+#: the tick's two calls, without argtypes (``pointfence.native.unchecked``)
+_TICK_SIGNATURES = {
+    "pf_rx_take": (c_int, [c_void_p, c_int, POINTER(Take), c_double, c_int64]),
+    "pf_rx_send_arm": (c_int, [c_void_p, c_int, POINTER(Take), POINTER(FeedbackSource), POINTER(c_double)]),
+}
 
 
 def _declare(lib) -> None:
@@ -93,10 +127,12 @@ class NativeReceiver:
         for L in (self._wait_lib, lib):
             _declare(L)
         self._lib = lib
+        self._tick = unchecked(lib, _TICK_SIGNATURES)
         self.sock = sock
         self._h = lib.pf_rx_new(sock.fileno(), int(slots), int(queue))
         if not self._h:
             raise MemoryError(f"the UDP receiver could not allocate its queue of {queue} datagrams")
+        self._hv = c_void_p(self._h)         # (the handle as the tick's calls pass it)
         self._buf = (c_uint8 * P.MAX_DATAGRAM)()
         self._ip, self._port, self._rx = c_uint32(), c_uint32(), c_int64()
         self._ip_p, self._port_p, self._rx_p = ctypes.byref(self._ip), ctypes.byref(self._port), ctypes.byref(self._rx)
@@ -180,6 +216,22 @@ class NativeReceiver:
         (0: none or another session), or BUSY (being written: keep the last copy)."""
         return self._lib.pf_rx_sample(self._h, slot, sid, out)
 
+    def take(self, slot: int, take, t: float, t_ns: int) -> int:
+        """The tick's take of the slot's session (``take``: ``byref`` of its ``Take``) at loop time
+        ``t`` (s), the tick having started at ``t_ns`` (perf_counter ns): a new sample goes into
+        the master's arrays and the take's fields; a ``TAKE_*`` answer."""
+        if not self._h:
+            return TAKE_SILENT                # (freed: nothing arrives any more)
+        return self._tick.pf_rx_take(self._hv, slot, take, c_double(t), c_int64(t_ns))
+
+    def send_arm(self, slot: int, take, source, force) -> int:
+        """The tick: arm ``slot``'s FEEDBACK to the session of ``take`` (``byref`` of its
+        ``Take``), force ``force`` (a pointer to 3 doubles, N, master frame), the rest from
+        ``source`` (``byref`` of a ``FeedbackSource``): as ``feedback`` answers."""
+        if not self._h:
+            return -1
+        return self._tick.pf_rx_send_arm(self._hv, slot, take, source, force)
+
     def feedback(self, slot: int, sid: int, fb: Feedback) -> int:
         """The tick: send FEEDBACK ``fb`` to the session (its force saturated at the session's
         limit, stamped, tagged; never blocks): 1 sent, 0 the send failed, -1 no such session."""
@@ -207,6 +259,7 @@ class NativeReceiver:
         if self._h:
             self._wait_lib.pf_rx_free(self._h)
             self._h = None
+            self._hv = c_void_p(None)
 
     def stats(self) -> dict:
         """Counts since the start: datagrams read, STATEs accepted and superseded, datagrams the
@@ -246,4 +299,5 @@ class NativeWindow:
             raise P.ProtocolError(code, f"sequence {seq}: {P.ERROR_NAMES[code]}")
 
 
-__all__ = ["Feedback", "NativeReceiver", "NativeWindow", "Sample", "NOT_MINE", "BUSY", "QUEUE"]
+__all__ = ["Feedback", "FeedbackSource", "NativeReceiver", "NativeWindow", "Sample", "Take", "NOT_MINE", "BUSY", "QUEUE",
+           "TAKE_OK", "TAKE_SILENT", "TAKE_STALE"]

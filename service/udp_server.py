@@ -53,9 +53,9 @@ from .held_io import Sender
 from .osthread import set_fifo
 from .rx_stamps import RCVBUF_BYTES, stamp_socket
 from .udp_cookies import CookieJar
-from .udp_feedback import FeedbackFields, fill
+from .udp_feedback import FeedbackFields
 from .udp_master import UdpMaster
-from .udp_native import NOT_MINE, Feedback, NativeReceiver
+from .udp_native import NOT_MINE, NativeReceiver
 from .udp_ratelimit import SourceLimiter
 from .udp_session import Session
 
@@ -116,7 +116,6 @@ class UdpHub:
         self.stamps = stamp_socket(self.sock, rcvbuf_bytes)     # kernel arrival stamps (Linux)
         self.rx = NativeReceiver(self.sock, int(slots))          # every read, and the STATE path, in C
         self.sender = Sender(self.sock)   # the handshake's answers (sends that keep the interpreter lock)
-        self._fb = Feedback()             # the tick's FEEDBACK fields, written in place
         self.masters = [UdpMaster(self, i) for i in range(int(slots))]
         self._fields = FeedbackFields(len(self.masters))    # every arm's FEEDBACK fields, once a tick
         self.sessions: dict = {}          # session id -> Session
@@ -422,14 +421,15 @@ class UdpHub:
         if not self.sender.send(addr, data):
             self.send_errors += 1
 
-    def send_feedback(self, m: UdpMaster, s: Session, f) -> None:
-        """The tick: FEEDBACK to ``m``'s session, force ``f`` (N, master frame), with its arm's
-        state from the service's output of this tick (``udp_feedback``), sent by the C receiver
-        (tagged with the session's key; a send that never blocks)."""
+    def send_feedback(self, m: UdpMaster, s: Session, force) -> None:
+        """The tick: FEEDBACK to ``m``'s session, force ``force`` (a pointer to the master's 3
+        doubles, N, master frame), with its arm's state from the service's output of this tick
+        (``udp_feedback.FeedbackFields``), filled and sent by the C receiver (tagged with the
+        session's key; a send that never blocks)."""
         t = self.t or 0.0
-        fb = fill(self._fb, s, m.slot, f, self._fields.of(self.service, self.t_ns), int(round(t * self.rate_hz)),
-                  (self._base_ns or 0) + int(round(t * 1e9)))
-        if self.rx.feedback(m.slot, s.id, fb) > 0:
+        src = self._fields.of(self.service, int(round(t * self.rate_hz)), (self._base_ns or 0) + int(round(t * 1e9)),
+                              self.t_ns)
+        if self.rx.send_arm(m.slot, s.take_ref, src, force) > 0:
             self.feedback_sent += 1
         else:
             self.send_errors += 1

@@ -90,7 +90,9 @@ def test_bad_hips_raise_and_change_nothing(backend):
     hs.ingest([src.read()])
     hs.step([[0, 0, 0.02], [0, 0.01, 0.02]])
     before = hs.proxies.copy()
-    for bad in ([[np.nan, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, np.inf, 0]], [[0, 0, -np.inf], [0, 0, 0]]):
+    rows = ([[np.nan, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, np.inf, 0]], [[0, 0, -np.inf], [0, 0, 0]],
+            [[np.inf, 0, 0], [-np.inf, 0, 0]])
+    for bad in rows + tuple(np.array(r) for r in rows):      # (an array: the tick's fast check)
         with pytest.raises(InputError, match="not finite"):
             hs.step(bad)
         np.testing.assert_array_equal(hs.proxies, before)
