@@ -154,6 +154,7 @@ _SIGNATURES = {
     "pf_host_servo": (c_int32, [_HO, c_int64, c_void_p]),
     "pf_host_step": (c_int32, [_HO, c_int64, c_double]),
     "pf_host_sync": (c_int32, [_HO, c_double]),
+    "pf_host_read_poses": (None, [_HO, c_double, _D, _D, _D, _U8, _U8, _D, _U8, _D]),
 }
 
 

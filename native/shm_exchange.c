@@ -20,6 +20,7 @@
 #include <string.h>
 
 int32_t pf_pose_check(const double *T, double tol);   /* tick_quat.h (in tick_core.c) */
+void pf_quats_of_matrices(const double *T, int64_t stride, int64_t n, double *q);
 
 static uint32_t crc_table[256];
 static int crc_ready;
@@ -235,4 +236,26 @@ int32_t pf_host_sync(pf_host *h, double now) {
     const int32_t flags = host_read(h, now);
     for (int64_t b = 0; b < h->n; b++) host_give(h, b);
     return flags;
+}
+
+/* What the tick reads of every arm (service/devices.py Devices.read_robots, when every robot is
+ * an arm of this host, arm b on row b), from the rows the arms took: measured poses T4 (n, 16,
+ * world, row-major), tips pos (n, 3), orientations quat (n, 4, w x y z), fault (n: latched or
+ * FAULT), present (n: 1), jaw (n, rad): an arm with a jaw (jawed[b]) its measured one (NaN
+ * while unknown), an arm without one ideal_jaw[b] (its command). `fault_mode`: RobotMode.FAULT. */
+void pf_host_read_poses(const pf_host *h, double fault_mode, double *T4, double *pos, double *quat, uint8_t *fault,
+                        uint8_t *present, double *jaw, const uint8_t *jawed, const double *ideal_jaw) {
+    const pf_host_layout *L = &h->L;
+    for (int64_t b = 0; b < h->n; b++) {
+        const double *r = h->taken + b * h->S;
+        double *t = T4 + 16 * b;
+        memcpy(t, r + L->T_meas, 16 * sizeof(double));
+        pos[3 * b] = t[3];
+        pos[3 * b + 1] = t[7];
+        pos[3 * b + 2] = t[11];
+        fault[b] = (uint8_t)(h->latched[b] || h->mode[b] == fault_mode);
+        present[b] = 1;
+        jaw[b] = !jawed[b] ? ideal_jaw[b] : r[L->jaw_known] == 1.0 ? r[L->jaw] : NAN;
+    }
+    pf_quats_of_matrices(T4, 4, h->n, quat);
 }

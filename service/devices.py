@@ -63,6 +63,12 @@ class Devices:
         #: arms whose robot reports its orientation as a quaternion itself (``measured_orientation``:
         #: a recording's, taken as recorded, bit for bit, rather than through its rotation matrix)
         self.quat_direct = [(b, r) for b, r in self.real if callable(getattr(r, "measured_orientation", None))]
+        #: the robot process whose arms are all the robots, arm b on row b (None: other robots):
+        #: ``read_robots`` then reads every arm in one compiled call
+        self._host = self._one_host()
+        self._jawed_mask = np.array([(b, r) in self.jawed for b, r in enumerate(self.robots)], bool)
+        self._jawed_p = ptr(self._jawed_mask, bool, "jawed")
+        self._no_jaw = np.full(n, math.nan)       # the ideal jaw when the tick gives none
         self.tx_lock = threading.Lock()   #: held while forces are sent (the tick, the watchdog)
         #: arms whose robot refused this tick's command, and the setpoint it kept (world, m)
         self.refused = np.zeros(n, bool)
@@ -71,6 +77,15 @@ class Devices:
         self.kept_orientation = np.zeros((n, 4))
         self.refusals = 0
         self.last_refusal: Optional[str] = None
+
+    def _one_host(self):
+        """The robot host all robots are arms of, arm b on its row b (None: not so)."""
+        host = getattr(self.robots[0], "host", None) if self.robots and self.robots[0] is not None else None
+        if host is None or len(self.real) != self.n or getattr(host, "n", None) != self.n:
+            return None
+        if any(getattr(r, "host", None) is not host or r.index != b for b, r in enumerate(self.robots)):
+            return None
+        return host
 
     def jaw_ranges(self, default) -> np.ndarray:
         """(n, 2) each arm's jaw range (rad): its robot's ``jaw_limits``, ``default`` for arms
@@ -105,6 +120,14 @@ class Devices:
         """Every robot's measured tool pose (world: tip and orientation), jaw (rad, NaN: unknown
         or none) and fault state; an ideal robot's are ``ideal_pos``, ``ideal_quat`` and
         ``ideal_jaw`` (its commands; identity orientation and NaN jaw where not given)."""
+        if self._host is not None:                 # every arm in one compiled call
+            b8 = self._bound_bool
+            self._host.read_poses(self._T4p, self._bound(inp.robot_pos, "robot_pos"),
+                                  self._bound(inp.robot_orientation, "robot_orientation"),
+                                  b8(inp.robot_fault, "robot_fault"), b8(inp.robot_present, "robot_present"),
+                                  self._bound(inp.robot_jaw, "robot_jaw"), self._jawed_p,
+                                  self._bound(self._no_jaw if ideal_jaw is None else ideal_jaw, "ideal_jaw"))
+            return
         np.copyto(inp.robot_present, self.present)
         fault, T4 = inp.robot_fault, self._T4_rows
         for b, r in self.real:
@@ -140,6 +163,13 @@ class Devices:
         got = self._ptrs.get(name)
         if got is None or got[0] is not a:
             got = self._ptrs[name] = (a, ptr(a, np.float64, name))
+        return got[1]
+
+    def _bound_bool(self, a: np.ndarray, name: str):
+        """``_bound`` for a bool array."""
+        got = self._ptrs.get(name)
+        if got is None or got[0] is not a:
+            got = self._ptrs[name] = (a, ptr(a, bool, name))
         return got[1]
 
     def read_pedals(self, t: float, pedal: np.ndarray) -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from pointfence.kernels.errors import InputError
+from pointfence.native import ptr
 from pointfence.service.devices import Devices
 from pointfence.service.masters import Master, ScriptedMaster
 from pointfence.service.robot import RobotMode, make_robot
@@ -188,4 +189,43 @@ def test_an_infinite_state_value_faults_its_arm_and_is_not_taken():
             b.servo_cp([math.nan, 0.0, 0.1])
     finally:
         host.inject("none")
+        host.close()
+
+
+def _read(dev, n, ideal_jaw=None):
+    inp = TickInput.zeros(n)
+    inp.robot_fault[:] = True                      # (stale values the read must overwrite)
+    inp.robot_jaw[:] = -7.0
+    dev.read_robots(inp, np.zeros((n, 3)), None, ideal_jaw)
+    return inp
+
+
+@pytest.mark.parametrize("table", [TABLE, {"model": "point-mass"}])
+def test_the_compiled_read_of_a_robot_process_equals_the_read_arm_by_arm(table):
+    host = RobotHost([table] * 3, timeout_s=0.25)
+    try:
+        arms = host.robots
+        ideal_jaw = np.array([0.1, 0.2, 0.3])
+        fast = Devices([_Fixed([0, 0, 0]) for _ in arms], arms)          # arm b on its row b: one call
+        order = [2, 0, 1]                                                  # the same arms in another order:
+        slow = Devices([_Fixed([0, 0, 0]) for _ in arms], [arms[i] for i in order])   # arm by arm
+        for _ in range(20):
+            for a in arms:
+                a.step(1e-3)
+            time.sleep(1e-3)
+        arms[1].latch_fault("test")                                        # a latched arm reads as FAULT
+        a, b = _read(fast, 3, ideal_jaw), _read(slow, 3, ideal_jaw[order])
+        for name in ("robot_pos", "robot_orientation", "robot_fault", "robot_present", "robot_jaw"):
+            np.testing.assert_array_equal(getattr(a, name)[order], getattr(b, name), err_msg=name)
+        assert a.robot_fault.tolist() == [False, True, False] and a.robot_present.all()
+        np.testing.assert_array_equal(a.robot_pos[0], arms[0].measured_cp()[:3, 3])
+        np.testing.assert_array_equal(a.robot_jaw, ideal_jaw)              # no jaw: the command's
+        # an arm with a jaw reads its measured one, NaN while the child has not reported it
+        T4, pos, quat = np.zeros((3, 4, 4)), np.zeros((3, 3)), np.zeros((3, 4))
+        fault, present, jaw = np.zeros(3, bool), np.zeros(3, bool), np.zeros(3)
+        jawed = np.array([True, False, True])
+        host.read_poses(*(ptr(x, x.dtype, "x") for x in (T4, pos, quat, fault, present, jaw, jawed, ideal_jaw)))
+        assert math.isnan(jaw[0]) and jaw[1] == 0.2 and math.isnan(jaw[2])
+        np.testing.assert_array_equal(pos, T4[:, :3, 3])
+    finally:
         host.close()

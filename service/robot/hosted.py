@@ -179,6 +179,7 @@ class RobotHost:
         self._jaw_at = [(b * C.size + C.jaw_seq, b * C.size + C.jaw) for b in range(n)]
         self._addresses: dict = {}                       # id -> (pose, its data address): ``_pose_address``
         self._arm64 = [ctypes.c_int64(b) for b in range(n)]   # (the core's arm arguments, made once)
+        self._fault_mode = ctypes.c_double(float(RobotMode.FAULT))
         for b, r in enumerate(local):                    # until the first read: the local model's state
             self._taken[b, L.T_meas] = r.measured_cp().reshape(16)
             self._taken[b, L.q] = r.measured_js().position
@@ -287,6 +288,14 @@ class RobotHost:
     def set_latched(self, b: int, latched: bool) -> None:
         """Whether arm ``b`` is latched in FAULT (then it takes no row)."""
         self._latched[b] = latched
+
+    def read_poses(self, T4, pos, quat, fault, present, jaw, jawed, ideal_jaw) -> None:
+        """Every arm's measured pose, tip, orientation, fault, presence and jaw from the rows they
+        took, in one compiled call (``pf_host_read_poses``; ``Devices.read_robots`` when every
+        robot is an arm of this host, arm b on row b). All pointers (``native.ptr``): T4 (n, 4,
+        4), pos (n, 3), quat (n, 4), fault and present (n) bool, jaw (n); ``jawed`` (n) bool:
+        the arms with a jaw; ``ideal_jaw`` (n): the jaw of the others (their command)."""
+        fast.pf_host_read_poses(self._core, self._fault_mode, T4, pos, quat, fault, present, jaw, jawed, ideal_jaw)
 
     def _pose_address(self, T) -> Optional[ctypes.c_void_p]:
         """The data address of ``T`` if it is a C-contiguous 4x4 float64 array (else None: the

@@ -59,6 +59,16 @@ class HostedRobot:
         self._q_row = row[L.q]
         self._mode = memoryview(host.mode_of_all())[index:index + 1]
 
+    @property
+    def host(self):
+        """The ``RobotHost`` this arm belongs to."""
+        return self._host
+
+    @property
+    def index(self) -> int:
+        """This arm's index in its host (its row in the shared block)."""
+        return self._b
+
     def __repr__(self) -> str:
         return f"HostedRobot({self.model!r}, arm {self._b}, process {self._host.pid})"
 
