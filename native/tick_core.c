@@ -590,4 +590,6 @@ void pf_step_publish(const pf_step *s, pf_step *dst) {
     memcpy(dst->state, s->state, sizeof(int32_t) * (size_t)s->n);
     memcpy(dst->orientation, s->orientation, sizeof(double) * 4 * (size_t)s->n);
     memcpy(dst->jaw, s->jaw, sizeof(double) * (size_t)s->n);
+    if (dst->master_pos && s->master_pos) memcpy(dst->master_pos, s->master_pos, b3);   /* the raw samples */
+    if (dst->master_ok && s->master_ok) memcpy(dst->master_ok, s->master_ok, (size_t)s->n);
 }

@@ -135,6 +135,8 @@ class Service:
         self._pub_ref = ctypes.byref(self._pub_core)
         self._pub_master = np.full((n, 3), np.nan)   # the last tick's raw master samples (master frame, m)
         self._pub_master_ok = np.zeros(n, bool)      # and their valid flags (``master_sample``)
+        self._pub_core.master_pos = ptr(self._pub_master, float, "published master samples")   # (pf_step_publish
+        self._pub_core.master_ok = ptr(self._pub_master_ok, bool, "published master_ok")       # copies them)
         self.kernel_us = np.zeros(RING)         # the kernel's wall-clock time per tick (us), a ring
         self.ticks = 0
         self._started = False
@@ -425,9 +427,7 @@ class Service:
         p = self._published
         with self._pub_lock:
             fast.pf_step_publish(self._core_ref, self._pub_ref)    # xm, hip, proxy, command, robot, force, state,
-            #                                                       orientation, jaw
-            np.copyto(self._pub_master, inp.master_pos)
-            np.copyto(self._pub_master_ok, inp.master_ok)
+            #                                          orientation, jaw; the input's master samples and their ok
             p.t, p.k = out.t, out.k
         if self.recorder is not None:
             self.recorder.write(inp, out)
