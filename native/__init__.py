@@ -145,6 +145,7 @@ _SIGNATURES = {
     "pf_quats_of_matrices": (None, [_D, c_int64, c_int64, _D]),
     "pf_poses_of": (None, [_D, _D, c_int64, _D]),
     "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
+    "pf_masters_gather": (None, [POINTER(_D), POINTER(_D), c_int64, _D, _D]),
     "pf_pose_check": (c_int32, [c_void_p, c_double]),
     "pf_proxy_unpack": (None, [_F, c_int64, _F, _F, _F, _I32, _I32, _U8]),
     "pf_crc32": (ctypes.c_uint32, [c_void_p, c_int64]),
@@ -206,7 +207,8 @@ _BYREF = type(ctypes.byref(c_int32()))
 def _fits(a, t) -> bool:
     """Whether argument ``a`` is passed as type ``t`` of a signature without conversion."""
     if isinstance(t, type(ctypes._Pointer)) and issubclass(t, ctypes._Pointer):
-        return isinstance(a, t) or (isinstance(a, _BYREF) and isinstance(a._obj, t._type_))
+        return (isinstance(a, t) or (isinstance(a, _BYREF) and isinstance(a._obj, t._type_))
+                or (isinstance(a, ctypes.Array) and a._type_ is t._type_))     # (an array passes its first element's address)
     if t is c_void_p:
         return isinstance(a, (c_void_p, ctypes._Pointer, _BYREF))
     if t in (c_int32, ctypes.c_int):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 import threading
-from ctypes import c_int64
+from ctypes import POINTER, c_double, c_int64
 from typing import Optional, Sequence
 
 import numpy as np
@@ -57,6 +57,8 @@ class Devices:
         self._q4 = np.zeros((n, 4))                # the measured orientations, before the ideal arms'
         self._q4p = ptr(self._q4, np.float64, "orientations")
         self._ptrs: dict = {}                      # name -> (array, pointer): ``_bound``
+        self._views = None                         # ``_scalar_views``
+        self._bind_sources()
         #: arms whose robot takes jaw commands (``servo_jaw``) and reports its jaw (``measured_jaw``)
         self.jawed = [(b, r) for b, r in self.real if callable(getattr(r, "servo_jaw", None))
                       and getattr(r, "jaw_limits", None) is not None]
@@ -100,20 +102,45 @@ class Devices:
         """Poll every master at loop time ``inp.t``: position (master frame), orientation (w x y z,
         master frame), grasp (rad), pedal, validity. A sample is valid only if the device says so
         and its position, orientation and grasp are finite, the orientation a unit quaternion (S2)."""
-        t, pos, quat, grasp, pedal, ok = inp.t, inp.master_pos, inp.master_orientation, inp.grasp, inp.pedal, inp.master_ok
+        t, pos, quat = inp.t, inp.master_pos, inp.master_orientation
+        g, c, k = self._scalar_views(inp)
+        src_pos, src_quat, stale = self._src_pos, self._src_quat, False
         for b, m in enumerate(self.masters):
             m.poll(t)
-            pos[b] = m.position
-            quat[b] = m.orientation
-            grasp[b] = m.grasp
-            pedal[b] = m.clutch
-            ok[b] = m.ok
+            g[b], c[b], k[b] = m.grasp, m.clutch, m.ok
+            if m.position is not src_pos[b] or m.orientation is not src_quat[b]:
+                stale = True
+        if stale:                                  # a master replaced its arrays: point at the new ones
+            self._bind_sources()
         bound = self._bound
-        okp = self._ptrs.get("master_ok")
-        if okp is None or okp[0] is not ok:
-            okp = self._ptrs["master_ok"] = (ok, ptr(ok, bool, "master_ok"))
-        fast.pf_masters_valid(bound(pos, "master_pos"), bound(quat, "master_orientation"), bound(grasp, "grasp"),
-                              self._n64, okp[1])
+        pp, qp = bound(pos, "master_pos"), bound(quat, "master_orientation")
+        fast.pf_masters_gather(self._src_pos_p, self._src_quat_p, self._n64, pp, qp)
+        fast.pf_masters_valid(pp, qp, bound(inp.grasp, "grasp"), self._n64,
+                              self._bound_bool(inp.master_ok, "master_ok"))
+
+    def _bind_sources(self) -> None:
+        """The masters' own position and orientation arrays, as the pointers ``pf_masters_gather``
+        reads (each master writes its sample into them in place: ``masters.Master``)."""
+        n = self.n
+        self._src_pos = [np.ascontiguousarray(m.position, np.float64) for m in self.masters]
+        self._src_quat = [np.ascontiguousarray(m.orientation, np.float64) for m in self.masters]
+        for a in self._src_pos + self._src_quat:
+            if a.shape != (3,) and a.shape != (4,):
+                raise InputError(f"a master's position has shape {a.shape}; expected (3,), orientation (4,)")
+        self._src_pos_p = (POINTER(c_double) * n)(*(ptr(a, np.float64, "master position") for a in self._src_pos))
+        self._src_quat_p = (POINTER(c_double) * n)(*(ptr(a, np.float64, "master orientation") for a in self._src_quat))
+        # (a master whose arrays are not float64 (n,) contiguous gets a converted copy: bound again each tick)
+        self._src_pos = [a if a is m.position else None for a, m in zip(self._src_pos, self.masters)]
+        self._src_quat = [a if a is m.orientation else None for a, m in zip(self._src_quat, self.masters)]
+
+    def _scalar_views(self, inp: TickInput) -> tuple:
+        """Memoryviews of ``inp``'s grasp, pedal and master_ok (made again only for other arrays:
+        an element assignment through one costs a fraction of NumPy's)."""
+        v = self._views
+        if v is None or v[0] is not inp.grasp or v[1] is not inp.pedal or v[2] is not inp.master_ok:
+            v = self._views = (inp.grasp, inp.pedal, inp.master_ok, memoryview(inp.grasp), memoryview(inp.pedal),
+                               memoryview(inp.master_ok))
+        return v[3], v[4], v[5]
 
     def read_robots(self, inp: TickInput, ideal_pos: np.ndarray, ideal_quat: np.ndarray = None,
                     ideal_jaw: np.ndarray = None) -> None:

@@ -229,3 +229,33 @@ def test_the_compiled_read_of_a_robot_process_equals_the_read_arm_by_arm(table):
         np.testing.assert_array_equal(pos, T4[:, :3, 3])
     finally:
         host.close()
+
+
+class _Replacing(Master):
+    """A master that puts each sample in new arrays (of any numeric type) instead of in place."""
+
+    def __init__(self, dtype):
+        super().__init__()
+        self.dtype, self.k = dtype, 0
+
+    def poll(self, t):
+        self.k += 1
+        self.position = np.array([self.k, 2 * self.k, 3 * self.k], self.dtype) / 100
+        self.orientation = np.array([0.0, 1.0, 0.0, 0.0], self.dtype)
+        self.grasp, self.clutch = 0.1 * self.k, self.k % 2 == 1
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_master_that_replaces_its_arrays_is_read_each_tick(dtype):
+    masters = [_Fixed([0.5, 0.5, 0.5]), _Replacing(dtype)]
+    dev = Devices(masters, [None, None])
+    inp = TickInput.zeros(2)
+    for k in (1, 2, 3):
+        dev.read_masters(inp)
+        np.testing.assert_allclose(inp.master_pos, [[0.5, 0.5, 0.5], [k / 100, 2 * k / 100, 3 * k / 100]], rtol=1e-6)
+        np.testing.assert_array_equal(inp.master_orientation[1], [0.0, 1.0, 0.0, 0.0])
+        assert inp.grasp[1] == pytest.approx(0.1 * k) and bool(inp.pedal[1]) == (k % 2 == 1)
+        assert inp.master_ok.tolist() == [True, True]
+    masters[0].position[:] = [0.1, 0.2, np.nan]      # in place, now not finite: not ok
+    dev.read_masters(inp)
+    assert inp.master_ok.tolist() == [False, True]
