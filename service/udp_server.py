@@ -14,12 +14,14 @@ the service). See ``clients/PROTOCOL.md``. Two sides, two threads:
   other datagram is queued (bounded) for the hub's Python thread, which limits handshakes per
   source and answers handshakes and BYEs in arrival order. Built with ``receiver=False`` the
   owner calls ``pump()`` outside the tick instead, which reads through the same C path.
-* **The haptic tick** (``UdpMaster.poll``) copies the newest sample of its slot from the C
-  receiver (a seqlock it never waits on; no socket, no HMAC, no allocation), decides timeouts
-  in loop time, and uses the sample only if it reached the socket no longer than the session's
-  timeout before the tick (else the master reports ``ok = False``: the arm holds, S9;
-  ``stale_ticks``); it records each sample's age (``ages``, status ``state_age_ms``) and sends
-  FEEDBACK through the C receiver (tagged there, a ``sendto`` that never blocks).
+* **The haptic tick** (``UdpMaster.poll``) takes the newest sample of its slot from the C
+  receiver in one compiled call (``pf_rx_take``, native/udp_tick.h: a seqlock it never waits
+  on; no socket, no HMAC, no allocation), which decides timeouts in loop time and uses the
+  sample only if it reached the socket no longer than the session's timeout before the tick
+  (else the master reports ``ok = False``: the arm holds, S9; ``stale_ticks``); it records each
+  sample's age (``ages``, status ``state_age_ms``) and sends FEEDBACK through the C receiver
+  (``pf_rx_send_arm``: filled from the service's output, tagged, a ``sendto`` that never
+  blocks).
 
 Handshake (PROTOCOL.md section 6): a HELLO without a valid cookie is answered with a COOKIE
 (``udp_cookies.CookieJar``; no state kept); the HELLO that repeats the cookie opens a session.
