@@ -156,6 +156,7 @@ _SIGNATURES = {
     "pf_host_step": (c_int32, [_HO, c_int64, c_double]),
     "pf_host_sync": (c_int32, [_HO, c_double]),
     "pf_host_read_poses": (None, [_HO, c_double, _D, _D, _D, _U8, _U8, _D, _U8, _D]),
+    "pf_host_command": (c_int32, [_HO, _D, _U8, _I32, c_double]),
 }
 
 

@@ -231,6 +231,17 @@ int32_t pf_host_step(pf_host *h, int64_t b, double now) {
     return flags;
 }
 
+/* Every arm's commands of a tick at once (service/devices.py Devices.command_robots, when every
+ * robot is an arm of this host, arm b on row b): each coupled arm's setpoint T4[b] (4x4 world)
+ * checked and queued (codes[b]: pf_host_servo's code; -1: not coupled, nothing sent), then every
+ * arm stepped, in index order. Returns the flags of the read made. */
+int32_t pf_host_command(pf_host *h, const double *T4, const uint8_t *coupled, int32_t *codes, double now) {
+    int32_t flags = 0;
+    for (int64_t b = 0; b < h->n; b++) codes[b] = coupled[b] ? pf_host_servo(h, b, T4 + 16 * b) : -1;
+    for (int64_t b = 0; b < h->n; b++) flags |= pf_host_step(h, b, now);
+    return flags;
+}
+
 /* Read the record and give every arm its row (the host's start, a restart). */
 int32_t pf_host_sync(pf_host *h, double now) {
     const int32_t flags = host_read(h, now);

@@ -71,6 +71,8 @@ class Devices:
         self._jawed_mask = np.array([(b, r) in self.jawed for b, r in enumerate(self.robots)], bool)
         self._jawed_p = ptr(self._jawed_mask, bool, "jawed")
         self._no_jaw = np.full(n, math.nan)       # the ideal jaw when the tick gives none
+        self._codes = np.zeros(n, np.int32)       # each arm's setpoint code (``_command_host``)
+        self._codes_p = ptr(self._codes, np.int32, "codes")
         self.tx_lock = threading.Lock()   #: held while forces are sent (the tick, the watchdog)
         #: arms whose robot refused this tick's command, and the setpoint it kept (world, m)
         self.refused = np.zeros(n, bool)
@@ -236,6 +238,8 @@ class Devices:
         if self._refused_any:
             self.refused[:] = False
             self._refused_any = False
+        if self._host is not None and not self.jawed:
+            return self._command_host(out, dt)
         coupled, engage, release = out.coupled.tolist(), out.engage.tolist(), out.release.tolist()
         fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
                          self._n64, self._cmd4p)
@@ -260,6 +264,35 @@ class Devices:
                         self._refuse(b, r, f"robot {b} jaw: {e}")
         for b, r in self.real:
             r.step(dt)
+        return self._refused_any
+
+    def _command_host(self, out: TickOutput, dt: float) -> bool:
+        """``command_robots`` when every robot is an arm of one robot process (``_host``): the
+        mode commands of arms that couple or decouple first, then every coupled arm's setpoint
+        and every arm's step in one compiled call (``RobotHost.command``); an arm whose setpoint
+        was not queued answers as its ``servo_cp`` would (``after_servo``)."""
+        if not (dt > 0.0) or dt == math.inf:
+            raise InputError(f"step: dt = {dt!r}; expected a finite number > 0")
+        engage, release = out.engage.tolist(), out.release.tolist()
+        if True in engage or True in release:
+            coupled = out.coupled.tolist()
+            for b, r in self.real:
+                if coupled[b] and engage[b]:
+                    r.resume()
+                elif release[b] and not coupled[b]:
+                    r.hold()
+        fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
+                         self._n64, self._cmd4p)
+        self._host.command(self._cmd4p, self._bound_bool(out.coupled, "coupled"), self._codes_p)
+        codes = self._codes.tolist()
+        if max(codes) > 0:                         # (-1: not coupled; 0: queued)
+            for b, code in enumerate(codes):
+                if code > 0:
+                    r = self.robots[b]
+                    try:
+                        r.after_servo(code, self._cmd4_rows[b])
+                    except InputError as e:     # unreachable: the robot keeps its setpoint
+                        self._refuse(b, r, f"robot {b}: {e}")
         return self._refused_any
 
     def _refuse(self, b: int, r, why: str) -> None:

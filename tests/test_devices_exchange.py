@@ -259,3 +259,37 @@ def test_a_master_that_replaces_its_arrays_is_read_each_tick(dtype):
     masters[0].position[:] = [0.1, 0.2, np.nan]      # in place, now not finite: not ok
     dev.read_masters(inp)
     assert inp.master_ok.tolist() == [False, True]
+
+
+def test_the_compiled_command_of_a_robot_process_sends_holds_and_refuses_as_arm_by_arm():
+    host = RobotHost([TABLE] * 2, timeout_s=0.25)
+    try:
+        arms = host.robots
+        dev = Devices([_Fixed([0, 0, 0]) for _ in arms], arms)            # arm b on its row b: one call
+        for a in arms:
+            a.hold()                                                       # (both start held)
+        inp, out = _read(dev, 2), TickOutput.zeros(2)
+        out.orientation[:] = inp.robot_orientation
+        out.command[:] = inp.robot_pos + [0.002, 0.0, 0.0]
+        out.coupled[:], out.engage[:], out.release[:] = [True, False], [True, False], [False, False]
+        sent = [host.sent(b)[0] for b in range(2)]
+        assert dev.command_robots(out, 1e-3) is False
+        assert arms[0].state is RobotMode.ENABLED and arms[1].state is RobotMode.HOLDING   # engage resumed arm 0
+        assert [host.sent(b)[0] for b in range(2)] == [sent[0] + 1, sent[1]]             # only the coupled arm's
+        np.testing.assert_allclose(arms[0].setpoint_cp()[:3, 3], out.command[0], atol=1e-12)
+        # arm 0 asked out of the workspace: refused, its setpoint kept, the tick told so
+        out.engage[:] = False
+        out.command[0] = [0.0, 0.0, 0.5]
+        before = arms[0].setpoint_cp()[:3, 3].copy()
+        assert dev.command_robots(out, 1e-3) is True
+        assert dev.refused.tolist() == [True, False] and "outside the workspace" in dev.last_refusal
+        np.testing.assert_allclose(dev.kept[0], before, atol=1e-12)
+        assert arms[0].rejected_commands == 1 and host.sent(0)[0] == sent[0] + 1
+        # arm 0 decouples: it holds; the next tick's report is reset
+        out.coupled[:], out.release[:] = [False, False], [True, False]
+        assert dev.command_robots(out, 1e-3) is False and dev.refused.tolist() == [False, False]
+        assert arms[0].state is RobotMode.HOLDING and host.sent(0)[0] == sent[0] + 1
+        with pytest.raises(InputError, match="dt"):
+            dev.command_robots(out, 0.0)
+    finally:
+        host.close()

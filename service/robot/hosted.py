@@ -289,6 +289,19 @@ class RobotHost:
         """Whether arm ``b`` is latched in FAULT (then it takes no row)."""
         self._latched[b] = latched
 
+    def command(self, T4, coupled, codes) -> None:
+        """Every arm's tick at once (``Devices.command_robots`` when every robot is an arm of this
+        host, arm b on row b): each coupled arm's setpoint checked and queued, then every arm
+        stepped, in one compiled call (``pf_host_command``). Pointers (``native.ptr``): ``T4``
+        (n, 4, 4) the setpoints (world), ``coupled`` (n) bool, ``codes`` (n) int32 out: each
+        arm's ``SERVO_*`` code (-1: not coupled); the arm's ``after_servo`` acts on one that is
+        not ``SERVO_QUEUED``."""
+        if self._blk is None:              # closed: nothing is sent, the arms keep their last state
+            return
+        flags = fast.pf_host_command(self._core, T4, coupled, codes, ctypes.c_double(time.monotonic()))
+        if flags:
+            self._after_read(flags)
+
     def read_poses(self, T4, pos, quat, fault, present, jaw, jawed, ideal_jaw) -> None:
         """Every arm's measured pose, tip, orientation, fault, presence and jaw from the rows they
         took, in one compiled call (``pf_host_read_poses``; ``Devices.read_robots`` when every

@@ -213,7 +213,13 @@ class HostedRobot:
         A 4x4 float64 array is checked and queued in one compiled call (``RobotHost.servo``);
         anything else, and any pose that fails the check, takes the Python path, which names
         what is wrong."""
-        code = self._host.servo(self._b, T)
+        return self.after_servo(self._host.servo(self._b, T), T)
+
+    def after_servo(self, code: int, T) -> bool:
+        """``servo_cp``'s answer once the compiled check gave ``code`` for setpoint ``T`` (a
+        ``SERVO_*`` code; -1: not checked there): True queued; False ignored (counted);
+        InputError for a rejection, or for a pose the Python check refuses (naming what is
+        wrong; a pose it accepts is queued)."""
         if code == SERVO_QUEUED:
             return True
         if code == SERVO_IGNORED:
