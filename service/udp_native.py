@@ -42,17 +42,6 @@ class Sample(Structure):
                 ("buttons", c_uint32), ("rejected", c_uint64), ("error", c_int32), ("pad", c_int32)]
 
 
-class Feedback(Structure):
-    """``pf_feedback`` (clients/c/include/pointfence_client.h): one FEEDBACK's fields. Force in N
-    (master frame), proxy and robot in m (world frame); ``t_sent_ns`` is set when it is sent."""
-
-    _fields_ = [("tick", c_uint64), ("t_tick_ns", c_uint64), ("t_sent_ns", c_uint64), ("echo_seq", c_uint64),
-                ("echo_t_client_ns", c_uint64), ("force", c_double * 3), ("proxy", c_double * 3),
-                ("robot", c_double * 3), ("contact", c_uint8), ("fixture", c_uint8), ("robot_mode", c_uint8),
-                ("link", c_uint8), ("hold", c_uint32), ("error", ctypes.c_uint16), ("slot", ctypes.c_uint16),
-                ("rejected", c_uint32)]
-
-
 class Take(Structure):
     """``pf_rx_take_t`` (native/udp_tick.h): a session's tick state, what earlier ticks took of it
     (``udp_session.Session``'s tick fields read it) and what this tick takes; ``pos`` and ``quat``
@@ -93,7 +82,6 @@ def _declare(lib) -> None:
         "pf_rx_open": ([c_void_p, c_int, c_uint32, c_uint32, P_(c_uint8), c_int, c_uint32, c_uint32, P_(c_double),
                         c_double], None),
         "pf_rx_next_tx": ([c_void_p, c_int, c_uint32], c_uint64),
-        "pf_rx_feedback": ([c_void_p, c_int, c_uint32, P_(Feedback)], c_int),
         "pf_rx_close": ([c_void_p, c_int, c_uint32], None),
         "pf_rx_window": ([c_void_p, c_int, c_uint32, c_uint64, c_int], c_int),
         "pf_rx_note": ([c_void_p, c_int, c_uint32, c_int], None),
@@ -227,15 +215,11 @@ class NativeReceiver:
     def send_arm(self, slot: int, take, source, force) -> int:
         """The tick: arm ``slot``'s FEEDBACK to the session of ``take`` (``byref`` of its
         ``Take``), force ``force`` (a pointer to 3 doubles, N, master frame), the rest from
-        ``source`` (``byref`` of a ``FeedbackSource``): as ``feedback`` answers."""
+        ``source`` (``byref`` of a ``FeedbackSource``), its force saturated at the session's limit,
+        stamped, tagged (never blocks): 1 sent, 0 the send failed, -1 no such session."""
         if not self._h:
             return -1
         return self._tick.pf_rx_send_arm(self._hv, slot, take, source, force)
-
-    def feedback(self, slot: int, sid: int, fb: Feedback) -> int:
-        """The tick: send FEEDBACK ``fb`` to the session (its force saturated at the session's
-        limit, stamped, tagged; never blocks): 1 sent, 0 the send failed, -1 no such session."""
-        return self._lib.pf_rx_feedback(self._h, slot, sid, fb)
 
     def next_tx(self, slot: int, sid: int) -> int:
         """The session's next outgoing sequence number (0: the slot holds another session)."""
@@ -299,5 +283,5 @@ class NativeWindow:
             raise P.ProtocolError(code, f"sequence {seq}: {P.ERROR_NAMES[code]}")
 
 
-__all__ = ["Feedback", "FeedbackSource", "NativeReceiver", "NativeWindow", "Sample", "Take", "NOT_MINE", "BUSY", "QUEUE",
+__all__ = ["FeedbackSource", "NativeReceiver", "NativeWindow", "Sample", "Take", "NOT_MINE", "BUSY", "QUEUE",
            "TAKE_OK", "TAKE_SILENT", "TAKE_STALE"]
