@@ -126,9 +126,10 @@ class Devices:
         n = self.n
         self._src_pos = [np.ascontiguousarray(m.position, np.float64) for m in self.masters]
         self._src_quat = [np.ascontiguousarray(m.orientation, np.float64) for m in self.masters]
-        for a in self._src_pos + self._src_quat:
-            if a.shape != (3,) and a.shape != (4,):
-                raise InputError(f"a master's position has shape {a.shape}; expected (3,), orientation (4,)")
+        for m, a, q in zip(self.masters, self._src_pos, self._src_quat):    # (the gather copies 3 and 4 floats)
+            if a.shape != (3,) or q.shape != (4,):
+                raise InputError(f"master {getattr(m, 'name', m)!r}: position of shape {a.shape} and orientation of "
+                                 f"shape {q.shape}; expected (3,) and (4,) (m; quaternion w, x, y, z)")
         self._src_pos_p = (POINTER(c_double) * n)(*(ptr(a, np.float64, "master position") for a in self._src_pos))
         self._src_quat_p = (POINTER(c_double) * n)(*(ptr(a, np.float64, "master orientation") for a in self._src_quat))
         # (a master whose arrays are not float64 (n,) contiguous gets a converted copy: bound again each tick)

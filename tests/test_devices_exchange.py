@@ -293,3 +293,17 @@ def test_the_compiled_command_of_a_robot_process_sends_holds_and_refuses_as_arm_
             dev.command_robots(out, 0.0)
     finally:
         host.close()
+
+
+@pytest.mark.parametrize("field, value", [("orientation", np.zeros(3)), ("position", np.zeros(4)),
+                                          ("position", np.zeros((1, 3)))])
+def test_a_master_whose_arrays_have_the_wrong_shape_is_refused_before_any_copy(field, value):
+    m = _Fixed([0.0, 0.0, 0.0])
+    setattr(m, field, value)
+    with pytest.raises(InputError, match=r"expected \(3,\) and \(4,\)"):
+        Devices([m], [None])
+    good = _Fixed([0.0, 0.0, 0.0])
+    dev = Devices([good], [None])
+    setattr(good, field, value)                      # replaced later: refused when the tick binds it
+    with pytest.raises(InputError, match=r"expected \(3,\) and \(4,\)"):
+        dev.read_masters(TickInput.zeros(1))
