@@ -239,11 +239,11 @@ class Devices:
         if self._refused_any:
             self.refused[:] = False
             self._refused_any = False
+        fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
+                         self._n64, self._cmd4p)
         if self._host is not None and not self.jawed:
             return self._command_host(out, dt)
         coupled, engage, release = out.coupled.tolist(), out.engage.tolist(), out.release.tolist()
-        fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
-                         self._n64, self._cmd4p)
         poses = self._cmd4_rows
         for b, r in self.real:
             if coupled[b]:
@@ -268,8 +268,8 @@ class Devices:
         return self._refused_any
 
     def _command_host(self, out: TickOutput, dt: float) -> bool:
-        """``command_robots`` when every robot is an arm of one robot process (``_host``): the
-        mode commands of arms that couple or decouple first, then every coupled arm's setpoint
+        """``command_robots`` when every robot is an arm of one robot process (``_host``), the
+        tick's poses already in ``_cmd4``: the mode commands of arms that couple or decouple first, then every coupled arm's setpoint
         and every arm's step in one compiled call (``RobotHost.command``); an arm whose setpoint
         was not queued answers as its ``servo_cp`` would (``after_servo``)."""
         if not (dt > 0.0) or dt == math.inf:
@@ -282,8 +282,6 @@ class Devices:
                     r.resume()
                 elif release[b] and not coupled[b]:
                     r.hold()
-        fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
-                         self._n64, self._cmd4p)
         self._host.command(self._cmd4p, self._bound_bool(out.coupled, "coupled"), self._codes_p)
         codes = self._codes.tolist()
         if max(codes) > 0:                         # (-1: not coupled; 0: queued)

@@ -11,6 +11,7 @@ session's limit; zero if not finite), stamps, tags and sends it.
 from __future__ import annotations
 
 import ctypes
+from operator import is_
 
 import numpy as np
 
@@ -33,11 +34,9 @@ class FeedbackFields:
         self.src = FeedbackSource(n=n)
         self.ref = ctypes.byref(self.src)
         self._modes = np.full(n, P.ROBOT_IDEAL, np.uint8)
-        self._mode_list = [P.ROBOT_IDEAL] * n
         self._zero3, self._zero_i32 = np.zeros((n, 3)), np.zeros(n, np.int32)
         self._zero_i64, self._zero_b = np.zeros(n, np.int64), np.zeros(n, bool)
         self._bound_to = ()               # the output arrays the source points at
-        self._keep = ()
         self._bind(None)
         self.src.mode = ptr(self._modes, np.uint8, "modes")
         self._ns = -1
@@ -46,7 +45,7 @@ class FeedbackFields:
         """Point the source at ``out``'s arrays (None: zeros, no service attached)."""
         arrays = ((self._zero3, self._zero3, self._zero_i32, self._zero_i64, self._zero_b) if out is None else
                   (out.proxy, out.robot_pos, out.state, out.arm_hold, out.coupled))
-        if all(map(lambda a, b: a is b, arrays, self._bound_to)) and self._bound_to:
+        if self._bound_to and all(map(is_, arrays, self._bound_to)):
             return
         src = self.src
         src.proxy, src.robot = ptr(arrays[0], np.float64, "proxy"), ptr(arrays[1], np.float64, "robot_pos")
@@ -68,10 +67,7 @@ class FeedbackFields:
             self._bind(svc.out)
             src.fixture = ((P.FX_HAPTICS if svc.haptics_on else 0) | (P.FX_TELEOP if svc.teleop_on else 0)
                            | (P.FX_FIXTURE if svc.cfg.mode == "fixture" else 0))
-            modes = self._mode_list
-            for b, r in enumerate(svc.robots):
-                modes[b] = P.ROBOT_IDEAL if r is None else ROBOT_MODES[int(r.state)]
-            self._modes[:] = modes
+            self._modes[:] = [P.ROBOT_IDEAL if r is None else ROBOT_MODES[int(r.state)] for r in svc.robots]
         return self.ref
 
 
