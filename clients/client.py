@@ -428,6 +428,9 @@ class Client:
         sends late and its samples miss the service's tick."""
         if not self.session:
             raise ClientError("not connected: call connect() first")
+        if int(late_limit) < 1:
+            raise ClientError(f"late_limit {late_limit}: the number of consecutive overrun ticks allowed "
+                              "must be at least 1")
         saved = self._enter_realtime(int(rt_priority))
         try:
             return self._control(callback, rate_hz, duration, lead_us, late_limit, spin_us)

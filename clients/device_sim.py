@@ -39,6 +39,9 @@ def add_arguments(p):
     p.add_argument("--lead-us", type=float, default=250.0, help="send this long before the service tick (default 250)")
     p.add_argument("--rt-priority", type=int, default=0,
                    help="SCHED_FIFO priority of the device loop where allowed (a real device driver's; default 0: normal)")
+    p.add_argument("--late-limit", type=int, default=20,
+                   help="consecutive ticks that overrun the period before the device stops with a timing error "
+                        "(default 20, libfranka's contract; a larger value tolerates a loaded machine)")
     p.add_argument("--max-force", type=float, default=3.3, help="device force limit, N (default 3.3)")
     p.add_argument("--workspace", type=float, default=0.1, help="device workspace half-size, m (default 0.1)")
     p.add_argument("--timeout-ms", type=int, default=P.DEFAULT_TIMEOUT_MS, help="session timeout asked for")
@@ -91,7 +94,7 @@ def run(args) -> int:
     with client:
         w = client.connect(timeout=args.connect_timeout)
         ticks = client.control(tick, rate_hz=args.rate, duration=duration, lead_us=args.lead_us,
-                               rt_priority=args.rt_priority)
+                               rt_priority=args.rt_priority, late_limit=args.late_limit)
         # let the last answers arrive
         import time
 

@@ -162,6 +162,8 @@ def test_callback_api_and_timing_contract(hub):
         with pytest.raises(TimingError, match="consecutive ticks overran"):
             c.control(slow, late_limit=3)
         assert not c.force.any()
+        with pytest.raises(ClientError, match="late_limit 0"):
+            c.control(slow, late_limit=0)
 
         def boom(t):
             raise KeyError("device unplugged")

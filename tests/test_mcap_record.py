@@ -31,8 +31,10 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 
 
-def _serve(tmp_path, record: Path, seconds: float, backend: str = "numpy", client: bool = True):
-    """A `pointfence serve --record` process with a device-sim client; returns (serve, client, ready time)."""
+def _serve(tmp_path, record: Path, seconds: float, backend: str = "opencl", client: bool = True):
+    """A `pointfence serve --record` process (at most 120 s) with a device-sim client that drives the master
+    for ``seconds`` once it has connected; returns (serve, client). The client tolerates a loaded
+    machine (late ticks, the longest session timeout): these tests are about the recording."""
     from pointfence.bench.e2e import LIGHT_SCENE
 
     key = tmp_path / "pf.key"
@@ -43,8 +45,8 @@ def _serve(tmp_path, record: Path, seconds: float, backend: str = "numpy", clien
     ready = tmp_path / "ready.json"
     serve = subprocess.Popen([sys.executable, "-m", "pointfence", "serve", "--key-file", str(key), "--port", "0",
                               "--no-control", "--config", str(scene), "--ready-file", str(ready), "--backend", backend,
-                              "--duration", str(seconds), "--status-every", "0", "--prerender", "5",
-                              "--record", str(record)], env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                              "--duration", "120", "--status-every", "0", "--prerender", "5",
+                              "--timeout-ms", "1000", "--record", str(record)], env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     end = time.monotonic() + 120
     while not ready.exists() and serve.poll() is None and time.monotonic() < end:
         time.sleep(0.05)
@@ -53,9 +55,22 @@ def _serve(tmp_path, record: Path, seconds: float, backend: str = "numpy", clien
     dev = None
     if client:
         dev = subprocess.Popen([sys.executable, "-m", "pointfence", "device-sim", "--key-file", str(key), "--port",
-                                str(port), "--motion", "circle", "--duration", str(seconds)], env=ENV,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                str(port), "--motion", "circle", "--duration", str(seconds),
+                                "--late-limit", "100000", "--timeout-ms", "1000"], env=ENV,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     return serve, dev
+
+
+def _finish(serve, dev):
+    """Waits for the client's whole run, then ends the service as an operator does (SIGTERM).
+
+    The service runs until the client is done rather than for a fixed time: on a loaded machine
+    the client's start-up alone can outlast a short run, which then records no master."""
+    _, err = dev.communicate(timeout=120)
+    assert dev.returncode == 0, f"the device-sim client failed: {err.decode()[-2000:]}"
+    serve.send_signal(signal.SIGTERM)
+    serve.wait(timeout=120)
+    assert serve.returncode == 0, serve.stderr.read().decode()[-2000:]
 
 
 def _stop(*procs):
@@ -67,13 +82,12 @@ def _stop(*procs):
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    """One recorded live serve run (numpy backend, a simulated device, a synthetic camera)."""
+    """One recorded live serve run (the default opencl backend, a simulated device, a synthetic camera)."""
     tmp = tmp_path_factory.mktemp("served")
     rec = tmp / "run.mcap"
     serve, dev = _serve(tmp, rec, 4.0)
     try:
-        serve.wait(timeout=120)
-        assert serve.returncode == 0, serve.stderr.read().decode()[-2000:]
+        _finish(serve, dev)
     finally:
         _stop(serve, dev)
     return rec
@@ -85,7 +99,7 @@ def test_a_recorded_serve_run_replays_to_the_same_tick_outputs(served, tmp_path)
     lay = r.layout
     ok = r.rows[:, lay.cols[("in", "master_ok")][0]]
     assert ok.any(), "the device-sim client never drove the master"
-    assert r.snapshots and r.meta["backend"] == "numpy"
+    assert r.snapshots and r.meta["backend"] == "opencl"
     svc, check = replay(r)
     assert check["exact"], check
     assert check["ticks_compared"] == len(r.rows) and check["mismatched_ticks"] == 0
@@ -456,12 +470,31 @@ def test_the_ticks_side_copies_and_allocates_nothing(tmp_path):
     assert (r.rows[-1, c: c + k] == 1199).all()
 
 
-def test_a_recorded_opencl_run_replays_exactly(tmp_path):
-    rec = tmp_path / "ocl.mcap"
-    serve, dev = _serve(tmp_path, rec, 4.0, backend="opencl")
+def test_a_recorded_numpy_run_replays_exactly(tmp_path):
+    """The NumPy reference ticks in most of a period on two cores and misses many ticks; the recorded
+    run still replays exactly."""
+    rec = tmp_path / "np.mcap"
+    serve, dev = _serve(tmp_path, rec, 4.0, backend="numpy")
     try:
-        serve.wait(timeout=120)
+        _finish(serve, dev)
     finally:
         _stop(serve, dev)
-    _, check = replay(open_recording(rec))
-    assert check["exact"], check
+    r = open_recording(rec)
+    assert r.meta["backend"] == "numpy" and r.rows[:, r.layout.cols[("in", "master_ok")][0]].any()
+    _, check = replay(r)
+    _assert_exact_up_to_dropped_snapshots(r, check)
+
+
+def _assert_exact_up_to_dropped_snapshots(r, check):
+    """Exact, or, where the writer fell so far behind that the frame ring dropped snapshots (a
+    machine loaded beyond its cores), exact up to the first tick that saw a dropped snapshot,
+    with the replay naming the missing ones."""
+    if check["exact"]:
+        return
+    dropped = r.meta.get("snapshots_dropped") or 0
+    missing = check.get("missing_snapshots") or []
+    assert dropped and missing and len(missing) <= dropped, check
+    lay = r.layout
+    seq = r.rows[:, lay.cols[("out", "frame_seq")][0]]
+    first = int(r.rows[np.argmax(seq >= min(missing)), lay.cols[("in", "k")][0]])
+    assert check["first_mismatch"]["tick"] >= first, check

@@ -168,6 +168,7 @@ class FakeRaven:
         self.port, self.receiver, self.period, self.runlevel = port, receiver, period, runlevel
         self.seq = 0
         self.paused = threading.Event()
+        self._lock = threading.Lock()     # a send in progress ends before pause() returns
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -175,13 +176,25 @@ class FakeRaven:
     def send(self, data):
         self.sock.sendto(data, ("127.0.0.1", self.port))
 
+    def pause(self):
+        """Stops sending; no packet leaves after this returns (one being sent has left)."""
+        with self._lock:
+            self.paused.set()
+
+    def resume(self, seq_jump=0):
+        """Sends again, the sequence ``seq_jump`` further on."""
+        with self._lock:
+            self.seq += seq_jump
+            self.paused.clear()
+
     def _run(self):
         while not self._stop.wait(self.period):
-            if self.paused.is_set():
-                continue
-            self.seq += 1
-            last = self.receiver.seq if self.receiver is not None else 0
-            self.send(V.pack(self.seq, last, 0, 0, 0, 0, 0, 0, 0, 0, self.runlevel, 0, 0))
+            with self._lock:
+                if self.paused.is_set():
+                    continue
+                self.seq += 1
+                last = self.receiver.seq if self.receiver is not None else 0
+                self.send(V.pack(self.seq, last, 0, 0, 0, 0, 0, 0, 0, 0, self.runlevel, 0, 0))
 
     def close(self):
         self._stop.set()
@@ -364,7 +377,7 @@ def test_feedback_corrupt_silent_or_estop_faults_the_arm(rx):
         for breaker in (lambda: fake.send(b"\0" * 51),
                         lambda: fake.send(V.pack(10 ** 6, 0, 0, 0, 0, 0, 0, 0, 0, 0, 7, 0, 0)),
                         lambda: fake.send(V.pack(10 ** 6 + 1, rx.seq + 50, 0, 0, 0, 0, 0, 0, 0, 0, 3, 0, 0))):
-            fake.paused.set()
+            fake.pause()
             time.sleep(0.01)
             breaker()
             time.sleep(0.005)
@@ -372,11 +385,11 @@ def test_feedback_corrupt_silent_or_estop_faults_the_arm(rx):
             assert r.state is RobotMode.FAULT and "corrupt feedback" in r.fault_reason
             r.step()
             assert _last(rx, r.sent)[1] == 0
-            fake.paused.clear()
-            fake.seq += 2 * 10 ** 6
+            fake.resume(seq_jump=2 * 10 ** 6)
             assert _steps_until(r, lambda: (r.enable(), r.state is RobotMode.ENABLED)[1])
-        # silence beyond the timeout
-        fake.paused.set()
+        # silence beyond the timeout (measured from the step that took the last packet sent)
+        fake.pause()
+        r.step()
         time.sleep(0.08)
         r.step()
         assert r.state is RobotMode.FAULT and "no feedback from the Raven for" in r.fault_reason
@@ -384,7 +397,7 @@ def test_feedback_corrupt_silent_or_estop_faults_the_arm(rx):
         assert r.state is RobotMode.FAULT and r.last_error.startswith("enable refused: no feedback")
         # E-STOP
         fake.runlevel = 0
-        fake.paused.clear()
+        fake.resume()
         assert _steps_until(r, lambda: r.feedback[7] == 0)
         r.enable()
         assert r.state is RobotMode.FAULT and "runlevel 0 (E-STOP)" in r.last_error
