@@ -120,12 +120,23 @@ class HostCore(Structure):
                 ("nonfinite", c_int64), ("texts", c_int64), ("staged", c_int32), ("got", c_int32), ("alive", c_int32)]
 
 
+class RowField(Structure):
+    """``pf_row_field`` (``tick_rows.c``): ``count`` values of type ``kind`` (``ROW_KINDS``) at
+    ``src`` into a row's columns from ``col``."""
+
+    _fields_ = [("src", c_void_p), ("col", c_int64), ("count", c_int32), ("kind", c_int32)]
+
+
+#: ``RowField.kind`` of each NumPy type ``pf_row_gather`` reads
+ROW_KINDS = {np.dtype(np.float64): 0, np.dtype(np.bool_): 1, np.dtype(np.uint8): 1, np.dtype(np.int64): 2,
+             np.dtype(np.int32): 3, np.dtype(np.float32): 4}
+
 #: ``pf_host_step`` / ``pf_host_sync`` flags, and ``pf_host_servo`` codes (``shm_exchange.c``)
 HOST_LOST, HOST_NONFINITE, HOST_TEXTS = 1, 2, 4
 SERVO_QUEUED, SERVO_BAD_POSE, SERVO_WORKSPACE, SERVO_IGNORED, SERVO_REJECTED = 0, 1, 2, 3, 4
 
 _T, _H, _FC, _S = POINTER(TeleopCore), POINTER(HealthCore), POINTER(ForcesCore), POINTER(StepCore)
-_CH, _HO = POINTER(ChannelCore), POINTER(HostCore)
+_CH, _HO, _RF = POINTER(ChannelCore), POINTER(HostCore), POINTER(RowField)
 _SIGNATURES = {
     "pf_teleop_map_masters": (None, [_T, _D, _D, _D, _U8, _U8]),
     "pf_teleop_update_hip": (None, [_T, _D]),
@@ -157,6 +168,7 @@ _SIGNATURES = {
     "pf_host_sync": (c_int32, [_HO, c_double]),
     "pf_host_read_poses": (None, [_HO, c_double, _D, _D, _D, _U8, _U8, _D, _U8, _D]),
     "pf_host_command": (c_int32, [_HO, _D, _U8, _I32, c_double]),
+    "pf_row_gather": (None, [_RF, c_int64, _D, c_int64, c_int32]),
 }
 
 
@@ -241,6 +253,6 @@ def check_calls() -> None:
         _check(ns, raw, signatures)
 
 
-__all__ = ["Functions", "check_calls", "fast", "unchecked", "ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore",
+__all__ = ["Functions", "check_calls", "fast", "unchecked", "ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore", "ROW_KINDS", "RowField",
            "HostLayout", "NativeBuildError", "SERVO_BAD_POSE", "SERVO_IGNORED", "SERVO_QUEUED", "SERVO_REJECTED",
            "SERVO_WORKSPACE", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]

@@ -29,6 +29,8 @@ _HERE = Path(__file__).parent
 SOURCE = _HERE / "tick_core.c"
 #: the tick core's other source: the robot process's shared-memory exchange
 EXCHANGE = _HERE / "shm_exchange.c"
+#: and the copy of a tick's structs into a recording's row
+ROWS = _HERE / "tick_rows.c"
 #: the headers tick_core.c includes (part of the source: hashed with it), found in this folder
 HEADERS = (_HERE / "tick_quat.h", _HERE / "proxy_out.h")
 #: the C client's folder (``pointfence.clients``' ``c/``: a sibling package in a checkout and
@@ -77,7 +79,7 @@ class _Lib:
 
 
 def _tick_core() -> _Lib:
-    return _Lib("libpf_tick_core", (SOURCE, EXCHANGE), HEADERS, (HEADERS[0].parent,), ("-lm",))
+    return _Lib("libpf_tick_core", (SOURCE, EXCHANGE, ROWS), HEADERS, (HEADERS[0].parent,), ("-lm",))
 
 
 UDP_RX = _Lib("libpf_udp_rx", (_HERE / "udp_rx.c", _CLIENT_C / "src" / "pf_sha256.c", _CLIENT_C / "src" / "pf_protocol.c"),

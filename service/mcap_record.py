@@ -85,7 +85,6 @@ class McapRecorder:
             raise InputError(f"McapRecorder: joint_hz = {joint_hz!r}; expected a rate >= 0 Hz (0: no joint topics; "
                              f"the tick rate {self.rate_hz:g} Hz or more: every tick)")
         self.layout = TickLayout(self.n)
-        self._fill = TickRows(self.layout)
         from .record import Recorder
 
         self.memory = Recorder(keep, self.n) if keep else None
@@ -123,6 +122,7 @@ class McapRecorder:
         self._ticks = mcap_shm.TickBlock(buf, self.capacity, self.layout.width)
         self._hdr = self._ticks.header
         self.data = self._ticks.rows
+        self._fill = TickRows(self.layout, self.data)
         try:
             self._proc = subprocess.Popen([sys.executable, "-m", "pointfence.service.mcap_writer"],
                                           stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -149,7 +149,7 @@ class McapRecorder:
             return
         self.full = False
         slot = j % self.capacity
-        self._fill.fill(inp, out, self.data[slot])
+        self._fill.fill(inp, out, slot)
         js = self._joints
         if js is not None:
             k = inp.k

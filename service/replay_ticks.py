@@ -30,15 +30,15 @@ class ReplayTicks:
         self.layout = layout
         self.rows = np.zeros((int(count), layout.width))
         self.count = 0
-        self._fill = TickRows(layout)
+        self._fill = TickRows(layout, self.rows)
         self._us = self._fill.tick_us_col
 
     def take(self, inp, out, tick_us: float) -> None:
         """Keep tick ``inp`` -> ``out`` and its compute time (us)."""
-        row = self.rows[self.count]
-        self._fill.fill(inp, out, row)
-        row[self._us] = tick_us
-        self.count += 1
+        i = self.count
+        self._fill.fill(inp, out, i)
+        self.rows[i, self._us] = tick_us
+        self.count = i + 1
 
     def col(self, part: str, name: str) -> np.ndarray:
         """Field ``name`` of ``part`` ("in" or "out") of every kept tick: (N,) or (N, columns)."""

@@ -5,12 +5,18 @@ encodes from those rows and a replay decodes back into the structs.
 A row holds every field of both structs (``n`` excepted: the recording's arm count) and the
 loop's compute time of the tick (``tick_us``): float64 holds every value exactly (bools, the
 int32 contact states, int64 hold bits below 2^53, tick numbers). The tick's side
-(``TickRows.fill``) copies into preallocated views of one staging row: no allocation, no
+(``TickRows.fill``) copies both structs into a row in one compiled call: no allocation, no
 encoding.
 """
 from __future__ import annotations
 
+import ctypes
+import operator
+import struct
+
 import numpy as np
+
+from pointfence.native import ROW_KINDS, RowField, fast, ptr
 
 from .cdr import FixedLayout
 from .ros2_schemas import TICK_US, tick_fields
@@ -79,48 +85,81 @@ class TickLayout:
             rows[:, c: c + k] = v.reshape(len(rec), k)
 
 
-class TickRows:
-    """The tick's side: ``fill(inp, out, row)`` copies both structs into ring row ``row`` (a float64
-    array of ``layout.width``) through a staging row's preallocated views."""
+def _getter(names: list):
+    """A function of an object giving the tuple of its attributes ``names`` (one C call)."""
+    if len(names) > 1:
+        return operator.attrgetter(*names)
+    return (lambda obj: (getattr(obj, names[0]),)) if names else (lambda obj: ())
 
-    def __init__(self, layout: TickLayout):
+
+class TickRows:
+    """The tick's side: ``fill(inp, out, i)`` copies both structs into row ``i`` of ``rows`` (a
+    C-contiguous float64 array (N, ``layout.width``): the ring) in one compiled call
+    (``native/tick_rows.c``).
+
+    The array fields are bound once: the copy reads them where they are. A struct whose field is
+    another array than the bound one (a new struct, a field assigned anew) is bound again. The
+    scalars (k, t, hold, ...) are packed into a staging array first (``struct.pack_into``). The
+    row's ``tick_us`` is 0 until ``note`` sets it."""
+
+    def __init__(self, layout: TickLayout, rows: np.ndarray):
+        if not (isinstance(rows, np.ndarray) and rows.dtype == np.float64 and rows.ndim == 2
+                and rows.shape[1] == layout.width and rows.flags.c_contiguous):
+            raise TypeError(f"TickRows: rows must be a C-contiguous float64 array (N, {layout.width}); got "
+                            f"{getattr(rows, 'dtype', type(rows).__name__)} {getattr(rows, 'shape', '')}")
         self.layout = layout
-        self.stage = np.zeros(layout.width)
-        self._arrays = {"in": [], "out": []}   # (field, view of the staging row)
-        self._scalars = {"in": [], "out": []}  # (field, column)
+        self.rows = rows
+        arrays = {"in": [], "out": []}    # (field, first column, values)
+        scalars = {"in": [], "out": []}   # (field, column)
         for part in ("in", "out"):
             for name, _, _, per_arm in layout.fields[part]:
                 c, k = layout.cols[(part, name)]
-                if per_arm:
-                    shape = (layout.n, per_arm) if per_arm > 1 else (layout.n,)
-                    self._arrays[part].append((name, self.stage[c: c + k].reshape(shape)))
-                else:
-                    self._scalars[part].append((name, c))
+                (arrays[part].append((name, c, k)) if per_arm else scalars[part].append((name, c)))
         self.tick_us_col = layout.cols[("out", TICK_US)][0]
-        self._out_cols = []     # (field, first column, columns, per-arm shape or None)
-        for name, _, _, per_arm in layout.fields["out"]:
-            c, k = layout.cols[("out", name)]
-            self._out_cols.append((name, c, k, ((layout.n, per_arm) if per_arm > 1 else (layout.n,)) if per_arm
-                                   else None))
+        self._arrays = arrays
+        self._get_arrays = {p: _getter([f[0] for f in arrays[p]]) for p in arrays}
+        self._get_scalars = {p: _getter([f[0] for f in scalars[p]]) for p in scalars}
+        n_in, n_out = len(scalars["in"]), len(scalars["out"])
+        # the scalars' staging: in's, out's, then a 0.0 for tick_us
+        self._stage = np.zeros(n_in + n_out + 1)
+        self._pack_in, self._pack_out = struct.Struct(f"={n_in}d"), struct.Struct(f"={n_out}d")
+        self._out_at = 8 * n_in
+        n_arrays = len(arrays["in"]) + len(arrays["out"])
+        self._fields = (RowField * (n_arrays + n_in + n_out + 1))()
+        base = self._stage.ctypes.data
+        for j, (_, c) in enumerate(scalars["in"] + scalars["out"] + [(TICK_US, self.tick_us_col)]):
+            self._fields[n_arrays + j] = RowField(base + 8 * j, c, 1, ROW_KINDS[np.dtype(np.float64)])
+        self._bound = {"in": None, "out": None}   # the arrays the descriptors point into
+        self._nf = ctypes.c_int64(len(self._fields))
+        self._base = ptr(rows, np.float64, "ring rows")
+        self._width = ctypes.c_int64(layout.width)
+        self._n = len(rows)
 
-    def fill(self, inp, out, row: np.ndarray) -> None:
-        # (``view[...] = x``: NumPy's own assignment, about 3x cheaper than ``np.copyto``'s dispatch)
-        st = self.stage
-        for obj, part in ((inp, "in"), (out, "out")):
-            for name, view in self._arrays[part]:
-                view[...] = getattr(obj, name)
-            for name, c in self._scalars[part]:
-                st[c] = getattr(obj, name)
-        st[self.tick_us_col] = 0.0
-        row[:] = st
+    def _bind(self, part: str, got: tuple) -> None:
+        self._bound[part] = None           # (until every descriptor of ``part`` points into ``got``)
+        j0 = 0 if part == "in" else len(self._arrays["in"])
+        for (name, c, k), a in zip(self._arrays[part], got):
+            kind = ROW_KINDS.get(getattr(a, "dtype", None))
+            if not isinstance(a, np.ndarray) or kind is None or not a.flags.c_contiguous or a.size != k:
+                raise TypeError(f"Tick{'Input' if part == 'in' else 'Output'}.{name}: a recorded field must be a "
+                                f"C-contiguous NumPy array of {k} values (float64, bool, int32/64 or float32); got "
+                                f"{type(a).__name__} {getattr(a, 'dtype', '')} {getattr(a, 'shape', '')}")
+        for j, ((_, c, k), a) in enumerate(zip(self._arrays[part], got)):
+            self._fields[j0 + j] = RowField(a.ctypes.data, c, k, ROW_KINDS[a.dtype])
+        self._bound[part] = got            # (kept: the descriptors point into these arrays)
 
-    def fill_out(self, out, row: np.ndarray) -> None:
-        """Only the ``TickOutput`` columns of ``row`` (straight into it, no staging row)."""
-        for name, c, k, shape in self._out_cols:
-            if shape is None:
-                row[c] = getattr(out, name)
-            else:
-                row[c: c + k].reshape(shape)[...] = getattr(out, name)
+    def fill(self, inp, out, i: int) -> None:
+        """Row ``i`` := ``inp``, ``out`` (and ``tick_us`` 0)."""
+        if not 0 <= i < self._n:
+            raise IndexError(f"TickRows.fill: row {i} of {self._n}")
+        for part, obj in (("in", inp), ("out", out)):
+            got = self._get_arrays[part](obj)
+            bound = self._bound[part]
+            if bound is None or not all(map(operator.is_, got, bound)):
+                self._bind(part, got)
+        self._pack_in.pack_into(self._stage, 0, *self._get_scalars["in"](inp))
+        self._pack_out.pack_into(self._stage, self._out_at, *self._get_scalars["out"](out))
+        fast.pf_row_gather(self._fields, self._nf, self._base, self._width, i)
 
 
 def row_into(layout: TickLayout, row: np.ndarray, inp: TickInput, out=None) -> None:

@@ -93,11 +93,11 @@ def test_the_writer_carries_out_every_message_sent_before_the_ticks_it_writes(tm
     ticks = mcap_shm.TickBlock(buf, cap, lay.width)
     joint_path, jbuf = mcap_shm.create(mcap_shm.JointBlock.nbytes(cap, 1, 6), "pointfence-test-joints-")
     joints = mcap_shm.JointBlock(jbuf, cap, 1, 6)
-    fill, inp, out = TickRows(lay), TickInput.zeros(1), TickOutput.zeros(1)
+    fill, inp, out = TickRows(lay, ticks.rows), TickInput.zeros(1), TickOutput.zeros(1)
     for k in range(20):                                   # the service's side: 20 ticks, every one with joints
         inp.k = out.k = k
         inp.now = k * 1e-3
-        fill.fill(inp, out, ticks.rows[k])
+        fill.fill(inp, out, k)
         joints.rows[k, 0] = _q(k)
     ticks.header[mcap_shm.SENT] = 2                       # init, then the joint block, before the ticks
     ticks.header[mcap_shm.WRITTEN] = 20
