@@ -253,6 +253,7 @@ def check_calls() -> None:
         _check(ns, raw, signatures)
 
 
-__all__ = ["Functions", "check_calls", "fast", "unchecked", "ChannelCore", "ForcesCore", "HOST_LOST", "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore", "ROW_KINDS", "RowField",
-           "HostLayout", "NativeBuildError", "SERVO_BAD_POSE", "SERVO_IGNORED", "SERVO_QUEUED", "SERVO_REJECTED",
+__all__ = ["Functions", "check_calls", "fast", "unchecked", "ChannelCore", "ForcesCore", "HOST_LOST",
+           "HOST_NONFINITE", "HOST_TEXTS", "HealthCore", "HostCore", "HostLayout", "NativeBuildError",
+           "ROW_KINDS", "RowField", "SERVO_BAD_POSE", "SERVO_IGNORED", "SERVO_QUEUED", "SERVO_REJECTED",
            "SERVO_WORKSPACE", "StepCore", "TeleopCore", "as_array", "lib", "ptr", "ptr_to"]
