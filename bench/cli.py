@@ -21,6 +21,7 @@ BENCHES = {
     "dynamic": "chapter 6 in simulated time: pop-through speed with/without motion prediction (30 Hz, 2 cm fixture; 100 ms latency; 5 mm proxy), tool-shadow occlusion under architecture III with 1 vs 2 cameras, robot self-filter, fixed vs adaptive radius study (--study DIR writes table, CSV, plot); --real: the same on real depth frames moved at known speeds (penetration of proxy and robot against the true surface, estimator vs true motion)",
     "soak": "the live service at 1 kHz under every injected fault kind (faults, attacks, operator actions), each judged against SAFETY.md on its streamed recording (--minutes, default: every fault once)",
     "ros2": "the ROS 2 path on loopback: camera-node -> ros2: camera latency and dropped frames, CRTK master and arm, servo_cp round trip at 1 kHz; the loop's misses and lateness with ROS on and off in the same call",
+    "replay": "how much faster than real time a recorded `serve --record` run replays (`pointfence replay --recording`): replay_x_realtime, its phases, exactness (--seconds recorded, default 20; --recording FILE.mcap)",
     "stress": "raise proxies and cameras until the 1 kHz tick (p99 <= 1 ms) or the 30 Hz ingest (p99 <= 33 ms) no longer fits",
 }
 

@@ -62,7 +62,7 @@ class SceneRegion:
             surf = self._surface(float(key) * self.time_step, lo, hi)
             if len(surf) == 0:
                 continue
-            dist, _ = cKDTree(surf).query(p[sel])
+            dist, _ = cKDTree(surf).query(p[sel], workers=-1)   # (every core: a tick's point each)
             inside = self.scene.distance(p[sel], float(key) * self.time_step) < 0   # in the solid itself
             out[sel] = np.where(inside, -dist, dist) - self.radius
         return out

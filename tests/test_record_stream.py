@@ -224,3 +224,21 @@ def test_a_flush_reads_only_the_snapshots_added_since_the_last_one(tmp_path):
         rec.close()
     meta = recfile.read(path)["meta"]["snapshot_frames"]
     assert len(meta) == 20002 and meta["20002"] == [9, 10] and meta["1"] == [1, 1]
+
+
+def test_ticks_csv_formats_every_row_as_one_row_at_a_time_did(tmp_path):
+    """write_csv formats blocks of rows at once: the text is the same as row by row, across
+    block boundaries, with NaN and negative values."""
+    rng = np.random.default_rng(3)
+    n = 2500
+    rec = Recorder(capacity=n, n=1)
+    for k in range(n):
+        rec.next_row()
+    rec.rows[:n] = rng.normal(size=(n, len(TICK_COLUMNS))) * 10.0 ** rng.integers(-9, 3, (n, len(TICK_COLUMNS)))
+    rec.rows[:n, 19:21] = rng.integers(-5, 1 << 20, (n, 2))
+    rec.rows[7, 3] = np.nan
+    rec.write_csv(tmp_path / "ticks.csv")
+    fmt = ",".join(["%.6f"] + ["%.9f"] * 18 + ["%d", "%d", "%.1f"]) + "\n"
+    want = ",".join(TICK_COLUMNS) + "\n" + "".join(fmt % tuple(r) for r in rec.ticks())
+    assert (tmp_path / "ticks.csv").read_text() == want
+    assert want.count("\n") == n + 1
