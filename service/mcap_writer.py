@@ -150,6 +150,20 @@ class Writer:
             except queue.Empty:
                 return
 
+    @property
+    def behind(self) -> bool:
+        """Snapshot entries wait in the frame ring (the last flush's time box ended before them)."""
+        from . import mcap_shm
+
+        return self.frames is not None and self.consumed < int(self.hdr[mcap_shm.SNAPS_WRITTEN])
+
+    def wait_s(self, flush_s: float) -> float:
+        """How long to wait for control messages before the next flush: ``flush_s``, or nothing
+        while the writer is ``behind`` (it then encodes on at once: waiting a whole ``flush_s``
+        between time-boxed flushes halved what it could encode, and the ring filled and dropped
+        snapshots while the machine had CPU to spare)."""
+        return 0.0 if self.behind else float(flush_s)
+
     # --- one flush ---------------------------------------------------------------------------------
     def flush(self, final: bool) -> None:
         from . import mcap_shm
@@ -313,7 +327,7 @@ def main() -> int:
     threading.Thread(target=read_control, name="mcap-writer-control", daemon=True).start()
     try:
         while True:
-            deadline = time.monotonic() + p["flush_s"]
+            deadline = time.monotonic() + w.wait_s(p["flush_s"])
             while not w.ended and w.sync is None:
                 try:
                     w.control(inbox.get(timeout=max(0.0, deadline - time.monotonic())))

@@ -113,3 +113,38 @@ def test_the_writer_carries_out_every_message_sent_before_the_ticks_it_writes(tm
         w.finish(service_died=False)
     got = [m.ros_msg for m in ros2_messages(path, topics=["/PSM1/measured_js"])]
     assert len(got) == 20 and [list(q.position) for q in got] == [_q(k).tolist() for k in range(20)]
+
+
+def test_a_writer_behind_its_frames_flushes_again_without_waiting(tmp_path):
+    """A writer whose last flush's time box ended before the frame ring did encodes on at once;
+    one with nothing waiting waits ``flush_s`` for the next (the wait doubled its encoding time
+    before, and the ring dropped snapshots on a loaded machine)."""
+    import queue
+
+    from pointfence.kernels.camera import Camera
+    from pointfence.service import mcap_shm
+    from pointfence.service.mcap_writer import Writer
+    from pointfence.service.tick_cdr import TickLayout
+
+    lay, cap, shapes, slots = TickLayout(1), 64, [(4, 6)], 8
+    tick_path, buf = mcap_shm.create(mcap_shm.TickBlock.nbytes(cap, lay.width), "pointfence-test-ticks-")
+    frame_path, fbuf = mcap_shm.create(mcap_shm.FrameBlock.nbytes(shapes, slots), "pointfence-test-frames-")
+    ticks, fb = mcap_shm.TickBlock(buf, cap, lay.width), mcap_shm.FrameBlock(fbuf, shapes, slots)
+    cam = Camera("cam0", 6, 4, 5.0, 5.0, 2.5, 1.5)
+    with open(tmp_path / "behind.mcap", "wb") as fh:
+        w = Writer({"tick_path": tick_path, "n": 1, "capacity": cap, "flush_s": 0.5, "rate_hz": 1000.0,
+                    "pose_hz": 100.0, "cloud_hz": 0.0, "epoch_ns": 0}, fh, queue.Queue())
+        w.control(("frames", frame_path, shapes, slots, [cam], None))
+        assert not w.behind and w.wait_s(0.5) == 0.5
+        for j in range(3):                     # three snapshots handed over, none encoded yet
+            fb.meta[j, 0] = j + 1
+            e = fb.cam_meta(j, 0)
+            e[mcap_shm.NEW] = j == 0
+            e[mcap_shm.FSEQ], e[mcap_shm.INDEX], e[mcap_shm.STAMP] = j, 0, 0.01 * j
+            e[mcap_shm.POSE:] = math.nan
+            fb.depth[j][0][...] = 500 + j
+        ticks.header[mcap_shm.SNAPS_WRITTEN] = 3
+        assert w.behind and w.wait_s(0.5) == 0.0
+        w.write_frames(None)
+        assert not w.behind and w.wait_s(0.5) == 0.5 and int(ticks.header[mcap_shm.SNAPS_CONSUMED]) == 3
+        w.finish(service_died=False)
