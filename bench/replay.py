@@ -45,7 +45,8 @@ def _record(tmp: Path, seconds: float, backend: str, device, startup_timeout: fl
     scene.write_text(LIGHT_SCENE)
     cmd = [sys.executable, "-m", "pointfence", "serve", "--key-file", str(key), "--port", "0", "--no-control",
            "--config", str(scene), "--ready-file", str(ready), "--status-every", "0", "--prerender", "30",
-           "--duration", str(seconds + startup_timeout + 60), "--record", str(rec), "--backend", backend]
+           "--duration", str(seconds + startup_timeout + 60), "--record", str(rec), "--backend", backend,
+           "--timeout-ms", "1000"]
     if device:
         cmd += ["--device", device]
     log = open(tmp / "serve.log", "w")
@@ -61,7 +62,9 @@ def _record(tmp: Path, seconds: float, backend: str, device, startup_timeout: fl
             time.sleep(0.05)
         port = json.loads(ready.read_text())["port"]
         client = subprocess.run([sys.executable, "-m", "pointfence", "device-sim", "--key-file", str(key), "--port",
-                                 str(port), "--motion", "circle", "--duration", str(seconds)], env=env,
+                                 str(port), "--motion", "circle", "--duration", str(seconds),
+                                 # (what is measured is the replay: the client rides out a loaded machine)
+                                 "--late-limit", "100000", "--timeout-ms", "1000"], env=env,
                                 capture_output=True, text=True, timeout=seconds + startup_timeout)
         if client.returncode != 0:
             raise RuntimeError(f"the device-sim client failed: {client.stderr[-2000:]}")
