@@ -51,7 +51,6 @@ def _record(tmp: Path, seconds: float, backend: str, device, startup_timeout: fl
         cmd += ["--device", device]
     log = open(tmp / "serve.log", "w")
     serve = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=log)
-    client = None
     try:
         end = time.monotonic() + startup_timeout
         while not ready.exists():
@@ -90,6 +89,11 @@ def _replay(rec: Path, out: Path) -> dict:
 
 def run(args) -> dict:
     repeat = args.repeat or 3
+    if repeat < 1:
+        raise ValueError(f"--repeat {repeat}: replay the recording at least once")
+    if args.recording and not Path(args.recording).is_file():
+        raise FileNotFoundError(f"--recording {args.recording!r}: no such file; give a FILE.mcap of `pointfence serve "
+                                "--record`, or leave --recording out to record one")
     with tempfile.TemporaryDirectory(prefix="pointfence-bench-replay-") as t:
         tmp = Path(t)
         rec = Path(args.recording) if args.recording else _record(tmp, args.seconds, args.backend, args.device,

@@ -100,7 +100,7 @@ class TickRows:
     The array fields are bound once: the copy reads them where they are. A struct whose field is
     another array than the bound one (a new struct, a field assigned anew) is bound again. The
     scalars (k, t, hold, ...) are packed into a staging array first (``struct.pack_into``). The
-    row's ``tick_us`` is 0 until ``note`` sets it."""
+    row's ``tick_us`` is 0 (the recorder's ``note_tick_us`` and the replay's ``take`` set it)."""
 
     def __init__(self, layout: TickLayout, rows: np.ndarray):
         if not (isinstance(rows, np.ndarray) and rows.dtype == np.float64 and rows.ndim == 2
@@ -114,7 +114,10 @@ class TickRows:
         for part in ("in", "out"):
             for name, _, _, per_arm in layout.fields[part]:
                 c, k = layout.cols[(part, name)]
-                (arrays[part].append((name, c, k)) if per_arm else scalars[part].append((name, c)))
+                if per_arm:
+                    arrays[part].append((name, c, k))
+                else:
+                    scalars[part].append((name, c))
         self.tick_us_col = layout.cols[("out", TICK_US)][0]
         self._arrays = arrays
         self._get_arrays = {p: _getter([f[0] for f in arrays[p]]) for p in arrays}
