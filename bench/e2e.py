@@ -97,6 +97,19 @@ def add_arguments(p):
     p.add_argument("--startup-timeout", type=float, default=180.0, help="seconds to wait for the service to run")
 
 
+def wait_ready(proc, ready: Path, log: Path, timeout: float) -> dict:
+    """The ready file's contents (host, port, ...) once the `serve` process ``proc`` has written
+    ``ready``; RuntimeError with the end of its ``log`` if it exits first, or after ``timeout`` s."""
+    end = time.monotonic() + timeout
+    while not ready.exists():
+        if proc.poll() is not None:
+            raise RuntimeError(f"the service exited ({proc.returncode}): {log.read_text()[-2000:]}")
+        if time.monotonic() > end:
+            raise RuntimeError(f"the service did not start within {timeout} s")
+        time.sleep(0.05)
+    return json.loads(ready.read_text())
+
+
 def _attack(sock, addr, client, k: int) -> None:
     kind = k % 6
     last = client.last_datagram
@@ -174,14 +187,7 @@ def run(args) -> dict:
     log = open(tmp / "serve.log", "w")
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log)
     try:
-        end = time.monotonic() + args.startup_timeout
-        while not ready.exists():
-            if proc.poll() is not None:
-                raise RuntimeError(f"the service exited ({proc.returncode}): {(tmp / 'serve.log').read_text()[-2000:]}")
-            if time.monotonic() > end:
-                raise RuntimeError(f"the service did not start within {args.startup_timeout} s")
-            time.sleep(0.1)
-        addr = json.loads(ready.read_text())
+        addr = wait_ready(proc, ready, tmp / "serve.log", args.startup_timeout)
         host, port = addr["host"], addr["port"]
         attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         attack_every = int(1000 / args.attack_hz) if args.attack_hz > 0 else 0

@@ -22,7 +22,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from .stats import pct
@@ -36,7 +35,7 @@ def add_arguments(p):
 
 def _record(tmp: Path, seconds: float, backend: str, device, startup_timeout: float) -> Path:
     """A recording of a live `serve` run driven by `device-sim` for ``seconds``."""
-    from .e2e import LIGHT_SCENE
+    from .e2e import LIGHT_SCENE, wait_ready
 
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     key, scene, ready, rec = tmp / "pf.key", tmp / "scene.toml", tmp / "ready.json", tmp / "run.mcap"
@@ -52,14 +51,7 @@ def _record(tmp: Path, seconds: float, backend: str, device, startup_timeout: fl
     log = open(tmp / "serve.log", "w")
     serve = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=log)
     try:
-        end = time.monotonic() + startup_timeout
-        while not ready.exists():
-            if serve.poll() is not None:
-                raise RuntimeError(f"the service exited ({serve.returncode}): {(tmp / 'serve.log').read_text()[-2000:]}")
-            if time.monotonic() > end:
-                raise RuntimeError(f"the service did not start within {startup_timeout} s")
-            time.sleep(0.05)
-        port = json.loads(ready.read_text())["port"]
+        port = wait_ready(serve, ready, tmp / "serve.log", startup_timeout)["port"]
         client = subprocess.run([sys.executable, "-m", "pointfence", "device-sim", "--key-file", str(key), "--port",
                                  str(port), "--motion", "circle", "--duration", str(seconds),
                                  # (what is measured is the replay: the client rides out a loaded machine)

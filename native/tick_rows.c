@@ -18,6 +18,13 @@ typedef struct {
     int32_t kind;
 } pf_row_field;
 
+/* the `k` values of type T at `src` into `d`, as doubles */
+#define COPY_AS_DOUBLE(T, src, d, k)                                      \
+    do {                                                                  \
+        const T *s_ = (const T *)(src);                                   \
+        for (int32_t c_ = 0; c_ < (k); c_++) (d)[c_] = (double)s_[c_];    \
+    } while (0)
+
 /* Copies the `nf` fields `f` into row `i` of the ring `base` (rows of `width` float64s). */
 void pf_row_gather(const pf_row_field *f, int64_t nf, double *base, int64_t width, int32_t i) {
     double *row = base + width * (int64_t)i;
@@ -25,31 +32,11 @@ void pf_row_gather(const pf_row_field *f, int64_t nf, double *base, int64_t widt
         double *d = row + f[j].col;
         int32_t k = f[j].count;
         switch (f[j].kind) {
-        case PF_ROW_F64: {
-            const double *s = (const double *)f[j].src;
-            for (int32_t c = 0; c < k; c++) d[c] = s[c];
-            break;
-        }
-        case PF_ROW_U8: {
-            const uint8_t *s = (const uint8_t *)f[j].src;
-            for (int32_t c = 0; c < k; c++) d[c] = (double)s[c];
-            break;
-        }
-        case PF_ROW_I64: {
-            const int64_t *s = (const int64_t *)f[j].src;
-            for (int32_t c = 0; c < k; c++) d[c] = (double)s[c];
-            break;
-        }
-        case PF_ROW_I32: {
-            const int32_t *s = (const int32_t *)f[j].src;
-            for (int32_t c = 0; c < k; c++) d[c] = (double)s[c];
-            break;
-        }
-        case PF_ROW_F32: {
-            const float *s = (const float *)f[j].src;
-            for (int32_t c = 0; c < k; c++) d[c] = (double)s[c];
-            break;
-        }
+        case PF_ROW_F64: COPY_AS_DOUBLE(double, f[j].src, d, k); break;
+        case PF_ROW_U8: COPY_AS_DOUBLE(uint8_t, f[j].src, d, k); break;
+        case PF_ROW_I64: COPY_AS_DOUBLE(int64_t, f[j].src, d, k); break;
+        case PF_ROW_I32: COPY_AS_DOUBLE(int32_t, f[j].src, d, k); break;
+        case PF_ROW_F32: COPY_AS_DOUBLE(float, f[j].src, d, k); break;
         default:
             break;
         }
