@@ -1,7 +1,7 @@
 """Reading a pointfence MCAP recording (``mcap_record``), whole or cut short by a crash.
 
-``open_recording(path)`` reads the file record by record with ``mcap``'s ``StreamReader``
-(chunk CRCs checked), so a file that ``kill -9`` cut short, which has no summary section, reads
+``open_recording(path)`` reads the file record by record (``mcap_scan.scan``: chunk and data
+section CRCs checked, as ``mcap``'s ``StreamReader`` checks them), so a file that ``kill -9`` cut short, which has no summary section, reads
 up to its last whole chunk (``Recording.torn``: it ended early). What it returns:
 
 * ``meta``: the ``pointfence/run`` metadata (arms, rate, epoch, cameras, configuration text,
@@ -28,14 +28,13 @@ from pathlib import Path
 
 import numpy as np
 from mcap.exceptions import McapError
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
 
 from . import depth_png
 from .mcap_record import FORMAT
+from .mcap_scan import scan
 from .ros2_schemas import SNAPSHOTS, TICK_INPUT, TICK_OUTPUT
 from .tick_cdr import TickLayout
 
@@ -108,16 +107,14 @@ def open_recording(path) -> Recording:
         torn = None
         count = 0
         try:
-            for rec in StreamReader(fh, validate_crcs=True, record_size_limit=1 << 30).records:
-                if isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
-                elif isinstance(rec, Metadata):
-                    metadata.setdefault(rec.name, {}).update(_decode_metadata(rec))
-                elif isinstance(rec, Message):
+            for rec in scan(fh):
+                if rec[0] == "message":
                     count += 1
-                    _take(channels.get(rec.channel_id, ""), rec, ticks, snapshots, images)
-                elif isinstance(rec, Schema):
-                    pass
+                    _take(channels.get(rec[1], ""), rec[2], rec[3], ticks, snapshots, images)
+                elif rec[0] == "channel":
+                    channels[rec[1]] = rec[2]
+                else:
+                    metadata.setdefault(rec[1].name, {}).update(_decode_metadata(rec[1]))
         except (McapError, struct.error, ValueError, EOFError, OSError, Exception) as e:   # noqa: BLE001
             # a torn or damaged tail: everything before it is kept (S8)
             torn = f"{type(e).__name__}: {e}" if str(e) else type(e).__name__
@@ -159,17 +156,17 @@ def _tick_rows(lay: TickLayout, ticks: dict) -> np.ndarray:
     return rows
 
 
-def _take(topic: str, rec, ticks: dict, snapshots: dict, images: dict) -> None:
-    """One message into the reader's tables, by topic."""
+def _take(topic: str, sequence: int, data: bytes, ticks: dict, snapshots: dict, images: dict) -> None:
+    """One message (its MCAP sequence number and CDR bytes) into the reader's tables, by topic."""
     if topic in (TICK_INPUT, TICK_OUTPUT):
-        ticks["in" if topic == TICK_INPUT else "out"].append(bytes(rec.data))
+        ticks["in" if topic == TICK_INPUT else "out"].append(data)
     elif topic == SNAPSHOTS:
-        seq, entry = _decode_snapshot(bytes(rec.data))
+        seq, entry = _decode_snapshot(data)
         snapshots[seq] = entry
     elif topic.endswith("/compressed"):
         parts = topic.strip("/").split("/")
         if len(parts) == 3:          # /<camera>/<depth|color|mask>/compressed; sequence: the frame's running number
-            images[(parts[0], parts[1], int(rec.sequence))] = _image(bytes(rec.data))
+            images[(parts[0], parts[1], int(sequence))] = _image(data)
 
 
 def _image(data: bytes):

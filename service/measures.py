@@ -47,7 +47,11 @@ class SceneRegion:
         pts = o[ok] + s[ok, None] * d[ok]
         return pts[self.scene.protected(pts, t)] if len(pts) else pts
 
-    def __call__(self, points, times) -> np.ndarray:
+    def __call__(self, points, times, within: Optional[float] = None) -> np.ndarray:
+        """Signed distances (m) of ``points`` (N, 3) at ``times`` (s) to the region. ``within``
+        (m): only distances up to it are wanted; a point further than that outside the region
+        reads +inf (a nearest-neighbour query cut off there is far cheaper for points well away
+        from a densely sampled surface). Points inside the solid are exact either way."""
         p = np.atleast_2d(np.asarray(points, dtype=float))
         t = np.broadcast_to(np.asarray(times, dtype=float), (len(p),))
         out = np.full(len(p), np.inf)
@@ -62,8 +66,13 @@ class SceneRegion:
             surf = self._surface(float(key) * self.time_step, lo, hi)
             if len(surf) == 0:
                 continue
-            dist, _ = cKDTree(surf).query(p[sel], workers=-1)   # (every core: a tick's point each)
+            tree = cKDTree(surf)
+            ub = np.inf if within is None else max(float(within), 0.0) + self.radius
+            dist, _ = tree.query(p[sel], workers=-1, distance_upper_bound=ub)   # (every core: a tick's point each)
             inside = self.scene.distance(p[sel], float(key) * self.time_step) < 0   # in the solid itself
+            deep = inside & ~np.isfinite(dist)
+            if deep.any():             # inside, further below the surface than the cut-off
+                dist[deep] = tree.query(p[sel][deep], workers=-1)[0]
             out[sel] = np.where(inside, -dist, dist) - self.radius
         return out
 
@@ -78,7 +87,9 @@ class SnapshotRegion:
         self.tree = cKDTree(self.points) if len(self.points) else None
         self.k = int(k)
 
-    def __call__(self, points, times=None) -> np.ndarray:
+    def __call__(self, points, times=None, within: Optional[float] = None) -> np.ndarray:
+        """Signed distances (m) of ``points`` (N, 3) to the region (``times`` and ``within``, as
+        for SceneRegion, ask nothing of a snapshot: every distance is exact)."""
         p = np.atleast_2d(np.asarray(points, dtype=float))
         if self.tree is None:
             return np.full(len(p), np.inf)
@@ -90,13 +101,15 @@ class SnapshotRegion:
 
 def compute(times, xr, cmd, xm, region, mask=None) -> dict:
     """Safety, submittance and tracking (see the module docstring) over the ticks in ``mask``
-    (default all). Arrays (N, 3) m; ``region(points, times)`` -> signed distances (N,)."""
+    (default all). Arrays (N, 3) m; ``region(points, times, within=None)`` -> signed distances
+    (N,), exact up to ``within`` (m) and +inf beyond it outside the region."""
     t = np.asarray(times, dtype=float)
     xr, cmd, xm = (np.asarray(a, dtype=float) for a in (xr, cmd, xm))
     m = np.ones(len(t), bool) if mask is None else np.asarray(mask, bool)
     if not m.any():
         return summarise(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
-    return summarise(region(xr[m], t[m]), region(xm[m], t[m]), np.linalg.norm(xr[m] - cmd[m], axis=1),
+    # (of the mapped master only the sign counts: d_m < 0, in the region)
+    return summarise(region(xr[m], t[m]), region(xm[m], t[m], within=0.0), np.linalg.norm(xr[m] - cmd[m], axis=1),
                      np.linalg.norm(xr[m] - xm[m], axis=1))
 
 
