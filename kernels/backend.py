@@ -27,6 +27,16 @@ class IngestInfo:
     ms: float
 
 
+def run_steps(steps):
+    """Run a generator of ``ingest_steps``' kind (or what is left of it) to its end; its return
+    value."""
+    try:
+        while True:
+            next(steps)
+    except StopIteration as e:
+        return e.value
+
+
 class FramePipeline(ABC):
     """Frames in, snapshots out.
 
@@ -56,11 +66,22 @@ class FramePipeline(ABC):
         return self.motion.update(moments_fn(), snapshot_time(timestamps))
 
     def ingest(self, frames) -> IngestInfo:
+        return run_steps(self.ingest_steps(frames))
+
+    def ingest_steps(self, frames):
+        """``ingest`` as a generator in two parts. The first (up to the one ``yield``, of None)
+        validates the frames and, on a backend that builds on a device (OpenCL, Warp on CUDA),
+        enqueues the build's device work into the back slot and submits it; the second waits for
+        it, publishes the snapshot and returns its ``IngestInfo`` (as ``StopIteration.value``).
+        Nothing is published before the yield. Between the two parts the caller may run other
+        work (a replay's ticks, on the front snapshot) while the device builds, but must not
+        ingest again. ``run_steps`` runs both parts at once. An error raises in either part and
+        publishes nothing; a generator closed at its yield waits for the submitted work."""
         t0 = time.perf_counter()
         ordered = self.rig.order(frames)
         packed = self.rig.pack(ordered, self.params.lateral_px)  # validates per-frame poses
         checkpoint()
-        n, per_cam = self._build(ordered, packed)
+        n, per_cam = yield from self._build_steps(ordered, packed)
         self.seq += 1
         return IngestInfo(self.seq, n, per_cam, (time.perf_counter() - t0) * 1e3)
 
@@ -79,9 +100,17 @@ class FramePipeline(ABC):
         q = check_queries(queries, radius, max_neighbors)
         return self._neighbors(q, float(radius), int(max_neighbors), bool(protected_only))
 
-    @abstractmethod
+    def _build_steps(self, frames: list, packed):
+        """``_build`` as ``ingest_steps``' generator (one yield, then the build and publication;
+        returns what ``_build`` returns). Backends that build on a device override it and submit
+        their work before the yield; this default builds everything after it."""
+        yield
+        return self._build(frames, packed)
+
     def _build(self, frames: list, packed) -> tuple:
-        """Build and publish; return (n_points, per_camera counts)."""
+        """Build and publish; return (n_points, per_camera counts). A backend overrides this or
+        ``_build_steps``."""
+        raise NotImplementedError(f"{type(self).__name__} builds no snapshots")
 
     @abstractmethod
     def _neighbors(self, q, radius: float, max_neighbors: int, protected_only: bool) -> Neighbors: ...

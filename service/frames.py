@@ -43,6 +43,7 @@ import time
 from dataclasses import replace
 from typing import Optional, Sequence
 
+from pointfence.kernels.backend import run_steps
 from pointfence.kernels.errors import PointfenceError
 from pointfence.kernels.yielding import checkpoint
 
@@ -164,13 +165,19 @@ class _FeedBase:
             return False
 
     def _ingest_locked(self, frames: list, arrival: float) -> bool:
+        return run_steps(self._ingest_steps(frames, arrival))
+
+    def _ingest_steps(self, frames: list, arrival: float):
+        """``_ingest_locked`` as a generator over the pipeline's ``ingest_steps`` (it yields while
+        the build's device work runs; returns whether a snapshot was built). The caller holds
+        ``ingest_lock`` or is the feed's only ingesting thread, until the generator ends."""
         if any(f is None for f in frames):
             return False
         self.build_started = time.monotonic()
         try:
             flt = self.frame_filter
             built = list(frames) if flt is None else flt(frames)
-            info = self.pipeline.ingest(built)
+            info = yield from self.pipeline.ingest_steps(built)
         except PointfenceError as e:   # bad frame: the previous snapshot stays current
             self.ingest_errors += 1
             self.last_error = f"ingest: {e}"

@@ -7,29 +7,30 @@ Two things run ahead of the ticks, as in the live service, without changing what
 * PNG decoding (``FrameDecoder``): the frames are decoded in the order the schedule needs them,
   up to ``DECODE_AHEAD`` ahead, in a thread pool (``cv2.imdecode`` releases the interpreter
   lock), from before the replay's service is set up;
-* snapshot builds, where the pipeline double-buffers its snapshots (``pipeline.buffers``: the
-  OpenCL and Warp backends): a builder thread builds the next scheduled snapshot into the back
-  buffer while the ticks before it run, and holds back its publication (``buffers.publish``);
-  the tick that first saw it in the live run publishes it, after which the builder may start
-  the next build (the back buffer is then the old front, as in a sequential replay). A
-  snapshot build reads only the recorded frames and the snapshot before it, so it is the same
-  bit for bit as built in the tick (the live service builds beside the ticks the same way).
-  The NumPy reference pipeline (a single buffer) builds in the tick.
+* snapshot builds, where the pipeline double-buffers its snapshots (``pipeline.buffers``): the
+  tick that publishes a snapshot (the tick that first saw it in the live run) then starts the
+  next scheduled one (``FramePipeline.ingest_steps``: its frames taken, its device work
+  enqueued into the back buffer and submitted), and the ticks go on while the device builds;
+  the tick that first saw that one waits for the build to end and publishes it. Everything runs
+  in the ticks' thread: a builder thread would wait for the interpreter lock while the ticks
+  hold it, and got it only when a tick waited for the build (about a millisecond a snapshot,
+  a third of a replay's time, on a 2-core VM). A snapshot build reads only the recorded frames
+  and the snapshot before it, so it is the same bit for bit as built in the tick (the live
+  service builds beside the ticks the same way). On the NumPy reference the whole build runs
+  when it is due.
 """
 from __future__ import annotations
 
 import math
-import queue
-import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Optional
+
+from pointfence.kernels.backend import run_steps
 
 from .frames import _FeedBase
 
 #: recorded frames decoded ahead of the snapshot build that needs them
 DECODE_AHEAD = 12
-#: seconds a tick waits for the builder before calling the replay stuck
-BUILD_TIMEOUT_S = 120.0
 
 
 class FrameDecoder:
@@ -89,10 +90,10 @@ def _frames_in_order(rec, seqs) -> list:
 class RecordedFrames(_FeedBase):
     """Re-builds the recorded snapshots: ``build_at`` maps a tick number k to the snapshot seqs
     to build (in order) before that tick's proxy launch; ``tick_times`` maps k to its loop time
-    (s; the builder's arrival time of the frames, which ``poll_tick`` otherwise receives).
-    ``too_old`` is the recorded ``frames_too_old`` of the tick being replayed. ``ahead``: build
-    in a thread where the pipeline double-buffers (see the module). Call ``close()`` after the
-    replay."""
+    (s; the arrival time of the frames of a build started ahead, which ``poll_tick``
+    otherwise receives). ``too_old`` is the recorded ``frames_too_old`` of the tick being
+    replayed. ``ahead``: start each build at the tick before it is due, where the pipeline
+    double-buffers (see the module). Call ``close()`` after the replay."""
 
     def __init__(self, pipeline, recording, build_at: dict, stale_s: float, max_age_s: float,
                  tick_times: Optional[dict] = None, ahead: bool = True, decoder: Optional[FrameDecoder] = None):
@@ -108,21 +109,19 @@ class RecordedFrames(_FeedBase):
         self._index = [-1] * n            # the recorded frame each camera's latest is
         self._jobs = [(k, seq) for k in sorted(build_at) for seq in build_at[k]]
         self.decoder = decoder if decoder is not None else FrameDecoder(recording, build_at)
-        self._use_builder = bool(ahead) and tick_times is not None
-        self._builder: Optional[threading.Thread] = None
-        self._ready: queue.Queue = queue.Queue()      # (k, seq, held-back slot or None, built, error)
-        self._published = threading.Semaphore(0)     # one per job the tick has published
-        self._held: Optional[int] = None
-        self._publish = None
-        self._stop = False
+        self._want_ahead = bool(ahead) and tick_times is not None
+        self._ahead: Optional[bool] = None            # decided at start()
+        self._next = 0                                # the next job to start
+        self._pending = None                          # (k, seq, its steps or None, value, error)
 
     # --- one snapshot --------------------------------------------------------------------------
     def frames_too_old(self, now: float) -> bool:
         return self.too_old
 
-    def _build(self, seq: int, t: float) -> bool:
-        """Build snapshot ``seq`` from its recorded frames (arrival time ``t``); False if it is
-        not in the recording or its build failed."""
+    def _build_steps(self, seq: int, t: float):
+        """Build snapshot ``seq`` from its recorded frames (arrival time ``t``), as a generator of
+        ``_ingest_steps``' kind (it returns False if the snapshot is not in the recording or its
+        build failed)."""
         entry = self.rec.snapshots.get(seq)
         if entry is None:
             self.missing.append(seq)
@@ -135,80 +134,61 @@ class RecordedFrames(_FeedBase):
                 self.frames_in[i] += 1
             self.arrival[i] = t
         self.pipeline.seq = seq - 1          # numbered as the live run numbered it
-        return self._ingest(list(self.latest), t)
+        return (yield from self._ingest_steps(list(self.latest), t))
 
     def start(self) -> None:
-        """Start building ahead (where the pipeline double-buffers) before the first tick: call
-        after ``Service.attach_frames`` (its publish gate); else the first tick starts it."""
-        if self._use_builder and self._builder is None:
-            self._start_builder()
+        """Start the first build (where the pipeline double-buffers) before the first tick: call
+        after ``Service.attach_frames``; else the first tick starts it."""
+        if self._ahead is None:
+            self._ahead = self._want_ahead and hasattr(getattr(self.pipeline, "buffers", None), "publish")
+            if self._ahead:
+                self._start_next()
 
     def poll_tick(self, k: int, t: float) -> bool:
         self.start()
-        if self._builder is not None:
-            return self._publish_due(k)
         built = False
         for seq in self.build_at.get(k, ()):
-            built |= self._build(seq, t)
+            if self._ahead:
+                built |= self._finish(k, seq)
+                self._start_next()
+            else:
+                built |= run_steps(self._build_steps(seq, t))
         return built
 
     # --- building ahead ------------------------------------------------------------------------
-    def _start_builder(self) -> None:
-        buf = getattr(self.pipeline, "buffers", None)
-        if buf is None or not hasattr(buf, "publish"):
-            self._use_builder = False
+    def _start_next(self) -> None:
+        """Start the next scheduled build: its part before the device works (an error in it is
+        raised at the build's own tick)."""
+        if self._next >= len(self._jobs):
             return
-        self._publish = buf.publish        # (the publish gate's, where the service installed one)
+        k, seq = self._jobs[self._next]
+        self._next += 1
+        steps = self._build_steps(seq, self.tick_times.get(k, 0.0))
+        try:
+            next(steps)
+            self._pending = (k, seq, steps, None, None)
+        except StopIteration as e:           # done before any device work (a missing snapshot)
+            self._pending = (k, seq, None, e.value, None)
+        except Exception as e:   # noqa: BLE001 (raised at its tick, as a build in the tick would)
+            self._pending = (k, seq, None, False, e)
 
-        def hold(i: int) -> None:          # the builder's publication, held for its tick
-            self._held = i
-
-        buf.publish = hold
-        self._buf = buf
-        self._builder = threading.Thread(target=self._build_all, name="pointfence-replay-build", daemon=True)
-        self._builder.start()
-
-    def _build_all(self) -> None:
-        for k, seq in self._jobs:
-            if self._stop:
-                return
-            self._held = None
-            try:
-                built = self._build(seq, self.tick_times.get(k, 0.0))
-                self._ready.put((k, seq, self._held, built, None))
-            except BaseException as e:   # noqa: BLE001 (handed to the tick, which raises it)
-                self._ready.put((k, seq, None, False, e))
-                return
-            self._published.acquire()     # the tick published it: the back buffer is free again
-
-    def _publish_due(self, k: int) -> bool:
-        built = False
-        for _ in self.build_at.get(k, ()):
-            try:
-                jk, seq, held, ok, err = self._ready.get(timeout=BUILD_TIMEOUT_S)
-            except queue.Empty:
-                raise RuntimeError(f"replay: the snapshot builder produced nothing for tick {k} within "
-                                   f"{BUILD_TIMEOUT_S} s") from None
-            if err is not None:
-                raise err
-            if jk != k:
-                raise RuntimeError(f"replay: snapshot {seq} was built for tick {jk}, expected tick {k} (schedule "
-                                   "out of order)")
-            if held is not None:
-                self._publish(held)
-            built |= ok
-            self._published.release()
-        return built
+    def _finish(self, k: int, seq: int) -> bool:
+        """End the started build, due at tick ``k`` (snapshot ``seq``), and publish it."""
+        pending, self._pending = self._pending, None
+        if pending is None or pending[:2] != (k, seq):
+            raise RuntimeError(f"replay: snapshot {seq} is due at tick {k}, but the build under way is "
+                               f"{None if pending is None else pending[:2]} (schedule out of order)")
+        _, _, steps, value, err = pending
+        if err is not None:
+            raise err
+        return run_steps(steps) if steps is not None else value
 
     def close(self) -> None:
-        """End the builder and the decoding threads (idempotent) and restore the pipeline's publish."""
-        if self._builder is not None:
-            self._stop = True
-            for _ in range(len(self._jobs) + 1):
-                self._published.release()
-            self._builder.join(timeout=BUILD_TIMEOUT_S)
-            self._builder = None
-            self._buf.publish = self._publish
+        """End a build under way (its device work waited for) and the decoding threads
+        (idempotent)."""
+        pending, self._pending = self._pending, None
+        if pending is not None and pending[2] is not None:
+            pending[2].close()
         self.decoder.close()
 
 

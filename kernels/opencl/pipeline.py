@@ -193,11 +193,14 @@ class OpenCLPipeline(FramePipeline):
         self.build_queue.finish()
 
     # --- build -----------------------------------------------------------------------------
-    def _build(self, frames, packed):
+    def _build_steps(self, frames, packed):
+        """The build (see ``FramePipeline.ingest_steps``): enqueued and flushed to the device
+        before the yield; the read of its point count waited for, motion estimated and the slot
+        published after it."""
         cl, q, rig = self.cl, self.build_queue, self.rig
         b = self.buffers.back()
         slot = self.buffers.slots[b]
-        events = []   # see the module docstring: dropped only after the blocking read below
+        events = []   # see the module docstring: dropped only after the wait for the read of n below
         try:
             for i, f in enumerate(frames):
                 checkpoint()
@@ -227,7 +230,12 @@ class OpenCLPipeline(FramePipeline):
             for k, gsize in self._count_camera:
                 cl.enqueue_nd_range_kernel(q, k, gsize, None)
             events.append(cl.enqueue_copy(q, self._cam_counts_host, self.cam_counts, is_blocking=False))
-            cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=True)
+            n_read = cl.enqueue_copy(q, self._n_host, slot.start, src_offset=4 * self.ncells, is_blocking=False)
+            q.flush()
+            try:
+                yield                   # the device builds; the caller's other work runs meanwhile
+            finally:
+                n_read.wait()           # (also where the caller closes the generator here)
             events.clear()
             slot.vmax = self._motion(slot, frames)
         except cl.Error as e:

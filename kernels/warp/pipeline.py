@@ -124,8 +124,9 @@ class WarpPipeline(FramePipeline):
         return wp.ScopedStream(s) if s is not None else wp.ScopedDevice(self.device)
 
     # --- build -----------------------------------------------------------------------------
-    def _build(self, frames, packed):
-        rig = self.rig
+    def _build_steps(self, frames, packed):
+        """The build (see ``FramePipeline.ingest_steps``): on CUDA the build's graph is launched
+        before the yield and waited for after it; on Warp's CPU device the kernels run before it."""
         b = self.buffers.back()
         slot = self.buffers.slots[b]
         for i, f in enumerate(frames):
@@ -154,7 +155,11 @@ class WarpPipeline(FramePipeline):
                             graph = wp.capture_end(device=self.device, stream=self.build_stream)
                     self._graphs[b] = graph
                 wp.capture_launch(graph, stream=self.build_stream)
-                wp.synchronize_stream(self.build_stream)
+            try:
+                yield                   # the device builds; the caller's other work runs meanwhile
+            finally:
+                if self.cuda:
+                    wp.synchronize_stream(self.build_stream)
             slot.vmax = self._motion(slot, frames)
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp frame pipeline failed on {self.backend.device_name}: {e}") from e
