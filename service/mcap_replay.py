@@ -74,6 +74,9 @@ class RecordedRobot:
         #: the recorded arm's jaw range, where it had a jaw (then ``servo_jaw`` is accepted)
         self.jaw_limits = None if jaw_limits is None else tuple(jaw_limits)
         self.fault = False
+        #: the pose (4, 4) of ``pos`` and ``quat`` where the replay set it with them (else None:
+        #: ``measured_cp`` makes it)
+        self.pose = None
 
     @property
     def state(self) -> RobotMode:
@@ -81,12 +84,10 @@ class RecordedRobot:
 
     def measured_cp(self, out=None):
         T = _EYE.copy() if out is None else out
-        T[...] = _EYE
-        w, x, y, z = self.quat.tolist()
-        T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
-        T[:3, 3] = self.pos
+        if self.pose is not None:
+            T[...] = self.pose
+            return T
+        T[...] = poses(self.pos[None], self.quat[None])[0]
         return T
 
     def measured_orientation(self) -> np.ndarray:
@@ -113,6 +114,19 @@ class RecordedRobot:
 
     def step(self, dt: float) -> None:
         pass
+
+
+def poses(pos: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """Poses (N, 4, 4) of positions (N, 3) m and unit quaternions (N, 4) (w, x, y, z), each entry
+    computed as the recorded arm's ``measured_cp`` was (the same operations in the same order)."""
+    w, x, y, z = (quat[:, j] for j in range(4))
+    T = np.zeros((len(pos), 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    T[:, :3, 3] = pos
+    T[:, 3, 3] = 1.0
+    return T
 
 
 def build_schedule(recording) -> dict:
@@ -213,6 +227,9 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
     arch_code = svc.teleop.arch if what_if and architecture else None
     arms = [(b, r) for b, r in enumerate(robots) if r is not None and not what_if]
     rpos, rfault, rquat, rjaw = inp.robot_pos, inp.robot_fault, inp.robot_orientation, inp.robot_jaw
+    # every recorded pose at once (a tick then only copies its own)
+    rec_poses = {b: poses(*(rows[:, lay.cols[("in", f)][0]:][:, b * k: b * k + k] for f, k in
+                            (("robot_pos", 3), ("robot_orientation", 4)))) for b, _ in arms}
     clock, take, tick = time.perf_counter, ticks.take, svc.replay_tick
     t_setup = clock()
     try:
@@ -225,6 +242,7 @@ def replay(recording, *, backend=None, device=None, architecture=None, radius=No
             for b, r in arms:
                 r.pos[:] = rpos[b]
                 r.quat[:] = rquat[b]
+                r.pose = rec_poses[b][i]
                 r.jaw = float(rjaw[b])
                 r.fault = bool(rfault[b])
             w0 = clock()

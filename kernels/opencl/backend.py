@@ -40,7 +40,7 @@ class OpenCLBackend(Backend):
                 from .shared_host import zero_copy_ok
 
                 ctx = self.cl.Context([dev])
-                if zero_copy_ok(self.cl, self.context, ctx) and zero_copy_ok(self.cl, ctx, self.context):
+                if zero_copy_ok(self.cl, self.context, ctx):
                     self._inline = ctx
         return self._inline or None
 

@@ -35,27 +35,29 @@ def host_buffer(cl, ctx, array: np.ndarray, read_only: bool = False):
     return cl.Buffer(ctx, (mf.READ_ONLY if read_only else mf.READ_WRITE) | mf.USE_HOST_PTR, hostbuf=array)
 
 
-def zero_copy_ok(cl, writer_ctx, reader_ctx) -> bool:
-    """Whether a kernel of ``reader_ctx`` sees what a kernel of ``writer_ctx`` wrote into a shared
-    host array, and the host sees what both wrote, with no transfer enqueued."""
+def zero_copy_ok(cl, ctx_a, ctx_b) -> bool:
+    """Whether a kernel of either context sees what a kernel of the other wrote into a shared
+    host array, and the host sees what both wrote, with no transfer enqueued: a then b, and b
+    then a (one build of the check kernel per context)."""
     n = 4096
-    a = aligned_zeros(4 * n, np.int32)
-    b = aligned_zeros(4 * n, np.int32)
-    c = aligned_zeros(4 * n, np.int32)
-    a[:] = np.arange(n, dtype=np.int32)
     try:
-        kw = cl.Kernel(build_source(writer_ctx, _CHECK_SRC, "copy_add"), "copy_add")
-        kr = cl.Kernel(build_source(reader_ctx, _CHECK_SRC, "copy_add"), "copy_add")
-        qw, qr = cl.CommandQueue(writer_ctx), cl.CommandQueue(reader_ctx)
-        aw, bw = host_buffer(cl, writer_ctx, a), host_buffer(cl, writer_ctx, b)
-        br, cr = host_buffer(cl, reader_ctx, b), host_buffer(cl, reader_ctx, c)
-        for k in (1, 7):
-            kw(qw, (n,), None, aw, bw, np.int32(k))
-            qw.finish()
-            kr(qr, (n,), None, br, cr, np.int32(k))
-            qr.finish()
-            if not (np.array_equal(b, a + k) and np.array_equal(c, a + 2 * k)):
-                return False
+        ka = cl.Kernel(build_source(ctx_a, _CHECK_SRC, "copy_add"), "copy_add")
+        kb = cl.Kernel(build_source(ctx_b, _CHECK_SRC, "copy_add"), "copy_add")
+        for (cw, kw), (cr, kr) in (((ctx_a, ka), (ctx_b, kb)), ((ctx_b, kb), (ctx_a, ka))):
+            a = aligned_zeros(4 * n, np.int32)
+            b = aligned_zeros(4 * n, np.int32)
+            c = aligned_zeros(4 * n, np.int32)
+            a[:] = np.arange(n, dtype=np.int32)
+            qw, qr = cl.CommandQueue(cw), cl.CommandQueue(cr)
+            aw, bw = host_buffer(cl, cw, a), host_buffer(cl, cw, b)
+            br, cbuf = host_buffer(cl, cr, b), host_buffer(cl, cr, c)
+            for k in (1, 7):
+                kw(qw, (n,), None, aw, bw, np.int32(k))
+                qw.finish()
+                kr(qr, (n,), None, br, cbuf, np.int32(k))
+                qr.finish()
+                if not (np.array_equal(b, a + k) and np.array_equal(c, a + 2 * k)):
+                    return False
     except (cl.Error, KernelError):   # the check kernel does not build or run: no sharing
         return False
     return True
