@@ -45,7 +45,10 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError, PointfenceError
 
+from pointfence.kernels.backend import run_steps
+
 from . import measures
+from .recorded_frames import FrameDecoder
 from .recorded_surface import RecordedSurface
 from .ros2_schemas import robot_ns
 
@@ -92,21 +95,36 @@ def evaluate(rec, backend: Optional[str] = None, device: Optional[str] = None, p
     coupled = _col(rec, "out", "coupled").astype(bool)
     d_r, d_m = np.full((rows, n), np.nan), np.full((rows, n), np.nan)
     wanted = [int(s) for s in np.unique(seqs) if s > 0]
-    missing, built, cache, last = [], 0, {}, None
-    for i, seq in enumerate(wanted):
-        frames = _frames(rec, seq, cache)
-        if frames is None:
-            missing.append(seq)
-            continue
-        pipe.ingest(frames)
-        last = RecordedSurface(pipe.host_snapshot(), pipe.rig.cameras, pipe.rig.order(frames), pipe.rig.offsets)
-        built += 1
-        sel = np.flatnonzero(seqs == seq)
-        both = np.concatenate([xr[sel].reshape(-1, 3), xm[sel].reshape(-1, 3)])
-        d = last.signed_distance(both)
-        d_r[sel], d_m[sel] = d[: len(sel) * n].reshape(-1, n), d[len(sel) * n:].reshape(-1, n)
-        if progress is not None:
-            progress(i + 1, len(wanted))
+    missing, built, last = [], 0, None
+    # The snapshots are built one after the other (motion estimates carry over), each while the
+    # ticks of the one before it are measured: a build's device work is submitted
+    # (``ingest_steps``) before the measuring and finished after it; the PNGs decode ahead in
+    # threads of their own.
+    decoder = FrameDecoder(rec, {i: [seq] for i, seq in enumerate(wanted)})
+    nxt = (None, None)
+    try:
+        nxt = _start(pipe, decoder, rec, wanted, 0)
+        for i, seq in enumerate(wanted):
+            frames, steps = nxt
+            if frames is None:
+                missing.append(seq)
+                nxt = _start(pipe, decoder, rec, wanted, i + 1)
+                continue
+            run_steps(steps)
+            snapshot = pipe.host_snapshot()
+            nxt = _start(pipe, decoder, rec, wanted, i + 1)
+            last = RecordedSurface(snapshot, pipe.rig.cameras, pipe.rig.order(frames), pipe.rig.offsets)
+            built += 1
+            sel = np.flatnonzero(seqs == seq)
+            both = np.concatenate([xr[sel].reshape(-1, 3), xm[sel].reshape(-1, 3)])
+            d = last.signed_distance(both)
+            d_r[sel], d_m[sel] = d[: len(sel) * n].reshape(-1, n), d[len(sel) * n:].reshape(-1, n)
+            if progress is not None:
+                progress(i + 1, len(wanted))
+    finally:
+        if nxt[1] is not None:
+            nxt[1].close()
+        decoder.close()
     arms, traces = [], []
     for b in range(n):
         ok = np.isfinite(xr[:, b]).all(axis=1) & ~np.isnan(d_r[:, b])
@@ -131,23 +149,23 @@ def evaluate(rec, backend: Optional[str] = None, device: Optional[str] = None, p
     return Evaluation(summary, traces, last)
 
 
-def _frames(rec, seq: int, cache: dict):
-    """The recorded frames snapshot ``seq`` was built from (one per camera), or None if any is
-    not in the file (dropped while recording, or past a torn end)."""
-    entry = rec.snapshots.get(seq)
+def _start(pipe, decoder, rec, wanted: list, i: int) -> tuple:
+    """(frames, the started build's steps) of snapshot ``wanted[i]``; (None, None) past the end
+    or where a frame of it is not in the file (dropped while recording, or past a torn end)."""
+    if i >= len(wanted):
+        return None, None
+    entry = rec.snapshots.get(wanted[i])
     if entry is None:
-        return None
+        return None, None
     fseqs, findex, stamps, poses = entry
-    out = []
-    for i, (fseq, idx) in enumerate(zip(fseqs, findex)):
-        hit = cache.get(i)
-        if hit is None or hit[0] != idx:
-            try:
-                hit = cache[i] = (idx, rec.frame(i, idx, fseq, stamps[i], poses[16 * i: 16 * i + 16]))
-            except InputError:
-                return None
-        out.append(hit[1])
-    return out
+    try:
+        frames = [decoder.get(c, idx, fseq, stamps[c], poses[16 * c: 16 * c + 16])
+                  for c, (fseq, idx) in enumerate(zip(fseqs, findex))]
+    except InputError:
+        return None, None
+    steps = pipe.ingest_steps(frames)
+    next(steps)                     # (the build's device work submitted: see ``evaluate``)
+    return frames, steps
 
 
 def _worst(arms: list) -> dict:

@@ -226,3 +226,50 @@ def test_readme_lists_every_command():
     rows = [ln for ln in README.read_text().splitlines() if ln.startswith("| `")]
     for name in COMMANDS:
         assert any(re.search(rf"`{re.escape(name)}[ `]", ln) for ln in rows), f"README's command table lacks {name}"
+
+
+def _plain_distances(rec, skip=()):
+    """The measures' per-tick distances rebuilt the plain way: every snapshot ingested and measured
+    in turn (no build beside the measuring, no decoding ahead)."""
+    from pointfence.kernels import get_backend
+    from pointfence.service.mcap_replay import recording_config
+    from pointfence.service.recorded_surface import RecordedSurface
+
+    cfg = recording_config(rec)
+    pipe = get_backend(rec.meta["backend"]).pipeline([c.camera for c in cfg.cameras], cfg.pipeline)
+    lay, n = rec.layout, rec.layout.n
+    c, _ = lay.cols[("out", "frame_seq")]
+    seqs = rec.rows[:, c].astype(np.int64)
+    cols = {f: lay.cols[("out", f)][0] for f in ("robot_pos", "xm")}
+    d_r = np.full((len(seqs), n), np.nan)
+    for seq in [int(s) for s in np.unique(seqs) if s > 0 and s not in skip]:
+        fseqs, findex, stamps, poses = rec.snapshots[seq]
+        frames = [rec.frame(i, idx, fs, stamps[i], poses[16 * i: 16 * i + 16])
+                  for i, (fs, idx) in enumerate(zip(fseqs, findex))]
+        pipe.ingest(frames)
+        surf = RecordedSurface(pipe.host_snapshot(), pipe.rig.cameras, pipe.rig.order(frames), pipe.rig.offsets)
+        sel = np.flatnonzero(seqs == seq)
+        d_r[sel] = surf.signed_distance(rec.rows[sel, cols["robot_pos"]: cols["robot_pos"] + 3 * n].reshape(-1, 3)
+                                        ).reshape(-1, n)
+    return seqs, d_r
+
+
+def test_the_measures_equal_a_plain_rebuild_snapshot_by_snapshot(served):
+    """``evaluate`` builds each snapshot while the ticks of the one before it are measured; the
+    distances are those of building and measuring one snapshot after the other, bit for bit,
+    also where a snapshot's frames are missing from the file."""
+    rec = open_recording(served)
+    seqs, want = _plain_distances(rec)
+    ev = run_measures.evaluate(rec)
+    ok = ~np.isnan(want[:, 0])
+    assert ok.sum() > 1000 and ev.summary["snapshots_missing"] == []
+    np.testing.assert_array_equal(ev.traces[0]["d_r"], want[ok, 0])
+    # one snapshot's frames gone (dropped while recording): not measured, the others as before
+    gone = int(np.unique(seqs[seqs > 0])[len(np.unique(seqs[seqs > 0])) // 2])
+    rec = open_recording(served)
+    del rec.snapshots[gone]
+    seqs, want = _plain_distances(rec, skip=(gone,))
+    ev = run_measures.evaluate(rec)
+    ok = ~np.isnan(want[:, 0])
+    assert ev.summary["snapshots_missing"] == [gone] and (~ok).sum() >= (seqs == gone).sum() > 0
+    np.testing.assert_array_equal(ev.traces[0]["d_r"], want[ok, 0])
