@@ -75,7 +75,7 @@ class FramePipeline(ABC):
         it, publishes the snapshot and returns its ``IngestInfo`` (as ``StopIteration.value``).
         Nothing is published before the yield. Between the two parts the caller may run other
         work (a replay's ticks, on the front snapshot) while the device builds, but must not
-        ingest again. ``run_steps`` runs both parts at once. An error raises in either part and
+        ingest again nor write a ``depth_staging`` array. ``run_steps`` runs both parts at once. An error raises in either part and
         publishes nothing; a generator closed at its yield waits for the submitted work."""
         t0 = time.perf_counter()
         ordered = self.rig.order(frames)
