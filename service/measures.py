@@ -85,18 +85,24 @@ class SnapshotRegion:
         self.points = np.asarray(snapshot.points[prot, :3], dtype=float)
         self.radii = np.asarray(snapshot.points[prot, 3], dtype=float)
         self.tree = cKDTree(self.points) if len(self.points) else None
+        self.r_max = float(self.radii.max()) if len(self.radii) else 0.0
         self.k = int(k)
 
     def __call__(self, points, times=None, within: Optional[float] = None) -> np.ndarray:
-        """Signed distances (m) of ``points`` (N, 3) to the region (``times`` and ``within``, as
-        for SceneRegion, ask nothing of a snapshot: every distance is exact)."""
+        """Signed distances (m) of ``points`` (N, 3) to the region (``times`` asks nothing of a
+        snapshot); ``within`` as for SceneRegion: a point further than it reads +inf."""
         p = np.atleast_2d(np.asarray(points, dtype=float))
         if self.tree is None:
             return np.full(len(p), np.inf)
         k = min(self.k, len(self.points))
-        dist, idx = self.tree.query(np.nan_to_num(p, nan=1e9), k=k)
+        # (a point within ``within`` of the region is within ``within`` + its radius of its point)
+        ub = np.inf if within is None else max(float(within), 0.0) + self.r_max * (1 + 1e-9) + 1e-12
+        dist, idx = self.tree.query(np.nan_to_num(p, nan=1e9), k=k, distance_upper_bound=ub, workers=-1)
         dist, idx = np.atleast_2d(dist.T).T, np.atleast_2d(idx.T).T
-        return (dist - self.radii[np.minimum(idx, len(self.radii) - 1)]).min(axis=1)
+        d = (dist - self.radii[np.minimum(idx, len(self.radii) - 1)]).min(axis=1)
+        if within is not None:       # (beyond it, only some of a point's nearest were looked at)
+            d[d > max(float(within), 0.0)] = np.inf
+        return d
 
 
 def compute(times, xr, cmd, xm, region, mask=None) -> dict:

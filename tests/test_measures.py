@@ -59,3 +59,30 @@ def test_the_measures_are_the_same_with_the_masters_distances_cut_off():
                               np.linalg.norm(xr - xm, axis=1))
     assert got == want
     assert got["submittance_min_distance_m"] is not None and got["safety_max_penetration_m"] > 0.02
+
+
+def test_a_snapshots_region_cut_off_is_exact_within_it_and_the_measures_are_unchanged():
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(11)
+    n = 4000                                         # a wavy sheet of protected points, radii 5-15 mm
+    xy = rng.uniform(-0.1, 0.1, (n, 2))
+    z = 0.01 * np.sin(30 * xy[:, 0]) * np.cos(20 * xy[:, 1])
+    pts = np.column_stack([xy, z, rng.uniform(0.005, 0.015, n)]).astype(np.float32)
+    prot = (rng.random(n) < 0.8).astype(np.uint8)
+    region = measures.SnapshotRegion(SimpleNamespace(points=pts, protected=prot))
+    q = np.column_stack([rng.uniform(-0.12, 0.12, (3000, 2)), rng.uniform(-0.03, 0.08, 3000)])
+    exact = region(q)
+    assert (exact < 0).sum() > 100 and (exact > 0.03).sum() > 100
+    for within in (0.0, 0.004, 0.02):
+        cut = region(q, within=within)
+        near = exact <= within
+        np.testing.assert_array_equal(cut[near], exact[near])
+        assert np.all((cut[~near] == np.inf) | (cut[~near] == exact[~near]))
+        assert (cut[exact > within + 1e-3] == np.inf).all()
+    t = np.zeros(len(q))
+    xm = q + rng.normal(0.0, 0.01, q.shape)
+    cmd = q + rng.normal(0.0, 0.001, q.shape)
+    got = measures.compute(t, q, cmd, xm, region)
+    want = measures.summarise(region(q), region(xm), np.linalg.norm(q - cmd, axis=1), np.linalg.norm(q - xm, axis=1))
+    assert got == want and got["submittance_min_distance_m"] is not None
