@@ -55,15 +55,18 @@ class ToolPoseRing:
         self.count = 0
         self.misses = 0        # look-ups older than the oldest kept pose (the oldest was used)
         self._lock = threading.Lock()
+        # per ring slot, each robot's joint reader and its row of that slot, made once: a tick's
+        # record is then the readers' calls alone
+        readers = [(b, getattr(r, "measured_jp_into", None) or (lambda out, r=r: _joints_into(r, out)))
+                   for b, r in enumerate(self.robots) if r is not None]
+        self._slots = [tuple((read, self.q[i, b]) for b, read in readers) for i in range(self.capacity)]
 
     def record(self, t: float) -> None:
         """The robots' measured joints now, at time ``t`` (frames' clock; increasing)."""
         with self._lock:
             i = self.count % self.capacity
-            row = self.q[i]
-            for b, r in enumerate(self.robots):
-                if r is not None:
-                    _joints_into(r, row[b])
+            for read, row in self._slots[i]:
+                read(row)
             self.times[i] = t
             self.count += 1
 
