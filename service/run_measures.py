@@ -43,9 +43,8 @@ from typing import Optional
 
 import numpy as np
 
-from pointfence.kernels.errors import InputError, PointfenceError
-
 from pointfence.kernels.backend import run_steps
+from pointfence.kernels.errors import InputError, PointfenceError
 
 from . import measures
 from .recorded_frames import FrameDecoder
