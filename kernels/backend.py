@@ -75,8 +75,9 @@ class FramePipeline(ABC):
         it, publishes the snapshot and returns its ``IngestInfo`` (as ``StopIteration.value``).
         Nothing is published before the yield. Between the two parts the caller may run other
         work (a replay's ticks, on the front snapshot) while the device builds, but must not
-        ingest again nor write a ``depth_staging`` array. ``run_steps`` runs both parts at once. An error raises in either part and
-        publishes nothing; a generator closed at its yield waits for the submitted work."""
+        ingest again nor write a ``depth_staging`` array. ``run_steps`` runs both parts at once.
+        An error raises in either part and publishes nothing; a generator closed at its yield
+        waits for the submitted work."""
         t0 = time.perf_counter()
         ordered = self.rig.order(frames)
         packed = self.rig.pack(ordered, self.params.lateral_px)  # validates per-frame poses
@@ -100,17 +101,11 @@ class FramePipeline(ABC):
         q = check_queries(queries, radius, max_neighbors)
         return self._neighbors(q, float(radius), int(max_neighbors), bool(protected_only))
 
+    @abstractmethod
     def _build_steps(self, frames: list, packed):
-        """``_build`` as ``ingest_steps``' generator (one yield, then the build and publication;
-        returns what ``_build`` returns). Backends that build on a device override it and submit
-        their work before the yield; this default builds everything after it."""
-        yield
-        return self._build(frames, packed)
-
-    def _build(self, frames: list, packed) -> tuple:
-        """Build and publish; return (n_points, per_camera counts). A backend overrides this or
-        ``_build_steps``."""
-        raise NotImplementedError(f"{type(self).__name__} builds no snapshots")
+        """Build into the back slot and publish, as ``ingest_steps``' generator: device work
+        submitted before its one yield, the wait and the publication after it; returns
+        (n_points, per_camera counts)."""
 
     @abstractmethod
     def _neighbors(self, q, radius: float, max_neighbors: int, protected_only: bool) -> Neighbors: ...

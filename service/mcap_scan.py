@@ -29,7 +29,7 @@ MAGIC = b"\x89MCAP0\r\n"
 #: opcodes (MCAP spec)
 HEADER, FOOTER, SCHEMA, CHANNEL, MESSAGE, CHUNK, METADATA, DATA_END = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x0C, 0x0F
 _REC = struct.Struct("<BQ")                 # opcode, length
-_MSG = struct.Struct("<BQHI")               # opcode, length, channel id, sequence (then two u64 times, data)
+_MSG_IDS = struct.Struct("<HI")             # a message's channel id and sequence (then two u64 times, data)
 _CHUNK = struct.Struct("<QQQII")            # start, end, uncompressed size, uncompressed CRC, compression length
 _U64 = struct.Struct("<Q")
 _U32 = struct.Struct("<I")
@@ -46,6 +46,14 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
         import lz4.frame
         return lz4.frame.decompress(data)
     raise McapError(f"chunk compressed with {compression!r}; expected zstd, lz4 or none")
+
+
+def _message(buf, body: int, end: int) -> tuple:
+    """The message record whose content is ``buf[body:end]``."""
+    if end - body < _MSG_HEAD:
+        raise McapError(f"a message record of {end - body} bytes; expected at least {_MSG_HEAD}")
+    ch, seq = _MSG_IDS.unpack_from(buf, body)
+    return "message", ch, seq, buf[body + _MSG_HEAD: end]
 
 
 def _channel(content) -> tuple:
@@ -70,19 +78,17 @@ def _chunk_records(content: bytes):
         raise McapError(f"a chunk decompressed to {len(data)} bytes; its header says {size}")
     if crc != 0 and zlib.crc32(data) != crc:
         raise ValueError(f"chunk CRC mismatch: expected {crc}, calculated {zlib.crc32(data)}")
-    off, end, unpack = 0, len(data), _MSG.unpack_from
+    off, end, unpack = 0, len(data), _REC.unpack_from
     while off < end:
         if off + 9 > end:
             raise McapError("a record header runs past the end of its chunk")
-        op, length, ch, seq = unpack(data, off) if off + _MSG.size <= end else (*_REC.unpack_from(data, off), 0, 0)
+        op, length = unpack(data, off)
         body = off + 9
         nxt = body + length
         if nxt > end:
             raise McapError(f"a record of {length} bytes runs past the end of its chunk")
         if op == MESSAGE:
-            if length < _MSG_HEAD:
-                raise McapError(f"a message record of {length} bytes; expected at least {_MSG_HEAD}")
-            yield "message", ch, seq, data[body + _MSG_HEAD: nxt]
+            yield _message(data, body, nxt)
         elif op == CHANNEL:
             yield _channel(data[body: nxt])
         off = nxt
@@ -117,10 +123,7 @@ def scan(fh, record_size_limit: int = 1 << 30):
         if op == CHUNK:
             yield from _chunk_records(content)
         elif op == MESSAGE:
-            if length < _MSG_HEAD:
-                raise McapError(f"a message record of {length} bytes; expected at least {_MSG_HEAD}")
-            ch, seq = struct.unpack_from("<HI", content, 0)
-            yield "message", ch, seq, content[_MSG_HEAD:]
+            yield _message(content, 0, length)
         elif op == CHANNEL:
             yield _channel(content)
         elif op == METADATA:

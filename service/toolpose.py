@@ -29,13 +29,17 @@ from pointfence.kernels.yielding import checkpoint
 from .robot.tool import ToolModel, tool_capsules
 
 
-def _joints_into(robot, out: np.ndarray) -> None:
-    fill = getattr(robot, "measured_jp_into", None)   # the robot's measured joints (robot/base.py)
+def _joint_reader(robot):
+    """A call that writes ``robot``'s measured joints into an array (robot/base.py's
+    ``measured_jp_into``, else the positions of ``measured_js()``)."""
+    fill = getattr(robot, "measured_jp_into", None)
     if fill is not None:
-        fill(out)
-    else:
+        return fill
+
+    def read(out: np.ndarray) -> None:
         q = robot.measured_js().position
         out[: len(q)] = q
+    return read
 
 
 class ToolPoseRing:
@@ -51,14 +55,13 @@ class ToolPoseRing:
         self.q0 = np.zeros((n, self.dof))           # poses at construction: frames before the first tick
         for b, r in enumerate(self.robots):
             if r is not None:
-                _joints_into(r, self.q0[b])
+                _joint_reader(r)(self.q0[b])
         self.count = 0
         self.misses = 0        # look-ups older than the oldest kept pose (the oldest was used)
         self._lock = threading.Lock()
         # per ring slot, each robot's joint reader and its row of that slot, made once: a tick's
         # record is then the readers' calls alone
-        readers = [(b, getattr(r, "measured_jp_into", None) or (lambda out, r=r: _joints_into(r, out)))
-                   for b, r in enumerate(self.robots) if r is not None]
+        readers = [(b, _joint_reader(r)) for b, r in enumerate(self.robots) if r is not None]
         self._slots = [tuple((read, self.q[i, b]) for b, read in readers) for i in range(self.capacity)]
 
     def record(self, t: float) -> None:

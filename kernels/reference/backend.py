@@ -28,7 +28,8 @@ class NumpyPipeline(FramePipeline):
         self.backend = backend
         self.buffers = DoubleBuffer([empty_snapshot(self.grid), empty_snapshot(self.grid)])
 
-    def _build(self, frames, packed):
+    def _build_steps(self, frames, packed):
+        yield                   # (no device: the whole build runs in the second part)
         snap = build_snapshot(self.rig, frames, self.params, self.grid, seq=self.seq + 1, packed=packed)
         cell_v, snap.vmax = self._estimate_motion(lambda: cell_moments(snap.points, snap.cell_start, self.grid), snap.timestamps)
         snap.velocity = expand(cell_v, snap.cell_start, snap.points, self.grid)
