@@ -78,6 +78,24 @@ def test_hold_freezes_the_hosted_arm_and_resume_never_moves_it(host):
     assert a.state is RobotMode.ENABLED and np.linalg.norm(a.measured_cp()[:3, 3] - x0) < 1e-4
 
 
+
+def test_applied_tells_when_the_child_has_taken_this_sides_commands(host):
+    """``state`` reads the mode asked for at once; ``applied`` says when the child has it too."""
+    a = host.robots[0]
+    tick(host, 5)
+    assert host.applied(0) == host.sent(0)
+    a.hold()
+    a.servo_cp(a.measured_cp())                               # ignored while holding: not sent
+    assert host.sent(0)[1] == host.applied(0)[1] + 1          # HOLD asked for, not yet taken
+    assert a.state is RobotMode.HOLDING
+    for _ in range(2000):
+        tick(host)
+        if host.applied(0) == host.sent(0):
+            break
+    assert host.applied(0) == host.sent(0) and a.state is RobotMode.HOLDING
+    assert host.applied(1) == host.sent(1) == (0, 0)
+
+
 @pytest.mark.parametrize("bad, message", [
     ([np.nan, 0.0, 0.1], "not finite"),
     ([0.0, 0.0, 0.5], "outside the workspace"),

@@ -49,6 +49,18 @@ def run_for(robot, seconds: float, target=None) -> None:
         time.sleep(0.001)
 
 
+def enabled_in_child(host, arm) -> bool:
+    """One step of enabling hosted arm 0 until its child has it ENABLED: False while the child has
+    not applied the last mode command (``state`` then reads the mode asked for, not the child's),
+    and another ``enable()`` where the child refused (a restarted sim-arm not yet heard from)."""
+    if host.applied(0)[1] < host.sent(0)[1]:
+        return False
+    if arm.state == RobotMode.ENABLED:
+        return True
+    arm.enable()
+    return False
+
+
 def until(robot, cond, seconds: float = 10.0) -> bool:
     end = time.monotonic() + seconds
     while time.monotonic() < end:
@@ -250,19 +262,25 @@ def test_the_hosted_arm_runs_in_the_robot_process_end_to_end(ros2_env):
         for attempt in range(3):
             proc.kill()
             proc.wait(timeout=10)
+            if attempt == 0:         # the first time on purpose: the robot process stalls past its watchdog
+                host.inject("stall")
+                time.sleep(0.4)
+                assert until(arm, lambda: "not answering" in (arm.fault_reason or ""))
+                host.inject("none")
             assert until(arm, lambda: arm.state == RobotMode.FAULT)
             if "no fresh measured_" in (arm.fault_reason or "") or "not answering" not in (arm.fault_reason or ""):
                 break
-            # A loaded 2-core machine paused the robot process past its 250 ms watchdog before the
-            # arm's own timeout ran out (a CI machine did): that FAULT latched first. Bring the
-            # sim-arm back, clear the fault and kill the sim-arm again.
+            # The robot process was paused past its 250 ms watchdog before the arm's own timeout ran
+            # out (on purpose, or by a loaded 2-core machine, as a CI machine did): that FAULT
+            # latched first. Bring the sim-arm back, clear the fault (the child's arm refuses until
+            # it hears the new sim-arm) and kill the sim-arm again.
             first.append(arm.fault_reason)
             proc = start_sim_arm(ros2_env, "PSM3", "--state-type", "string")
             assert until(arm, lambda: host.ready(0) is None, 30), host.ready(0)
-            arm.enable()
-            assert until(arm, lambda: arm.state == RobotMode.ENABLED, 30), arm.last_error
+            assert until(arm, lambda: enabled_in_child(host, arm), 30), arm.last_error
         # (measured_cp or measured_js: whichever aged first)
         assert "no fresh measured_" in (arm.fault_reason or ""), (arm.fault_reason, first)
+        assert "not answering" in first[0]           # (the stall's FAULT was cleared, then this one came)
         assert arm.servo_cp(goal) is False
     finally:
         host.close()

@@ -365,6 +365,14 @@ class RobotHost:
         c = self._cmds
         return int(c.servo_seq[b]), int(c.mode_seq[b])
 
+    def applied(self, b: int) -> tuple:
+        """(setpoints, mode commands) arm ``b``'s child had applied at the last read of its state
+        record (taken or not: also while the arm is latched): a mode command of this side is in
+        effect once ``applied(b)[1] == sent(b)[1]``; until then ``state`` reads the mode this
+        side asked for."""
+        row = self._buf[b]
+        return int(row[self._L.servo_seq]), int(row[self._L.mode_seq])
+
     @property
     def pid(self) -> Optional[int]:
         """The robot process's id (None: none runs)."""
