@@ -190,6 +190,34 @@ def test_a_non_rigid_pose_faults_the_arm(arm):
     assert "not rigid" in arm.fault_reason
 
 
+@pytest.mark.parametrize("topic", ["measured_cp", "measured_js"])
+def test_a_message_that_cannot_be_read_faults_the_arm(arm, topic):
+    """The 1 kHz topics arrive serialized (ros2/cdr.py): bytes that are no message of the topic's
+    type (here a string length running past the message's end) fault the arm, naming the topic
+    and what was wrong, and are never taken."""
+    import struct
+
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import JointState
+
+    from pointfence.service.ros2 import cdr
+
+    if topic == "measured_cp":
+        kind, data = PoseStamped, bytearray(cdr.StampedWriter("pose", "PSM1_base").encode(0, (0, 0, 0, 0, 0, 0, 1)))
+    else:
+        kind, data = JointState, bytearray(cdr.JointStateWriter(("x", "y", "z"), "PSM1_base").encode(0, (0, 0, 0)))
+    struct.pack_into("<I", data, 12, 4000)                  # frame_id's length: past the end
+    before = arm.measured_cp().copy()
+    inj = Pub(kind, f"/PSM1/{topic}")
+    try:
+        assert inj.send(bytes(data), arm, lambda: arm.state == RobotMode.FAULT), "an unreadable message did not fault the arm"
+    finally:
+        inj.close()
+    assert f"{topic} on /PSM1/{topic} could not be read" in arm.fault_reason, arm.fault_reason
+    assert "frame_id: length 4000" in arm.fault_reason
+    assert np.linalg.norm(arm.measured_cp()[:3, 3] - before[:3, 3]) < 1e-3   # (the sim-arm's own samples only)
+
+
 def test_a_state_other_than_enabled_faults_the_arm_until_enabled_again(sim_arm):
     from pointfence.service.ros2.crtk_msgs_build import operating_state_type
 

@@ -127,6 +127,7 @@ def test_nan_wrong_frame_bad_pedal_silence_and_a_dead_bridge_make_the_master_inv
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Joy
 
+    from pointfence.service.ros2 import cdr
     from pointfence.service.ros2.crtk_master import CrtkMasterHost
     from pointfence.service.ros2.node import RosNode
 
@@ -158,6 +159,14 @@ def test_nan_wrong_frame_bad_pedal_silence_and_a_dead_bridge_make_the_master_inv
         assert "'world'" in m.status()["last_rejection"] and m.position[0] == 0.02
         assert until(lambda m: m.ok, x=0.02)
         assert until(lambda m: not m.ok, x=0.02, w=2.0)                         # not a unit quaternion
+        assert until(lambda m: m.ok and m.clutch)
+        before = m.position[0]
+        junk = bytearray(cdr.StampedWriter("pose", "pft_base").encode(0, (0.03, 0, 0, 0, 0, 0, 1)))
+        junk[12:16] = (4000).to_bytes(4, "little")                              # frame_id's length: past the end
+        assert polled(m, lambda m: (pose_pub.publish(bytes(junk)), not m.ok)[1], 15)   # bytes no pose: refused
+        st = m.status()
+        assert st["rejected"]["unreadable"] >= 1 and "frame_id: length 4000" in st["last_rejection"]
+        assert m.position[0] == before                                          # (the 0.03 in the junk never reached it)
         assert until(lambda m: m.ok and m.clutch)
         assert until(lambda m: not m.clutch, pedal=())                          # no button 0: decoupled
         assert m.status()["rejected"]["pedal"] >= 1

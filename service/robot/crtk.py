@@ -111,7 +111,7 @@ class CrtkRobot(Robot):
                                 "jaw_measured_js": wire.topic(ns, "jaw/measured_js")})
         self._T_meas_ok = True             # the measured pose is taken, never computed (no kinematics here)
         self._base = np.eye(4)             # scratch: a pose in the base frame
-        self._cp_seen = self._js_seen = self._bad_seen = None
+        self._cp_seen = self._js_seen = self._bad_seen = self._bad_js_seen = None
         self._cp_bad: Optional[str] = None
         self._js_bad: Optional[str] = None
         self._bridge = None
@@ -160,6 +160,10 @@ class CrtkRobot(Robot):
         if age > self.measured_timeout_s:
             return (f"no fresh measured_cp on {self.topics['measured_cp']} for {1e3 * age:.0f} ms "
                     f"(measured_timeout_s = {1e3 * self.measured_timeout_s:.0f} ms)")
+        bad = b.bad_js
+        if bad is not self._bad_js_seen:   # (as for measured_cp: a message that could not be read)
+            self._bad_js_seen = bad
+            return f"measured_js on {self.topics['measured_js']} {bad[1]}"
         js = b.js
         if js is None:
             return f"no measured_js on {self.topics['measured_js']} yet"

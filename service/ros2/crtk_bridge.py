@@ -5,10 +5,13 @@ and ``jaw/servo_jp``: ``sensor_msgs/JointState`` of one position, rad).
 The node is spun on its own thread (``RosNode`` on rclpy's ``EventsExecutor``: measured_cp and
 measured_js arrive at 1 kHz, and its C++ event queue costs a fraction of the Python time per
 message that the single-threaded executor's wait sets do, time the arm's own 1 kHz thread needs
-in the same process). Each callback turns its message into a tuple of plain floats and swaps it
-in as the newest (one reference assignment: no lock); the arm's ``step`` takes the newest tuples
-and publishes its setpoint on ``servo_cp`` itself (an rclpy publisher may be used from any
-thread; the event executor serves no guard condition to hand it over with).
+in the same process). The 1 kHz topics travel serialized (raw subscriptions and publishing,
+ros2/cdr.py: rclpy's conversion to and from message objects was most of their cost). Each
+callback turns its message into a tuple of plain floats and swaps it in as the newest (one
+reference assignment: no lock); a message that cannot be read is kept as the newest bad one
+(``bad_cp``, ``bad_js``), which faults the arm. The arm's ``step`` takes the newest tuples and
+publishes its setpoint on ``servo_cp`` itself (an rclpy publisher may be used from any thread;
+the event executor serves no guard condition to hand it over with).
 
 Round trip (``pointfence bench ros2``): each ``servo_cp`` carries ``header.stamp`` = the
 wall-clock time it was sent (ns, unique per send); an arm that echoes the stamp of the last
@@ -21,6 +24,7 @@ import collections
 import time
 from typing import Optional
 
+from . import cdr
 from . import crtk_wire as wire
 from .node import RosNode
 
@@ -47,47 +51,57 @@ class CrtkBridge:
         #: the newest measured_cp that was no valid pose in ``frame_id`` (arrival, why), kept even
         #: when a good one follows before the arm's next step: one bad sample must fault the arm
         self.bad_cp: Optional[tuple] = None
+        self.bad_js: Optional[tuple] = None  # (arrival, why) of the newest measured_js that could not be read
         self.received = 0                   # measured_cp messages
         self.sent = 0                       # servo_cp messages published
         self._rtt = collections.deque(maxlen=100_000)
         self._stamps: dict = {}             # stamp (ns) -> monotonic send time, of recent sends
         self._order: collections.deque = collections.deque()
-        self._msg = PoseStamped()
-        self._msg.header.frame_id = frame_id
+        self._writer = cdr.StampedWriter("pose", frame_id)
         self._pub = node.create_publisher(PoseStamped, topics["servo_cp"], wire.qos_reliable())
-        node.create_subscription(PoseStamped, topics["measured_cp"], self._on_cp, wire.qos_stream())
-        node.create_subscription(JointState, topics["measured_js"], self._on_js, wire.qos_stream())
+        node.create_subscription(PoseStamped, topics["measured_cp"], self._on_cp, wire.qos_stream(), raw=True)
+        node.create_subscription(JointState, topics["measured_js"], self._on_js, wire.qos_stream(), raw=True)
         if state_cls is not None:
             node.create_subscription(state_cls, topics["operating_state"], self._on_state, wire.qos_reliable(10))
         self._jaw_pub = None
         if "jaw_servo_jp" in topics:
-            self._jaw_msg = JointState()
-            self._jaw_msg.name = ["jaw"]
-            self._jaw_msg.position = [0.0]
+            self._jaw_writer = cdr.JointStateWriter(("jaw",))
             self._jaw_pub = node.create_publisher(JointState, topics["jaw_servo_jp"], wire.qos_reliable())
-            node.create_subscription(JointState, topics["jaw_measured_js"], self._on_jaw, wire.qos_stream())
+            node.create_subscription(JointState, topics["jaw_measured_js"], self._on_jaw, wire.qos_stream(), raw=True)
         self.ros.start()
 
     # --- the node's thread ----------------------------------------------------------------------
-    def _on_cp(self, m) -> None:
+    def _on_cp(self, raw: bytes) -> None:
         now = time.monotonic()
-        stamp = wire.stamp_ns(m.header)
-        pose = wire.read_pose(m.pose)
-        frame = m.header.frame_id
+        self.received += 1
+        try:
+            stamp, frame, pose = cdr.decode_pose_stamped(raw)
+        except cdr.CdrError as e:
+            self.bad_cp = (now, f"could not be read: {e}")
+            return
         why = f"has frame_id {frame!r}; expected {self.frame_id!r}" if frame != self.frame_id else wire.pose_problem(pose)
         if why is not None:
             self.bad_cp = (now, why)
         self.cp = (now, stamp, frame) + pose
-        self.received += 1
         t0 = self._stamps.pop(stamp, None)
         if t0 is not None:
             self._rtt.append(1e6 * (now - t0))
 
-    def _on_js(self, m) -> None:
-        self.js = (time.monotonic(), tuple(m.position), tuple(m.velocity), tuple(m.effort))
+    def _on_js(self, raw: bytes) -> None:
+        now = time.monotonic()
+        try:
+            _, _, q, dq, tau = cdr.decode_joint_state(raw)
+        except cdr.CdrError as e:
+            self.bad_js = (now, f"could not be read: {e}")
+            return
+        self.js = (now, q, dq, tau)
 
-    def _on_jaw(self, m) -> None:
-        self.jaw = (time.monotonic(), tuple(m.position))
+    def _on_jaw(self, raw: bytes) -> None:
+        try:
+            q = cdr.decode_joint_state(raw)[2]
+        except cdr.CdrError:
+            q = ()              # (no angle: the arm reads it as a bad jaw state)
+        self.jaw = (time.monotonic(), q)
 
     def _on_state(self, m) -> None:
         self.state = (time.monotonic(), wire.state_name(m))
@@ -97,24 +111,17 @@ class CrtkBridge:
         """Publish ``pose`` (x, y, z, qx, qy, qz, qw; base frame) on servo_cp, stamped now (wall
         clock, ns: unique per send, the round trip's key)."""
         stamp = time.time_ns()
-        x, y, z, qx, qy, qz, qw = pose
-        m = self._msg
-        wire.set_stamp(m.header, stamp)
-        p, o = m.pose.position, m.pose.orientation
-        p.x, p.y, p.z, o.x, o.y, o.z, o.w = x, y, z, qx, qy, qz, qw
+        data = self._writer.encode(stamp, pose)
         self._stamps[stamp] = time.monotonic()      # (before the echo can arrive on the node's thread)
         self._order.append(stamp)
-        self._pub.publish(m)
+        self._pub.publish(data)
         self.sent += 1
         while len(self._order) > 256:      # forget sends never echoed
             self._stamps.pop(self._order.popleft(), None)
 
     def send_jaw(self, angle: float) -> None:
         """Publish the jaw setpoint ``angle`` (rad) on jaw/servo_jp, stamped now."""
-        m = self._jaw_msg
-        wire.set_stamp(m.header, time.time_ns())
-        m.position[0] = angle
-        self._jaw_pub.publish(m)
+        self._jaw_pub.publish(self._jaw_writer.encode(time.time_ns(), (angle,)))
         self.jaw_sent += 1
 
     def round_trip_us(self) -> list:

@@ -130,23 +130,5 @@ def pose_to_matrix(p: tuple, out: np.ndarray) -> np.ndarray:
     return out
 
 
-def fill_pose(msg_pose, T: np.ndarray) -> None:
-    """Write transform ``T`` (4x4) into a ``geometry_msgs/Pose``."""
-    msg_pose.position.x, msg_pose.position.y, msg_pose.position.z = T[0, 3].item(), T[1, 3].item(), T[2, 3].item()
-    o = msg_pose.orientation
-    o.x, o.y, o.z, o.w = matrix_to_quat(T)
-
-
-def read_pose(msg_pose) -> tuple:
-    """(x, y, z, qx, qy, qz, qw) of a ``geometry_msgs/Pose``."""
-    p, o = msg_pose.position, msg_pose.orientation
-    return (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
-
-
-def stamp_ns(header) -> int:
-    """``header.stamp`` in nanoseconds."""
-    return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
-
-
 def set_stamp(header, ns: int) -> None:
     header.stamp.sec, header.stamp.nanosec = divmod(int(ns), 1_000_000_000)

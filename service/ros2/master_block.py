@@ -29,20 +29,20 @@ CONTROL = np.dtype([("stop", "i8"), ("beat", "i8"), ("pid", "i8"), ("ready", "i8
 #: ``poses`` accepted measured_cp messages; ``pose_rx`` arrival of the newest measured_cp
 #: (accepted or not, monotonic s); ``pose_valid`` 1 if that newest message was accepted;
 #: ``p`` its position (m), ``q`` its orientation (w, x, y, z) from the newest accepted message;
-#: ``reject`` the reason code of the newest rejection (``REJECT_*``); ``rejected`` (4,) counts by
-#: code (non-finite, frame, range, pedal); ``pedals`` accepted pedal messages, ``pressed`` the
+#: ``reject`` the reason code of the newest rejection (``REJECT_*``); ``rejected`` (6,) counts by
+#: code (non-finite, frame, range, pedal, gripper, unreadable); ``pedals`` accepted pedal messages, ``pressed`` the
 #: pedal's state (-1: no message yet, 0 up, 1 pressed), ``buttons`` the pedal message's pressed
 #: buttons as a bit mask (bit i: button i); ``grips`` accepted gripper messages
 #: (``gripper/measured_js``), ``grip_rx`` arrival of the newest (accepted or not, monotonic s),
 #: ``grip_valid`` 1 if that newest one was accepted, ``grasp`` the gripper's angle (rad) from the
 #: newest accepted one
 STATE = np.dtype([("poses", "f8"), ("pose_rx", "f8"), ("pose_valid", "f8"), ("p", "f8", (3,)), ("q", "f8", (4,)),
-                  ("reject", "f8"), ("rejected", "f8", (5,)), ("pedals", "f8"), ("pressed", "f8"),
+                  ("reject", "f8"), ("rejected", "f8", (6,)), ("pedals", "f8"), ("pressed", "f8"),
                   ("buttons", "f8"), ("grips", "f8"), ("grip_rx", "f8"), ("grip_valid", "f8"), ("grasp", "f8")])
 #: reasons a message is rejected (index into ``rejected`` is code - 1)
-REJECT_NONFINITE, REJECT_FRAME, REJECT_RANGE, REJECT_PEDAL, REJECT_GRIPPER = 1, 2, 3, 4, 5
+REJECT_NONFINITE, REJECT_FRAME, REJECT_RANGE, REJECT_PEDAL, REJECT_GRIPPER, REJECT_UNREADABLE = 1, 2, 3, 4, 5, 6
 REJECT_NAMES = {REJECT_NONFINITE: "non_finite", REJECT_FRAME: "frame_id", REJECT_RANGE: "range",
-                REJECT_PEDAL: "pedal", REJECT_GRIPPER: "gripper"}
+                REJECT_PEDAL: "pedal", REJECT_GRIPPER: "gripper", REJECT_UNREADABLE: "unreadable"}
 
 #: one device's command (service -> bridge): the tick's sequence number and force (N, master frame)
 COMMAND = np.dtype([("seq", "f8"), ("f", "f8", (3,))])

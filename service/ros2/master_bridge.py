@@ -6,6 +6,8 @@ executor thread takes each ``measured_cp``, gripper (``gripper/measured_js``) an
 checks it and writes the device's state row into shared memory (ros2/master_block.py); the main
 thread, once a millisecond, beats the heartbeat, reads each device's force from shared memory and
 publishes a new one on ``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame).
+The 1 kHz topics (poses, gripper, forces) travel serialized (ros2/cdr.py): a pose that cannot be
+read is refused like a bad one.
 Its own watchdog: when the service has written no new force for the device's timeout (its tick
 stalled, or it died) while the last force published was not zero, it publishes a zero wrench once.
 It ends when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
@@ -22,9 +24,11 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
+from . import cdr
 from .crtk_device import CrtkDevice
 from ..robot.hosted_block import put_text
-from .master_block import COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_PEDAL, STATE_LAYOUT, MasterBlock
+from .master_block import (COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_PEDAL, REJECT_UNREADABLE, STATE_LAYOUT,
+                           MasterBlock)
 
 #: the main thread's period: force forwarding and the heartbeat, s
 PERIOD_S = 0.001
@@ -52,7 +56,8 @@ class DeviceSide:
         self.locked = dev.frame_id             # the frame poses must be in (None: the first valid pose's)
         if self.locked:
             put_text(self.text[FRAME_TEXT], self.locked)
-        self._Wrench, self._Bool = WrenchStamped, Bool
+        self._Bool = Bool
+        self._wrench = None                    # (a StampedWriter for the force's frame, made at the first force)
         self.cmd_row = np.zeros(COMMAND_LAYOUT.size)
         self.seq = 0.0                         # the last force sequence forwarded
         self.new_at = time.monotonic()         # when it arrived (monotonic s)
@@ -62,10 +67,10 @@ class DeviceSide:
         events = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub = node.create_publisher(WrenchStamped, dev.force_topic, events)
         self.orient_pub = node.create_publisher(Bool, dev.cf_orientation_topic, events) if dev.orientation_absolute else None
-        node.create_subscription(PoseStamped, dev.pose_topic, self.on_pose, latest)
+        node.create_subscription(PoseStamped, dev.pose_topic, self.on_pose, latest, raw=True)
         node.create_subscription(Joy, dev.clutch_topic, self.on_pedal, events)
         if dev.gripper != "none":
-            node.create_subscription(JointState, dev.gripper_topic, self.on_gripper, latest)
+            node.create_subscription(JointState, dev.gripper_topic, self.on_gripper, latest, raw=True)
 
     # --- the executor thread: messages in -> the state row ---------------------------------------------
     def _reject(self, code: int, message: str) -> None:
@@ -74,13 +79,18 @@ class DeviceSide:
         row[L.rejected.start + code - 1] += 1
         put_text(self.text[ERROR_TEXT], message)
 
-    def on_pose(self, msg) -> None:
+    def on_pose(self, raw: bytes) -> None:
         L, row = STATE_LAYOUT, self.row
         row[L.pose_rx] = time.monotonic()
-        pp, qq = msg.pose.position, msg.pose.orientation
-        p, q = (pp.x, pp.y, pp.z), (qq.w, qq.x, qq.y, qq.z)
-        frame = msg.header.frame_id
-        bad = self.dev.check_pose(frame, self.locked, p, q)
+        try:
+            _, frame, (x, y, z, qx, qy, qz, qw) = cdr.decode_pose_stamped(raw)
+        except cdr.CdrError as e:
+            frame, x, y, z, qx, qy, qz, qw = "", *(math.nan,) * 7
+            why = f"{self.dev.pose_topic}: {e}"
+        else:
+            why = None
+        p, q = (x, y, z), (qw, qx, qy, qz)
+        bad = self.dev.check_pose(frame, self.locked, p, q) if why is None else (REJECT_UNREADABLE, why)
         if bad is None:
             if self.locked is None:
                 self.locked = frame
@@ -94,11 +104,15 @@ class DeviceSide:
             self._reject(*bad)
         self.state.write(row)
 
-    def on_gripper(self, msg) -> None:
+    def on_gripper(self, raw: bytes) -> None:
         L, row = STATE_LAYOUT, self.row
         row[L.grip_rx] = time.monotonic()
-        position = msg.position
-        bad = self.dev.check_grip(position)
+        try:
+            position = cdr.decode_joint_state(raw)[2]
+        except cdr.CdrError as e:
+            position, bad = (), (REJECT_UNREADABLE, f"{self.dev.gripper_topic}: {e}")
+        else:
+            bad = self.dev.check_grip(position)
         if bad is None:
             row[L.grasp] = float(position[0])
             row[L.grips] += 1
@@ -127,12 +141,10 @@ class DeviceSide:
         frame = self.dev.force_frame_id or self.locked
         if frame is None:    # the device has not been heard from: its frame, and whether it listens, are unknown
             return
-        m = self._Wrench()
-        m.header.stamp = self.node.get_clock().now().to_msg()
-        m.header.frame_id = frame
-        m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = f
+        if self._wrench is None or self._wrench.frame_id != frame:
+            self._wrench = cdr.StampedWriter("wrench", frame)
         try:
-            self.pub.publish(m)
+            self.pub.publish(self._wrench.encode(time.time_ns(), (*f, 0.0, 0.0, 0.0)))
             self.stats["published"] += 1
         except Exception as e:   # noqa: BLE001 -- counted and named; the service sees the device go on
             self.stats["errors"] += 1

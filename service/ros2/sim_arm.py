@@ -25,6 +25,7 @@ import numpy as np
 
 from pointfence.kernels.errors import InputError
 
+from . import cdr
 from . import crtk_wire as wire
 
 STATE_PERIOD_S = 0.1
@@ -83,18 +84,22 @@ class SimArm:
         self.last_refusal = ""
         self._stamp = None                  # the stamp of the last servo_cp applied
         self._T = np.eye(4)
-        self._cp, self._js = PoseStamped(), JointState()
-        self._cp.header.frame_id = self._js.header.frame_id = self.frame_id
-        self._js.name = list(robot.joint_names)
+        # (serialized: ros2/cdr.py; 1 kHz messages as rclpy objects cost most of this process's time)
+        self._cp = cdr.StampedWriter("pose", self.frame_id)
+        self._js = cdr.JointStateWriter(robot.joint_names, self.frame_id)
         self._state_name, self._state_at = None, 0.0
         self._pub_cp = node.create_publisher(PoseStamped, wire.topic(ns, "measured_cp"), wire.qos_reliable())
         self._pub_js = node.create_publisher(JointState, wire.topic(ns, "measured_js"), wire.qos_reliable())
         self._pub_state = node.create_publisher(self.state_cls, wire.topic(ns, "operating_state"), wire.qos_reliable(10))
-        node.create_subscription(PoseStamped, wire.topic(ns, "servo_cp"), self._on_servo, wire.qos_stream())
+        node.create_subscription(PoseStamped, wire.topic(ns, "servo_cp"), self._on_servo, wire.qos_stream(), raw=True)
         self.ros.start()
 
-    def _on_servo(self, m) -> None:
-        self._cmd = (wire.stamp_ns(m.header), m.header.frame_id, wire.read_pose(m.pose))
+    def _on_servo(self, raw: bytes) -> None:
+        try:
+            self._cmd = cdr.decode_pose_stamped(raw)
+        except cdr.CdrError as e:
+            self.refused += 1
+            self.last_refusal = f"servo_cp {e}"
 
     def period(self, dt: float) -> None:
         """Apply the newest servo_cp, step the model ``dt`` seconds, publish its state."""
@@ -115,15 +120,11 @@ class SimArm:
                 self.last_refusal = str(e)
         r.step(dt)
         now = time.time_ns()
-        cp = self._cp
-        wire.set_stamp(cp.header, self._stamp if (self.echo and self._stamp is not None) else now)
-        wire.fill_pose(cp.pose, r.measured_cp(out=self._T))
-        self._pub_cp.publish(cp)
+        T = r.measured_cp(out=self._T)
+        pose = (T[0, 3].item(), T[1, 3].item(), T[2, 3].item()) + wire.matrix_to_quat(T)
+        self._pub_cp.publish(self._cp.encode(self._stamp if (self.echo and self._stamp is not None) else now, pose))
         js = r.measured_js()
-        wire.set_stamp(self._js.header, now)
-        self._js.position, self._js.velocity, self._js.effort = (js.position.tolist(), js.velocity.tolist(),
-                                                                 js.effort.tolist())
-        self._pub_js.publish(self._js)
+        self._pub_js.publish(self._js.encode(now, js.position.tolist(), js.velocity.tolist(), js.effort.tolist()))
         name = "FAULT" if r.state.name == "FAULT" else wire.ENABLED
         mono = time.monotonic()
         if name != self._state_name or mono - self._state_at >= STATE_PERIOD_S:

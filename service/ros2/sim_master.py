@@ -35,6 +35,7 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 
 from ..masters import ScriptedMaster
+from . import cdr
 from .crtk_device import PEDAL_MEANINGS, CrtkDevice
 
 
@@ -93,15 +94,14 @@ class SimMaster:
         if self._out is not None:
             self._out.write("t,frame_id,fx,fy,fz\n")
 
-    def on_force(self, msg) -> None:
-        f = msg.wrench.force
-        v = (f.x, f.y, f.z)
+    def on_force(self, raw: bytes) -> None:
+        _, fr, w = cdr.decode_wrench_stamped(raw)    # (a bad one raises: the node stops, the run says why)
+        v = w[:3]
         n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
         self.forces += 1
         self.nonzero += n > 0
         self.max_force = max(self.max_force, n)
         self.last_force = v
-        fr = msg.header.frame_id
         self.frames_seen[fr] = self.frames_seen.get(fr, 0) + 1
         if self._out is not None:
             self._rows.append(f"{time.monotonic():.6f},{fr},{v[0]:.6g},{v[1]:.6g},{v[2]:.6g}\n")
@@ -144,16 +144,14 @@ def run(args) -> int:
         n = node.node
         pose_pub = n.create_publisher(PoseStamped, dev.pose_topic, reliable)
         pedal_pub = n.create_publisher(Joy, dev.clutch_topic, reliable)
-        n.create_subscription(WrenchStamped, dev.force_topic, sim.on_force, reliable)
+        n.create_subscription(WrenchStamped, dev.force_topic, sim.on_force, reliable, raw=True)
         node.start()
         if args.ready_file:
             Path(args.ready_file).write_text(json.dumps({"namespace": dev.namespace, "pose_topic": dev.pose_topic,
                                                          "force_topic": dev.force_topic}) + "\n")
         print(f"pointfence ros2 sim-master: {dev.pose_topic} at {args.rate:g} Hz (frame {sim.frame!r}), pedal "
               f"{dev.clutch_topic}[{dev.clutch_button}] ({dev.pedal}), forces from {dev.force_topic}", file=sys.stderr)
-        msg, pedal = PoseStamped(), Joy()
-        msg.header.frame_id = sim.frame
-        msg.pose.orientation.w = 1.0
+        pose, pedal = cdr.StampedWriter("pose", sim.frame), Joy()     # (poses at 1 kHz: serialized)
         period = 1.0 / args.rate
         m = sim.motion
         t0 = time.monotonic()
@@ -170,13 +168,13 @@ def run(args) -> int:
                     t0 = now          # the motion's clock starts at the first force
             s = now - t0
             m.poll(m.times[0] + (s % max(m.duration, 1e-9) if sim.loop else s))
-            msg.header.stamp = n.get_clock().now().to_msg()
-            msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in m.position)
-            pose_pub.publish(msg)
+            stamp = time.time_ns()
+            x, y, z = (float(v) for v in m.position)
+            pose_pub.publish(pose.encode(stamp, (x, y, z, 0.0, 0.0, 0.0, 1.0)))
             want = int(m.clutch == (dev.pedal == "couples"))   # coupled -> the pedal's state
             if want != pressed or now - last_pedal >= 0.1:
                 pressed, last_pedal = want, now
-                pedal.header.stamp = msg.header.stamp
+                pedal.header.stamp.sec, pedal.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
                 pedal.buttons = [0] * dev.clutch_button + [want]
                 pedal_pub.publish(pedal)
             if now - last_flush >= 0.1:

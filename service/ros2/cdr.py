@@ -1,0 +1,216 @@
+"""The 1 kHz messages in their serialized form: CDR encode and decode of ``geometry_msgs/PoseStamped``,
+``geometry_msgs/WrenchStamped`` and ``sensor_msgs/JointState`` with ``struct``, for rclpy's raw
+subscriptions (``create_subscription(..., raw=True)``: the callback gets the message's bytes) and
+raw publishing (``Publisher.publish(bytes)``).
+
+Why: rclpy turns every typed message into Python objects (a ``PoseStamped`` is seven of them, each
+field set through a checking property) and back; at 1 kHz per stream that conversion was most of
+the CPU time of the bridges (the CRTK arm's in the robot process, the master bridge) on a 2-core
+machine. Reading the 100-odd bytes of a pose with one ``struct`` call does the same work in a
+few microseconds.
+
+The format is ROS 2's (rmw_fastrtps, rmw_cyclonedds): a 4-byte encapsulation header (``00 01 00
+00``: plain CDR, little-endian; ``00 00``: big-endian), then the fields in order, each primitive
+aligned to its size from the end of the header; strings are a uint32 length counting a closing
+NUL, then the bytes and the NUL; sequences a uint32 count, then the elements (aligned once, where
+there is one). ``tests/test_ros2_cdr.py`` checks every codec against rclpy's own
+``serialize_message`` / ``deserialize_message``, big-endian input and damaged bytes included.
+
+Decoders raise ``CdrError`` (a ``ValueError``) naming what was wrong; a message that cannot be
+read is the caller's to count and refuse, as a bad value would be.
+"""
+from __future__ import annotations
+
+import struct
+
+#: the encapsulation headers: plain CDR little- and big-endian
+CDR_LE, CDR_BE = b"\x00\x01\x00\x00", b"\x00\x00\x00\x00"
+#: the longest string a decoder accepts (frame ids, joint names), bytes
+MAX_STRING = 1024
+#: the most elements of a JointState sequence a decoder accepts
+MAX_JOINTS = 256
+
+_U32 = {"<": struct.Struct("<I"), ">": struct.Struct(">I")}
+_HDR = {"<": struct.Struct("<iII"), ">": struct.Struct(">iII")}     # sec, nanosec, len(frame_id) + 1
+_D7 = {"<": struct.Struct("<7d"), ">": struct.Struct(">7d")}
+_D6 = {"<": struct.Struct("<6d"), ">": struct.Struct(">6d")}
+_STAMP = struct.Struct("<iI")
+_NS = 1_000_000_000
+
+
+class CdrError(ValueError):
+    """Bytes that are no message of the expected type."""
+
+
+def _order(buf, what: str) -> str:
+    head = bytes(buf[:4])
+    if len(head) < 4 or head[0] != 0 or head[1] not in (0, 1):
+        raise CdrError(f"{what}: {len(buf)} bytes starting {head.hex()}; expected a CDR encapsulation "
+                       "header (00 01 00 00 or 00 00 00 00)")
+    return "<" if head[1] == 1 else ">"
+
+
+def _pad(off: int, n: int) -> int:
+    """``off`` (from the start of the buffer) moved up to a multiple of ``n`` from the data's start."""
+    return 4 + ((off - 4 + n - 1) & ~(n - 1))
+
+
+def _header(buf, e: str, what: str) -> tuple:
+    """(stamp ns, frame_id, offset after the header) of a ``std_msgs/Header`` at offset 4."""
+    try:
+        sec, nsec, n = _HDR[e].unpack_from(buf, 4)
+    except struct.error:
+        raise CdrError(f"{what}: {len(buf)} bytes end inside the header") from None
+    return sec * _NS + nsec, _string(buf, 16, n, what + " frame_id"), 16 + n
+
+
+def _string(buf, off: int, n: int, what: str) -> str:
+    if not 1 <= n <= MAX_STRING or off + n > len(buf) or buf[off + n - 1] != 0:
+        raise CdrError(f"{what}: length {n} at byte {off} of {len(buf)}; expected 1 to {MAX_STRING} bytes "
+                       "ending in NUL within the message")
+    try:
+        return bytes(buf[off:off + n - 1]).decode()
+    except UnicodeDecodeError as e:
+        raise CdrError(f"{what}: not UTF-8 ({e.reason} at byte {off + e.start})") from None
+
+
+def _fixed(buf, e: str, table: dict, off: int, what: str) -> tuple:
+    try:
+        return table[e].unpack_from(buf, _pad(off, 8))
+    except struct.error:
+        raise CdrError(f"{what}: {len(buf)} bytes end inside the message's numbers") from None
+
+
+def decode_pose_stamped(buf) -> tuple:
+    """(stamp ns, frame_id, (x, y, z, qx, qy, qz, qw)) of a serialized ``geometry_msgs/PoseStamped``
+    (m, unit quaternion)."""
+    e = _order(buf, "PoseStamped")
+    stamp, frame, off = _header(buf, e, "PoseStamped")
+    return stamp, frame, _fixed(buf, e, _D7, off, "PoseStamped")
+
+
+def decode_wrench_stamped(buf) -> tuple:
+    """(stamp ns, frame_id, (fx, fy, fz, tx, ty, tz)) of a serialized ``geometry_msgs/WrenchStamped``
+    (N, Nm)."""
+    e = _order(buf, "WrenchStamped")
+    stamp, frame, off = _header(buf, e, "WrenchStamped")
+    return stamp, frame, _fixed(buf, e, _D6, off, "WrenchStamped")
+
+
+def decode_joint_state(buf) -> tuple:
+    """(stamp ns, names, positions, velocities, efforts) of a serialized ``sensor_msgs/JointState``
+    (tuples; rad or m, rad/s or m/s, Nm or N)."""
+    e = _order(buf, "JointState")
+    stamp, _, off = _header(buf, e, "JointState")
+    u32 = _U32[e]
+    try:
+        off = _pad(off, 4)
+        (count,) = u32.unpack_from(buf, off)
+        _count_ok(count, "JointState name")
+        off += 4
+        names = []
+        for k in range(count):
+            off = _pad(off, 4)
+            (n,) = u32.unpack_from(buf, off)
+            names.append(_string(buf, off + 4, n, f"JointState name[{k}]"))
+            off += 4 + n
+        arrays = []
+        for field in ("position", "velocity", "effort"):
+            off = _pad(off, 4)
+            (count,) = u32.unpack_from(buf, off)
+            _count_ok(count, "JointState " + field)
+            off += 4
+            if count:
+                off = _pad(off, 8)
+                arrays.append(struct.unpack_from(f"{e}{count}d", buf, off))
+                off += 8 * count
+            else:
+                arrays.append(())
+    except struct.error:
+        raise CdrError(f"JointState: {len(buf)} bytes end inside the message") from None
+    return (stamp, tuple(names)) + tuple(arrays)
+
+
+def _count_ok(count: int, what: str) -> None:
+    if count > MAX_JOINTS:
+        raise CdrError(f"{what}: {count} elements; at most {MAX_JOINTS} accepted")
+
+
+class StampedWriter:
+    """Serializes one stamped message type with a fixed ``frame_id`` into a buffer allocated once:
+    ``encode(stamp_ns, values)`` gives the bytes to publish. ``kind``: "pose" (``PoseStamped``:
+    x, y, z, qx, qy, qz, qw) or "wrench" (``WrenchStamped``: fx, fy, fz, tx, ty, tz)."""
+
+    def __init__(self, kind: str, frame_id: str):
+        n = {"pose": 7, "wrench": 6}.get(kind)
+        if n is None:
+            raise ValueError(f"StampedWriter kind {kind!r}; expected 'pose' or 'wrench'")
+        self.frame_id = frame_id
+        name = frame_id.encode() + b"\x00"
+        self._body = _pad(16 + len(name), 8)
+        self._buf = bytearray(self._body + 8 * n)
+        self._buf[:4] = CDR_LE
+        struct.pack_into("<I", self._buf, 12, len(name))
+        self._buf[16:16 + len(name)] = name
+        self._vals = struct.Struct(f"<{n}d")
+
+    def encode(self, stamp_ns: int, values) -> bytes:
+        sec, nsec = divmod(int(stamp_ns), _NS)
+        _STAMP.pack_into(self._buf, 4, sec, nsec)
+        self._vals.pack_into(self._buf, self._body, *values)
+        return bytes(self._buf)
+
+
+class JointStateWriter:
+    """Serializes ``sensor_msgs/JointState`` with fixed joint ``names`` (and so a fixed count) into
+    a buffer allocated once: ``encode(stamp_ns, positions, velocities=None, efforts=None)`` (an
+    omitted array is sent empty, as ROS drivers do for what they do not measure)."""
+
+    def __init__(self, names, frame_id: str = ""):
+        self.names = tuple(names)
+        self.n = len(self.names)
+        fixed = bytearray(CDR_LE)
+        fixed += b"\x00" * 8                         # the stamp, written by encode
+        frame = frame_id.encode() + b"\x00"
+        fixed += struct.pack("<I", len(frame)) + frame
+        fixed += b"\x00" * (_pad(len(fixed), 4) - len(fixed))
+        fixed += struct.pack("<I", self.n)
+        for name in self.names:
+            b = name.encode() + b"\x00"
+            fixed += b"\x00" * (_pad(len(fixed), 4) - len(fixed))
+            fixed += struct.pack("<I", len(b)) + b
+        self._prefix = bytes(fixed)
+        self._cache: dict = {}
+        self._arr = struct.Struct(f"<{self.n}d")
+
+    def _layout(self, present: tuple) -> tuple:
+        """(a zeroed buffer, the offset of each present array's doubles) for the arrays present."""
+        got = self._cache.get(present)
+        if got is None:
+            buf = bytearray(self._prefix)
+            offsets = []
+            for here in present:
+                buf += b"\x00" * (_pad(len(buf), 4) - len(buf))
+                count = self.n if here else 0
+                buf += struct.pack("<I", count)
+                if count:
+                    buf += b"\x00" * (_pad(len(buf), 8) - len(buf))
+                    buf += b"\x00" * (8 * count)
+                if here:
+                    offsets.append(len(buf) - 8 * count)
+            got = self._cache[present] = (buf, tuple(offsets))
+        return got
+
+    def encode(self, stamp_ns: int, positions, velocities=None, efforts=None) -> bytes:
+        arrays = (positions, velocities, efforts)
+        buf, offsets = self._layout(tuple(a is not None for a in arrays))
+        sec, nsec = divmod(int(stamp_ns), _NS)
+        _STAMP.pack_into(buf, 4, sec, nsec)
+        k = 0
+        for a in arrays:
+            if a is not None:
+                if len(a) != self.n:
+                    raise ValueError(f"JointStateWriter: {len(a)} values for {self.n} joints {self.names}")
+                self._arr.pack_into(buf, offsets[k], *a)
+                k += 1
+        return bytes(buf)
