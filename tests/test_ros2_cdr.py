@@ -139,3 +139,30 @@ def test_errors_name_what_was_wrong():
     struct.pack_into("<I", js, 20, 100000)          # the name count
     with pytest.raises(cdr.CdrError, match="100000 elements"):
         cdr.decode_joint_state(bytes(js))
+
+
+@pytest.mark.parametrize("encoding, frame", [("16UC1", "cam0"), ("32FC1", "depth_optical_frame"), ("mono16", "")])
+def test_images_read_as_rclpy_reads_them(ros2_env, encoding, frame):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import CompressedImage, Image
+
+    rng = np.random.default_rng(5)
+    m = Image()
+    m.header.stamp.sec, m.header.stamp.nanosec = 1_700_000_000, 123_456_789
+    m.header.frame_id = frame
+    m.height, m.width, m.encoding, m.is_bigendian = 3, 5, encoding, 0
+    m.step = 5 * (4 if encoding == "32FC1" else 2) + 2        # (a padded row)
+    m.data = rng.integers(0, 256, size=m.step * 3).astype(np.uint8).tobytes()
+    got = cdr.decode_image(serialize_message(m))
+    assert got.header == ((1_700_000_000, 123_456_789), frame)
+    assert (got.height, got.width, got.encoding, got.is_bigendian, got.step) == (3, 5, encoding, 0, m.step)
+    assert bytes(got.data) == bytes(m.data)
+    c = CompressedImage()
+    c.header.frame_id, c.format = frame, "16UC1; compressedDepth png"
+    c.data = b"\x89PNG" + bytes(range(50))
+    got = cdr.decode_compressed_image(serialize_message(c))
+    assert got.header.frame_id == frame and got.format == c.format and bytes(got.data) == bytes(c.data)
+    for buf, dec in ((serialize_message(m), cdr.decode_image), (serialize_message(c), cdr.decode_compressed_image)):
+        for n in range(len(buf) - 20):        # (rclpy's buffer may run past the message: cut well inside it)
+            with pytest.raises(cdr.CdrError):
+                dec(buf[:n])

@@ -14,9 +14,11 @@ Messages (``images.py``): ``sensor_msgs/Image`` 16UC1 (mm) or 32FC1 (m), or
 source waits up to ``wait`` s (default 5) for a CameraInfo and takes its intrinsics from it
 (``depth_scale`` 0.001 unless given); with one, every image must match its size.
 
-Threads. The rclpy callbacks run on the source's own ``RosNode`` thread and only keep the newest
-message and its arrival time (a reference swap under a short lock); ``read`` (the camera
-reader's thread, ``sources/threaded.py``) decodes and checks it. A bad message (encoding, size,
+Threads. The rclpy callbacks run on the source's own ``RosNode`` thread (rclpy's events executor)
+and only keep the newest message and its arrival time (a reference swap under a short lock); the
+image comes serialized (a raw subscription) and ``read`` (the camera reader's thread,
+``sources/threaded.py``) reads it (``cdr.decode_image``: the pixels a view into its bytes),
+decodes and checks it. A bad message (encoding, size,
 step, a CameraInfo that disagrees, a damaged compressedDepth payload, a foreign frame_id) is
 counted and reported (``last_error``, ``status()``) and skipped: the reader never stops on it,
 and while only bad messages come the camera goes stale and the service holds (S2).
@@ -50,7 +52,7 @@ from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
 
 from ..sources.base import LiveSource
-from . import images
+from . import cdr, images
 
 TRANSPORTS = ("raw", "compressedDepth")
 QOS = ("sensor_data", "reliable")
@@ -123,10 +125,10 @@ class RosDepthSource(LiveSource):
 
         profile = _qos(qos, target)
         node_name = "pointfence_camera_" + "".join(c if c.isalnum() else "_" for c in cam_name)
-        self._node = RosNode(node_name, domain_id=domain_id)
+        self._node = RosNode(node_name, domain_id=domain_id, executor="events")
         try:
             msg_type = CompressedImage if self.transport == "compressedDepth" else Image
-            self._node.node.create_subscription(msg_type, self.image_topic, self._on_image, profile)
+            self._node.node.create_subscription(msg_type, self.image_topic, self._on_image, profile, raw=True)
             self._node.node.create_subscription(CameraInfo, self.info_topic, self._on_info, profile)
             self._node.start()
             self.from_info = camera is None
@@ -204,9 +206,13 @@ class RosDepthSource(LiveSource):
                 self._times.popitem(last=False)
         return frame
 
-    def _frame_of(self, msg, info) -> DepthFrame:
+    def _frame_of(self, raw: bytes, info) -> DepthFrame:
         where = self._where(self.image_topic)
         cam = self._camera
+        try:
+            msg = cdr.decode_compressed_image(raw) if self.transport == "compressedDepth" else cdr.decode_image(raw)
+        except cdr.CdrError as e:
+            raise InputError(f"{where}: {e}") from None
         if info is None:
             raise InputError(f"{where}: an image came but no CameraInfo on {self.info_topic} yet; the driver must publish both")
         images.check_info_matches(info, cam, self.from_info, self._where(self.info_topic))

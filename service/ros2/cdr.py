@@ -22,6 +22,7 @@ read is the caller's to count and refuse, as a bad value would be.
 from __future__ import annotations
 
 import struct
+from typing import NamedTuple
 
 #: the encapsulation headers: plain CDR little- and big-endian
 CDR_LE, CDR_BE = b"\x00\x01\x00\x00", b"\x00\x00\x00\x00"
@@ -214,3 +215,78 @@ class JointStateWriter:
                 self._arr.pack_into(buf, offsets[k], *a)
                 k += 1
         return bytes(buf)
+
+
+class Stamp(NamedTuple):
+    sec: int
+    nanosec: int
+
+
+class Header(NamedTuple):
+    stamp: Stamp
+    frame_id: str
+
+
+class Image(NamedTuple):
+    """A ``sensor_msgs/Image`` read from its bytes; ``data`` a view into them (no copy)."""
+    header: Header
+    height: int
+    width: int
+    encoding: str
+    is_bigendian: int
+    step: int
+    data: memoryview
+
+
+class CompressedImage(NamedTuple):
+    """A ``sensor_msgs/CompressedImage`` read from its bytes; ``data`` a view into them."""
+    header: Header
+    format: str
+    data: memoryview
+
+
+def _stamped_header(buf, e: str, what: str) -> tuple:
+    stamp, frame, off = _header(buf, e, what)
+    return Header(Stamp(*divmod(stamp, _NS)), frame), off
+
+
+def _bytes_field(buf, e: str, off: int, what: str) -> tuple:
+    """(a view of a uint8[] at ``off``, the offset after it)."""
+    off = _pad(off, 4)
+    (n,) = _U32[e].unpack_from(buf, off)
+    if off + 4 + n > len(buf):
+        raise CdrError(f"{what}: {n} bytes of data at byte {off + 4}, but the message ends at byte {len(buf)}")
+    return memoryview(buf)[off + 4:off + 4 + n], off + 4 + n
+
+
+def decode_image(buf) -> Image:
+    """A serialized ``sensor_msgs/Image`` (its pixels a view into ``buf``)."""
+    e = _order(buf, "Image")
+    header, off = _stamped_header(buf, e, "Image")
+    u32 = _U32[e]
+    try:
+        off = _pad(off, 4)
+        height, width, n = struct.unpack_from(e + "III", buf, off)
+        encoding = _string(buf, off + 12, n, "Image encoding")
+        off += 12 + n
+        is_bigendian = buf[off]
+        off = _pad(off + 1, 4)
+        (step,) = u32.unpack_from(buf, off)
+        data, _ = _bytes_field(buf, e, off + 4, "Image")
+    except (struct.error, IndexError):
+        raise CdrError(f"Image: {len(buf)} bytes end inside the message") from None
+    return Image(header, height, width, encoding, is_bigendian, step, data)
+
+
+def decode_compressed_image(buf) -> CompressedImage:
+    """A serialized ``sensor_msgs/CompressedImage`` (its payload a view into ``buf``)."""
+    e = _order(buf, "CompressedImage")
+    header, off = _stamped_header(buf, e, "CompressedImage")
+    try:
+        off = _pad(off, 4)
+        (n,) = _U32[e].unpack_from(buf, off)
+        fmt = _string(buf, off + 4, n, "CompressedImage format")
+        data, _ = _bytes_field(buf, e, off + 4 + n, "CompressedImage")
+    except struct.error:
+        raise CdrError(f"CompressedImage: {len(buf)} bytes end inside the message") from None
+    return CompressedImage(header, fmt, data)

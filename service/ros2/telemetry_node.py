@@ -60,6 +60,7 @@ from .. import mcap_shm
 from ..holds import REASONS
 from ..child_pipe import read_init, receive
 from ..ros2_schemas import FIXTURES, master_ns
+from . import cdr
 from . import telemetry as T
 
 STATUS_SCHEMA = "pointfence/status/1"
@@ -143,20 +144,17 @@ class Publisher:
                     ("measured_cp", "robot_pos", "robot_orientation", self.frame_id),
                     ("servo_cp", "command", "orientation", self.frame_id),
                     ("master/measured_cp", "master_pos", "master_orientation", f"{master_ns(b)}_base")):
-                msg = PoseStamped()
-                msg.header.frame_id = frame
-                msg.pose.orientation.w = 1.0
-                arm.append((field, qfield, node.create_publisher(PoseStamped, f"{pf}/{name}", stream), msg))
+                # (the per-tick messages go out serialized: ros2/cdr.py)
+                writer = cdr.StampedWriter("pose", frame)
+                arm.append((field, qfield, node.create_publisher(PoseStamped, f"{pf}/{name}", stream), writer))
             self.poses.append(arm)
-            w = WrenchStamped()
-            w.header.frame_id = self.frame_id
+            w = cdr.StampedWriter("wrench", self.frame_id)
             self.wrenches.append((node.create_publisher(WrenchStamped, f"{pf}/force", stream), w))
             joints = []
             for name, field, joint in (("jaw/servo_jp", "jaw", "jaw"), ("jaw/measured_js", "robot_jaw", "jaw"),
                                        ("master/gripper/measured_js", "grasp", "gripper")):
-                js = JointState()
-                js.name, js.position = [joint], [0.0]
-                joints.append((field, node.create_publisher(JointState, f"{pf}/{name}", stream), js))
+                joints.append((field, node.create_publisher(JointState, f"{pf}/{name}", stream),
+                               cdr.JointStateWriter((joint,))))
             self.angles.append(joints)
         self.marker_pub = node.create_publisher(MarkerArray, "pointfence/markers", stream)
         self.cloud_pub = node.create_publisher(PointCloud2, FIXTURES.lstrip("/"), latest)
@@ -204,36 +202,31 @@ class Publisher:
 
     def publish_row(self, row: np.ndarray) -> None:
         sec, nsec = self._stamp(row)
+        stamp = sec * 1_000_000_000 + nsec
         get = self.layout.get
         values = {f: get(row, f) for f in POSE_FIELDS + ANGLE_FIELDS}
         force = get(row, "force")
         count = 0
         for b in range(self.n):
-            for field, qfield, pub, msg in self.poses[b]:
+            for field, qfield, pub, writer in self.poses[b]:
                 x, y, z = (float(v) for v in values[field][b])
+                q = (0.0, 0.0, 0.0, 1.0)
                 if qfield is not None:
                     w, qx, qy, qz = (float(v) for v in values[qfield][b])
                     if not math.isfinite(x + y + z + w + qx + qy + qz):    # (a master that gave no sample)
                         continue
-                    o = msg.pose.orientation                              # (ROS's x, y, z, w)
-                    o.x, o.y, o.z, o.w = qx, qy, qz, w
-                msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
-                msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = x, y, z
-                pub.publish(msg)
+                    q = (qx, qy, qz, w)                                   # (ROS's x, y, z, w)
+                pub.publish(writer.encode(stamp, (x, y, z) + q))
                 count += 1
-            for field, pub, msg in self.angles[b]:
+            for field, pub, writer in self.angles[b]:
                 a = float(values[field][b])
                 if not math.isfinite(a):                                  # (unknown this tick)
                     continue
-                msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
-                msg.position[0] = a
-                pub.publish(msg)
+                pub.publish(writer.encode(stamp, (a,)))
                 count += 1
-            pub, msg = self.wrenches[b]
-            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+            pub, writer = self.wrenches[b]
             fx, fy, fz = force[b]
-            msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = float(fx), float(fy), float(fz)
-            pub.publish(msg)
+            pub.publish(writer.encode(stamp, (float(fx), float(fy), float(fz), 0.0, 0.0, 0.0)))
             count += 1
         self.hdr[T.PUBLISHED] += count
 
