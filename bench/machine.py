@@ -57,3 +57,48 @@ def cpu_usage(before: dict | None, after: dict | None) -> dict:
     busy = total - d["idle"] - d["iowait"] - d["steal"]
     return {"busy_pct": round(100 * busy / total, 1), "steal_ms": round(1e3 * d["steal"], 1),
             "steal_pct": round(100 * d["steal"] / total, 2)}
+
+
+def process_times(roles: dict) -> dict | None:
+    """CPU time so far (s, user + system) of this process and its descendants, summed by role:
+    ``roles`` maps a role name to a text its command line contains (the first that matches
+    names it; this process is "service", a descendant matching none "other"). None off Linux."""
+    me = os.getpid()
+    hz = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    procs = {}
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        return None
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat") as f:
+                stat = f.read()
+            with open(f"/proc/{name}/cmdline", "rb") as f:
+                cmd = f.read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue          # (ended meanwhile)
+        rest = stat.rsplit(")", 1)[1].split()
+        procs[int(name)] = (int(rest[1]), (int(rest[11]) + int(rest[12])) / hz, cmd)
+    out: dict = {}
+    for pid, (_, t, cmd) in procs.items():
+        p, seen = pid, 0
+        while p not in (me, 0, 1) and p in procs and seen < 64:      # is ``pid`` a descendant of this process?
+            p, seen = procs[p][0], seen + 1
+        if p != me:
+            continue
+        role = "service" if pid == me else next((r for r, text in roles.items() if text in cmd), "other")
+        out[role] = out.get(role, 0.0) + t
+    return out | {"wall": time.monotonic()}
+
+
+def process_usage(before: dict | None, after: dict | None) -> dict:
+    """Each role's share of one core between two ``process_times`` readings (%; processes that
+    ended in between are not counted)."""
+    if not before or not after:
+        return {}
+    wall = after["wall"] - before["wall"]
+    return {r: round(100 * (after[r] - before.get(r, 0.0)) / wall, 1)
+            for r in after if r != "wall" and wall > 0}

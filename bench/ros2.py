@@ -19,7 +19,9 @@ Each run gives the loop's figures (``loop_miss_ratio``, ``loop_late_us_p99``, ti
 ticks, the machine's busy share and stolen time). The ROS run adds ``camera_latency_ms_p50/p99``
 (a frame's ``header.stamp``, its capture on ROS time, to the moment the snapshot holding it was
 published; wall clock, one machine) and ``frames_dropped`` (frames the camera published in the
-measured seconds that no snapshot held). Then, with the service stopped, ``servo_rtt_us_p50/p99``:
+measured seconds that no snapshot held), and ``cpu_pct_by_process`` (each process's share of one
+core in the measured seconds: the service, its robot process, master bridge and telemetry, the
+three equipment processes). Then, with the service stopped, ``servo_rtt_us_p50/p99``:
 a CRTK arm (``robot/crtk.py``, its node in this process) streams ``servo_cp`` at 1 kHz to the
 sim-arm, which echoes each applied command's stamp in its ``measured_cp``
 (``CrtkRobot.round_trip_us``). DDS stays on this machine (``service/ros2/dds.py``).
@@ -36,11 +38,15 @@ import numpy as np
 from pointfence.service.ros2 import sim_rig
 
 from .loop import _one
-from .machine import cpu_times, cpu_usage
+from .machine import cpu_times, cpu_usage, process_times, process_usage
 from .stats import pct
 
 #: the equipment's nice value (a lab runs it on its own computers)
 EQUIPMENT_NICE = sim_rig.EQUIPMENT_NICE
+#: the processes of the ROS run, by a text of their command lines (``cpu_pct_by_process``)
+ROLES = {"robot process": "robot.hosted_child", "master bridge": "ros2.master_bridge",
+         "telemetry": "ros2.telemetry_node", "camera-node": "ros2 camera-node", "sim-arm": "ros2 sim-arm",
+         "sim-master": "ros2 sim-master"}
 
 
 def add_arguments(p):
@@ -87,10 +93,11 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
         run.wait(warmup)
         run.mark()
         measuring[0] = True
-        c0 = cpu_times()
+        c0, p0 = cpu_times(), process_times(ROLES)
         run.wait(seconds)
         tm = run.timing()
         cpu = cpu_usage(c0, cpu_times())
+        by_process = process_usage(p0, process_times(ROLES))
         measuring[0] = False
         st = run.service.status()
     finally:
@@ -107,7 +114,7 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
             "camera_latency_ms_p50": round(pct(lat, 50) * 1e3, 2) if lat else None,
             "camera_latency_ms_p99": round(pct(lat, 99) * 1e3, 2) if lat else None,
             "camera_frames_published": int(expected), "frames_dropped": int(expected - len(stamps)),
-            "holds_at_end": st["hold"], "telemetry": st.get("telemetry")}
+            "holds_at_end": st["hold"], "telemetry": st.get("telemetry"), "cpu_pct_by_process": by_process}
 
 
 def _servo_rtt(env: dict, tmp: Path, cfg_path: Path, seconds: float) -> dict:
@@ -159,7 +166,7 @@ def run(args) -> dict:
     keys = ("tick_us_p50", "loop_late_us_p99", "loop_miss_ratio", "loop_missed_ticks", "busy_pct", "steal_ms")
     return {"seconds": args.seconds, "rate_hz": cfg.service.rate_hz, **rtt,
             "camera_latency_ms_p50": on["camera_latency_ms_p50"], "camera_latency_ms_p99": on["camera_latency_ms_p99"],
-            "frames_dropped": on["frames_dropped"],
+            "frames_dropped": on["frames_dropped"], "cpu_pct_by_process": on["cpu_pct_by_process"],
             "loop_miss_ratio": on["loop_miss_ratio"], "loop_late_us_p99": on["loop_late_us_p99"],
             "loop_miss_ratio_ros_off": off["loop_miss_ratio"], "loop_late_us_p99_ros_off": off["loop_late_us_p99"],
             "ros_on": on, "ros_off": {k: off.get(k) for k in keys},
