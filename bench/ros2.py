@@ -24,7 +24,8 @@ core in the measured seconds: the service, its robot process, master bridge and 
 three equipment processes). Then, with the service stopped, ``servo_rtt_us_p50/p99``:
 a CRTK arm (``robot/crtk.py``, its node in this process) streams ``servo_cp`` at 1 kHz to the
 sim-arm, which echoes each applied command's stamp in its ``measured_cp``
-(``CrtkRobot.round_trip_us``). DDS stays on this machine (``service/ros2/dds.py``).
+(``CrtkRobot.round_trip_us``: to the echo's reception; ``servo_rtt_taken_us_*``: to the arm's
+step that took it, up to a period later). DDS stays on this machine (``service/ros2/dds.py``).
 """
 from __future__ import annotations
 
@@ -141,13 +142,15 @@ def _servo_rtt(env: dict, tmp: Path, cfg_path: Path, seconds: float) -> dict:
                 loop.stop()
 
         loop.run(tick)
-        rtt = arm.round_trip_us()
+        rtt, taken = arm.round_trip_us(), arm.round_trip_us(taken=True)
     finally:
         if arm is not None:
             arm.close()
         sim_rig.stop([proc])
     return {"servo_rtt_us_p50": round(pct(rtt, 50), 1) if rtt else None,
             "servo_rtt_us_p99": round(pct(rtt, 99), 1) if rtt else None, "servo_round_trips": len(rtt),
+            "servo_rtt_taken_us_p50": round(pct(taken, 50), 1) if taken else None,
+            "servo_rtt_taken_us_p99": round(pct(taken, 99), 1) if taken else None,
             "servo_commands": loop.ticks}
 
 

@@ -145,6 +145,10 @@ def test_nan_wrong_frame_bad_pedal_silence_and_a_dead_bridge_make_the_master_inv
         pose_pub.publish(p)
         pedal_pub.publish(Joy(buttons=list(pedal)))
 
+    ok_pose = PoseStamped()
+    ok_pose.header.frame_id = "pft_base"
+    ok_pose.pose.position.x, ok_pose.pose.orientation.w = 0.01, 1.0
+
     def until(cond, **kw):
         return polled(m, lambda m: (send(**kw), cond(m))[1], 15)
 
@@ -167,6 +171,10 @@ def test_nan_wrong_frame_bad_pedal_silence_and_a_dead_bridge_make_the_master_inv
         st = m.status()
         assert st["rejected"]["unreadable"] >= 1 and "frame_id: length 4000" in st["last_rejection"]
         assert m.position[0] == before                                          # (the 0.03 in the junk never reached it)
+        assert until(lambda m: m.ok and m.clutch)
+        junk = cdr.CDR_LE + (0).to_bytes(8, "little") + (1).to_bytes(4, "little") + b"\0\0\0\0" + (10**6).to_bytes(4, "little")
+        assert polled(m, lambda m: (pose_pub.publish(ok_pose), pedal_pub.publish(junk), not m.clutch)[2], 15)
+        assert "the message could not be read" in m.status()["last_rejection"]  # (a Joy of 10**6 axes in 24 bytes)
         assert until(lambda m: m.ok and m.clutch)
         assert until(lambda m: not m.clutch, pedal=())                          # no button 0: decoupled
         assert m.status()["rejected"]["pedal"] >= 1

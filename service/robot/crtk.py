@@ -10,10 +10,11 @@ one position) and its angle is read from ``<ns>/jaw/measured_js``, as the dVRK n
 the arm has reported its jaw the service does not command it. ``CrtkRobot`` is the robot
 interface of service/robot/base.py over that exchange; ``ros2/crtk_bridge.CrtkBridge`` is its rclpy side.
 
-Threads: the bridge's node (ros2/crtk_bridge.py) is spun on its own thread; its callbacks swap
-in the newest message of each topic as a tuple, and the arm's ``step`` (the tick, or the robot
-process's period) takes them, checks them, and hands its setpoint back the same way; the
-node's thread publishes ``servo_cp``. Nothing of ROS runs in the caller's thread but a trigger.
+Threads: the arm's ``step`` (the tick, or the robot process's period) takes the measured_cp and
+measured_js messages that arrived since the last step from the bridge (ros2/crtk_bridge.py:
+``poll``, no executor thread in between), checks them, and publishes its setpoint on
+``servo_cp``; the bridge's node thread serves the slow topics (operating_state, the jaw) and
+swaps in the newest of each as a tuple.
 Live runs (``[service] robot_process = true``) build the arm in the robot process
 (robot/hosted_child.py), which is then the arms' ROS bridge; the service's process sees the
 shared-memory exchange only (its copy of the arm is built with ``connect=False``).
@@ -140,6 +141,7 @@ class CrtkRobot(Robot):
         """Take the bridge's newest messages (checked; a bad one is not taken) and say why the
         arm may not be commanded now (None: it may)."""
         b = self._bridge
+        b.poll()
         now = time.monotonic()
         cp = b.cp
         if cp is None:
@@ -333,9 +335,10 @@ class CrtkRobot(Robot):
     def connected(self) -> bool:
         return self._bridge is not None
 
-    def round_trip_us(self) -> list:
-        """servo_cp -> echoing measured_cp times (us) so far, where the arm echoes the stamp."""
-        return [] if self._bridge is None else self._bridge.round_trip_us()
+    def round_trip_us(self, taken: bool = False) -> list:
+        """servo_cp -> echoing measured_cp times (us) so far, where the arm echoes the stamp: to
+        its reception (``taken``: to the step that took it)."""
+        return [] if self._bridge is None else self._bridge.round_trip_us(taken)
 
     def close(self) -> None:
         """Stop the ROS node (idempotent); the arm then reads FAULT at its next step."""

@@ -2,21 +2,23 @@
 subscriptions and its ``servo_cp`` publisher (and, for an arm with a jaw, ``jaw/measured_js``
 and ``jaw/servo_jp``: ``sensor_msgs/JointState`` of one position, rad).
 
-The node is spun on its own thread (``RosNode`` on rclpy's ``EventsExecutor``: measured_cp and
-measured_js arrive at 1 kHz, and its C++ event queue costs a fraction of the Python time per
-message that the single-threaded executor's wait sets do, time the arm's own 1 kHz thread needs
-in the same process). The 1 kHz topics travel serialized (raw subscriptions and publishing,
-ros2/cdr.py: rclpy's conversion to and from message objects was most of their cost). Each
-callback turns its message into a tuple of plain floats and swaps it in as the newest (one
-reference assignment: no lock); a message that cannot be read is kept as the newest bad one
-(``bad_cp``, ``bad_js``), which faults the arm. The arm's ``step`` takes the newest tuples and
-publishes its setpoint on ``servo_cp`` itself (an rclpy publisher may be used from any thread;
-the event executor serves no guard condition to hand it over with).
+measured_cp and measured_js arrive at 1 kHz: the arm's own periodic thread takes them
+(``poll``, ``RosNode.polled``: no executor thread wakes for them) at the start of each step,
+every message that arrived since the last (up to ``DEPTH``), each with its reception time as its
+arrival. The other topics (operating_state, the jaw) are served by the node's thread (rclpy's
+``EventsExecutor``). Every 1 kHz topic travels serialized (raw, ros2/cdr.py: rclpy's conversion
+to and from message objects was most of their cost). Each message becomes a tuple of plain
+floats, the newest of its topic (one reference assignment: no lock); a message that is no valid
+pose, or cannot be read, is kept as the newest bad one (``bad_cp``, ``bad_js``) even where a
+good one follows, and faults the arm. The arm's ``step`` publishes its setpoint on ``servo_cp``
+itself (an rclpy publisher may be used from any thread; the event executor serves no guard
+condition to hand it over with).
 
 Round trip (``pointfence bench ros2``): each ``servo_cp`` carries ``header.stamp`` = the
 wall-clock time it was sent (ns, unique per send); an arm that echoes the stamp of the last
 ``servo_cp`` it applied in its ``measured_cp`` (``pointfence ros2 sim-arm`` does) gives
-``round_trip_us()``: from each send to the arrival of the measured_cp that echoes it.
+``round_trip_us()``: from each send to the arrival (reception) of the measured_cp that echoes
+it, and ``round_trip_us(taken=True)``: to the step that took it.
 """
 from __future__ import annotations
 
@@ -27,6 +29,10 @@ from typing import Optional
 from . import cdr
 from . import crtk_wire as wire
 from .node import RosNode
+
+#: messages of a 1 kHz topic kept for the arm's next step (a step that comes late still sees a bad
+#: one among them)
+DEPTH = 16
 
 
 class CrtkBridge:
@@ -55,12 +61,13 @@ class CrtkBridge:
         self.received = 0                   # measured_cp messages
         self.sent = 0                       # servo_cp messages published
         self._rtt = collections.deque(maxlen=100_000)
+        self._rtt_taken = collections.deque(maxlen=100_000)
         self._stamps: dict = {}             # stamp (ns) -> monotonic send time, of recent sends
         self._order: collections.deque = collections.deque()
         self._writer = cdr.StampedWriter("pose", frame_id)
         self._pub = node.create_publisher(PoseStamped, topics["servo_cp"], wire.qos_reliable())
-        node.create_subscription(PoseStamped, topics["measured_cp"], self._on_cp, wire.qos_stream(), raw=True)
-        node.create_subscription(JointState, topics["measured_js"], self._on_js, wire.qos_stream(), raw=True)
+        self._cp_sub = self.ros.polled(PoseStamped, topics["measured_cp"], wire.qos_stream(DEPTH))
+        self._js_sub = self.ros.polled(JointState, topics["measured_js"], wire.qos_stream(DEPTH))
         if state_cls is not None:
             node.create_subscription(state_cls, topics["operating_state"], self._on_state, wire.qos_reliable(10))
         self._jaw_pub = None
@@ -70,9 +77,21 @@ class CrtkBridge:
             node.create_subscription(JointState, topics["jaw_measured_js"], self._on_jaw, wire.qos_stream(), raw=True)
         self.ros.start()
 
-    # --- the node's thread ----------------------------------------------------------------------
-    def _on_cp(self, raw: bytes) -> None:
-        now = time.monotonic()
+    # --- the arm's thread: measured_cp and measured_js -----------------------------------------
+    def poll(self) -> None:
+        """Take every measured_cp and measured_js that arrived since the last call."""
+        take = self._cp_sub.take
+        got = take()
+        while got is not None:
+            self._on_cp(*got)
+            got = take()
+        take = self._js_sub.take
+        got = take()
+        while got is not None:
+            self._on_js(*got)
+            got = take()
+
+    def _on_cp(self, raw: bytes, now: float) -> None:
         self.received += 1
         try:
             stamp, frame, pose = cdr.decode_pose_stamped(raw)
@@ -86,15 +105,17 @@ class CrtkBridge:
         t0 = self._stamps.pop(stamp, None)
         if t0 is not None:
             self._rtt.append(1e6 * (now - t0))
+            self._rtt_taken.append(1e6 * (time.monotonic() - t0))
 
-    def _on_js(self, raw: bytes) -> None:
-        now = time.monotonic()
+    def _on_js(self, raw: bytes, now: float) -> None:
         try:
             _, _, q, dq, tau = cdr.decode_joint_state(raw)
         except cdr.CdrError as e:
             self.bad_js = (now, f"could not be read: {e}")
             return
         self.js = (now, q, dq, tau)
+
+    # --- the node's thread ----------------------------------------------------------------------
 
     def _on_jaw(self, raw: bytes) -> None:
         try:
@@ -124,8 +145,8 @@ class CrtkBridge:
         self._jaw_pub.publish(self._jaw_writer.encode(time.time_ns(), (angle,)))
         self.jaw_sent += 1
 
-    def round_trip_us(self) -> list:
-        return list(self._rtt)
+    def round_trip_us(self, taken: bool = False) -> list:
+        return list(self._rtt_taken if taken else self._rtt)
 
     @property
     def error(self) -> Optional[str]:

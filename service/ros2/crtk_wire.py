@@ -47,12 +47,12 @@ def check_namespace(namespace) -> str:
     return s
 
 
-def qos_stream():
-    """Streams (measured_cp, measured_js, servo_cp subscriptions): keep the newest only, best
+def qos_stream(depth: int = 1):
+    """Streams (measured_cp, measured_js, servo_cp subscriptions): keep the newest ``depth``, best
     effort (it matches both reliable and best-effort publishers; a lost sample is replaced 1 ms on)."""
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    return QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
+    return QoSProfile(depth=depth, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 def qos_reliable(depth: int = 1):

@@ -1,13 +1,15 @@
 """The ROS 2 side of the service's CRTK masters, in a process of its own (started by
 ros2/crtk_master.py as ``python -m pointfence.service.ros2.master_bridge SHM DEVICES PARENT``).
 
-One rclpy node (``pointfence_crtk_masters``) serves every device (ros2/crtk_device.py): its
-executor thread takes each ``measured_cp``, gripper (``gripper/measured_js``) and pedal message,
-checks it and writes the device's state row into shared memory (ros2/master_block.py); the main
-thread, once a millisecond, beats the heartbeat, reads each device's force from shared memory and
-publishes a new one on ``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's frame).
-The 1 kHz topics (poses, gripper, forces) travel serialized (ros2/cdr.py): a pose that cannot be
-read is refused like a bad one.
+One rclpy node (``pointfence_crtk_masters``) serves every device (ros2/crtk_device.py). The main
+thread, once a millisecond, beats the heartbeat, takes each device's ``measured_cp`` and gripper
+(``gripper/measured_js``) messages that arrived since the last period (``RosNode.polled``: no
+executor thread wakes for them; each with its reception time), checks them and writes the
+device's state row into shared memory (ros2/master_block.py), and the pedal's the same way
+(one thread writes the rows); then it reads each device's force from shared memory and
+publishes a new one on ``body/servo_cf`` (``geometry_msgs/WrenchStamped``, N, the device's
+frame). The 1 kHz topics (poses, gripper, forces) travel serialized (ros2/cdr.py): a pose that
+cannot be read is refused like a bad one.
 Its own watchdog: when the service has written no new force for the device's timeout (its tick
 stalled, or it died) while the last force published was not zero, it publishes a zero wrench once.
 It ends when told to (``ctl["stop"]``), when its parent is gone, or when its node fails, and then
@@ -21,6 +23,7 @@ import os
 import sys
 import time
 from multiprocessing import shared_memory
+from typing import Optional
 
 import numpy as np
 
@@ -37,12 +40,14 @@ PERIOD_S = 0.001
 class DeviceSide:
     """One device in the bridge: subscriptions that fill its state row, the force publisher."""
 
-    def __init__(self, blk: MasterBlock, i: int, dev: CrtkDevice, node):
+    def __init__(self, blk: MasterBlock, i: int, dev: CrtkDevice, ros):
         from geometry_msgs.msg import PoseStamped, WrenchStamped
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import JointState, Joy
         from std_msgs.msg import Bool
 
+        node = ros.node
         self.dev, self.node, self.i = dev, node, i
         self.state = blk.state[i]
         self.cmd = blk.cmd[i]
@@ -63,25 +68,47 @@ class DeviceSide:
         self.new_at = time.monotonic()         # when it arrived (monotonic s)
         self.nonzero = False                   # whether the last force published was not zero
         self.told_orientation = False
-        latest = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+        # (the 1 kHz streams keep what arrives within a few periods: a bad pose among them is seen)
+        latest = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=16, reliability=ReliabilityPolicy.BEST_EFFORT)
         events = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub = node.create_publisher(WrenchStamped, dev.force_topic, events)
         self.orient_pub = node.create_publisher(Bool, dev.cf_orientation_topic, events) if dev.orientation_absolute else None
-        node.create_subscription(PoseStamped, dev.pose_topic, self.on_pose, latest, raw=True)
-        node.create_subscription(Joy, dev.clutch_topic, self.on_pedal, events)
-        if dev.gripper != "none":
-            node.create_subscription(JointState, dev.gripper_topic, self.on_gripper, latest, raw=True)
+        self.pose_sub = ros.polled(PoseStamped, dev.pose_topic, latest)
+        self.pedal_sub = ros.polled(Joy, dev.clutch_topic, events)
+        self._Joy, self._deserialize = Joy, deserialize_message
+        self.grip_sub = ros.polled(JointState, dev.gripper_topic, latest) if dev.gripper != "none" else None
 
-    # --- the executor thread: messages in -> the state row ---------------------------------------------
+    # --- the main thread: messages in -> the state row --------------------------------------------------
+    def take(self) -> None:
+        """Take every pose, gripper and pedal message that arrived since the last call."""
+        got = self.pose_sub.take()
+        while got is not None:
+            self.on_pose(*got)
+            got = self.pose_sub.take()
+        if self.grip_sub is not None:
+            got = self.grip_sub.take()
+            while got is not None:
+                self.on_gripper(*got)
+                got = self.grip_sub.take()
+        got = self.pedal_sub.take()
+        while got is not None:
+            try:
+                buttons = list(self._deserialize(got[0], self._Joy).buttons)
+            except Exception as e:   # noqa: BLE001 -- bytes that are no Joy: decoupled, as a malformed pedal
+                self.on_pedal(None, f"{self.dev.clutch_topic}: the message could not be read ({e})")
+            else:
+                self.on_pedal(buttons)
+            got = self.pedal_sub.take()
+
     def _reject(self, code: int, message: str) -> None:
         L, row = STATE_LAYOUT, self.row
         row[L.reject] = code
         row[L.rejected.start + code - 1] += 1
         put_text(self.text[ERROR_TEXT], message)
 
-    def on_pose(self, raw: bytes) -> None:
+    def on_pose(self, raw: bytes, arrival: float) -> None:
         L, row = STATE_LAYOUT, self.row
-        row[L.pose_rx] = time.monotonic()
+        row[L.pose_rx] = arrival
         try:
             _, frame, (x, y, z, qx, qy, qz, qw) = cdr.decode_pose_stamped(raw)
         except cdr.CdrError as e:
@@ -104,9 +131,9 @@ class DeviceSide:
             self._reject(*bad)
         self.state.write(row)
 
-    def on_gripper(self, raw: bytes) -> None:
+    def on_gripper(self, raw: bytes, arrival: float) -> None:
         L, row = STATE_LAYOUT, self.row
-        row[L.grip_rx] = time.monotonic()
+        row[L.grip_rx] = arrival
         try:
             position = cdr.decode_joint_state(raw)[2]
         except cdr.CdrError as e:
@@ -122,11 +149,16 @@ class DeviceSide:
             self._reject(*bad)
         self.state.write(row)
 
-    def on_pedal(self, msg) -> None:
+    def on_pedal(self, buttons: Optional[list], unreadable: str = "") -> None:
+        """A pedal message's ``buttons`` (None: it could not be read, ``unreadable`` says why)."""
         L, row = STATE_LAYOUT, self.row
-        buttons = list(msg.buttons)
-        state = self.dev.pedal_state(buttons)
         row[L.pedals] += 1
+        if buttons is None:
+            row[L.pressed] = -1.0
+            self._reject(REJECT_UNREADABLE, unreadable)
+            self.state.write(row)
+            return
+        state = self.dev.pedal_state(buttons)
         if state is None:   # malformed: decoupled until a valid pedal message
             row[L.pressed] = -1.0
             self._reject(REJECT_PEDAL, f"{self.dev.clutch_topic}: buttons {buttons[:16]}; expected button "
@@ -195,7 +227,7 @@ def main(shm_name: str, devices: list, parent: int) -> int:
         from .node import RosNode
 
         node = RosNode("pointfence_crtk_masters", executor="events")   # poses at 1 kHz: see ros2/node.py
-        sides = [DeviceSide(blk, i, CrtkDevice(**d), node.node) for i, d in enumerate(devices)]
+        sides = [DeviceSide(blk, i, CrtkDevice(**d), node) for i, d in enumerate(devices)]
         node.start()
         ctl["pid"] = os.getpid()
         ctl["ready"] = 1
@@ -204,6 +236,7 @@ def main(shm_name: str, devices: list, parent: int) -> int:
             now = time.monotonic()
             ctl["beat"] += 1
             for s in sides:
+                s.take()
                 s.forward(now)
             nxt += PERIOD_S
             delay = nxt - time.monotonic()

@@ -91,18 +91,18 @@ class SimArm:
         self._pub_cp = node.create_publisher(PoseStamped, wire.topic(ns, "measured_cp"), wire.qos_reliable())
         self._pub_js = node.create_publisher(JointState, wire.topic(ns, "measured_js"), wire.qos_reliable())
         self._pub_state = node.create_publisher(self.state_cls, wire.topic(ns, "operating_state"), wire.qos_reliable(10))
-        node.create_subscription(PoseStamped, wire.topic(ns, "servo_cp"), self._on_servo, wire.qos_stream(), raw=True)
+        self._servo = self.ros.polled(PoseStamped, wire.topic(ns, "servo_cp"), wire.qos_stream())
         self.ros.start()
-
-    def _on_servo(self, raw: bytes) -> None:
-        try:
-            self._cmd = cdr.decode_pose_stamped(raw)
-        except cdr.CdrError as e:
-            self.refused += 1
-            self.last_refusal = f"servo_cp {e}"
 
     def period(self, dt: float) -> None:
         """Apply the newest servo_cp, step the model ``dt`` seconds, publish its state."""
+        got = self._servo.take()          # (the newest only: the subscription keeps one)
+        if got is not None:
+            try:
+                self._cmd = cdr.decode_pose_stamped(got[0])
+            except cdr.CdrError as e:
+                self.refused += 1
+                self.last_refusal = f"servo_cp {e}"
         r, cmd = self.robot, self._cmd
         if cmd is not None and cmd is not self._cmd_seen:
             self._cmd_seen = cmd

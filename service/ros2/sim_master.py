@@ -95,7 +95,7 @@ class SimMaster:
             self._out.write("t,frame_id,fx,fy,fz\n")
 
     def on_force(self, raw: bytes) -> None:
-        _, fr, w = cdr.decode_wrench_stamped(raw)    # (a bad one raises: the node stops, the run says why)
+        _, fr, w = cdr.decode_wrench_stamped(raw)    # (a bad one raises: the sim-master stops, saying why)
         v = w[:3]
         n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
         self.forces += 1
@@ -144,7 +144,7 @@ def run(args) -> int:
         n = node.node
         pose_pub = n.create_publisher(PoseStamped, dev.pose_topic, reliable)
         pedal_pub = n.create_publisher(Joy, dev.clutch_topic, reliable)
-        n.create_subscription(WrenchStamped, dev.force_topic, sim.on_force, reliable, raw=True)
+        forces = node.polled(WrenchStamped, dev.force_topic, reliable)     # (taken once a period, below)
         node.start()
         if args.ready_file:
             Path(args.ready_file).write_text(json.dumps({"namespace": dev.namespace, "pose_topic": dev.pose_topic,
@@ -161,6 +161,10 @@ def run(args) -> int:
             now = time.monotonic()
             if args.duration is not None and now - t0 >= args.duration:
                 break
+            got = forces.take()
+            while got is not None:
+                sim.on_force(got[0])
+                got = forces.take()
             if waiting:
                 if sim.forces:
                     waiting, t0 = False, now
