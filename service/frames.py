@@ -344,14 +344,15 @@ class LiveFrames(_FeedBase):
         return True
 
     def set_rt_priority(self, priority: int) -> str:
-        """SCHED_FIFO ``priority`` for the running reader and ingest threads where the OS allows
-        it (0: leave them normal). They hold Python's interpreter lock between blocking calls, and
-        one preempted by lower-priority work would keep the haptic loop waiting for the lock as
-        long as it waits for a core. Returns what was applied (for the status)."""
+        """SCHED_FIFO ``priority`` for the running reader and ingest threads, and the sources' own
+        (``DepthSource.threads``: a ROS camera's node), where the OS allows it (0: leave them
+        normal). They hold Python's interpreter lock between blocking calls, and one preempted by
+        lower-priority work would keep the haptic loop waiting for the lock as long as it waits
+        for a core. Returns what was applied (for the status)."""
         if priority <= 0:
             self.scheduling = "normal"
             return self.scheduling
-        threads = [r._thread for r in self.readers] + [self._thread]
+        threads = [r._thread for r in self.readers] + [self._thread] + [t for s in self.sources for t in s.threads()]
         try:
             for th in threads:
                 if th is not None and th.is_alive():

@@ -226,6 +226,11 @@ class RosDepthSource(LiveSource):
         self._seq += 1
         return DepthFrame(cam.name, depth, stamp, seq)
 
+    def threads(self) -> list:
+        """The node's thread (its callbacks take the interpreter lock; the feed raises it)."""
+        th = self._node.thread
+        return [th] if th is not None else []
+
     def frame_times(self, seq: int) -> Optional[tuple]:
         """(header.stamp, arrival on ``time.time()``) in s of delivered frame ``seq`` (the last
         ``FRAME_LOG`` frames), or None."""

@@ -79,6 +79,11 @@ class RosNode:
             self._thread.start()
         return self
 
+    @property
+    def thread(self) -> Optional[threading.Thread]:
+        """The thread the executor spins on (None before ``start()``)."""
+        return self._thread
+
     def _spin(self) -> None:
         name_this_thread(f"ros2-{self.node.get_name()}")
         try:

@@ -115,6 +115,12 @@ class DepthSource(ABC):
         self._seq += 1
         return frame
 
+    def threads(self) -> list:
+        """The source's own threads that run Python (a ROS node's callbacks): they take the
+        interpreter lock the haptic loop needs, so the live feed raises them with its readers
+        (``frames.LiveFrames.set_rt_priority``). None here."""
+        return []
+
     def __iter__(self) -> Iterator[DepthFrame]:
         return self
 
