@@ -9,8 +9,9 @@ and the arms hold (S2) for as long as the load lasts (bench/HISTORY.md, the ros2
 297 frames never reached a snapshot).
 
 ``BuildWatch`` watches the build in progress from a thread of its own. A build running longer
-than ``starve_s`` (a quarter of ``max_frame_age_s`` by default: the fixtures are then still
-fresh) puts the pool back under the normal scheduler (``raise_pool``); after at least ``hold_s``
+than ``starve_s`` (in a live run the cameras' frame period, or a quarter of ``max_frame_age_s``
+where that is sooner: a longer build loses frames, and the fixtures are then still fresh) puts
+the pool back under the normal scheduler (``raise_pool``); after at least ``hold_s``
 there, once ``calm_builds`` builds in a row took less than ``calm_s``, the pool goes back to
 SCHED_IDLE (``idle_pool``). A pool that starves again soon after (within twice its last hold)
 is held twice as long the next time, up to ``max_hold_s``: under lasting load it stays raised,

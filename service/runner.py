@@ -115,10 +115,13 @@ class LiveRun:
 
             from .build_watch import BuildWatch
 
+            # a build longer than a frame period loses frames (the next two arrive while it runs):
+            # it starves, as one past a quarter of max_frame_age_s does
+            period = 1.0 / max(s.rate_hz for s in self.sources)
             self.frames.build_watch = BuildWatch(
                 self.frames, raise_pool=lambda: bool(restore_pool_priority(0)),
                 idle_pool=lambda: bool(lower_pool_priority(sc.build_nice, idle=True)),
-                starve_s=sc.max_frame_age_s / 4).start()
+                starve_s=min(sc.max_frame_age_s / 4, period)).start()
         self.service.start()
         if hasattr(self.service.recorder, "note_start"):
             self.service.recorder.note_start(self.service)

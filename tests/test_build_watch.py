@@ -9,6 +9,8 @@ import pytest
 
 from pointfence.service.build_watch import BuildWatch
 
+from service_cases import needs_opencl
+
 
 class _Frames:
     def __init__(self):
@@ -129,3 +131,27 @@ def test_the_pool_moves_between_sched_idle_and_normal():
                        for t in back)
     finally:
         restore_pool_priority(0)
+
+
+@needs_opencl
+@pytest.mark.parametrize("max_age_s, want_s", [(0.5, 1 / 30), (0.1, 0.025)], ids=["frame-period", "quarter-max-age"])
+def test_a_live_run_starves_a_build_past_a_frame_period_or_a_quarter_of_the_max_age(max_age_s, want_s):
+    """A build longer than the cameras' frame period loses frames (two arrive while it runs): the
+    live run's watch raises the pool then, or at a quarter of ``max_frame_age_s`` if that is
+    sooner (with 125 ms, the default's quarter, a ROS 2 rig lost up to 82 of 300 frames)."""
+    from pointfence.bench.loop import circling_master
+    from pointfence.service import config as config_mod
+    from pointfence.service.canned import canned_sources
+    from pointfence.service.runner import LiveRun
+
+    cfg = config_mod.load(None)
+    cfg.service.max_frame_age_s = max_age_s
+    sources = canned_sources(cfg, 5, {})
+    assert max(s.rate_hz for s in sources) == 30.0
+    run = LiveRun(cfg, [circling_master(0, 1, 10.0)], sources=sources, backend="opencl")
+    try:
+        run.start()
+        assert run.frames.build_watch is not None
+        assert run.frames.build_watch.starve_s == pytest.approx(want_s)
+    finally:
+        run.stop()
