@@ -38,8 +38,8 @@ DEPTH = 16
 class CrtkBridge:
     """The rclpy side of one CRTK arm: a node (``RosNode``) with the three subscriptions and the
     ``servo_cp`` publisher. ``cp``, ``js``, ``state``: the newest message of each, as a tuple
-    whose first item is its arrival (``time.monotonic()``, s), None before the first. ``send``
-    hands a setpoint to the node's thread, which publishes it."""
+    whose first item is its arrival (``time.monotonic()``, s), None before the first (``cp`` and
+    ``js`` as of the last ``poll``). ``send`` publishes a setpoint from the caller's thread."""
 
     def __init__(self, namespace: str, topics: dict, frame_id: str, state_kind: str):
         from geometry_msgs.msg import PoseStamped
@@ -116,7 +116,6 @@ class CrtkBridge:
         self.js = (now, q, dq, tau)
 
     # --- the node's thread ----------------------------------------------------------------------
-
     def _on_jaw(self, raw: bytes) -> None:
         try:
             q = cdr.decode_joint_state(raw)[2]

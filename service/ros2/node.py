@@ -6,7 +6,8 @@ haptic loop's, and they hand data over through the owner's own buffers. A contex
 per node lets several nodes live in one process and be shut down independently (tests).
 
 The 1 kHz topics of the bridges' own periodic loops (a CRTK arm's measured_cp and measured_js,
-a master's pose) are ``PolledSubscription``s instead: no executor serves them, the loop takes
+a master's pose, gripper and pedal, the simulators' commands and forces) are
+``PolledSubscription``s instead: no executor serves them, the loop takes
 what arrived once a period. On the executor every message woke its thread as well as the
 middleware's, a second thread hand-off (and interpreter-lock handover) per message that cost a
 third of such a process's CPU time at 1 kHz on two cores.
