@@ -140,5 +140,8 @@ class PolledSubscription:
         if got is None:
             return None
         raw, info = got
-        age = (time.time_ns() - int(info["received_timestamp"])) * 1e-9
+        received = int(info.get("received_timestamp") or 0)
+        if received <= 0:      # (a middleware that does not stamp receptions: the take is the arrival)
+            return raw, time.monotonic()
+        age = (time.time_ns() - received) * 1e-9
         return raw, time.monotonic() - max(0.0, age)
