@@ -2,7 +2,8 @@
 
 ``open_recording(path)`` reads the file record by record (``mcap_scan.scan``: chunk and data
 section CRCs checked, as ``mcap``'s ``StreamReader`` checks them), so a file that ``kill -9``
-cut short, which has no summary section, reads up to its last whole chunk (``Recording.torn``: it ended early). What it returns:
+cut short, which has no summary section, reads up to its last whole chunk (``Recording.torn``:
+it ended early). What it returns:
 
 * ``meta``: the ``pointfence/run`` metadata (arms, rate, epoch, cameras, configuration text,
   start state, architecture, backend, ...);

@@ -255,7 +255,7 @@ class CrtkRobot(Robot):
                 np.copyto(base, self._T_d)
             else:
                 np.matmul(self._T_base_world, self._T_d, out=base)
-            self._bridge.send((base[0, 3].item(), base[1, 3].item(), base[2, 3].item()) + wire.matrix_to_quat(base))
+            self._bridge.send(wire.pose_of(base))
             if self.jaw_limits is not None and self._jaw_d == self._jaw_d:     # (not NaN)
                 self._bridge.send_jaw(self._jaw_d)
 

@@ -57,12 +57,12 @@ def _pad(off: int, n: int) -> int:
 
 
 def _header(buf, e: str, what: str) -> tuple:
-    """(stamp ns, frame_id, offset after the header) of a ``std_msgs/Header`` at offset 4."""
+    """(sec, nanosec, frame_id, offset after the header) of a ``std_msgs/Header`` at offset 4."""
     try:
         sec, nsec, n = _HDR[e].unpack_from(buf, 4)
     except struct.error:
         raise CdrError(f"{what}: {len(buf)} bytes end inside the header") from None
-    return sec * _NS + nsec, _string(buf, 16, n, what + " frame_id"), 16 + n
+    return sec, nsec, _string(buf, 16, n, what + " frame_id"), 16 + n
 
 
 def _string(buf, off: int, n: int, what: str) -> str:
@@ -86,23 +86,23 @@ def decode_pose_stamped(buf) -> tuple:
     """(stamp ns, frame_id, (x, y, z, qx, qy, qz, qw)) of a serialized ``geometry_msgs/PoseStamped``
     (m, unit quaternion)."""
     e = _order(buf, "PoseStamped")
-    stamp, frame, off = _header(buf, e, "PoseStamped")
-    return stamp, frame, _fixed(buf, e, _D7, off, "PoseStamped")
+    sec, nsec, frame, off = _header(buf, e, "PoseStamped")
+    return sec * _NS + nsec, frame, _fixed(buf, e, _D7, off, "PoseStamped")
 
 
 def decode_wrench_stamped(buf) -> tuple:
     """(stamp ns, frame_id, (fx, fy, fz, tx, ty, tz)) of a serialized ``geometry_msgs/WrenchStamped``
     (N, Nm)."""
     e = _order(buf, "WrenchStamped")
-    stamp, frame, off = _header(buf, e, "WrenchStamped")
-    return stamp, frame, _fixed(buf, e, _D6, off, "WrenchStamped")
+    sec, nsec, frame, off = _header(buf, e, "WrenchStamped")
+    return sec * _NS + nsec, frame, _fixed(buf, e, _D6, off, "WrenchStamped")
 
 
 def decode_joint_state(buf) -> tuple:
     """(stamp ns, names, positions, velocities, efforts) of a serialized ``sensor_msgs/JointState``
     (tuples; rad or m, rad/s or m/s, Nm or N)."""
     e = _order(buf, "JointState")
-    stamp, _, off = _header(buf, e, "JointState")
+    sec, nsec, _, off = _header(buf, e, "JointState")
     u32 = _U32[e]
     try:
         off = _pad(off, 4)
@@ -129,7 +129,7 @@ def decode_joint_state(buf) -> tuple:
                 arrays.append(())
     except struct.error:
         raise CdrError(f"JointState: {len(buf)} bytes end inside the message") from None
-    return (stamp, tuple(names)) + tuple(arrays)
+    return (sec * _NS + nsec, tuple(names)) + tuple(arrays)
 
 
 def _count_ok(count: int, what: str) -> None:
@@ -246,8 +246,8 @@ class CompressedImage(NamedTuple):
 
 
 def _stamped_header(buf, e: str, what: str) -> tuple:
-    stamp, frame, off = _header(buf, e, what)
-    return Header(Stamp(*divmod(stamp, _NS)), frame), off
+    sec, nsec, frame, off = _header(buf, e, what)
+    return Header(Stamp(sec, nsec), frame), off
 
 
 def _bytes_field(buf, e: str, off: int, what: str) -> tuple:

@@ -80,16 +80,10 @@ class CrtkBridge:
     # --- the arm's thread: measured_cp and measured_js -----------------------------------------
     def poll(self) -> None:
         """Take every measured_cp and measured_js that arrived since the last call."""
-        take = self._cp_sub.take
-        got = take()
-        while got is not None:
-            self._on_cp(*got)
-            got = take()
-        take = self._js_sub.take
-        got = take()
-        while got is not None:
-            self._on_js(*got)
-            got = take()
+        for raw, arrival in self._cp_sub.take_all():
+            self._on_cp(raw, arrival)
+        for raw, arrival in self._js_sub.take_all():
+            self._on_js(raw, arrival)
 
     def _on_cp(self, raw: bytes, now: float) -> None:
         self.received += 1

@@ -130,5 +130,10 @@ def pose_to_matrix(p: tuple, out: np.ndarray) -> np.ndarray:
     return out
 
 
+def pose_of(T: np.ndarray) -> tuple:
+    """Transform ``T`` (4x4) as a pose (x, y, z, qx, qy, qz, qw): ``pose_to_matrix``'s inverse."""
+    return (T[0, 3].item(), T[1, 3].item(), T[2, 3].item()) + matrix_to_quat(T)
+
+
 def set_stamp(header, ns: int) -> None:
     header.stamp.sec, header.stamp.nanosec = divmod(int(ns), 1_000_000_000)

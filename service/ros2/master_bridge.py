@@ -81,24 +81,18 @@ class DeviceSide:
     # --- the main thread: messages in -> the state row --------------------------------------------------
     def take(self) -> None:
         """Take every pose, gripper and pedal message that arrived since the last call."""
-        got = self.pose_sub.take()
-        while got is not None:
-            self.on_pose(*got)
-            got = self.pose_sub.take()
+        for raw, arrival in self.pose_sub.take_all():
+            self.on_pose(raw, arrival)
         if self.grip_sub is not None:
-            got = self.grip_sub.take()
-            while got is not None:
-                self.on_gripper(*got)
-                got = self.grip_sub.take()
-        got = self.pedal_sub.take()
-        while got is not None:
+            for raw, arrival in self.grip_sub.take_all():
+                self.on_gripper(raw, arrival)
+        for raw, _ in self.pedal_sub.take_all():
             try:
-                buttons = list(self._deserialize(got[0], self._Joy).buttons)
+                buttons = list(self._deserialize(raw, self._Joy).buttons)
             except Exception as e:   # noqa: BLE001 -- bytes that are no Joy: decoupled, as a malformed pedal
                 self.on_pedal(None, f"{self.dev.clutch_topic}: the message could not be read ({e})")
             else:
                 self.on_pedal(buttons)
-            got = self.pedal_sub.take()
 
     def _reject(self, code: int, message: str) -> None:
         L, row = STATE_LAYOUT, self.row

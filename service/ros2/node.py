@@ -135,6 +135,13 @@ class PolledSubscription:
         # rclpy's own executors and ``rclpy.wait_for_message`` take messages this way
         self._take = self._sub.handle.take_message
 
+    def take_all(self):
+        """Every waiting message, oldest first, as ``take`` gives them (a generator)."""
+        got = self.take()
+        while got is not None:
+            yield got
+            got = self.take()
+
     def take(self) -> Optional[tuple]:
         got = self._take(self._type, True)
         if got is None:

@@ -36,6 +36,7 @@ from pointfence.kernels.errors import InputError
 
 from ..masters import ScriptedMaster
 from . import cdr
+from . import crtk_wire as wire
 from .crtk_device import PEDAL_MEANINGS, CrtkDevice
 
 
@@ -161,10 +162,8 @@ def run(args) -> int:
             now = time.monotonic()
             if args.duration is not None and now - t0 >= args.duration:
                 break
-            got = forces.take()
-            while got is not None:
-                sim.on_force(got[0])
-                got = forces.take()
+            for raw, _ in forces.take_all():
+                sim.on_force(raw)
             if waiting:
                 if sim.forces:
                     waiting, t0 = False, now
@@ -178,7 +177,7 @@ def run(args) -> int:
             want = int(m.clutch == (dev.pedal == "couples"))   # coupled -> the pedal's state
             if want != pressed or now - last_pedal >= 0.1:
                 pressed, last_pedal = want, now
-                pedal.header.stamp.sec, pedal.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+                wire.set_stamp(pedal.header, stamp)
                 pedal.buttons = [0] * dev.clutch_button + [want]
                 pedal_pub.publish(pedal)
             if now - last_flush >= 0.1:

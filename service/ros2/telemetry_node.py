@@ -196,13 +196,14 @@ class Publisher:
         self.publish_markers(rows[-1])
         self.publish_status(rows[-1])
 
+    def _stamp_ns(self, row) -> int:
+        return int(self.hdr[T.EPOCH]) + int(round(self.layout.get(row, "now") * 1e9))
+
     def _stamp(self, row) -> tuple:
-        ns = int(self.hdr[T.EPOCH]) + int(round(self.layout.get(row, "now") * 1e9))
-        return ns // 1_000_000_000, ns % 1_000_000_000
+        return divmod(self._stamp_ns(row), 1_000_000_000)
 
     def publish_row(self, row: np.ndarray) -> None:
-        sec, nsec = self._stamp(row)
-        stamp = sec * 1_000_000_000 + nsec
+        stamp = self._stamp_ns(row)
         get = self.layout.get
         values = {f: get(row, f) for f in POSE_FIELDS + ANGLE_FIELDS}
         force = get(row, "force")
@@ -305,9 +306,8 @@ class Publisher:
         if key == self.last_status[0] and now - self.last_status[1] < STATUS_EVERY_S:
             return
         self.last_status = (key, now)
-        sec, nsec = self._stamp(row)
         msg = self._String()
-        msg.data = json.dumps({**st, "tick": int(self.layout.get(row, "k")), "stamp_ns": sec * 1_000_000_000 + nsec})
+        msg.data = json.dumps({**st, "tick": int(self.layout.get(row, "k")), "stamp_ns": self._stamp_ns(row)})
         self.status_pub.publish(msg)
         self.hdr[T.PUBLISHED] += 1
 
