@@ -1,4 +1,4 @@
-"""ROS 2 CDR encoding of fixed-shape messages as NumPy records, and of a compressed image.
+"""ROS 2 CDR encoding of fixed-shape messages as NumPy records, and of images (raw and compressed).
 
 A ROS 2 message whose strings and sequence lengths are the same in every message of a channel
 (a ``PoseStamped`` with its ``frame_id``, a ``TickInput`` of B arms) has one byte layout: a
@@ -15,6 +15,8 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+
+from pointfence.kernels.errors import InputError
 
 #: CDR little-endian encapsulation (representation id 0x0001, options 0)
 ENCAPSULATION = b"\x00\x01\x00\x00"
@@ -136,4 +138,28 @@ def compressed_image(stamp_ns: int, frame_id: str, fmt: str, data: bytes) -> byt
     return body + b"\x00" * pad + struct.pack("<I", len(data)) + data
 
 
-__all__ = ["FixedLayout", "pose_layout", "wrench_layout", "stamp_fields", "compressed_image", "ENCAPSULATION"]
+#: ``sensor_msgs/Image`` encodings of the arrays ``raw_image`` takes: (dtype, channels) -> encoding
+IMAGE_ENCODINGS = {(np.dtype(np.uint16), 1): "16UC1", (np.dtype(np.uint8), 3): "rgb8", (np.dtype(np.uint8), 1): "mono8"}
+
+
+def raw_image(stamp_ns: int, frame_id: str, img: np.ndarray) -> bytes:
+    """A ``sensor_msgs/Image`` message, CDR-encoded (little-endian): ``img`` a C-contiguous uint16
+    (H, W) depth image ("16UC1"), uint8 (H, W, 3) RGB ("rgb8") or uint8 (H, W) grey ("mono8"),
+    its pixels copied once into the message."""
+    channels = img.shape[2] if img.ndim == 3 else 1
+    enc = IMAGE_ENCODINGS.get((img.dtype, channels)) if img.ndim in (2, 3) else None
+    if enc is None or not img.flags.c_contiguous:
+        raise InputError(f"image of {img.dtype} {img.shape} ({'' if img.flags.c_contiguous else 'not '}C-contiguous); "
+                         "expected a C-contiguous uint16 (H, W), uint8 (H, W, 3) or uint8 (H, W) array")
+    h, w = img.shape[:2]
+    head = FixedLayout().header(frame_id).u32(h).u32(w).string(enc).scalar("is_bigendian", "u1") \
+        .u32(w * channels * img.itemsize)                 # (little-endian: is_bigendian 0)
+    rec = head.blank(1)
+    stamp_fields(rec, np.array([stamp_ns], np.int64))
+    body = rec.tobytes()
+    pad = (-(len(body) - 4)) % 4        # the uint8[] length is a uint32: aligned to 4
+    return b"".join((body, b"\x00" * pad, struct.pack("<I", img.nbytes), img.data.cast("B")))
+
+
+__all__ = ["FixedLayout", "pose_layout", "wrench_layout", "stamp_fields", "compressed_image", "raw_image",
+           "IMAGE_ENCODINGS", "ENCAPSULATION"]

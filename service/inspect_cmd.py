@@ -28,7 +28,7 @@ from pointfence.kernels.errors import InputError
 
 from . import run_measures
 from .recording_info import scan
-from .ros2_schemas import master_ns, robot_ns
+from .ros2_schemas import camera_topics, legacy_camera_topics, master_ns, robot_ns
 
 
 def add_arguments(p):
@@ -99,7 +99,7 @@ def _truncated_note(sc, rec) -> str:
 def _cameras(meta: dict, sc) -> list:
     out = []
     for c in meta.get("cameras", []):
-        depth = sc.topics.get(f"/{c['name']}/depth/compressed")
+        depth = sc.topics.get(camera_topics(c["name"])["depth"]) or sc.topics.get(legacy_camera_topics(c["name"])["depth"])
         out.append({"name": c["name"], "source": c.get("source"), "width": c["width"], "height": c["height"],
                     "fx": c["fx"], "fy": c["fy"], "cx": c["cx"], "cy": c["cy"], "dist": c.get("dist"),
                     "depth_scale": c.get("depth_scale"), "configured_rate_hz": c.get("rate_hz"),

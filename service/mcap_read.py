@@ -36,6 +36,7 @@ from pointfence.kernels.frame import DepthFrame
 from . import depth_png
 from .mcap_record import FORMAT
 from .mcap_scan import scan
+from .ros2.cdr import CdrError, decode_image
 from .ros2_schemas import SNAPSHOTS, TICK_INPUT, TICK_OUTPUT
 from .tick_cdr import TickLayout
 
@@ -44,7 +45,7 @@ class Recording:
     def __init__(self, path, meta, rows, snapshots, images, torn, messages, metadata=None):
         self.path, self.meta, self.rows, self.snapshots = path, meta, rows, snapshots
         self.metadata = metadata if metadata is not None else {"pointfence/run": meta}
-        self._images = images              # (camera, topic kind, frame seq) -> (format, data)
+        self._images = images              # (camera, kind, frame seq) -> ("raw", Image CDR) | ("png", format, data)
         self.torn = torn                   # None, or why the file ends early
         self.messages = messages
         self.layout = TickLayout(int(meta["arms"]))
@@ -60,15 +61,40 @@ class Recording:
         if key not in self._images:
             raise InputError(f"{self.path}: frame {seq} of camera {name!r} (recorded frame {index}) is not in the "
                              "recording (dropped while recording, or after the point where the file ends)")
-        fmt, data = self._images[key]
         where = f"{self.path}: camera {name!r} frame {seq}"
-        depth = depth_png.decode_depth(data, fmt, where)
+        depth = _pixels(self._images[key], "depth", where)
         color = self._images.get((name, "color", int(index)))
         mask = self._images.get((name, "mask", int(index)))
         T = None if pose is None or len(pose) < 16 or math.isnan(pose[0]) else np.array(pose, float).reshape(4, 4)
         return DepthFrame(camera=name, depth=depth, timestamp=float(stamp), seq=int(seq),
-                          color=None if color is None else depth_png.decode_png(color[1], 3, where),
-                          mask=None if mask is None else depth_png.decode_png(mask[1], 1, where), T_world_cam=T)
+                          color=None if color is None else _pixels(color, "color", where),
+                          mask=None if mask is None else _pixels(mask, "mask", where), T_world_cam=T)
+
+
+#: a raw image's encoding by kind, with its dtype and channels
+_RAW = {"depth": ("16UC1", np.uint16, 1), "color": ("rgb8", np.uint8, 3), "mask": ("mono8", np.uint8, 1)}
+
+
+def _pixels(image: tuple, kind: str, where: str) -> np.ndarray:
+    """The pixels of a recorded image (``_take``'s entry): a raw ``sensor_msgs/Image`` (this
+    recorder's) or a PNG ``CompressedImage`` (recordings made before raw images)."""
+    if image[0] == "png":
+        _, fmt, data = image
+        if kind == "depth":
+            return depth_png.decode_depth(data, fmt, where)
+        return depth_png.decode_png(data, 3 if kind == "color" else 1, where)
+    try:
+        img = decode_image(image[1])
+    except CdrError as e:
+        raise InputError(f"{where}: a damaged {kind} image ({e})") from None
+    enc, dtype, channels = _RAW[kind]
+    row = img.width * channels * np.dtype(dtype).itemsize
+    if img.encoding != enc or img.is_bigendian or img.step != row or len(img.data) != row * img.height:
+        raise InputError(f"{where}: {kind} image {img.width}x{img.height} {img.encoding!r} (big-endian "
+                         f"{bool(img.is_bigendian)}, step {img.step}, {len(img.data)} bytes); expected {enc!r}, "
+                         f"little-endian, {row} bytes a row")
+    shape = (img.height, img.width) + ((channels,) if channels > 1 else ())
+    return np.frombuffer(img.data, dtype).reshape(shape).copy()
 
 
 def _decode_snapshot(data: bytes):
@@ -164,14 +190,14 @@ def _take(topic: str, sequence: int, data: bytes, ticks: dict, snapshots: dict, 
     elif topic == SNAPSHOTS:
         seq, entry = _decode_snapshot(data)
         snapshots[seq] = entry
-    elif topic.endswith("/compressed"):
+    elif topic.endswith(("/image_raw", "/compressed")):
         parts = topic.strip("/").split("/")
-        if len(parts) == 3:          # /<camera>/<depth|color|mask>/compressed; sequence: the frame's running number
-            images[(parts[0], parts[1], int(sequence))] = _image(data)
+        if len(parts) == 3:          # /<camera>/<depth|color|mask>/<image_raw|compressed>; sequence: the frame's number
+            images[(parts[0], parts[1], int(sequence))] = ("raw", data) if parts[2] == "image_raw" else _png(data)
 
 
-def _image(data: bytes):
-    """(format, payload) of a CDR-encoded ``sensor_msgs/CompressedImage``."""
+def _png(data: bytes) -> tuple:
+    """("png", format, payload) of a CDR-encoded ``sensor_msgs/CompressedImage``."""
     off = 4 + 8                                     # encapsulation, stamp
     (n,) = struct.unpack_from("<I", data, off)      # frame_id
     off += 4 + n
@@ -181,7 +207,7 @@ def _image(data: bytes):
     off += 4 + n
     off += (-(off - 4)) % 4
     (n,) = struct.unpack_from("<I", data, off)      # data
-    return fmt, data[off + 4: off + 4 + n]
+    return "png", fmt, data[off + 4: off + 4 + n]
 
 
 __all__ = ["open_recording", "Recording"]

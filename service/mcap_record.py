@@ -14,8 +14,9 @@ Three sides, and what each may do:
   (``snapshots_dropped``): a replay then says which snapshot is missing.
 * the writer **process** (``mcap_writer``, ``python -m pointfence.service.mcap_writer``): every
   ``flush_s`` (<= 0.5 s) it encodes what the others left (every tick's input and output, the
-  decimated poses and wrenches, events, depth as lossless ``compressedDepth`` PNG with its
-  ``CameraInfo``, colour and mask PNGs, the snapshot table, the fixture cloud at ``cloud_hz``),
+  decimated poses and wrenches, events, depth as a raw 16UC1 ``sensor_msgs/Image`` with its
+  ``CameraInfo``, colour (rgb8) and mask (mono8) images, the snapshot table, the fixture cloud at
+  ``cloud_hz``; the chunks' zstd compresses it all losslessly),
   ends the MCAP chunk and fsyncs. Being another process, its encoding never takes the service's
   interpreter lock. A ``kill -9`` of the service: the writer sees its control pipe end, writes
   what the rings hold and closes the file (a ``pointfence/end`` metadata record says so). A

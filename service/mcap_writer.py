@@ -1,6 +1,6 @@
 """The MCAP writer process of a recording (``python -m pointfence.service.mcap_writer``, started by
-``mcap_record.McapRecorder``): everything that costs CPU (PNG encoding of depth, colour and
-masks, CDR encoding, zstd chunks, the fixture cloud, fsync) runs here, outside the service's
+``mcap_record.McapRecorder``): everything that costs CPU (CDR encoding of the ticks and of the
+raw depth, colour and mask images, zstd chunks, the fixture cloud, fsync) runs here, outside the service's
 interpreter, so it never holds the service's interpreter lock.
 
 Inputs: the two shared blocks of ``mcap_shm`` (the tick ring, and the frame ring once the
@@ -228,8 +228,8 @@ class Writer:
         """Encode the snapshot entries the ring holds, until the monotonic time ``until`` (s;
         None: all): a writer short of CPU keeps its chunks and fsyncs every ``flush_s`` and
         leaves the rest for its next flush (the ring then fills and drops snapshots, counted)."""
-        from . import depth_png, mcap_shm
-        from .cdr import compressed_image
+        from . import mcap_shm
+        from .cdr import raw_image
         from .mcap_topics import camera_info, stamp
         from .ros2_schemas import SNAPSHOTS, camera_topics
 
@@ -256,19 +256,16 @@ class Writer:
                 ns = self._frame_ns(ts, cms)
                 tops = camera_topics(cam.name)
                 depth = fb.depth[slot][i]
-                tw.raw(tops["depth"], "sensor_msgs/CompressedImage",
-                       compressed_image(ns, cam.name, depth_png.DEPTH_FORMAT, depth_png.encode_depth(depth)), ns, idx)
+                # raw images: the chunk's zstd compresses them losslessly, with less CPU than a PNG
+                # encoder takes and into fewer bytes (bench/HISTORY.md, stop 32)
+                tw.raw(tops["depth"], "sensor_msgs/Image", raw_image(ns, cam.name, depth), ns, idx)
                 tw.dyn(tops["info"], "sensor_msgs/CameraInfo", camera_info(cam, ns), ns, idx)
                 color = fb.color[slot][i] if e[mcap_shm.COLOR] else None
                 mask = fb.mask[slot][i] if e[mcap_shm.MASK] else None
                 if color is not None:
-                    tw.raw(tops["color"], "sensor_msgs/CompressedImage",
-                           compressed_image(ns, cam.name, "rgb8; png compressed bgr8", depth_png.encode_color(color)),
-                           ns, idx)
+                    tw.raw(tops["color"], "sensor_msgs/Image", raw_image(ns, cam.name, color), ns, idx)
                 if mask is not None:
-                    tw.raw(tops["mask"], "sensor_msgs/CompressedImage",
-                           compressed_image(ns, cam.name, "mono8; png compressed mono8", depth_png.encode_mask(mask)),
-                           ns, idx)
+                    tw.raw(tops["mask"], "sensor_msgs/Image", raw_image(ns, cam.name, mask), ns, idx)
                 self.latest[i] = _Frame(depth.copy(), None if color is None else color.copy(),
                                         None if mask is None else mask.copy(),
                                         None if np.isnan(pose[0]) else pose.reshape(4, 4))

@@ -4,7 +4,7 @@ dependencies) of everything a pointfence MCAP recording holds, and the topic nam
 The standard types are written out here, with every type they depend on, so a recording opens
 in ``ros2 bag``, Foxglove and Rerun without a ROS installation: ``std_msgs/Header``,
 ``builtin_interfaces/Time``, ``geometry_msgs/PoseStamped`` / ``WrenchStamped`` (``Pose``,
-``Point``, ``Quaternion``, ``Wrench``, ``Vector3``), ``sensor_msgs/CompressedImage``,
+``Point``, ``Quaternion``, ``Wrench``, ``Vector3``), ``sensor_msgs/Image``, ``CompressedImage``,
 ``CameraInfo`` (``RegionOfInterest``), ``JointState``, ``PointCloud2`` (``PointField``),
 ``diagnostic_msgs/DiagnosticArray`` (``DiagnosticStatus``, ``KeyValue``; the grasper's health).
 pointfence's own: ``pointfence_msgs/Event`` (a fault, a hold and its reason, a change of
@@ -50,6 +50,8 @@ _MAIN = {
                                      "geometry_msgs/Vector3"]),
     "sensor_msgs/CompressedImage": ("std_msgs/Header header\nstring format\nuint8[] data\n",
                                     ["std_msgs/Header", "builtin_interfaces/Time"]),
+    "sensor_msgs/Image": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\n"
+                          "uint32 step\nuint8[] data\n", ["std_msgs/Header", "builtin_interfaces/Time"]),
     "sensor_msgs/CameraInfo": ("std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\n"
                                "float64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\n"
                                "uint32 binning_y\nsensor_msgs/RegionOfInterest roi\n",
@@ -147,10 +149,18 @@ def master_ns(arm: int) -> str:
 
 
 def camera_topics(name: str) -> dict:
-    """Topics of camera ``name``: depth (compressedDepth PNG), camera info, colour and mask (PNG)."""
-    return {"depth": f"/{name}/depth/compressed", "info": f"/{name}/depth/camera_info",
-            "color": f"/{name}/color/compressed", "mask": f"/{name}/mask/compressed"}
+    """Topics of camera ``name``: depth (``sensor_msgs/Image`` 16UC1, the camera's depth codes),
+    camera info, colour (rgb8) and mask (mono8) images, as ROS drivers name raw images."""
+    return {"depth": f"/{name}/depth/image_raw", "info": f"/{name}/depth/camera_info",
+            "color": f"/{name}/color/image_raw", "mask": f"/{name}/mask/image_raw"}
 
 
-__all__ = ["msgdef", "SCHEMAS", "tick_fields", "robot_ns", "master_ns", "camera_topics", "TICK_INPUT",
-           "TICK_OUTPUT", "EVENTS", "SNAPSHOTS", "FIXTURES", "TICK_US"]
+def legacy_camera_topics(name: str) -> dict:
+    """The image topics of recordings made before raw images (``sensor_msgs/CompressedImage``:
+    depth in the ``compressedDepth`` PNG form, colour and mask PNGs); still read."""
+    return {"depth": f"/{name}/depth/compressed", "color": f"/{name}/color/compressed",
+            "mask": f"/{name}/mask/compressed"}
+
+
+__all__ = ["msgdef", "SCHEMAS", "tick_fields", "robot_ns", "master_ns", "camera_topics", "legacy_camera_topics",
+           "TICK_INPUT", "TICK_OUTPUT", "EVENTS", "SNAPSHOTS", "FIXTURES", "TICK_US"]

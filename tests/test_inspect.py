@@ -51,12 +51,12 @@ def test_inspect_reports_a_recorded_serve_run(served, tmp_path):
     assert rep["complete"] and rep["truncated"] is None and rep["note"] is None
     topics = {t["topic"]: t for t in rep["topics"]}
     assert topics["/pointfence/tick/input"]["messages"] == len(r.rows) == rep["ticks"]["recorded"]
-    assert topics["/overhead/depth/compressed"]["schema"] == "sensor_msgs/CompressedImage"
-    depth_rate = topics["/overhead/depth/compressed"]["rate_hz"]
+    assert topics["/overhead/depth/image_raw"]["schema"] == "sensor_msgs/Image"
+    depth_rate = topics["/overhead/depth/image_raw"]["rate_hz"]
     assert depth_rate is not None and 1 < depth_rate <= 31
     cam = rep["cameras"][0]
     assert (cam["name"], cam["width"], cam["height"], cam["fx"], cam["cx"]) == ("overhead", 160, 120, 143.95, 79.5)
-    assert cam["frames"] == topics["/overhead/depth/compressed"]["messages"] > 0
+    assert cam["frames"] == topics["/overhead/depth/image_raw"]["messages"] > 0
     assert rep["arms"] == [{"arm": 0, "robot": "PSM1", "master": "MTMR", "robot_model": "raven2"}]
     # holds: exactly the file's own hold events, each with its reasons and invariants
     holds = [m.ros_msg for m in ros2_messages(served, topics=["/pointfence/events"]) if m.ros_msg.kind == "hold"]

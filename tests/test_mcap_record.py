@@ -152,7 +152,7 @@ def test_messages_decode_into_the_standard_ros2_types(served):
     for m in ros2_messages(served):
         seen.setdefault(m.channel.topic, []).append(m)
     for topic in ("/PSM1/measured_cp", "/PSM1/servo_cp", "/MTMR/measured_cp", "/MTMR/servo_cf", "/pointfence/arm0/proxy",
-                  "/overhead/depth/compressed", "/overhead/depth/camera_info", "/overhead/color/compressed",
+                  "/overhead/depth/image_raw", "/overhead/depth/camera_info", "/overhead/color/image_raw",
                   "/pointfence/tick/input", "/pointfence/tick/output", "/pointfence/snapshots", "/pointfence/events",
                   "/pointfence/fixtures"):
         assert topic in seen, f"{topic} missing; topics: {sorted(seen)}"
@@ -189,10 +189,14 @@ def test_messages_decode_into_the_standard_ros2_types(served):
     cam = r.meta["cameras"][0]
     assert info.distortion_model == "plumb_bob" and info.width == cam["width"] and info.height == cam["height"]
     assert list(info.k) == [cam["fx"], 0.0, cam["cx"], 0.0, cam["fy"], cam["cy"], 0.0, 0.0, 1.0]
-    img = seen["/overhead/depth/compressed"][0].ros_msg
-    assert img.format == depth_png.DEPTH_FORMAT and bytes(img.data[:4]) == b"\x00\x00\x00\x00"   # INV_DEPTH header
-    depth = depth_png.decode_depth(bytes(img.data), img.format, "test")
-    assert depth.shape == (cam["height"], cam["width"]) and depth.dtype == np.uint16
+    img = seen["/overhead/depth/image_raw"][0].ros_msg
+    assert seen["/overhead/depth/image_raw"][0].schema.name == "sensor_msgs/Image"
+    assert (img.encoding, img.is_bigendian, img.height, img.width, img.step) == \
+        ("16UC1", 0, cam["height"], cam["width"], 2 * cam["width"])
+    depth = np.frombuffer(bytes(img.data), "<u2").reshape(img.height, img.width)
+    col = seen["/overhead/color/image_raw"][0].ros_msg
+    assert (col.encoding, col.height, col.width, col.step, len(col.data)) == \
+        ("rgb8", cam["height"], cam["width"], 3 * cam["width"], 3 * cam["width"] * cam["height"])
     z = depth[depth > 0] * cam["depth_scale"]
     assert 0.2 < np.median(z) < 1.0                              # the table 0.6 m below the camera
     cloud = seen["/pointfence/fixtures"][0].ros_msg
@@ -220,6 +224,76 @@ def test_messages_decode_into_the_standard_ros2_types(served):
         tip = raven.forward_kinematics(np.array(q.position))[:3, 3]
         want = poses[(q.header.stamp.sec, q.header.stamp.nanosec)]
         np.testing.assert_allclose(tip, [want.x, want.y, want.z], atol=1e-9)
+
+
+
+def test_images_are_raw_inside_zstd_chunks(served):
+    """Depth, colour and mask are raw ``sensor_msgs/Image``s that the chunks' zstd compresses
+    losslessly (no PNG encoder in the writer: a fraction of its CPU, bench/RESULTS.md)."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    with open(served, "rb") as f:
+        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert chunks and {c.compression for c in chunks} == {"zstd"}
+    assert sum(len(c.data) for c in chunks) < sum(c.uncompressed_size for c in chunks) / 3
+    kinds = {m.channel.topic: m.schema.name for m in ros2_messages(served) if "/overhead/" in m.channel.topic}
+    assert kinds["/overhead/depth/image_raw"] == kinds["/overhead/color/image_raw"] == "sensor_msgs/Image"
+    assert not any(t.endswith("/compressed") for t in kinds)
+
+
+def _as_png_recording(src: Path, dst: Path) -> None:
+    """``src`` rewritten as the recorder wrote it before raw images: every image a PNG
+    ``CompressedImage`` on ``/<camera>/<kind>/compressed``, everything else as it was."""
+    from mcap.reader import make_reader
+    from mcap.well_known import MessageEncoding, SchemaEncoding
+    from mcap.writer import CompressionType, Writer
+
+    from pointfence.service.cdr import compressed_image
+    from pointfence.service.ros2.cdr import decode_image
+    from pointfence.service.ros2_schemas import msgdef
+
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        reader = make_reader(f)
+        w = Writer(out, compression=CompressionType.ZSTD)
+        w.start(profile="ros2", library="pointfence (before raw images)")
+        schemas, channels = {}, {}
+        for schema, channel, m in reader.iter_messages(log_time_order=False):
+            name, topic, data = schema.name, channel.topic, m.data
+            if name == "sensor_msgs/Image":
+                img = decode_image(data)
+                kind = topic.strip("/").split("/")[1]
+                a = np.frombuffer(bytes(img.data), "<u2" if kind == "depth" else np.uint8)
+                a = a.reshape(img.height, img.width, 3) if kind == "color" else a.reshape(img.height, img.width)
+                payload, fmt = {"depth": (depth_png.encode_depth, depth_png.DEPTH_FORMAT),
+                                "color": (depth_png.encode_color, "rgb8; png compressed bgr8"),
+                                "mask": (depth_png.encode_mask, "mono8; png compressed mono8")}[kind]
+                ns = img.header.stamp.sec * 1_000_000_000 + img.header.stamp.nanosec
+                name, topic = "sensor_msgs/CompressedImage", topic.replace("/image_raw", "/compressed")
+                data = compressed_image(ns, img.header.frame_id, fmt, payload(a))
+            if name not in schemas:
+                schemas[name] = w.register_schema(name, SchemaEncoding.ROS2, msgdef(name).encode())
+            if topic not in channels:
+                channels[topic] = w.register_channel(topic, MessageEncoding.CDR, schemas[name])
+            w.add_message(channels[topic], m.log_time, data, m.publish_time, m.sequence)
+        for md in reader.iter_metadata():
+            w.add_metadata(md.name, md.metadata)
+        w.finish()
+
+
+def test_a_recording_with_png_images_still_reads_and_replays(served, tmp_path):
+    old = tmp_path / "png.mcap"
+    _as_png_recording(served, old)
+    a, b = open_recording(served), open_recording(old)
+    assert repr(b.snapshots) == repr(a.snapshots) and b.cameras == a.cameras     # (repr: NaN poses)
+    seq = sorted(a.snapshots)[len(a.snapshots) // 2]
+    fseq, index, stamp, pose = a.snapshots[seq]
+    fa, fb = (r.frame(0, index[0], fseq[0], stamp[0], pose[:16]) for r in (a, b))
+    np.testing.assert_array_equal(fb.depth, fa.depth)
+    np.testing.assert_array_equal(fb.color, fa.color)
+    assert fa.depth.dtype == np.uint16 and fa.color.shape == fa.depth.shape + (3,) and fa.depth.flags.writeable
+    _, check = replay(b)
+    assert check["exact"], check
 
 
 def _children(pid: int) -> list:
