@@ -15,7 +15,7 @@ import warp as wp
 
 from .args import ProxyArgs
 from .frames import GridArgs
-from .primitives import div_fast, rows, rsqrt_fast
+from .primitives import div_fast, mul_rn, rows, rsqrt_fast
 
 
 @wp.func
@@ -30,9 +30,8 @@ def point_at(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), i: in
 
 @wp.func
 def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
-    if a.fixture != 0:
-        return p[3]
-    return a.r1
+    """The point's clearance radius, m: its own (fixture mode) or r1."""
+    return wp.where(a.fixture != 0, p[3], a.r1)
 
 
 
@@ -40,10 +39,8 @@ def clearance_radius(p: wp.vec4, a: ProxyArgs) -> float:
 def unit_len(v: wp.vec3):
     """(v / |v|, |v|), zero for v = 0."""
     l2 = wp.dot(v, v)
-    inv = rsqrt_fast(l2)
-    if l2 > 0.0:
-        return v * inv, l2 * inv
-    return wp.vec3(0.0), float(0.0)
+    inv = wp.where(l2 > 0.0, rsqrt_fast(l2), 0.0)
+    return v * inv, l2 * inv
 
 
 @wp.func
@@ -52,15 +49,11 @@ def eval_point_e(X: wp.vec3, q: wp.vec4, a: ProxyArgs, ns: wp.vec3, me: float):
     its clearance."""
     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
     d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
-    inv = rsqrt_fast(d2)
-    d = float(0.0)
-    if d2 > 0.0:
-        d = d2 * inv
-    e = d - clearance_radius(q, a)
-    if e < a.nreach:
-        me = wp.min(me, e)
-        if d2 > 0.0:
-            ns = ns + dv * inv
+    inv = wp.where(d2 > 0.0, rsqrt_fast(d2), 0.0)
+    e = mul_rn(d2, inv) - clearance_radius(q, a)
+    near = e < a.nreach
+    me = wp.where(near, wp.min(me, e), me)
+    ns = ns + dv * wp.where(near, inv, 0.0)   # (without a branch: + 0 leaves ns as it is)
     return ns, me, e
 
 
@@ -84,11 +77,9 @@ def clip_point(X: wp.vec3, u: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, tm:
     rc = clearance_radius(q, a) + off
     c = d2 - rc * rc
     disc = b * b - c
-    if c >= 0.0 and b < 0.0 and disc > 0.0:
-        tm = wp.min(tm, div_fast(c, -b + disc * rsqrt_fast(disc)))
-    elif c < 0.0 and b < 0.0:
-        tm = 0.0
-    return tm
+    t = div_fast(c, -b + disc * rsqrt_fast(disc))   # (taken only where the sphere is hit)
+    tm = wp.where(c >= 0.0 and b < 0.0 and disc > 0.0, wp.min(tm, t), tm)
+    return wp.where(c < 0.0 and b < 0.0, 0.0, tm)
 
 
 @wp.func
@@ -96,11 +87,8 @@ def away_point(X: wp.vec3, q: wp.vec4, a: ProxyArgs, off: float, ns: wp.vec3) ->
     """This point's share of sum (X - P)/|X - P| over the points at the limit (clearance below off)."""
     dv = wp.vec3(X[0] - q[0], X[1] - q[1], X[2] - q[2])
     d2 = dv[0] * dv[0] + dv[1] * dv[1] + dv[2] * dv[2]
-    inv = rsqrt_fast(d2)
     rc = clearance_radius(q, a) + off
-    if d2 - rc * rc < 0.0 and d2 > 0.0:
-        ns = ns + dv * inv
-    return ns
+    return ns + dv * wp.where(d2 - rc * rc < 0.0 and d2 > 0.0, rsqrt_fast(d2), 0.0)
 
 
 @wp.func

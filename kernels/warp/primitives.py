@@ -192,16 +192,33 @@ def bits_float(i: int) -> float:
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    return rsqrtf(x);
+    float r;
+    asm("rsqrt.approx.ftz.f32 %0, %1;" : "=f"(r) : "f"(fmaxf(x, 1.17549435e-38f)));
+    return r;
 #else
     return 1.0f / sqrtf(x);
 #endif
 """)
 def rsqrt_fast(x: float) -> float:
-    """1 / sqrt(x) without a branch (CUDA's MUFU.RSQ: within 2 ulp)."""
+    """1 / sqrt(x) for x >= 2^-126 without a branch (CUDA's MUFU.RSQ: within 2 ulp; the bits of
+    rsqrtf there, without its scaling of subnormal x); finite for x below (the callers take it
+    only where x > 0, and a squared length of 0 < x < 2^-126 m^2 is a distance below 1e-19 m)."""
     ...
 
 
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __fmul_rn(a, b);
+#else
+    return a * b;
+#endif
+""")
+def mul_rn(a: float, b: float) -> float:
+    """a b rounded on its own: never fused into an add that follows it (the compiler's choice
+    would depend on the code around it, and the result's last bit with it)."""
+    ...
 
 
 @wp.func_native("""

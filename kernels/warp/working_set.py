@@ -201,10 +201,16 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
         """This thread's share of the step limit, over its points in the mask (the other points
         cannot shorten any step: kernels/warp/steps.py)."""
         tm = float(wp.inf)
-        while m != 0:
-            j = lowest_bit(m)
+        while m != 0:   # two points at a time (the second is the first again where one is left)
+            j0 = lowest_bit(m)
             m = m & (m - 1)
-            tm = clip_point(X, u, ws(0, lane + j * BD, wp.vec4(0.0)), a, off, tm)
+            j1 = j0
+            if m != 0:
+                j1 = lowest_bit(m)
+                m = m & (m - 1)
+            q0 = ws(0, lane + j0 * BD, wp.vec4(0.0))
+            q1 = ws(0, lane + j1 * BD, wp.vec4(0.0))
+            tm = clip_point(X, u, q1, a, off, clip_point(X, u, q0, a, off, tm))
         return tm
 
     ws_eval, ws_clip = (ws_eval_mask, ws_clip_mask) if MASK else (ws_eval_list, ws_clip_list)
