@@ -29,62 +29,76 @@ ROWS_CAP = wp.constant(128)
 def block_sync(): ...
 
 
+# A minimum over the block is taken on integer keys that order like the floats (a float's bits,
+# the negative ones' other bits flipped; x + 0 makes -0 into +0): one warp instruction
+# (__reduce_min_sync, REDUX on sm_80 and later) instead of five dependent shuffles, and the same
+# value as a float minimum (neither NaN nor -0 reaches one). Sums keep the shuffle tree and the
+# warps' partials in warp order, so they are the same bits as before.
+_MIN_KEY = """
+    auto min_key = [](float x) -> int {
+        const int i = __float_as_int(x + 0.0f);
+        return i >= 0 ? i : i ^ 0x7fffffff;
+    };
+    auto key_float = [](int k) -> float { return __int_as_float(k >= 0 ? k : k ^ 0x7fffffff); };
+    auto warp_min = [](int k) -> int {
+#if __CUDA_ARCH__ >= 800
+        return __reduce_min_sync(0xffffffffu, k);
+#else
+        for (int m = 16; m >= 1; m >>= 1) { const int y = __shfl_xor_sync(0xffffffffu, k, m); k = y < k ? y : k; }
+        return k;
+#endif
+    };
+"""
+
+
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
+""" + _MIN_KEY + """
     __shared__ float red[2][32][4];
-    float x0 = v[0], x1 = v[1], x2 = v[2], x3 = v[3];
-    for (int m = 16; m >= 1; m >>= 1) {
-        const float y0 = __shfl_xor_sync(0xffffffffu, x0, m);
-        const float y1 = __shfl_xor_sync(0xffffffffu, x1, m);
-        const float y2 = __shfl_xor_sync(0xffffffffu, x2, m);
-        const float y3 = __shfl_xor_sync(0xffffffffu, x3, m);
-        x0 = (mins & 1) ? (y0 < x0 ? y0 : x0) : x0 + y0;
-        x1 = (mins & 2) ? (y1 < x1 ? y1 : x1) : x1 + y1;
-        x2 = (mins & 4) ? (y2 < x2 ? y2 : x2) : x2 + y2;
-        x3 = (mins & 8) ? (y3 < x3 ? y3 : x3) : x3 + y3;
-    }
+    float x[4] = {v[0], v[1], v[2], v[3]};
+    for (int c = 0; c < 4; ++c)
+        if ((mins >> c) & 1) x[c] = __int_as_float(warp_min(min_key(x[c])));
+    for (int m = 16; m >= 1; m >>= 1)
+        for (int c = 0; c < 4; ++c)
+            if (!((mins >> c) & 1)) x[c] += __shfl_xor_sync(0xffffffffu, x[c], m);
     const int t = threadIdx.x;
     if ((t & 31) == 0) {
-        red[par][t >> 5][0] = x0; red[par][t >> 5][1] = x1; red[par][t >> 5][2] = x2; red[par][t >> 5][3] = x3;
+        red[par][t >> 5][0] = x[0]; red[par][t >> 5][1] = x[1]; red[par][t >> 5][2] = x[2]; red[par][t >> 5][3] = x[3];
     }
     __syncthreads();
-    float r0 = red[par][0][0], r1 = red[par][0][1], r2 = red[par][0][2], r3 = red[par][0][3];
-    for (int w = 1; w < (bd >> 5); ++w) {
-        const float y0 = red[par][w][0], y1 = red[par][w][1], y2 = red[par][w][2], y3 = red[par][w][3];
-        r0 = (mins & 1) ? (y0 < r0 ? y0 : r0) : r0 + y0;
-        r1 = (mins & 2) ? (y1 < r1 ? y1 : r1) : r1 + y1;
-        r2 = (mins & 4) ? (y2 < r2 ? y2 : r2) : r2 + y2;
-        r3 = (mins & 8) ? (y3 < r3 ? y3 : r3) : r3 + y3;
-    }
-    return wp::vec4(r0, r1, r2, r3);
+    float r[4] = {red[par][0][0], red[par][0][1], red[par][0][2], red[par][0][3]};
+    for (int w = 1; w < (bd >> 5); ++w)
+        for (int c = 0; c < 4; ++c) {
+            const float y = red[par][w][c];
+            if ((mins >> c) & 1) r[c] = __int_as_float(min(__float_as_int(y), __float_as_int(r[c])));
+            else r[c] += y;
+        }
+    for (int c = 0; c < 4; ++c)
+        if ((mins >> c) & 1) r[c] = key_float(__float_as_int(r[c]));
+    return wp::vec4(r[0], r[1], r[2], r[3]);
 #else
     return v;
 #endif
 """)
 def block_reduce4(v: wp.vec4, mins: int, par: int, bd: int) -> wp.vec4:
     """Block-wide reduction of v, per component a sum or (bit c of ``mins``) a minimum; every
-    thread gets the same bits. ``par`` alternates between calls (double-buffered partials, so
-    one barrier a call suffices)."""
+    thread gets the same bits (the sums: a shuffle tree in each warp, then the warps' partials in
+    warp order). ``par`` alternates between calls (double-buffered partials, so one barrier a
+    call suffices)."""
     ...
 
 
 @wp.func_native("""
 #if defined(__CUDA_ARCH__)
-    __shared__ float redm[2][32];
-    float x = v;
-    for (int m = 16; m >= 1; m >>= 1) {
-        const float y = __shfl_xor_sync(0xffffffffu, x, m);
-        x = y < x ? y : x;
-    }
+""" + _MIN_KEY + """
+    __shared__ int redm[2][32];
+    const int k = warp_min(min_key(v));
     const int t = threadIdx.x;
-    if ((t & 31) == 0) redm[par][t >> 5] = x;
+    if ((t & 31) == 0) redm[par][t >> 5] = k;
     __syncthreads();
-    float r = redm[par][0];
-    for (int w = 1; w < (bd >> 5); ++w) {
-        const float y = redm[par][w];
-        r = y < r ? y : r;
-    }
-    return r;
+    int r = redm[par][0];
+    for (int w = 1; w < (bd >> 5); ++w) r = min(r, redm[par][w]);
+    return key_float(r);
 #else
     return v;
 #endif

@@ -92,6 +92,7 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
                 n_ws = ci[3]
                 for k in range(lane, n_ws, BD):
                     ws(1, k, wsc[p * cap + k])
+                wset.pad(n_ws, lane)
                 block_sync()
         if hit == 0:
             n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)

@@ -83,6 +83,7 @@ class WorkingSet(NamedTuple):
     ws_clip: object   # step 3 over the near points: this thread's step limit
     ws_away: object   # the push away from the points at the limit, over the set
     gather: object    # gather the set around X0: (points or -1, next par, skin used)
+    pad: object       # pad(n, lane): the far points after a set of n points (every thread)
     wl: int
     nj: int
 
@@ -98,14 +99,17 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
     # at most 31 points (the CUDA blocks), else the warp's near list (the CPU device's one thread
     # a block, unless the set is that small)
     MASK = (cap + BD - 1) // BD <= 31
+    # the set in shared memory is padded with far points up to a multiple of 2 BD (the mask
+    # evaluation takes two points an iteration, the second without a bounds test)
+    PAD = -(-cap // (2 * BD)) * (2 * BD)
     ws_src = f"""
 #if defined(__CUDA_ARCH__)
-    __shared__ float4 ws[{cap}];
+    __shared__ float4 ws[{PAD}];
     if (op == 1) ws[i] = make_float4(q[0], q[1], q[2], q[3]);
     else {{ const float4 b = ws[i]; return wp::vec4(b.x, b.y, b.z, b.w); }}
     return q;
 #else
-    static float ws[4 * {cap}];
+    static float ws[4 * {PAD}];
     if (op == 1) {{ ws[4 * i] = q[0]; ws[4 * i + 1] = q[1]; ws[4 * i + 2] = q[2]; ws[4 * i + 3] = q[3]; }}
     return wp::vec4(ws[4 * i], ws[4 * i + 1], ws[4 * i + 2], ws[4 * i + 3]);
 #endif
@@ -115,6 +119,13 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
     def ws(op: int, i: int, q: wp.vec4) -> wp.vec4:
         """Working-set point i in shared memory: op 1 writes q, op 0 reads."""
         ...
+
+    @wp.func
+    def pad(n: int, lane: int):
+        """Far points (1e18 m away: clearance 1.7e18 m, contributing nothing) after the set's n
+        points, up to the next multiple of 2 BD."""
+        for k in range(n + lane, -(-n // (2 * BD)) * (2 * BD), BD):
+            ws(1, k, wp.vec4(1.0e18, 1.0e18, 1.0e18, 0.0))
 
     nl_src = f"""
 #if defined(__CUDA_ARCH__)
@@ -180,19 +191,12 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
         me = float(wp.inf)
         m = int(0)
         j = int(0)
-        for k0 in range(lane, n, 2 * BD):
-            k1 = k0 + BD
+        for k0 in range(lane, n, 2 * BD):   # (k0 + BD: a point of the set or of its padding)
             q0 = ws(0, k0, wp.vec4(0.0))
-            q1 = ws(0, wp.min(k1, n - 1), wp.vec4(0.0))
+            q1 = ws(0, k0 + BD, wp.vec4(0.0))
             ns, me, e0 = eval_point_e(X, q0, a, ns, me)
-            ns1, me1, e1 = eval_point_e(X, q1, a, ns, me)
-            if e0 < a.rclip:
-                m = m | (1 << j)
-            if k1 < n:
-                ns = ns1
-                me = me1
-                if e1 < a.rclip:
-                    m = m | (1 << (j + 1))
+            ns, me, e1 = eval_point_e(X, q1, a, ns, me)
+            m = m | (wp.where(e0 < a.rclip, 1, 0) << j) | (wp.where(e1 < a.rclip, 2, 0) << j)
             j += 2
         return ns, me, m
 
@@ -325,7 +329,8 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
             return -1, par, skin
         # pass 2: the same candidates again, each thread writing its points from its offset on
         write_pass(spts, svel, dt, order, a, X0, r2, total, lane, bd, mask, sc[0])
+        pad(sc[1], lane)
         block_sync()
         return sc[1], par, skin
 
-    return WorkingSet(ws, ws_eval, ws_clip, ws_away, gather, WL, NJ)
+    return WorkingSet(ws, ws_eval, ws_clip, ws_away, gather, pad, WL, NJ)
