@@ -11,14 +11,19 @@ record that follows a chunk. A recording of a 1 kHz run holds 3,000+ messages a 
 reading a 20 s run took 0.6 s of a replay's 4 s. Here a chunk's records are walked with
 ``struct.unpack_from`` over the decompressed bytes, and the records a reader never uses
 (schemas, indexes, statistics, attachments) are skipped by their length without being parsed.
+Chunks are decompressed and CRC-checked ahead in worker threads (a recording's raw depth and
+colour images make most of its bytes), while the caller takes the records before them.
 The record layouts are MCAP's (https://mcap.dev/spec); records inside a chunk are Schema,
 Channel and Message. Anything malformed raises ``McapError`` (or ``ValueError`` for a CRC), at
 the first bad record: everything yielded before it stands, as with a torn file's tail (S8).
 """
 from __future__ import annotations
 
+import os
 import struct
 import zlib
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from io import BytesIO
 
 from mcap.data_stream import ReadDataStream
@@ -61,8 +66,9 @@ def _channel(content) -> tuple:
     return "channel", ch.id, ch.topic
 
 
-def _chunk_records(content: bytes):
-    """The records of one chunk record's content: channels and messages (schemas skipped)."""
+def _inflate(content: bytes) -> bytes:
+    """The records of one chunk record's content, decompressed and checked (size and CRC). Runs
+    in the scan's worker threads: zstd, lz4 and zlib's CRC hand the interpreter lock over."""
     if len(content) < _CHUNK.size:
         raise McapError(f"a chunk record of {len(content)} bytes; expected at least {_CHUNK.size}")
     _, _, size, crc, nc = _CHUNK.unpack_from(content, 0)
@@ -78,6 +84,11 @@ def _chunk_records(content: bytes):
         raise McapError(f"a chunk decompressed to {len(data)} bytes; its header says {size}")
     if crc != 0 and zlib.crc32(data) != crc:
         raise ValueError(f"chunk CRC mismatch: expected {crc}, calculated {zlib.crc32(data)}")
+    return data
+
+
+def _chunk_records(data: bytes):
+    """The records of a chunk's decompressed ``data``: channels and messages (schemas skipped)."""
     off, end, unpack = 0, len(data), _REC.unpack_from
     while off < end:
         if off + 9 > end:
@@ -94,9 +105,9 @@ def _chunk_records(content: bytes):
         off = nxt
 
 
-def scan(fh, record_size_limit: int = 1 << 30):
-    """The records of the MCAP file open as ``fh`` (binary, at its start); see the module
-    docstring."""
+def _records(fh, record_size_limit: int):
+    """The file's records in order: ("chunk", its content) or a record as ``scan`` yields it;
+    ends at DataEnd (its CRC checked) or the footer."""
     head = fh.read(8)
     if head != MAGIC:
         raise McapError(f"not an MCAP file (its first bytes are {head!r})")
@@ -121,13 +132,51 @@ def scan(fh, record_size_limit: int = 1 << 30):
             return
         crc = zlib.crc32(content, zlib.crc32(rh, crc))
         if op == CHUNK:
-            yield from _chunk_records(content)
+            yield "chunk", content
         elif op == MESSAGE:
             yield _message(content, 0, length)
         elif op == CHANNEL:
             yield _channel(content)
         elif op == METADATA:
             yield "metadata", Metadata.read(ReadDataStream(BytesIO(content)))
+
+
+def scan(fh, record_size_limit: int = 1 << 30, workers: int = 0):
+    """The records of the MCAP file open as ``fh`` (binary, at its start); see the module
+    docstring. Chunks are decompressed and checked ahead, ``workers`` threads at a time (0: one
+    a core, at most 4) while the caller takes the records before them; the order, and where an
+    error is raised, are a sequential scan's."""
+    workers = workers or max(1, min(4, os.cpu_count() or 1))
+    pending: deque = deque()          # in file order: a chunk's Future, or a record
+    records, error = _records(fh, record_size_limit), None
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="pf-mcap-scan") as pool:
+        try:
+            while True:
+                try:
+                    rec = next(records)
+                except StopIteration:
+                    break
+                except Exception as e:     # the file's own fault: every record before it stands
+                    error = e
+                    break
+                pending.append(pool.submit(_inflate, rec[1]) if rec[0] == "chunk" else rec)
+                while pending and (len(pending) > 2 * workers or not isinstance(pending[0], Future)):
+                    yield from _take(pending.popleft())
+            while pending:
+                yield from _take(pending.popleft())
+        finally:                           # (a reader that stops early leaves no work queued)
+            for f in pending:
+                if isinstance(f, Future):
+                    f.cancel()
+    if error is not None:
+        raise error
+
+
+def _take(item):
+    if isinstance(item, Future):
+        yield from _chunk_records(item.result())
+    else:
+        yield item
 
 
 __all__ = ["scan"]

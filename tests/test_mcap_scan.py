@@ -50,10 +50,10 @@ def _theirs(data: bytes):
     return out, err
 
 
-def _ours(data: bytes):
+def _ours(data: bytes, workers: int = 0):
     out, err = [], None
     try:
-        for r in scan(io.BytesIO(data)):
+        for r in scan(io.BytesIO(data), workers=workers):
             if r[0] == "metadata":
                 out.append(("metadata", r[1].name, dict(r[1].metadata)))
             elif r[0] == "message":
@@ -65,36 +65,41 @@ def _ours(data: bytes):
     return out, err
 
 
+@pytest.mark.parametrize("workers", [1, 3])
 @pytest.mark.parametrize("compression", [CompressionType.ZSTD, CompressionType.LZ4, CompressionType.NONE])
-def test_the_scan_reads_every_record_mcaps_reader_reads(compression):
+def test_the_scan_reads_every_record_mcaps_reader_reads(compression, workers):
+    """(Its chunks, about 30, are decompressed ahead in ``workers`` threads: the records come in
+    file order all the same.)"""
     data = _file(compression)
     theirs, err = _theirs(data)
     assert err is None and sum(r[0] == "message" for r in theirs) == 3000
-    ours, err = _ours(data)
+    ours, err = _ours(data, workers)
     assert err is None
     assert ours == theirs
 
 
-def test_a_cut_file_reads_the_same_whole_chunks_then_stops_with_an_error():
+@pytest.mark.parametrize("workers", [1, 3])
+def test_a_cut_file_reads_the_same_whole_chunks_then_stops_with_an_error(workers):
     data = _file()
     full, _ = _theirs(data)
     end = data.rindex(b"\x0f\x04" + b"\x00" * 7)            # DataEnd: the scan reads no further
     for cut in range(9, end, max(1, end // 37)):
         theirs, terr = _theirs(data[:cut])
-        ours, oerr = _ours(data[:cut])
+        ours, oerr = _ours(data[:cut], workers)
         assert oerr is not None, f"cut at {cut} of {len(data)}: no error"
         assert ours == theirs, f"cut at {cut}: {len(ours)} records vs mcap's {len(theirs)}"
         assert ours == full[: len(ours)]
 
 
-def test_damaged_bytes_stop_the_scan_at_the_damaged_chunk_as_mcaps_reader_does():
+@pytest.mark.parametrize("workers", [1, 3])
+def test_damaged_bytes_stop_the_scan_at_the_damaged_chunk_as_mcaps_reader_does(workers):
     data = _file()
     full, _ = _theirs(data)
     for at in range(200, len(data) - 200, len(data) // 11):
         bad = bytearray(data)
         bad[at] ^= 0x5A
         theirs, terr = _theirs(bytes(bad))
-        ours, oerr = _ours(bytes(bad))
+        ours, oerr = _ours(bytes(bad), workers)
         assert ours == full[: len(ours)], f"byte {at}: the scan yielded a record that is not in the file"
         # where mcap saw the damage, so does the scan: at the same chunk, or (damage in an index
         # record, which the scan skips unread) at the data section's CRC, after the intact records
