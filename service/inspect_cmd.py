@@ -99,7 +99,8 @@ def _truncated_note(sc, rec) -> str:
 def _cameras(meta: dict, sc) -> list:
     out = []
     for c in meta.get("cameras", []):
-        depth = sc.topics.get(camera_topics(c["name"])["depth"]) or sc.topics.get(legacy_camera_topics(c["name"])["depth"])
+        depth = (sc.topics.get(camera_topics(c["name"])["depth"])                  # (raw images, or PNGs
+                 or sc.topics.get(legacy_camera_topics(c["name"])["depth"]))       # of older recordings)
         out.append({"name": c["name"], "source": c.get("source"), "width": c["width"], "height": c["height"],
                     "fx": c["fx"], "fy": c["fy"], "cx": c["cx"], "cy": c["cy"], "dist": c.get("dist"),
                     "depth_scale": c.get("depth_scale"), "configured_rate_hz": c.get("rate_hz"),

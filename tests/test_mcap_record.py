@@ -296,6 +296,26 @@ def test_a_recording_with_png_images_still_reads_and_replays(served, tmp_path):
     assert check["exact"], check
 
 
+
+def test_a_raw_image_of_the_wrong_kind_or_damaged_is_a_clear_error():
+    from pointfence.service.cdr import raw_image
+    from pointfence.service.mcap_read import Recording
+
+    def frame_of(depth_msg):
+        rec = Recording("x.mcap", {"arms": 1, "cameras": ["cam"]}, np.zeros((0, 1)), {},
+                        {("cam", "depth", 0): ("raw", depth_msg)}, None, 0)
+        return rec.frame(0, 0, 0, 0.0)
+
+    good = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    np.testing.assert_array_equal(frame_of(raw_image(0, "cam", good)).depth, good)
+    with pytest.raises(InputError, match="depth image 4x3 'mono8'.*expected '16UC1'"):
+        frame_of(raw_image(0, "cam", good.astype(np.uint8)))
+    with pytest.raises(InputError, match="damaged depth image"):
+        frame_of(raw_image(0, "cam", good)[:40])
+    with pytest.raises(InputError, match="C-contiguous uint16"):
+        raw_image(0, "cam", good.astype(np.float32))
+
+
 def _children(pid: int) -> list:
     with open(f"/proc/{pid}/task/{pid}/children") as fh:
         return [int(x) for x in fh.read().split()]
