@@ -3,8 +3,8 @@
 On CUDA a proxy is spread over the threads of one block; these are the block's collective
 operations (barrier, reductions, scan: within each warp shuffles, or one REDUX instruction for
 a minimum; then one barrier over the warps' partial results, every thread reading the same
-partials in the same order), small shared arrays, and fast math. Warp's CPU device runs one thread a block: there each collective is the identity and
-the shared arrays are static ones.
+partials in the same order), small shared arrays, and fast math. Warp's CPU device runs one
+thread a block: there each collective is the identity and the shared arrays are static ones.
 
 Square roots, reciprocals and divisions use the hardware's approximations (within 2 ulp, no
 branch), not IEEE-rounded sequences whose slow-path branches split the step into basic blocks
