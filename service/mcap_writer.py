@@ -157,6 +157,16 @@ class Writer:
 
         return self.frames is not None and self.consumed < int(self.hdr[mcap_shm.SNAPS_WRITTEN])
 
+    @property
+    def pressed(self) -> bool:
+        """More than half the frame ring waits: the next flush encodes the frames before the ticks
+        (a starved writer then drops fewer snapshots: the tick ring holds seconds more than the
+        frame ring, ``mcap_record.RING`` against ``MAX_PENDING``)."""
+        from . import mcap_shm
+
+        return (self.frames is not None
+                and int(self.hdr[mcap_shm.SNAPS_WRITTEN]) - self.consumed > self.frames.slots // 2)
+
     def wait_s(self, flush_s: float) -> float:
         """How long to wait for control messages before the next flush: ``flush_s``, or nothing
         while the writer is ``behind`` (it then encodes on at once: waiting a whole ``flush_s``
@@ -175,16 +185,22 @@ class Writer:
         for name, enc in self.pending_meta:
             self.w.add_metadata(name, enc)
         self.pending_meta = []
+        until = None if final else t0 + self.p["flush_s"]
+        frames_first = self.pressed
+        if frames_first:
+            self.write_frames(until)
+        ta = time.perf_counter()
         self.write_ticks(final, written)
-        t1 = time.perf_counter()
-        self.write_frames(None if final else t0 + self.p["flush_s"])
+        tb = time.perf_counter()
+        if not frames_first:
+            self.write_frames(until)
         self.write_cloud()
         t2 = time.perf_counter()
         self.w.flush()
         os.fsync(self.fh.fileno())
         t3 = time.perf_counter()
-        h[mcap_shm.US_TICKS] += int((t1 - t0) * 1e6)
-        h[mcap_shm.US_FRAMES] += int((t2 - t1) * 1e6)
+        h[mcap_shm.US_TICKS] += int((tb - ta) * 1e6)
+        h[mcap_shm.US_FRAMES] += int(((t2 - t0) - (tb - ta)) * 1e6)
         h[mcap_shm.US_SYNC] += int((t3 - t2) * 1e6)
         h[mcap_shm.US_FLUSH_MAX] = max(int(h[mcap_shm.US_FLUSH_MAX]), int((t3 - t0) * 1e6))
         h[mcap_shm.US_CPU] = int(time.process_time() * 1e6)

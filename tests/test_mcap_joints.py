@@ -148,3 +148,52 @@ def test_a_writer_behind_its_frames_flushes_again_without_waiting(tmp_path):
         w.write_frames(None)
         assert not w.behind and w.wait_s(0.5) == 0.5 and int(ticks.header[mcap_shm.SNAPS_CONSUMED]) == 3
         w.finish(service_died=False)
+
+
+def test_a_writer_whose_frame_ring_is_more_than_half_full_encodes_the_frames_first(tmp_path):
+    """The frame ring holds two seconds of snapshots, the tick ring sixteen of ticks: a starved
+    writer with more than half its frame ring waiting encodes the frames before the ticks, so it
+    drops fewer snapshots; otherwise the ticks go first (they carry every tick's state)."""
+    import queue
+
+    from pointfence.kernels.camera import Camera
+    from pointfence.service import mcap_shm
+    from pointfence.service.mcap_writer import Writer
+    from pointfence.service.tick_cdr import TickLayout, TickRows
+
+    lay, cap, shapes, slots = TickLayout(1), 64, [(4, 6)], 8
+    tick_path, buf = mcap_shm.create(mcap_shm.TickBlock.nbytes(cap, lay.width), "pointfence-test-ticks-")
+    frame_path, fbuf = mcap_shm.create(mcap_shm.FrameBlock.nbytes(shapes, slots), "pointfence-test-frames-")
+    ticks, fb = mcap_shm.TickBlock(buf, cap, lay.width), mcap_shm.FrameBlock(fbuf, shapes, slots)
+    fill, inp, out = TickRows(lay, ticks.rows), TickInput.zeros(1), TickOutput.zeros(1)
+    cam = Camera("cam0", 6, 4, 5.0, 5.0, 2.5, 1.5)
+    order: list = []
+    with open(tmp_path / "pressed.mcap", "wb") as fh:
+        w = Writer({"tick_path": tick_path, "n": 1, "capacity": cap, "flush_s": 0.5, "rate_hz": 1000.0,
+                    "pose_hz": 100.0, "cloud_hz": 0.0, "epoch_ns": 0}, fh, queue.Queue())
+        w.control(("frames", frame_path, shapes, slots, [cam], None))
+        for name in ("write_ticks", "write_frames"):
+            f = getattr(w, name)
+            setattr(w, name, lambda *a, _f=f, _n=name: (order.append(_n), _f(*a))[1])
+        k = 0
+        for pending in (4, 5):                 # half the ring waiting, then more than half
+            for j in range(pending):
+                s = (w.consumed + j) % slots
+                fb.meta[s, 0] = w.consumed + j + 1
+                e = fb.cam_meta(s, 0)
+                e[mcap_shm.NEW] = True
+                e[mcap_shm.FSEQ], e[mcap_shm.INDEX], e[mcap_shm.STAMP] = j, j, 0.01 * j
+                e[mcap_shm.POSE:] = math.nan
+            ticks.header[mcap_shm.SNAPS_WRITTEN] = w.consumed + pending
+            for _ in range(10):
+                inp.k = out.k = k
+                inp.now = k * 1e-3
+                fill.fill(inp, out, k % cap)
+                k += 1
+            ticks.header[mcap_shm.WRITTEN] = k
+            assert w.pressed == (pending > slots // 2)
+            order.clear()
+            w.flush(final=False)
+            assert order == (["write_frames", "write_ticks"] if pending > slots // 2 else ["write_ticks", "write_frames"])
+            assert not w.behind and int(ticks.header[mcap_shm.SNAPS_CONSUMED]) == w.consumed
+        w.finish(service_died=False)
