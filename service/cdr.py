@@ -1,4 +1,4 @@
-"""ROS 2 CDR encoding of fixed-shape messages as NumPy records, and of images (raw and compressed).
+"""ROS 2 CDR encoding of fixed-shape messages as NumPy records, and of raw images.
 
 A ROS 2 message whose strings and sequence lengths are the same in every message of a channel
 (a ``PoseStamped`` with its ``frame_id``, a ``TickInput`` of B arms) has one byte layout: a
@@ -128,16 +128,6 @@ def stamp_fields(rec: np.ndarray, ns: np.ndarray) -> None:
     rec["stamp_nanosec"] = ns % 1_000_000_000
 
 
-def compressed_image(stamp_ns: int, frame_id: str, fmt: str, data: bytes) -> bytes:
-    """A ``sensor_msgs/CompressedImage`` message, CDR-encoded."""
-    head = FixedLayout().header(frame_id).string(fmt)
-    rec = head.blank(1)
-    stamp_fields(rec, np.array([stamp_ns], np.int64))
-    body = rec.tobytes()
-    pad = (-(len(body) - 4)) % 4        # the uint8[] length is a uint32: aligned to 4
-    return body + b"\x00" * pad + struct.pack("<I", len(data)) + data
-
-
 #: ``sensor_msgs/Image`` encodings of the arrays ``raw_image`` takes: (dtype, channels) -> encoding
 IMAGE_ENCODINGS = {(np.dtype(np.uint16), 1): "16UC1", (np.dtype(np.uint8), 3): "rgb8", (np.dtype(np.uint8), 1): "mono8"}
 
@@ -161,5 +151,5 @@ def raw_image(stamp_ns: int, frame_id: str, img: np.ndarray) -> bytes:
     return b"".join((body, b"\x00" * pad, struct.pack("<I", img.nbytes), img.data.cast("B")))
 
 
-__all__ = ["FixedLayout", "pose_layout", "wrench_layout", "stamp_fields", "compressed_image", "raw_image",
-           "IMAGE_ENCODINGS", "ENCAPSULATION"]
+__all__ = ["FixedLayout", "pose_layout", "wrench_layout", "stamp_fields", "raw_image", "IMAGE_ENCODINGS",
+           "ENCAPSULATION"]

@@ -36,7 +36,7 @@ from pointfence.kernels.frame import DepthFrame
 from . import depth_png
 from .mcap_record import FORMAT
 from .mcap_scan import scan
-from .ros2.cdr import CdrError, decode_image
+from .ros2.cdr import CdrError, decode_compressed_image, decode_image
 from .ros2_schemas import SNAPSHOTS, TICK_INPUT, TICK_OUTPUT
 from .tick_cdr import TickLayout
 
@@ -45,7 +45,7 @@ class Recording:
     def __init__(self, path, meta, rows, snapshots, images, torn, messages, metadata=None):
         self.path, self.meta, self.rows, self.snapshots = path, meta, rows, snapshots
         self.metadata = metadata if metadata is not None else {"pointfence/run": meta}
-        self._images = images              # (camera, kind, frame seq) -> ("raw", Image CDR) | ("png", format, data)
+        self._images = images              # (camera, kind, frame seq) -> ("raw" | "png", the message's CDR)
         self.torn = torn                   # None, or why the file ends early
         self.messages = messages
         self.layout = TickLayout(int(meta["arms"]))
@@ -78,15 +78,15 @@ _RAW = {"depth": ("16UC1", np.uint16, 1), "color": ("rgb8", np.uint8, 3), "mask"
 def _pixels(image: tuple, kind: str, where: str) -> np.ndarray:
     """The pixels of a recorded image (``_take``'s entry): a raw ``sensor_msgs/Image`` (this
     recorder's) or a PNG ``CompressedImage`` (recordings made before raw images)."""
-    if image[0] == "png":
-        _, fmt, data = image
-        if kind == "depth":
-            return depth_png.decode_depth(data, fmt, where)
-        return depth_png.decode_png(data, 3 if kind == "color" else 1, where)
+    form, data = image
     try:
-        img = decode_image(image[1])
+        img = decode_image(data) if form == "raw" else decode_compressed_image(data)
     except CdrError as e:
         raise InputError(f"{where}: a damaged {kind} image ({e})") from None
+    if form == "png":
+        if kind == "depth":
+            return depth_png.decode_depth(bytes(img.data), img.format, where)
+        return depth_png.decode_png(bytes(img.data), 3 if kind == "color" else 1, where)
     enc, dtype, channels = _RAW[kind]
     row = img.width * channels * np.dtype(dtype).itemsize
     if img.encoding != enc or img.is_bigendian or img.step != row or len(img.data) != row * img.height:
@@ -193,21 +193,7 @@ def _take(topic: str, sequence: int, data: bytes, ticks: dict, snapshots: dict, 
     elif topic.endswith(("/image_raw", "/compressed")):
         parts = topic.strip("/").split("/")
         if len(parts) == 3:          # /<camera>/<depth|color|mask>/<image_raw|compressed>; sequence: the frame's number
-            images[(parts[0], parts[1], int(sequence))] = ("raw", data) if parts[2] == "image_raw" else _png(data)
-
-
-def _png(data: bytes) -> tuple:
-    """("png", format, payload) of a CDR-encoded ``sensor_msgs/CompressedImage``."""
-    off = 4 + 8                                     # encapsulation, stamp
-    (n,) = struct.unpack_from("<I", data, off)      # frame_id
-    off += 4 + n
-    off += (-(off - 4)) % 4
-    (n,) = struct.unpack_from("<I", data, off)      # format
-    fmt = data[off + 4: off + 4 + n - 1].decode()
-    off += 4 + n
-    off += (-(off - 4)) % 4
-    (n,) = struct.unpack_from("<I", data, off)      # data
-    return "png", fmt, data[off + 4: off + 4 + n]
+            images[(parts[0], parts[1], int(sequence))] = ("raw" if parts[2] == "image_raw" else "png", data)
 
 
 __all__ = ["open_recording", "Recording"]

@@ -151,21 +151,23 @@ class Writer:
                 return
 
     @property
-    def behind(self) -> bool:
-        """Snapshot entries wait in the frame ring (the last flush's time box ended before them)."""
+    def waiting(self) -> int:
+        """Snapshot entries handed over and not yet encoded."""
         from . import mcap_shm
 
-        return self.frames is not None and self.consumed < int(self.hdr[mcap_shm.SNAPS_WRITTEN])
+        return 0 if self.frames is None else int(self.hdr[mcap_shm.SNAPS_WRITTEN]) - self.consumed
+
+    @property
+    def behind(self) -> bool:
+        """Snapshot entries wait in the frame ring (the last flush's time box ended before them)."""
+        return self.waiting > 0
 
     @property
     def pressed(self) -> bool:
         """More than half the frame ring waits: the next flush encodes the frames before the ticks
         (a starved writer then drops fewer snapshots: the tick ring holds seconds more than the
         frame ring, ``mcap_record.RING`` against ``MAX_PENDING``)."""
-        from . import mcap_shm
-
-        return (self.frames is not None
-                and int(self.hdr[mcap_shm.SNAPS_WRITTEN]) - self.consumed > self.frames.slots // 2)
+        return self.waiting > self.frames.slots // 2 if self.frames is not None else False
 
     def wait_s(self, flush_s: float) -> float:
         """How long to wait for control messages before the next flush: ``flush_s``, or nothing

@@ -249,7 +249,7 @@ def _as_png_recording(src: Path, dst: Path) -> None:
     from mcap.well_known import MessageEncoding, SchemaEncoding
     from mcap.writer import CompressionType, Writer
 
-    from pointfence.service.cdr import compressed_image
+    from pointfence.service.cdr import FixedLayout, stamp_fields
     from pointfence.service.ros2.cdr import decode_image
     from pointfence.service.ros2_schemas import msgdef
 
@@ -270,7 +270,11 @@ def _as_png_recording(src: Path, dst: Path) -> None:
                                 "mask": (depth_png.encode_mask, "mono8; png compressed mono8")}[kind]
                 ns = img.header.stamp.sec * 1_000_000_000 + img.header.stamp.nanosec
                 name, topic = "sensor_msgs/CompressedImage", topic.replace("/image_raw", "/compressed")
-                data = compressed_image(ns, img.header.frame_id, fmt, payload(a))
+                head = FixedLayout().header(img.header.frame_id).string(fmt).blank(1)
+                stamp_fields(head, np.array([ns], np.int64))
+                body = head.tobytes()
+                png = payload(a)          # (the uint8[] length, a uint32, aligned to 4)
+                data = body + b"\x00" * ((-(len(body) - 4)) % 4) + len(png).to_bytes(4, "little") + png
             if name not in schemas:
                 schemas[name] = w.register_schema(name, SchemaEncoding.ROS2, msgdef(name).encode())
             if topic not in channels:
