@@ -17,12 +17,23 @@ and, given a ``stop`` time, halts there (a stroke of known length: the hold case
 
 The frame the camera sees at t is the real cloud (its valid pixels) moved and re-projected
 into the camera with a depth test (the nearest point per pixel wins), quantised to 1 mm as the
-recording was: the real holes, clutter, edges and quantisation move with the scene, and the
-re-projection adds the holes a moving scene opens.
+recording was: the real holes, clutter and edges move with the scene, and the re-projection
+adds the holes a moving scene opens (one-pixel gaps between two pixels of one surface are
+closed, ``close_gaps``: a surface coming closer spreads over more pixels). Each moved point
+lands between pixel centres; the pixel it lands in gets the depth at which the pixel's ray
+crosses the true surface (the triangles around the point, moved with it), as a camera samples
+a surface along its rays. Keeping the point's own depth instead puts it off the surface by its
+sideways offset times the surface's slope, and shifts every depth of the image by the same
+fraction of a code (the recording's depths are whole millimetres), so that the quantisation
+steps the whole surface at once: it would appear to move by 3, 3 and 4 mm in three frames
+that each moved it 3.3 mm.
 
 Only the scene within ``KEEP`` of the contact point (and what is nearer the camera than it) is
-kept: the evaluation's workspace lies within. The true surface is the real depth image with its
-small holes filled (nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
+kept: the evaluation's workspace lies within. The true surface is the real depth image,
+dequantised (``dequantize``: smoothed, each depth kept within half a code of the recorded one,
+so that the recording is this surface as its camera quantised it; the moved scene is quantised
+again where the rays sample it, as a camera would, not in unison), with its small holes filled
+(nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
 triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
 within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
 point q at t is the exact distance of R(t)^T (q - c(t)) to that mesh at t = 0, negative behind
@@ -50,10 +61,28 @@ FILL_PX = 3
 JUMP = 0.02
 #: hinge of the rocking motion: this far (m) from the anchor along the camera's +x axis
 HINGE = 0.1
+#: the true surface is the recording's depth smoothed over this many pixels (a Gaussian's sigma),
+#: within half a code of each recorded depth (``dequantize``)
+DEQUANTIZE_PX = 1.5
 #: the scene kept around the contact point (m): the true surface and the moving cloud beyond it
 #: (the evaluation's workspace lies within) are left out, except what is nearer the camera
 KEEP = 0.3
 MOTIONS = ("toward", "sideways", "rocking")
+
+
+def dequantize(depth_m: np.ndarray, code: float, sigma_px: float = DEQUANTIZE_PX) -> np.ndarray:
+    """The smooth surface within the codes of a depth image (m, 0 = none; ``code``: its depth
+    step, m): the valid pixels' depths smoothed (a Gaussian of ``sigma_px`` over the valid
+    neighbours), each kept within half a code of its recorded depth, so that the image is still
+    this surface's quantisation."""
+    from scipy import ndimage
+
+    ok = depth_m > 0
+    num = ndimage.gaussian_filter(np.where(ok, depth_m, 0.0), sigma_px, mode="nearest")
+    den = ndimage.gaussian_filter(ok.astype(np.float64), sigma_px, mode="nearest")
+    smooth = np.where(ok, num / np.maximum(den, 1e-12), 0.0)
+    half = 0.499 * code
+    return np.where(ok, np.clip(smooth, depth_m - half, depth_m + half), 0.0)
 
 
 def load_real(frames, index: int = 0) -> tuple[np.ndarray, Camera]:
@@ -90,6 +119,57 @@ def fill_holes(depth_m: np.ndarray, px: int = FILL_PX) -> np.ndarray:
     out = depth_m[iy, ix]
     out[dist > px] = 0.0
     return out
+
+
+#: the triangles of the true surface around pixel (0, 0): (block row, block column, triangle) of
+#: the 2 x 2 pixel blocks (``depth_mesh``: A B / C D, triangles ABD = 0 and ADC = 1) that have it
+#: as a corner
+RING = ((0, 0, 0), (0, 0, 1), (0, -1, 0), (-1, 0, 1), (-1, -1, 0), (-1, -1, 1))
+
+
+def ray_depth(tri: np.ndarray, cam: Camera, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Depth (N,) m at which the rays of pixels (u, v) first cross triangles ``tri`` (N, K, 3,
+    3, camera frame; NaN: none); ``z`` (N,) where a ray crosses none of its K."""
+    d = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones(len(u))], axis=1)
+    best = np.full(len(u), np.inf)
+    for k in range(tri.shape[1]):
+        A, B, C = tri[:, k, 0], tri[:, k, 1], tri[:, k, 2]
+        e1, e2 = B - A, C - A
+        pv = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, pv)
+        ok = np.abs(det) > 1e-12
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = np.einsum("ij,ij->i", -A, pv) * inv
+        q = np.cross(-A, e1)
+        w = np.einsum("ij,ij->i", d, q) * inv
+        t = np.einsum("ij,ij->i", e2, q) * inv
+        hit = ok & (s >= -1e-9) & (w >= -1e-9) & (s + w <= 1 + 1e-9) & (t > 0)
+        best = np.where(hit & (t < best), t, best)
+    return np.where(np.isfinite(best), best, z)
+
+
+def close_gaps(img: np.ndarray, win: np.ndarray, tri: np.ndarray, cam: Camera) -> None:
+    """Fill, in place, the empty pixels of ``img`` (depth codes, (H, W)) between two drawn ones
+    (left and right, else above and below) where the pixel's ray crosses the true surface around
+    either neighbour's point: the one-pixel gaps a surface coming closer opens between its
+    re-projected pixels. ``win`` (H, W): the index into ``tri`` (N, K, 3, 3: each drawn point's
+    triangles, camera frame) of the point drawn in each pixel, -1 for none."""
+    for axis in (1, 0):
+        lo = np.roll(win, 1, axis=axis)
+        hi = np.roll(win, -1, axis=axis)
+        gap = (win < 0) & (lo >= 0) & (hi >= 0)
+        if axis == 1:
+            gap[:, [0, -1]] = False
+        else:
+            gap[[0, -1], :] = False
+        r, c = np.nonzero(gap)
+        if not r.size:
+            continue
+        both = np.concatenate([tri[lo[r, c]], tri[hi[r, c]]], axis=1)
+        z = ray_depth(both, cam, c.astype(np.float64), r.astype(np.float64), np.zeros(r.size))
+        hit = z > 0
+        img[r[hit], c[hit]] = np.clip(np.rint(z[hit] / cam.depth_scale), 1, min(cam.max_code, 65535) - 1)
+        win[r[hit], c[hit]] = lo[r[hit], c[hit]]
 
 
 @dataclass(frozen=True)
@@ -155,19 +235,42 @@ class MovingRealFrame:
         self.name = name
         z = np.asarray(depth, np.float64) * cam.depth_scale
         z[(depth >= min(cam.max_code, 65535))] = 0.0
-        self.depth_m = z
         h, w = z.shape
         v, u = np.mgrid[0:h, 0:w].astype(np.float64)
         ok = z > 0
         if np.count_nonzero(ok) < 100:
             raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
+        z = dequantize(z, cam.depth_scale)
+        self.depth_m = z
         self.valid_fraction = float(np.mean(ok))
         self.filled = fill_holes(z)
         self.contact = self._find_anchor()
         cloud = deproject(z[ok], cam, u[ok], v[ok])
-        self.cloud = cloud[self._kept(cloud, keep)]
+        kept = self._kept(cloud, keep)
+        self.cloud = cloud[kept]
+        self._pixels = np.flatnonzero(ok.ravel())[kept]        # each cloud point's pixel
+        f = self.filled
+        self._grid = deproject(f, cam, u, v)                    # the true surface's vertices
+        q = np.stack([f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]])
+        self._blocks = (q > 0).all(0) & (q.max(0) - q.min(0) <= JUMP * q.max(0))   # as depth_triangles
         tris = depth_triangles(self.filled, cam, JUMP)
         self.mesh = MeshDistance(tris[np.linalg.norm(tris.mean(1) - self.contact, axis=1) < keep])
+
+    def _ring_triangles(self, pixels: np.ndarray) -> np.ndarray:
+        """The true surface's triangles (N, len(RING), 3, 3, camera frame at t = 0; NaN where
+        there is none) around each of the image's flat pixel indices ``pixels``."""
+        h, w = self.filled.shape
+        corners = ((0, 1, 3), (0, 3, 2))                                       # ABD, ADC of A B / C D
+        r, c = np.divmod(pixels, w)
+        out = np.full((len(pixels), len(RING), 3, 3), np.nan)
+        for k, (dr, dc, t) in enumerate(RING):
+            br, bc = r + dr, c + dc
+            inside = (br >= 0) & (br < h - 1) & (bc >= 0) & (bc < w - 1)
+            i = np.flatnonzero(inside)
+            i = i[self._blocks[br[i], bc[i]]]
+            for j, corner in enumerate(corners[t]):
+                out[i, k, j] = self._grid[br[i] + corner // 2, bc[i] + corner % 2]
+        return out
 
     def _kept(self, p: np.ndarray, keep: float) -> np.ndarray:
         """Points within ``keep`` of the contact point or nearer the camera than it (occluders)."""
@@ -210,16 +313,22 @@ class MovingRealFrame:
         u = np.rint(p[:, 0] / p[:, 2] * cam.fx + cam.cx).astype(np.int64)
         v = np.rint(p[:, 1] / p[:, 2] * cam.fy + cam.cy).astype(np.int64)
         inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        keep = np.flatnonzero(front)[inside]
+        tri = np.einsum("nkij,lj->nkil", self._ring_triangles(self._pixels[keep]), R) + c
+        z = ray_depth(tri, cam, u[inside], v[inside], p[inside, 2])
         lin = v[inside] * cam.width + u[inside]
-        code = np.clip(np.rint(p[inside, 2] / cam.depth_scale), 1, min(cam.max_code, 65535) - 1)
-        key = lin * 65536 + code.astype(np.int64)
-        key.sort()                                # per pixel, nearest first
-        lin, code = key >> 16, key & 0xFFFF
+        code = np.clip(np.rint(z / cam.depth_scale), 1, min(cam.max_code, 65535) - 1).astype(np.int64)
+        order = np.argsort(lin * 65536 + code, kind="stable")       # per pixel, nearest first
+        lin, code = lin[order], code[order]
         first = np.ones(lin.size, bool)
         first[1:] = lin[1:] != lin[:-1]
         img = np.zeros(cam.width * cam.height, np.uint16)
+        win = np.full(cam.width * cam.height, -1, np.int64)
         img[lin[first]] = code[first]
-        return DepthFrame(cam.name, img.reshape(cam.height, cam.width), float(t), int(seq))
+        win[lin[first]] = order[first]
+        img, win = img.reshape(cam.height, cam.width), win.reshape(cam.height, cam.width)
+        close_gaps(img, win, tri, cam)
+        return DepthFrame(cam.name, img, float(t), int(seq))
 
     def distance(self, motion: Motion, q, t: float) -> np.ndarray:
         """Signed distance (N,) m of points q (N, 3, camera frame) to the true surface at t."""
