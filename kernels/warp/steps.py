@@ -14,9 +14,9 @@ Two loops run these steps. ``run_steps``, the hot one, knows only the working se
 small enough to stay in the instruction cache (the profiles ranked instruction fetch among the
 step's first stalls when the hash path, the away pass and their call sites sat in the loop).
 Where no working set fits (the first gather or a regather gave -1), it hands the proxy, from
-that step on, to ``run_steps_any``, a function of its own that also scans the hash. Both take
-the same decisions with the same helpers (``plan``, ``clip_next``), so the results do not depend
-on which loop ran a step.
+that step on, to ``run_steps_any``, a function of its own that also scans the hash. Both are
+one source (``make_loop``; ``wp.static`` leaves the hash path out of the hot loop's code), so
+the results do not depend on which loop ran a step.
 """
 from __future__ import annotations
 
@@ -91,88 +91,121 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
         au, al = unit_len(wp.vec3(ra[0], ra[1], ra[2]))
         return au, al, 1 - par
 
-    @wp.func(inline=False)  # the cold path: a proxy with no working set in shared memory
-    def run_steps_any(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
-                      order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs,
-                      X: wp.vec3, H: wp.vec3, span: int, grad: float, lane: int, wbase: int, X0: wp.vec3,
-                      n_ws: int, par: int, skin: float, it0: int, steps: int, uprev: wp.vec3):
-        """``run_steps`` from step ``it0`` on (``steps`` taken, ``uprev`` the last slide), over
-        the working set where one fits and the hash where none does (n_ws < 0)."""
-        conv = int(0)
-        st = int(0)
-        nrm = wp.vec3(0.0)
-        min_e = float(wp.inf)
-        for it in range(it0, a.max_steps + 1):
-            if it > it0:
-                dx = X[0] - X0[0]
-                dy = X[1] - X0[1]
-                dz = X[2] - X0[2]
-                if dx * dx + dy * dy + dz * dz > skin * skin:  # wandered off its working set
-                    X0 = X
-                    n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
-            c = wp.vec3i(0)
-            if n_ws < 0:
-                c = cell_box(X, g, span)
-            ns = wp.vec3(0.0)
-            me = float(wp.inf)
-            nnear = int(0)
-            if n_ws >= 0:
-                ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
-            else:
-                ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, BD)
-            rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, BD)
-            par = 1 - par
-            min_e = rd[3]
-            st, nrm, u2, L2, Lp, off, buried, push = plan(X, H, rd, a)
-            if it == a.max_steps:
-                break
-            along_n = push
-            u = u2
-            Lc = L2
-            if push:
-                u = nrm
-                Lc = Lp
-            s = float(0.0)
-            attempt = int(0)
-            while attempt < 3:
-                tm = float(wp.inf)
-                if n_ws >= 0:
-                    tm = ws_clip(X, u, a, off, nnear, lane, wbase)
+    def make_loop(HASH: bool):
+        """The step loop from step ``it0`` on (``steps`` taken, ``uprev`` the last slide): over
+        the working set only (HASH False: ``run_steps``; where a gather finds no set that fits it
+        hands the proxy on to the other loop from that step), or over the working set where one
+        fits and the hash where none does (HASH True: ``run_steps_any``). One source for both:
+        ``wp.static`` leaves the hash path out of the hot loop's code."""
+
+        def loop(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
+                 order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs,
+                 X: wp.vec3, H: wp.vec3, span: int, grad: float, lane: int, wbase: int, X0: wp.vec3,
+                 n_ws: int, par: int, skin: float, it0: int, steps: int, uprev: wp.vec3):
+            conv = int(0)
+            st = int(0)
+            nrm = wp.vec3(0.0)
+            min_e = float(wp.inf)
+            it_any = int(-1)
+            for it in range(it0, a.max_steps + 1):
+                if it > it0:
+                    dx = X[0] - X0[0]
+                    dy = X[1] - X0[1]
+                    dz = X[2] - X0[2]
+                    if dx * dx + dy * dy + dz * dz > skin * skin:  # wandered off its working set
+                        X0 = X
+                        n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
+                c = wp.vec3i(0)
+                if wp.static(not HASH):
+                    if n_ws < 0:   # no working set fits here: the hash path from this step on
+                        it_any = it
+                        break
+
+                # 1. clearances, normal sum, smallest clearance within the normal band
+                ns = wp.vec3(0.0)
+                me = float(wp.inf)
+                nnear = int(0)
+                if wp.static(HASH):
+                    if n_ws >= 0:
+                        ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
+                    else:
+                        c = cell_box(X, g, span)
+                        ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, BD)
                 else:
-                    tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
-                t = block_min(tm, par, BD)
+                    ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
+                rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, BD)
                 par = 1 - par
-                s = wp.max(wp.min(Lc, t), 0.0)
-                if s >= a.tol:
+                min_e = rd[3]
+                # 2. direction and length (dissertation 2.2.4)
+                st, nrm, u2, L2, Lp, off, buried, push = plan(X, H, rd, a)
+                if it == a.max_steps:
                     break
-                if attempt == 0:
-                    if not push:
-                        break
-                    along_n = False  # push-out blocked: the contact rule's direction instead
-                    u = u2
-                    Lc = L2
-                elif attempt == 1:
-                    if not buried:
-                        break
-                    along_n = True  # both blocked: away from the deepest points
-                    au, al, par = away_dir(spts, svel, dt, order, start, g, a, X, off, n_ws, c, span, lane, par)
-                    s = 0.0
-                    if not (al > 0.0):
-                        break
-                    u = au
+
+                # 3. clipping (block-wide minimum). Up to three tries, one clip pass in the code for
+                # all of them: the push-out along n, then (blocked) the contact rule's direction,
+                # then (buried and blocked again) away from the deepest points.
+                along_n = push
+                u = u2
+                Lc = L2
+                if push:
+                    u = nrm
                     Lc = Lp
-                attempt += 1
-            if s < a.tol:
-                conv = 1
-                break
-            if not along_n:
-                if turned_back(u, uprev, a):
+                s = float(0.0)
+                attempt = int(0)
+                while attempt < 3:
+                    tm = float(wp.inf)
+                    if wp.static(HASH):
+                        if n_ws >= 0:
+                            tm = ws_clip(X, u, a, off, nnear, lane, wbase)
+                        else:
+                            tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
+                    else:
+                        tm = ws_clip(X, u, a, off, nnear, lane, wbase)
+                    t = block_min(tm, par, BD)
+                    par = 1 - par
+                    s = wp.max(wp.min(Lc, t), 0.0)
+                    if s >= a.tol:
+                        break
+                    if attempt == 0:
+                        if not push:
+                            break
+                        along_n = False  # push-out blocked: the contact rule's direction instead
+                        u = u2
+                        Lc = L2
+                    elif attempt == 1:
+                        if not buried:
+                            break
+                        along_n = True  # both blocked: away from the deepest points
+                        au, al, par = away_dir(spts, svel, dt, order, start, g, a, X, off, n_ws, c, span, lane,
+                                               par)
+                        s = 0.0
+                        if not (al > 0.0):
+                            break
+                        u = au
+                        Lc = Lp
+                    attempt += 1
+                if s < a.tol:
                     conv = 1
                     break
-                uprev = u
-            X = X + s * u
-            steps += 1
-        return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
+                if not along_n:  # a slide turning back against the previous one: rocking in a crease
+                    if turned_back(u, uprev, a):
+                        conv = 1
+                        break
+                    uprev = u
+                X = X + s * u
+                steps += 1
+            if wp.static(not HASH):
+                if it_any >= 0:
+                    return run_steps_any(spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0,
+                                         n_ws, par, skin, it_any, steps, uprev)
+            return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
+
+        loop.__name__ = loop.__qualname__ = "run_steps_any" if HASH else "run_steps_ws"
+        # the cold path (a proxy with no working set in shared memory) is a function of its own
+        return wp.func(loop) if not HASH else wp.func(inline=False)(loop)
+
+    run_steps_any = make_loop(True)
+    run_steps_ws = make_loop(False)
 
     @wp.func
     def run_steps(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
@@ -187,83 +220,7 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
         # >= L. ProxyArgs.rclip adds 1e-4 step and 1 um, which keep float32 rounding of e and of
         # the hit time out of the decision (as kernels/opencl/proxy.cl): the clip scans only each
         # thread's points below rclip (ws_eval) and gets the very same step length.
-        steps = int(0)
-        conv = int(0)
-        st = int(0)
-        nrm = wp.vec3(0.0)
-        min_e = float(wp.inf)
-        uprev = wp.vec3(0.0)  # direction of the last sliding or free step
-        it_any = int(-1)
-        for it in range(a.max_steps + 1):
-            if it > 0:
-                dx = X[0] - X0[0]
-                dy = X[1] - X0[1]
-                dz = X[2] - X0[2]
-                if dx * dx + dy * dy + dz * dz > skin * skin:  # wandered off its working set
-                    X0 = X
-                    n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
-            if n_ws < 0:   # no working set fits here: the hash path from this step on (below)
-                it_any = it
-                break
-
-            # 1. clearances, normal sum, smallest clearance within the normal band
-            ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
-            rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, BD)
-            par = 1 - par
-            min_e = rd[3]
-            # 2. direction and length (dissertation 2.2.4)
-            st, nrm, u2, L2, Lp, off, buried, push = plan(X, H, rd, a)
-            if it == a.max_steps:
-                break
-
-            # 3. clipping (block-wide minimum). Up to three tries, one clip pass in the code for
-            # all of them: the push-out along n, then (blocked) the contact rule's direction, then
-            # (buried and blocked again) away from the deepest points.
-            along_n = push
-            u = u2
-            Lc = L2
-            if push:
-                u = nrm
-                Lc = Lp
-            s = float(0.0)
-            attempt = int(0)
-            while attempt < 3:
-                t = block_min(ws_clip(X, u, a, off, nnear, lane, wbase), par, BD)
-                par = 1 - par
-                s = wp.max(wp.min(Lc, t), 0.0)
-                if s >= a.tol:
-                    break
-                if attempt == 0:
-                    if not push:
-                        break
-                    along_n = False  # push-out blocked: the contact rule's direction instead
-                    u = u2
-                    Lc = L2
-                elif attempt == 1:
-                    if not buried:
-                        break
-                    along_n = True  # both blocked: away from the deepest points
-                    au, al, par = away_dir(spts, svel, dt, order, start, g, a, X, off, n_ws, wp.vec3i(0), span,
-                                           lane, par)
-                    s = 0.0
-                    if not (al > 0.0):
-                        break
-                    u = au
-                    Lc = Lp
-                attempt += 1
-            if s < a.tol:
-                conv = 1
-                break
-            if not along_n:  # a slide turning back against the previous one: rocking in a crease
-                if turned_back(u, uprev, a):
-                    conv = 1
-                    break
-                uprev = u
-            X = X + s * u
-            steps += 1
-        if it_any >= 0:
-            return run_steps_any(spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par,
-                                 skin, it_any, steps, uprev)
-        return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
+        return run_steps_ws(spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin,
+                            0, 0, wp.vec3(0.0))
 
     return run_steps
