@@ -34,6 +34,7 @@ from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
 
 from . import depth_png
+from .cdr import IMAGE_ENCODINGS
 from .mcap_record import FORMAT
 from .mcap_scan import scan
 from .ros2.cdr import CdrError, decode_compressed_image, decode_image
@@ -71,8 +72,9 @@ class Recording:
                           mask=None if mask is None else _pixels(mask, "mask", where), T_world_cam=T)
 
 
-#: a raw image's encoding by kind, with its dtype and channels
-_RAW = {"depth": ("16UC1", np.uint16, 1), "color": ("rgb8", np.uint8, 3), "mask": ("mono8", np.uint8, 1)}
+#: a raw image's encoding by kind (the writer's ``cdr.raw_image``), and each encoding's dtype and channels
+_RAW = {"depth": "16UC1", "color": "rgb8", "mask": "mono8"}
+_PIXELS = {enc: key for key, enc in IMAGE_ENCODINGS.items()}
 
 
 def _pixels(image: tuple, kind: str, where: str) -> np.ndarray:
@@ -87,8 +89,9 @@ def _pixels(image: tuple, kind: str, where: str) -> np.ndarray:
         if kind == "depth":
             return depth_png.decode_depth(bytes(img.data), img.format, where)
         return depth_png.decode_png(bytes(img.data), 3 if kind == "color" else 1, where)
-    enc, dtype, channels = _RAW[kind]
-    row = img.width * channels * np.dtype(dtype).itemsize
+    enc = _RAW[kind]
+    dtype, channels = _PIXELS[enc]
+    row = img.width * channels * dtype.itemsize
     if img.encoding != enc or img.is_bigendian or img.step != row or len(img.data) != row * img.height:
         raise InputError(f"{where}: {kind} image {img.width}x{img.height} {img.encoding!r} (big-endian "
                          f"{bool(img.is_bigendian)}, step {img.step}, {len(img.data)} bytes); expected {enc!r}, "
