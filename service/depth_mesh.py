@@ -16,14 +16,25 @@ import numpy as np
 from pointfence.kernels.camera import Camera
 
 
-def depth_triangles(depth_m: np.ndarray, cam: Camera, jump: float) -> np.ndarray:
-    """Triangles (T, 3, 3) of the depth map ``depth_m`` (m, 0 = none), camera frame, m."""
+def depth_vertices(depth_m: np.ndarray, cam: Camera) -> np.ndarray:
+    """The mesh's vertices (H, W, 3): every pixel of ``depth_m`` (m) deprojected, camera frame, m."""
     h, w = depth_m.shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-    P = np.stack([(u - cam.cx) / cam.fx * depth_m, (v - cam.cy) / cam.fy * depth_m, depth_m], axis=-1)
-    a, b, c, d = depth_m[:-1, :-1], depth_m[:-1, 1:], depth_m[1:, :-1], depth_m[1:, 1:]
-    q = np.stack([a, b, c, d])
-    ok = (q > 0).all(0) & (q.max(0) - q.min(0) <= jump * q.max(0))
+    return np.stack([(u - cam.cx) / cam.fx * depth_m, (v - cam.cy) / cam.fy * depth_m, depth_m], axis=-1)
+
+
+def depth_blocks(depth_m: np.ndarray, jump: float) -> np.ndarray:
+    """(H - 1, W - 1) bool: the 2 x 2 pixel blocks (top-left corner) that give two triangles: all
+    four depths valid and within ``jump`` of their depth of each other."""
+    q = np.stack([depth_m[:-1, :-1], depth_m[:-1, 1:], depth_m[1:, :-1], depth_m[1:, 1:]])
+    return (q > 0).all(0) & (q.max(0) - q.min(0) <= jump * q.max(0))
+
+
+def depth_triangles(depth_m: np.ndarray, cam: Camera, jump: float) -> np.ndarray:
+    """Triangles (T, 3, 3) of the depth map ``depth_m`` (m, 0 = none), camera frame, m: ABD and
+    ADC of every block A B / C D of ``depth_blocks``."""
+    P = depth_vertices(depth_m, cam)
+    ok = depth_blocks(depth_m, jump)
     A, B, C, D = P[:-1, :-1][ok], P[:-1, 1:][ok], P[1:, :-1][ok], P[1:, 1:][ok]
     return np.concatenate([np.stack([A, B, D], 1), np.stack([A, D, C], 1)])
 

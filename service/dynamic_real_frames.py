@@ -53,7 +53,7 @@ from pointfence.kernels.camera import Camera
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
 
-from .depth_mesh import MeshDistance, depth_triangles
+from .depth_mesh import MeshDistance, depth_blocks, depth_triangles, depth_vertices
 
 #: pixels a hole is filled across for the true surface
 FILL_PX = 3
@@ -249,10 +249,8 @@ class MovingRealFrame:
         kept = self._kept(cloud, keep)
         self.cloud = cloud[kept]
         self._pixels = np.flatnonzero(ok.ravel())[kept]        # each cloud point's pixel
-        f = self.filled
-        self._grid = deproject(f, cam, u, v)                    # the true surface's vertices
-        q = np.stack([f[:-1, :-1], f[:-1, 1:], f[1:, :-1], f[1:, 1:]])
-        self._blocks = (q > 0).all(0) & (q.max(0) - q.min(0) <= JUMP * q.max(0))   # as depth_triangles
+        self._grid = depth_vertices(self.filled, cam)           # the true surface's vertices and blocks
+        self._blocks = depth_blocks(self.filled, JUMP)
         tris = depth_triangles(self.filled, cam, JUMP)
         self.mesh = MeshDistance(tris[np.linalg.norm(tris.mean(1) - self.contact, axis=1) < keep])
 
