@@ -16,14 +16,12 @@ depth driver publishes (the layout ``ros2:/cam0`` reads, ``camera_source.py``):
 ``header.stamp`` (``--stamp``): ``mapped`` (default) puts the capture on ROS time
 (``time.time()``, the clock other nodes use): a camera's capture time moved by the offset of the
 two clocks at its first frame (the stamps keep the camera's own spacing); a file's or a synthetic
-scene's frame is captured the moment it is due (it was read ahead of that moment, as a camera has
-its frame ready when it delivers it; a schedule that slips, e.g. behind a slow read, never leaves
-the stamps behind the frames); ``source`` is the capture time as the source gives
+scene's frame is captured the moment it is due and read (a schedule that slips, e.g. behind a
+slow first read, never leaves the stamps behind the frames); ``source`` is the capture time as the source gives
 it (a recording's own timestamps); ``now`` is the moment the frame was published.
 
 Pacing: a live source (a camera) is published as it delivers, at most ``--rate`` Hz; a file or
-synthetic source is published at ``--rate`` Hz (default: the source's rate) on absolute deadlines,
-each frame read (decoded) before its deadline.
+synthetic source is read at ``--rate`` Hz (default: the source's rate) on absolute deadlines.
 ``--frames N`` stops after N frames. Ctrl-C or SIGTERM ends it cleanly (node destroyed, source
 closed, exit status 0).
 """
@@ -150,17 +148,11 @@ def run(args) -> int:
 
 
 def _loop(src, pub: CameraPublisher, rate: float, frames: int, stop: threading.Event) -> None:
-    """Read and publish until ``stop``, the end of the stream, or ``frames`` frames.
-
-    A camera's frames are published as it delivers them (at most ``rate``). A file's or a
-    synthetic scene's are published on absolute deadlines, each read (decoded) ahead of its
-    deadline, as a camera has its frame ready when it delivers it: the frame is "captured" when
-    it is due, stamped then and published at once (``mapped`` stamps)."""
+    """Read and publish until ``stop``, the end of the stream, or ``frames`` frames."""
     period = 1.0 / rate
     due = time.monotonic()
     last = -math.inf
     read_at = None
-    ahead = None if src.realtime else src.read()
     while not stop.is_set() and (frames == 0 or pub.published < frames):
         if src.realtime:   # a camera: publish as it delivers, at most ``rate``
             frame = src.read(timeout=0.2)
@@ -172,14 +164,12 @@ def _loop(src, pub: CameraPublisher, rate: float, frames: int, stop: threading.E
             if now - last < 0.9 * period:
                 continue
             last = now
-        else:              # a file or a synthetic scene: the frame read ahead, on absolute deadlines
-            frame = ahead
-            if frame is None:
-                return
+        else:              # a file or a synthetic scene: read on absolute deadlines
             if stop.wait(max(0.0, due - time.monotonic())):
                 return
             due = max(due + period, time.monotonic() - period)
-            read_at = time.time()   # a file's frame is "captured" when it is due
+            read_at = time.time()   # a file's frame is "captured" when it is due and read
+            frame = src.read()
+            if frame is None:
+                return
         pub.publish(frame, read_at)
-        if not src.realtime and (frames == 0 or pub.published < frames):
-            ahead = src.read()
