@@ -202,21 +202,10 @@ def compiler_output_wanted() -> bool:
 _BUILD_LOCK = threading.Lock()
 
 
-def build_options(ctx) -> list:
-    """``BUILD_OPTIONS``, and on a context of CPU devices ``PF_SQRT=__builtin_sqrtf``: PoCL's
-    ``sqrt`` is a library call that is never inlined, and a call in a work-item loop keeps PoCL
-    from vectorising it; the builtin is the same correctly rounded square root, inlined (the .cl
-    files fall back to ``sqrt`` where PF_SQRT is not defined)."""
-    cl = _cl()
-    if all(d.type & cl.device_type.CPU for d in ctx.devices):
-        return BUILD_OPTIONS + ["-DPF_SQRT=__builtin_sqrtf"]
-    return list(BUILD_OPTIONS)
-
-
 def build(ctx, *names: str, verbose: bool | None = None):
     """Compile the named .cl files of this package into one program (see ``build_source``)."""
     src = "\n".join(resources.files(__package__).joinpath(n).read_text() for n in names)
-    return build_source(ctx, src, "+".join(names), build_options(ctx), verbose=verbose)
+    return build_source(ctx, src, "+".join(names), BUILD_OPTIONS, verbose=verbose)
 
 
 def build_source(ctx, src: str, label: str, options=(), verbose: bool | None = None):

@@ -18,18 +18,21 @@
 inline int ifloor(float v) { int i = (int)v; return i - (v < (float)i); }
 inline int iclamp(int v, int hi) { return v < 0 ? 0 : (v > hi ? hi : v); }
 
-// sqrt: on CPUs the build passes PF_SQRT=__builtin_sqrtf (kernels/opencl/context.py), which is
-// as correctly rounded as sqrt under -cl-fp32-correctly-rounded-divide-sqrt but, unlike PoCL's
-// library sqrt, is inlined, so the work-item loop vectorises.
-#ifndef PF_SQRT
-#define PF_SQRT sqrt
-#endif
-// A per-pixel body its loop inlines whatever its size (a call in a loop keeps it from vectorising).
-#ifdef __clang__
-#define PF_ALWAYS_INLINE __attribute__((always_inline))
-#else
-#define PF_ALWAYS_INLINE
-#endif
+// World point of pixel `pix`; returns 1 when the reading is valid and inside the workspace.
+inline int world_point(int pix, __global const ushort *depth, __global const float2 *rays,
+                       float16 pose, float8 cam, int max_code, float4 wmin, float4 wmax,
+                       float *x, float *y, float *w, float *zc) {
+    uint d = depth[pix];
+    float z = (float)d * cam.s0;
+    float2 r = rays[pix];
+    float xc = r.x * z, yc = r.y * z;
+    *x = pose.s0 * xc + pose.s1 * yc + pose.s2 * z + pose.s9;
+    *y = pose.s3 * xc + pose.s4 * yc + pose.s5 * z + pose.sa;
+    *w = pose.s6 * xc + pose.s7 * yc + pose.s8 * z + pose.sb;
+    *zc = z;
+    return d != 0u && d != (uint)max_code && z >= cam.s1 && z <= cam.s2 &&
+           *x >= wmin.x && *y >= wmin.y && *w >= wmin.z && *x < wmax.x && *y < wmax.y && *w < wmax.z;
+}
 
 // grid = (origin.xyz, 1 / cell size); points are inside the workspace, so the floor is in range.
 inline int cell_index(float x, float y, float w, float4 grid, int4 dims) {
@@ -51,74 +54,44 @@ inline float sigma_max(float sz, float sl, float rx, float ry) {
     float s2 = sz * sz, l2 = sl * sl, rho2 = rx * rx + ry * ry;
     float t = s2 * (1.0f + rho2);
     float dd = t - l2;
-    return PF_SQRT(0.5f * (t + l2 + PF_SQRT(dd * dd + 4.0f * l2 * s2 * rho2)));
+    return sqrt(0.5f * (t + l2 + sqrt(dd * dd + 4.0f * l2 * s2 * rho2)));
 }
 
-// Attributes and cell of pixel `pix` of one camera (cell -1: invalid or outside the workspace).
-// sel (a constant of each entry point below): 0 all, 1 box, 2 colour range, 3 mask.
-// radius = (r_base, k_sigma, r_max, adaptive).
-// Written so that a loop over pixels vectorises: rays and pts are read and written as floats
-// (no vector-typed value), every pixel writes all four outputs (an invalid pixel's point, radius,
-// sigma and protection are never read: no cell lists it), nothing in it is a call (PoCL's min()
-// and sqrt() are: see PF_SQRT), and its pointers are restrict (the outputs alias no input).
-PF_ALWAYS_INLINE inline void classify_px(
-        int pix, __global const ushort *restrict depth, __global const float *restrict rays, float16 pose, float8 cam,
-        int max_code, float4 wmin, float4 wmax, float4 grid, int4 dims, const int sel, float4 box_min, float4 box_max,
-        int4 col_lo, int4 col_hi, __global const uchar *restrict color, __global const uchar *restrict mask,
-        float4 radius, __global int *restrict pix_cell, __global uchar *restrict pix_prot, __global float *restrict pts,
-        __global float *restrict sig) {
-    uint d = depth[pix];
-    float z = (float)d * cam.s0;
-    float rx = rays[2 * pix], ry = rays[2 * pix + 1];
-    float xc = rx * z, yc = ry * z;
-    float x = pose.s0 * xc + pose.s1 * yc + pose.s2 * z + pose.s9;
-    float y = pose.s3 * xc + pose.s4 * yc + pose.s5 * z + pose.sa;
-    float w = pose.s6 * xc + pose.s7 * yc + pose.s8 * z + pose.sb;
-    int ok = d != 0u && d != (uint)max_code && z >= cam.s1 && z <= cam.s2 &&
-             x >= wmin.x && y >= wmin.y && w >= wmin.z && x < wmax.x && y < wmax.y && w < wmax.z;
-    int cell = cell_index(x, y, w, grid, dims);
-    pix_cell[pix] = ok ? cell : -1;
-    float sigma = sigma_max(cam.s3 + cam.s4 * z * z, cam.s5 * z, rx, ry);
-    float ra = radius.x + radius.y * sigma;
-    float rf = radius.w != 0.0f ? (radius.z < ra ? radius.z : ra) : radius.x;   // min(ra, r_max)
+// Attributes and cell of every pixel of one camera (cell -1: invalid or outside the workspace).
+// sel: 0 all, 1 box, 2 colour range, 3 mask.  radius = (r_base, k_sigma, r_max, adaptive).
+__kernel void classify(__global const ushort *depth, __global const float2 *rays,
+                       float16 pose, float8 cam, int4 cami, float4 wmin, float4 wmax, float4 grid, int4 dims,
+                       int sel, float4 box_min, float4 box_max, int4 col_lo, int4 col_hi,
+                       __global const uchar *color, __global const uchar *mask, float4 radius,
+                       __global int *pix_cell, __global uchar *pix_prot, __global float4 *pts, __global float *sig) {
+    int i = get_global_id(0);
+    if (i >= cami.y) return;
+    int pix = cami.x + i;
+    float x, y, w, z;
+    if (!world_point(pix, depth, rays, pose, cam, cami.z, wmin, wmax, &x, &y, &w, &z)) {
+        pix_cell[pix] = -1;
+        return;
+    }
+    pix_cell[pix] = cell_index(x, y, w, grid, dims);
+    float2 r = rays[pix];
+    float sigma = sigma_max(cam.s3 + cam.s4 * z * z, cam.s5 * z, r.x, r.y);
+    float rf = radius.w != 0.0f ? min(radius.x + radius.y * sigma, radius.z) : radius.x;
     int prot = 1;
     if (sel == 1) {
         prot = x >= box_min.x && y >= box_min.y && w >= box_min.z && x <= box_max.x && y <= box_max.y && w <= box_max.z;
-    } else if (sel == 2) {   // (the colour buffer holds every pixel in this mode, with or without a camera's colour)
-        int cr = color[3 * pix], cg = color[3 * pix + 1], cb = color[3 * pix + 2];
-        prot = cam.s6 != 0.0f && cr >= col_lo.x && cg >= col_lo.y && cb >= col_lo.z &&
-               cr <= col_hi.x && cg <= col_hi.y && cb <= col_hi.z;
+    } else if (sel == 2) {
+        if (cam.s6 == 0.0f) prot = 0;
+        else {
+            int cr = color[3 * pix], cg = color[3 * pix + 1], cb = color[3 * pix + 2];
+            prot = cr >= col_lo.x && cg >= col_lo.y && cb >= col_lo.z && cr <= col_hi.x && cg <= col_hi.y && cb <= col_hi.z;
+        }
     } else if (sel == 3) {
         prot = cam.s7 != 0.0f && mask[pix] != 0;
     }
     pix_prot[pix] = (uchar)prot;
-    pts[4 * pix] = x;
-    pts[4 * pix + 1] = y;
-    pts[4 * pix + 2] = w;
-    pts[4 * pix + 3] = rf;
+    pts[pix] = (float4)(x, y, w, rf);
     sig[pix] = sigma;
 }
-
-// classify_<kind>: the pixels of one camera, `per` consecutive pixels a work-item. On CPUs `per`
-// is long and the compiler vectorises the loop (PoCL's own vectorisation across work-items gives
-// up on this body: it sees it after combining the x, y and z arithmetic into short vectors); on
-// GPUs `per` is 1, a work-item a pixel.
-#define CLASSIFY(NAME, SEL)                                                                                   \
-__kernel void NAME(__global const ushort *depth, __global const float2 *rays, float16 pose, float8 cam, int4 cami,   \
-                   int per, float4 wmin, float4 wmax, float4 grid, int4 dims, float4 box_min, float4 box_max,       \
-                   int4 col_lo, int4 col_hi, __global const uchar *color, __global const uchar *mask, float4 radius, \
-                   __global int *pix_cell, __global uchar *pix_prot, __global float4 *pts, __global float *sig) {    \
-    int a = (int)get_global_id(0) * per;                                                                     \
-    int e = a + per < cami.y ? a + per : cami.y;                                                             \
-    for (int i = a; i < e; ++i)                                                                              \
-        classify_px(cami.x + i, depth, (__global const float *)rays, pose, cam, cami.z, wmin, wmax, grid, dims, \
-                    SEL, box_min, box_max, col_lo, col_hi, color, mask, radius, pix_cell, pix_prot,          \
-                    (__global float *)pts, sig);                                                             \
-}
-CLASSIFY(classify_all, 0)
-CLASSIFY(classify_box, 1)
-CLASSIFY(classify_color, 2)
-CLASSIFY(classify_mask, 3)
 
 // Count per cell and rank per pixel over the whole rig. Each work-item walks `per` consecutive
 // pixels; neighbouring pixels of a depth image mostly share a cell, so one atomic_add per run of

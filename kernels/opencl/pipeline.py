@@ -24,10 +24,7 @@ from .context import _cl, build
 from .neighbor_query import NeighborQuery
 
 LOCAL = 64
-#: pixels a classify work-item of the CPU shape walks
-CLASSIFY_CPU_CHUNK = 1024
-#: the classify kernel of each selection kind (frames.cl: one entry point a kind, so that none branches on it)
-CLASSIFY = {"all": "classify_all", "box": "classify_box", "color": "classify_color", "mask": "classify_mask"}
+SELECT_CODE = {"all": 0, "box": 1, "color": 2, "mask": 3}
 
 
 def pinned_upload(device, cl) -> bool:
@@ -127,9 +124,6 @@ class OpenCLPipeline(FramePipeline):
         #: the cell sort (kernels/opencl/cell_sort.py): its ``shape`` is the backend's ``kernel_shape``
         #: resolved for the device ("gpu": runs ordered by their heads, no per-cell sort)
         self.cell_sort = CellSort(self)
-        #: pixels a classify work-item walks (frames.cl): in the CPU shape a loop the compiler
-        #: vectorises, in the GPU shape one
-        self.classify_chunk = CLASSIFY_CPU_CHUNK if self.cell_sort.shape == "cpu" else 1
         self._n_host = np.zeros(1, np.int32)
         self._zero_cell_starts()
 
@@ -140,7 +134,7 @@ class OpenCLPipeline(FramePipeline):
         self.dims = g.as_int4()
         s, r = params.selection, params.radius
         self.sel_args = (
-            np.array([*s.box_min, 0], np.float32), np.array([*s.box_max, 0], np.float32),
+            np.int32(SELECT_CODE[s.kind]), np.array([*s.box_min, 0], np.float32), np.array([*s.box_max, 0], np.float32),
             np.array([*s.color_lo, 0], np.int32), np.array([*s.color_hi, 0], np.int32),
         )
         self.radius_arg = np.array([r.r_base, r.k_sigma, r.r_max, 1.0 if r.adaptive else 0.0], np.float32)
@@ -184,14 +178,10 @@ class OpenCLPipeline(FramePipeline):
             return k
 
         pose0, cam0 = np.zeros(16, np.float32), np.zeros(8, np.float32)
-        classify = CLASSIFY[self.params.selection.kind]
-        per = self.classify_chunk
-        self._classify = [[bound(classify, self.depth, self.rays, pose0, cam0, rig.ints[i].copy(), np.int32(per),
-                                 self.wmin, self.wmax, self.gridf, self.dims, *self.sel_args, self.color, self.mask,
-                                 self.radius_arg, self.pix_cell, self.pix_prot, slot.pts, slot.sigma)
-                           for i in range(len(rig))]
+        self._classify = [[bound("classify", self.depth, self.rays, pose0, cam0, rig.ints[i].copy(), self.wmin, self.wmax,
+                                 self.gridf, self.dims, *self.sel_args, self.color, self.mask, self.radius_arg,
+                                 self.pix_cell, self.pix_prot, slot.pts, slot.sigma) for i in range(len(rig))]
                           for slot in self.buffers.slots]
-        self._classify_size = [(_round_up((int(rig.ints[i][1]) + per - 1) // per),) for i in range(len(rig))]
         per = self.cam_chunk
         self._count_camera = [(bound("count_camera", self.pix_cell, rig.ints[i].copy(), np.int32(per), self.cam_counts),
                                (_round_up((int(rig.ints[i][1]) + per - 1) // per),)) for i in range(len(rig))]
@@ -232,7 +222,7 @@ class OpenCLPipeline(FramePipeline):
                 checkpoint()
                 k.set_arg(2, packed[i, :16].copy())   # pose
                 k.set_arg(3, packed[i, 16:24].copy())   # camera parameters
-                cl.enqueue_nd_range_kernel(q, k, self._classify_size[i], None)
+                cl.enqueue_nd_range_kernel(q, k, (_round_up(int(rig.ints[i][1])),), None)
             checkpoint()
             self.cell_sort.enqueue(q, b)
             checkpoint()
