@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import os
 import pickle
+import queue
 import signal
 import struct
 import subprocess
 import sys
+import threading
 from typing import Optional
 
 _LEN = struct.Struct("<I")
@@ -30,6 +32,23 @@ def receive(fh):
         return None
     data = fh.read(_LEN.unpack(head)[0])
     return pickle.loads(data) if data else None
+
+
+def control_inbox(fh, name: str) -> "queue.Queue":
+    """The child's side: a queue that a daemon thread (named ``name``) fills with the control
+    messages of ``fh`` as they come, ending with the ``("close",)`` message or None (the service
+    is gone), so that the child's own loop never blocks on its stdin."""
+    inbox: queue.Queue = queue.Queue()
+
+    def forward():
+        while True:
+            msg = receive(fh)
+            inbox.put(msg)
+            if msg is None or msg[0] == "close":
+                return
+
+    threading.Thread(target=forward, name=name, daemon=True).start()
+    return inbox
 
 
 def read_init(fh, child: str, parent: str) -> Optional[dict]:

@@ -36,12 +36,11 @@ import json
 import os
 import queue
 import sys
-import threading
 import time
 
 import numpy as np
 
-from .child_pipe import read_init, receive
+from .child_pipe import control_inbox, read_init
 
 #: seconds a flush waits for control messages the service sent before the ticks it writes
 CATCH_UP_S = 5.0
@@ -329,17 +328,8 @@ def main() -> int:
         return 2
     from . import mcap_shm
 
-    inbox: queue.Queue = queue.Queue()
+    inbox = control_inbox(ctl, "mcap-writer-control")
     w = Writer(p, os.fdopen(p["fd"], "wb"), inbox)
-
-    def read_control():
-        while True:
-            msg = receive(ctl)
-            inbox.put(msg)
-            if msg is None or msg[0] == "close":
-                return
-
-    threading.Thread(target=read_control, name="mcap-writer-control", daemon=True).start()
     try:
         while True:
             deadline = time.monotonic() + w.wait_s(p["flush_s"])

@@ -51,14 +51,13 @@ import math
 import os
 import queue
 import sys
-import threading
 import time
 
 import numpy as np
 
 from .. import mcap_shm
 from ..holds import REASONS
-from ..child_pipe import read_init, receive
+from ..child_pipe import control_inbox, read_init
 from ..ros2_schemas import FIXTURES, master_ns
 from . import cdr
 from . import telemetry as T
@@ -364,16 +363,7 @@ def main() -> int:
     p = read_init(ctl, "telemetry_node", "Telemetry")
     if p is None:
         return 2
-    inbox: queue.Queue = queue.Queue()
-
-    def read_control():
-        while True:
-            msg = receive(ctl)
-            inbox.put(msg)
-            if msg is None or msg[0] == "close":
-                return
-
-    threading.Thread(target=read_control, name="telemetry-control", daemon=True).start()
+    inbox = control_inbox(ctl, "telemetry-control")
     try:
         pub = Publisher(p)
     except Exception as e:     # (rclpy, DDS, the shared memory): one line for the service's status
