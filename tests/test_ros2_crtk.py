@@ -277,13 +277,22 @@ def test_the_hosted_arm_runs_in_the_robot_process_end_to_end(ros2_env):
         (arm,) = host.robots
         assert arm.model == "crtk"
         assert until(arm, lambda: arm.state == RobotMode.ENABLED), arm.fault_reason
-        x0 = arm.measured_cp()[:3, 3].copy()
-        goal = x0 + [0.0, 0.015, -0.01]
-        for k in range(1, 301):
-            arm.servo_cp(x0 + (goal - x0) * (k / 300))
-            arm.step(1e-3)
-            time.sleep(0.001)
-        assert until(arm, lambda: np.linalg.norm(arm.measured_cp()[:3, 3] - goal) < 5e-4), arm.fault_reason
+        for attempt in range(3):
+            x0 = arm.measured_cp()[:3, 3].copy()
+            goal = x0 + [0.0, 0.015, -0.01]
+            for k in range(1, 301):
+                arm.servo_cp(x0 + (goal - x0) * (k / 300))
+                arm.step(1e-3)
+                time.sleep(0.001)
+            there = lambda: np.linalg.norm(arm.measured_cp()[:3, 3] - goal) < 5e-4  # noqa: E731
+            assert until(arm, lambda: there() or arm.state == RobotMode.FAULT), arm.fault_reason
+            if arm.state != RobotMode.FAULT:
+                break
+            # A loaded 2-core machine paused the robot process past its 250 ms watchdog (a clean
+            # clone's suite did once): the arm latched FAULT and held, as it must. Clear it, move again.
+            assert "not answering" in (arm.fault_reason or ""), arm.fault_reason
+            assert until(arm, lambda: enabled_in_child(host, arm), 30), arm.last_error
+        assert there() and arm.state == RobotMode.ENABLED, arm.fault_reason
         with pytest.raises(InputError, match="outside the workspace"):   # refused in the service's process
             arm.servo_cp([0.5, 0.0, 0.0])
         first = []
