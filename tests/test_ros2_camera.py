@@ -108,9 +108,13 @@ def test_camera_node_mapped_stamps_keep_spacing_on_ros_time(ros2_env, recording)
             got = [f for f in (src.read(timeout=1.0) for _ in range(8)) if f is not None]
             now = time.time()
         assert len(got) >= 4
-        for a, b in zip(got, got[1:]):
-            n = (b.timestamp - a.timestamp) * RATE
-            assert n >= 0.5 and abs(n - round(n)) < 0.5       # a frame read on each deadline: about whole periods
+        spacing = [(b.timestamp - a.timestamp) * RATE for a, b in zip(got, got[1:])]
+        assert all(n > 0 for n in spacing), spacing
+        # a frame read on each deadline: about whole periods; a loaded machine may slip the node's
+        # schedule once (the next frame is then read, and stamped, at once: a clean clone's suite
+        # did), not every time
+        on_grid = [n >= 0.5 and abs(n - round(n)) < 0.5 for n in spacing]
+        assert sum(on_grid) >= len(spacing) - 1, spacing
         for f in got:                                         # stamped when read: on ROS time, never behind its read
             stamp, arrival = src.frame_times(f.seq)
             assert stamp == f.timestamp and 0 <= arrival - stamp < 1.0, arrival - stamp
