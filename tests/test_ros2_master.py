@@ -159,8 +159,10 @@ def test_nan_wrong_frame_bad_pedal_silence_and_a_dead_bridge_make_the_master_inv
         assert st["rejected"]["non_finite"] >= 1 and "non-finite" in st["last_rejection"]
         assert m.position[0] == 0.01                                            # the NaN never reached it
         assert until(lambda m: m.ok, x=0.02)
-        assert until(lambda m: not m.ok, x=0.5, frame="world")                  # a wrong frame_id
-        assert "'world'" in m.status()["last_rejection"] and m.position[0] == 0.02
+        # a wrong frame_id (waited for by its reason: on a loaded machine the master may first go
+        # invalid by silence, as in a clean clone's suite once)
+        assert until(lambda m: not m.ok and "'world'" in (m.status()["last_rejection"] or ""), x=0.5, frame="world")
+        assert m.position[0] == 0.02
         assert until(lambda m: m.ok, x=0.02)
         assert until(lambda m: not m.ok, x=0.02, w=2.0)                         # not a unit quaternion
         assert until(lambda m: m.ok and m.clutch)
