@@ -102,6 +102,49 @@ def test_opencl_device_spec_pocl_names_pocls_cpu_device():
     assert dev == select_device("") and not dev.name.lower().startswith("basic")
 
 
+class _FakePlatform:
+    name = "Portable Computing Language"
+
+    def __init__(self, ptr, version, works):
+        self.int_ptr, self.version, self.works = ptr, version, works
+        self.devs = [_FakeDevice(self, "pthread-cpu")]
+
+    def get_devices(self):
+        return self.devs
+
+
+class _FakeDevice:
+    def __init__(self, platform, name):
+        import pyopencl as cl
+
+        self.platform, self.name, self.type = platform, name, cl.device_type.CPU
+
+
+def test_default_device_skips_a_pocl_whose_compiler_fails_on_this_cpu(monkeypatch):
+    """pyopencl's wheel brings PoCL 3.0 (LLVM 14), whose compiler fails every build on CPUs newer
+    than it (AMD Zen 5: "unknown target CPU 'generic'"); a distribution's PoCL installed beside it
+    works. The default choice takes a PoCL whose compiler works, a release build first."""
+    from pointfence.kernels.opencl import context
+
+    old = _FakePlatform(1, "OpenCL 3.0 PoCL 3.0-rc2  Linux, Release, LLVM 14.0.6", works=False)
+    distro = _FakePlatform(2, "OpenCL 3.0 PoCL 3.1+debian  Linux, None+Asserts, LLVM 15.0.6", works=True)
+    fast = _FakePlatform(3, "OpenCL 3.0 PoCL 6.0  Linux, Release, LLVM 18", works=True)
+    probed = []
+
+    def works(platform, device):
+        probed.append(platform.int_ptr)
+        return platform.works
+
+    monkeypatch.setattr(context, "_compiler_works", works)
+    for platforms, chosen in (([old, distro], distro), ([distro, old], distro), ([distro, old, fast], fast),
+                              ([old], old)):
+        monkeypatch.setattr(context, "_get_platforms", lambda cl, ps=platforms: ps)
+        probed.clear()
+        assert context.select_device("").platform is chosen
+        if len(platforms) == 1:  # one PoCL: nothing probed, its build errors say what to do
+            assert probed == []
+
+
 def test_rig_rejects_duplicate_camera_names():
     c = Camera("same", 8, 8, 10.0, 10.0, 4.0, 4.0)
     with pytest.raises(InputError, match="repeated: same"):

@@ -143,6 +143,7 @@ def select_device(spec: str | None = None):
     if not spec:
         matches = [(p, d) for p, d in devices if "portable computing language" in p.name.lower() or "pocl" in p.name.lower()]
         matches = [m for m in matches if m[1].type & cl.device_type.CPU] or matches
+        matches = _working_pocl_first(matches)
     else:
         needle = spec.lower()
         matches = [(p, d) for p, d in devices if needle in _names(p, d)]
@@ -156,6 +157,40 @@ def select_device(spec: str | None = None):
             "PoCL comes with: pip install 'pyopencl[pocl]'; for NVIDIA GPUs install the driver's OpenCL ICD"
         )
     return matches[which][1]
+
+
+_compiles: dict = {}
+
+
+def _compiler_works(platform, device) -> bool:
+    """Whether ``platform``'s compiler builds a small kernel for ``device`` with pointfence's
+    options (once per platform and process). PoCL 3.0's LLVM 14, the one pyopencl's wheel
+    brings, does not know CPUs newer than it (AMD Zen 5: "unknown target CPU 'generic'") and
+    fails every build there, while a newer PoCL beside it works."""
+    key = (platform.name, platform.version)
+    if key not in _compiles:
+        cl = _cl()
+        src = "__kernel void pf_probe(__global float *a) { a[get_global_id(0)] = sqrt(a[get_global_id(0)]); }"
+        try:
+            with _BUILD_LOCK, warnings.catch_warnings():
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                cl.Program(cl.Context([device]), src).build(options=BUILD_OPTIONS)
+            _compiles[key] = True
+        except cl.Error:
+            _compiles[key] = False
+    return _compiles[key]
+
+
+def _working_pocl_first(matches: list) -> list:
+    """PoCL's CPU devices for the default choice, ordered: where several PoCL installations are
+    found (pyopencl's own and a distribution's), a release build before a build with
+    assertions (its compiler is slower), and a platform whose compiler works on this CPU
+    (``_compiler_works``) before one whose does not. With one PoCL nothing is probed: a failing
+    build then says what to do (``build_source``)."""
+    if len({p.int_ptr for p, _ in matches}) < 2:
+        return matches
+    ranked = sorted(matches, key=lambda m: "release" not in m[0].version.lower())
+    return sorted(ranked, key=lambda m: not _compiler_works(*m))
 
 
 def _names(platform, device) -> str:
@@ -224,6 +259,12 @@ def build_source(ctx, src: str, label: str, options=(), verbose: bool | None = N
             prg = cl.Program(ctx, src).build(options=list(options))
         except cl.Error as e:
             devices = ", ".join(d.name.strip() for d in ctx.devices)
+            if "unknown target CPU" in str(e) and any(_is_pocl(d) for d in ctx.devices):
+                raise KernelError(
+                    f"building the OpenCL program {label} for {devices} failed: this PoCL's compiler does not know "
+                    f"this CPU ({e}). Install a newer PoCL beside it, for example your distribution's "
+                    "(Debian/Ubuntu: apt install pocl-opencl-icd); pointfence then picks the one that works"
+                ) from None
             raise KernelError(
                 f"building the OpenCL program {label} for {devices} failed (options {' '.join(options) or 'none'}); "
                 f"the compiler said:\n{e}\nThe device's OpenCL compiler rejected pointfence's kernels: choose another "
