@@ -123,7 +123,10 @@ def test_reads_and_sends_keep_the_interpreter_lock_where_the_sockets_own_calls_h
     """2,000 datagrams sent and read: no other thread runs meanwhile. With the socket's own
     ``sendto`` and ``recvmsg_into`` (the code before) the other thread ran between them (here
     hundreds of times: a few per cent of the calls; in the service, each such hand-over can keep
-    the receiver or the tick waiting for the other's whole turn)."""
+    the receiver or the tick waiting for the other's whole turn). The other thread takes a
+    hand-over only when it wakes before this one is back: on a fast or busy machine that can take
+    more than 2,000 calls, so the sockets' own calls get up to 50 rounds to show one (the held
+    ones get 50 rounds too, and must show none)."""
     rx, tx = _pair()
     try:
         r, s, buf = held_io.Receiver(rx, socket.CMSG_SPACE(16)), held_io.Sender(tx), bytearray(64)
@@ -139,8 +142,8 @@ def test_reads_and_sends_keep_the_interpreter_lock_where_the_sockets_own_calls_h
                 tx.sendto(b"x" * 40, dest)
                 rx.recvmsg_into((buf,), socket.CMSG_SPACE(16))
 
-        assert _other_thread_ran_during(held) == 0
-        assert _other_thread_ran_during(own) > 0
+        assert sum(_other_thread_ran_during(held) for _ in range(50)) == 0
+        assert any(_other_thread_ran_during(own) > 0 for _ in range(50))
     finally:
         rx.close()
         tx.close()
