@@ -37,7 +37,7 @@ from .e2e import LIGHT_SCENE
 from .machine import cpu_times, cpu_usage
 from .soak_check import (AVAILABILITY, MAX_HOLD_MOTION, MAX_PENETRATION, Recording, failure_class, judge, load_only,
                          penetration)
-from .soak_faults import FAULTS, Event
+from .soak_faults import FAULTS, HANG_S, Event
 
 
 #: the embedded defaults with the camera at 320x240 (2 mm between points on the balloon): the
@@ -185,6 +185,7 @@ def run(args) -> dict:
     mot = [v.get("robot_motion_during_hold_mm") for v in verdicts if v.get("robot_motion_during_hold_mm") is not None]
     stops = [v["stopping_distance_mm"] for v in verdicts if v.get("stopping_distance_mm") is not None]
     meta = data["meta"]
+    hung = hung_periods(rec.k, [ev.inject for f, ev in events if f.name == "kernel_hang"], HANG_S * cfg.service.rate_hz)
     (out / "events.json").write_text(__import__("json").dumps(verdicts, indent=1, default=str) + "\n")
     return {
         "minutes": round((rec.k[-1] - rec.k[0]) / cfg.service.rate_hz / 60.0, 2) if len(rec.k) else 0.0,
@@ -209,6 +210,10 @@ def run(args) -> dict:
         "ticks_lost": int(meta.get("ticks_lost", 0)),
         "torn_bytes": int(data.get("torn_bytes", 0)),
         "loop_miss_ratio": round(timing.miss_ratio, 6),
+        # the periods the injected hung kernel calls stall by design (the loop's thread is inside
+        # the call for HANG_S), and the misses outside them: the loop's own timing under the faults
+        "loop_missed_periods_in_injected_hangs": hung,
+        "loop_miss_ratio_outside_injected_hangs": round(max(timing.misses - hung, 0) / max(timing.periods, 1), 6),
         "loop": timing.as_dict(),
         # the machine over the run (every process on it: service, devices, attackers, arms)
         "machine_busy_pct": cpu.get("busy_pct"), "machine_steal_ms": cpu.get("steal_ms"),
@@ -221,6 +226,29 @@ def run(args) -> dict:
         "recording": str(rig.record_path),
         "backend": rig.svc.backend.name, "device": rig.svc.backend.device_name,
     }
+
+
+def hung_periods(k, injected: list, hang_periods: float) -> int:
+    """Missed periods of the injected hung kernel calls: in the recorded ticks' period indices
+    ``k`` (increasing), each gap that opens within 10 ticks after an injection (the hang blocks
+    the next step), counted up to ``hang_periods`` + 2 (the call's own length and the tick
+    around it; the rest of a longer gap is the loop's own miss), and the hung tick itself, which
+    ended past its period."""
+    import numpy as np
+
+    k = np.asarray(k, np.int64)
+    if k.size < 2:
+        return 0
+    gaps = np.diff(k) - 1
+    at = np.flatnonzero(gaps > 0)
+    total = 0
+    cap = int(np.ceil(hang_periods)) + 2
+    for t in injected:
+        if t is None:
+            continue
+        near = at[(k[at] >= t) & (k[at] <= t + 10)]
+        total += sum(min(int(gaps[i]), cap) + 1 for i in near[:1])
+    return total
 
 
 def _toml(text: str) -> dict:

@@ -55,11 +55,15 @@ class Fault:
     still: bool = False        # an action done while the operator holds still: nothing may move
 
 
+#: how long an injected hung kernel call blocks the tick (s): well past the tick watchdog's limit
+HANG_S = 0.03
+
+
 class FaultyBatch:
     """The service's proxy batch with an injected kernel fault: ``"raise"`` (every step raises
     KernelError) or ``"hang"`` (the next step blocks ``hang_s``, as a hung device call)."""
 
-    def __init__(self, batch, mode: str, hang_s: float = 0.03):
+    def __init__(self, batch, mode: str, hang_s: float = HANG_S):
         self._batch, self.mode, self.hang_s = batch, mode, hang_s
 
     def __getattr__(self, name):

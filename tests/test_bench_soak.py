@@ -32,3 +32,21 @@ def test_every_fault_once_keeps_the_safety_contract(tmp_path):
     assert r["torn_bytes"] == 0
     verdicts = json.loads((tmp_path / "events.json").read_text())
     assert {v["fault"] for v in verdicts} == set(FAULTS)
+    # the injected hang's stalled periods are split from the loop's own misses, never more than them
+    assert 0 < r["loop_missed_periods_in_injected_hangs"] <= r["loop"]["misses"]
+    assert r["loop_miss_ratio_outside_injected_hangs"] <= r["loop_miss_ratio"]
+
+
+def test_a_hung_calls_periods_are_its_own_gap_and_tick_and_no_more():
+    """``hung_periods``: the gap that opens within 10 ticks of an injected hang, up to the hang's
+    length + 2 periods, and the hung tick; gaps elsewhere and the rest of a longer gap are not."""
+    import numpy as np
+
+    from pointfence.bench.soak import hung_periods
+
+    k = np.r_[0:100, 130:200, 201:300, 400:500]          # gaps: 30 at 100, 1 at 200, 100 at 300
+    assert hung_periods(k, [98], 30) == 31               # 30 skipped + the hung tick
+    assert hung_periods(k, [98, 199], 30) == 31 + 2      # a one-period gap after an injection
+    assert hung_periods(k, [150], 30) == 0               # no gap within 10 ticks
+    assert hung_periods(k, [298], 30) == 33              # capped at 32 + the tick: the rest is the loop's
+    assert hung_periods(k, [None], 30) == 0 and hung_periods(k[:1], [0], 30) == 0
