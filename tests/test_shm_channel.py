@@ -17,10 +17,13 @@ def _block(n=2, dof=3):
 
 
 def test_the_native_crc_is_zlibs_on_random_bytes():
+    """Every length and start (the eight-byte folds, their tails, unaligned starts)."""
     rng = np.random.default_rng(7)
-    for size in (0, 1, 7, 64, 561, 4096):
-        a = rng.integers(0, 256, size, dtype=np.uint8)
-        assert lib.pf_crc32(a.ctypes.data, size) == zlib.crc32(a.tobytes())
+    buf = rng.integers(0, 256, 4200, dtype=np.uint8)
+    for size in (*range(0, 40), 63, 64, 65, 561, 4096):
+        for start in (0, 1, 3, 7):
+            a = buf[start:start + size]
+            assert lib.pf_crc32(a.ctypes.data, size) == zlib.crc32(a.tobytes()), (size, start)
 
 
 def test_a_written_record_reads_back_whole_and_its_checksum_is_zlibs():
