@@ -132,7 +132,7 @@ ROW_KINDS = {np.dtype(np.float64): 0, np.dtype(np.bool_): 1, np.dtype(np.uint8):
              np.dtype(np.int32): 3, np.dtype(np.float32): 4}
 
 #: ``pf_host_step`` / ``pf_host_sync`` flags, and ``pf_host_servo`` codes (``shm_exchange.c``)
-HOST_LOST, HOST_NONFINITE, HOST_TEXTS = 1, 2, 4
+HOST_LOST, HOST_NONFINITE, HOST_TEXTS, HOST_REFUSED = 1, 2, 4, 8
 SERVO_QUEUED, SERVO_BAD_POSE, SERVO_WORKSPACE, SERVO_IGNORED, SERVO_REJECTED = 0, 1, 2, 3, 4
 
 _T, _H, _FC, _S = POINTER(TeleopCore), POINTER(HealthCore), POINTER(ForcesCore), POINTER(StepCore)
@@ -157,6 +157,9 @@ _SIGNATURES = {
     "pf_poses_of": (None, [_D, _D, c_int64, _D]),
     "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
     "pf_masters_gather": (None, [POINTER(_D), POINTER(_D), c_int64, _D, _D]),
+    "pf_masters_take": (None, [POINTER(_D), POINTER(_D), c_int64, _D, _D, _D, _U8]),
+    "pf_masters_scatter": (None, [_D, c_int64, POINTER(_D)]),
+    "pf_script_at": (c_int64, [_D, _D, _D, c_int64, c_double, _D, _D]),
     "pf_pose_check": (c_int32, [c_void_p, c_double]),
     "pf_proxy_unpack": (None, [_F, c_int64, _F, _F, _F, _I32, _I32, _U8]),
     "pf_crc32": (ctypes.c_uint32, [c_void_p, c_int64]),

@@ -140,6 +140,7 @@ typedef struct {
 #define PF_HOST_LOST 1          /* the child is silent or its record unreadable (alive == 0) */
 #define PF_HOST_NONFINITE 2     /* an arm's row holds a NaN or an infinity (nonfinite) */
 #define PF_HOST_TEXTS 4         /* an arm's fault or error text changed (texts) */
+#define PF_HOST_REFUSED 8       /* pf_host_command: an arm's setpoint was not queued (a code > 0) */
 
 /* pf_host_servo's codes */
 #define PF_SERVO_QUEUED 0
@@ -251,10 +252,14 @@ int32_t pf_host_step(pf_host *h, int64_t b, double now) {
 /* Every arm's commands of a tick at once (service/devices.py Devices.command_robots, when every
  * robot is an arm of this host, arm b on row b): each coupled arm's setpoint T4[b] (4x4 world)
  * checked and queued (codes[b]: pf_host_servo's code; -1: not coupled, nothing sent), then every
- * arm stepped, in index order. Returns the flags of the read made. */
+ * arm stepped, in index order. Returns the flags of the read made, and PF_HOST_REFUSED where an
+ * arm's code is > 0. */
 int32_t pf_host_command(pf_host *h, const double *T4, const uint8_t *coupled, int32_t *codes, double now) {
     int32_t flags = 0;
-    for (int64_t b = 0; b < h->n; b++) codes[b] = coupled[b] ? pf_host_servo(h, b, T4 + 16 * b) : -1;
+    for (int64_t b = 0; b < h->n; b++) {
+        codes[b] = coupled[b] ? pf_host_servo(h, b, T4 + 16 * b) : -1;
+        if (codes[b] > 0) flags |= PF_HOST_REFUSED;
+    }
     for (int64_t b = 0; b < h->n; b++) flags |= pf_host_step(h, b, now);
     return flags;
 }

@@ -139,4 +139,48 @@ void pf_masters_valid(const double *pos, const double *quat, const double *grasp
     }
 }
 
+/* Every master's force (3, row i of the tick's (n, 3) forces) into its own array dst[i] (the
+ * masters that only store the force they are sent: service/devices.py Devices.send_forces). */
+void pf_masters_scatter(const double *force, int64_t n, double *const *dst) {
+    for (int64_t i = 0; i < n; i++) memcpy(dst[i], force + 3 * i, 3 * sizeof(double));
+}
+
+/* The tick's master samples in one call: pf_masters_gather, then pf_masters_valid. */
+void pf_masters_take(const double *const *pos_src, const double *const *quat_src, int64_t n, double *pos,
+                     double *quat, const double *grasp, uint8_t *ok) {
+    pf_masters_gather(pos_src, quat_src, n, pos, quat);
+    pf_masters_valid(pos, quat, grasp, n, ok);
+}
+
+/* A scripted trajectory at script time s (service/masters.py ScriptedMaster.poll): times t (n,)
+ * increasing, positions p (n, 3), steps d (n - 1, 3) = p[i + 1] - p[i]. Writes the position
+ * into pos (3) and into wk = (w, finite): w the interpolation weight between samples i and i + 1,
+ * -1 at or outside the ends (the end sample holds), finite 1 if the position is. Returns i: the
+ * sample at or before s (bisect_right's, so that NaN and ties fall as in Python), 0 before the
+ * first, n - 1 at or after the last. Same float64 arithmetic as Python's d * w + p (no FMA). */
+int64_t pf_script_at(const double *t, const double *p, const double *d, int64_t n, double s, double *pos,
+                     double *wk) {
+    int64_t lo = 0, hi = n;
+    while (lo < hi) {
+        const int64_t mid = (lo + hi) / 2;
+        if (s < t[mid]) hi = mid;
+        else lo = mid + 1;
+    }
+    int64_t i = lo - 1;
+    double w = -1.0;
+    if (i < 0) {
+        i = 0;
+        memcpy(pos, p, 3 * sizeof(double));
+    } else if (i >= n - 1) {
+        i = n - 1;
+        memcpy(pos, p + 3 * i, 3 * sizeof(double));
+    } else {
+        w = (s - t[i]) / (t[i + 1] - t[i]);
+        for (int k = 0; k < 3; k++) pos[k] = d[3 * i + k] * w + p[3 * i + k];
+    }
+    wk[0] = w;
+    wk[1] = isfinite(pos[0] + pos[1] + pos[2]) ? 1.0 : 0.0;
+    return i;
+}
+
 #endif

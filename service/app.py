@@ -326,12 +326,16 @@ class Service:
         """Fill ``inp``: the loop's timing, the control state, the masters, the robots, the frames."""
         inp.k, inp.t, inp.dt, inp.overrun, inp.now = k, t, dt, overrun, now
         inp.watchdog_stall = False
-        with self._ctl:
-            inp.law_change = self._reanchor
-            self._reanchor = False
-            inp.architecture = self._pending_arch if self._pending_arch is not None else self.teleop.arch
-            self._pending_arch = None
-            inp.haptics, inp.teleop = self.haptics_on, self.teleop_on
+        if self._reanchor or self._pending_arch is not None:    # (a request set after this look is the next tick's)
+            with self._ctl:
+                inp.law_change = self._reanchor
+                self._reanchor = False
+                inp.architecture = self._pending_arch if self._pending_arch is not None else self.teleop.arch
+                self._pending_arch = None
+        else:
+            inp.law_change = False
+            inp.architecture = self.teleop.arch
+        inp.haptics, inp.teleop = self.haptics_on, self.teleop_on
         self.devices.read_masters(inp)
         self.devices.read_robots(inp, self.teleop.cmd, self.teleop.q_cmd, self.teleop.jaw_cmd)
         if self.grasper is not None and self.grasper.faulted:     # (recorded: a replay holds as the run did)

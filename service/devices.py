@@ -23,6 +23,7 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 from pointfence.native import fast, lib, ptr
 
+from .masters import Master
 from .robot.base import RobotMode
 from .tick_io import TickInput, TickOutput
 
@@ -74,6 +75,15 @@ class Devices:
         self._codes = np.zeros(n, np.int32)       # each arm's setpoint code (``_command_host``)
         self._codes_p = ptr(self._codes, np.int32, "codes")
         self.tx_lock = threading.Lock()   #: held while forces are sent (the tick, the watchdog)
+        # masters that only store the force they are sent (``Master.send_force``: into their own
+        # ``force`` array, in place) take it in one compiled call, their arrays' addresses bound
+        # once (None: some master sends it on)
+        self._stores = None
+        if all(type(m).send_force is Master.send_force and isinstance(m.force, np.ndarray)
+               and m.force.dtype == np.float64 and m.force.shape == (3,) and m.force.flags.c_contiguous
+               for m in self.masters):
+            self._stores = (POINTER(c_double) * n)(*(ptr(m.force, np.float64, "master force") for m in self.masters))
+            self._store_refs = [m.force for m in self.masters]      # (the addresses' arrays, kept alive)
         #: arms whose robot refused this tick's command, and the setpoint it kept (world, m)
         self.refused = np.zeros(n, bool)
         self._refused_any = False
@@ -116,12 +126,11 @@ class Devices:
             self._bind_sources()
         bound = self._bound
         pp, qp = bound(pos, "master_pos"), bound(quat, "master_orientation")
-        fast.pf_masters_gather(self._src_pos_p, self._src_quat_p, self._n64, pp, qp)
-        fast.pf_masters_valid(pp, qp, bound(inp.grasp, "grasp"), self._n64,
-                              self._bound_bool(inp.master_ok, "master_ok"))
+        fast.pf_masters_take(self._src_pos_p, self._src_quat_p, self._n64, pp, qp, bound(inp.grasp, "grasp"),
+                             self._bound_bool(inp.master_ok, "master_ok"))
 
     def _bind_sources(self) -> None:
-        """The masters' own position and orientation arrays, as the pointers ``pf_masters_gather``
+        """The masters' own position and orientation arrays, as the pointers ``pf_masters_take``
         reads (each master writes its sample into them in place: ``masters.Master``)."""
         n = self.n
         self._src_pos = [np.ascontiguousarray(m.position, np.float64) for m in self.masters]
@@ -195,6 +204,15 @@ class Devices:
             got = self._ptrs[name] = (a, ptr(a, np.float64, name))
         return got[1]
 
+    def _bound_forces(self, a: np.ndarray):
+        """``_bound`` for the tick's (n, 3) forces, its shape checked when it is bound."""
+        got = self._ptrs.get("force_master")
+        if got is None or got[0] is not a:
+            if np.shape(a) != (self.n, 3):
+                raise InputError(f"forces of shape {np.shape(a)} for {self.n} masters; expected ({self.n}, 3) (N)")
+            got = self._ptrs["force_master"] = (a, ptr(a, np.float64, "force_master"))
+        return got[1]
+
     def _bound_bool(self, a: np.ndarray, name: str):
         """``_bound`` for a bool array."""
         got = self._ptrs.get(name)
@@ -215,6 +233,9 @@ class Devices:
     def send_forces(self, force_master: np.ndarray) -> None:
         """(B, 3) forces in each master's frame (N)."""
         with self.tx_lock:
+            if self._stores is not None:
+                fast.pf_masters_scatter(self._bound_forces(force_master), self._n64, self._stores)
+                return
             for m, f in zip(self.masters, force_master):
                 m.send_force(f)
 
@@ -282,10 +303,8 @@ class Devices:
                     r.resume()
                 elif release[b] and not coupled[b]:
                     r.hold()
-        self._host.command(self._cmd4p, self._bound_bool(out.coupled, "coupled"), self._codes_p)
-        codes = self._codes.tolist()
-        if max(codes) > 0:                         # (-1: not coupled; 0: queued)
-            for b, code in enumerate(codes):
+        if self._host.command(self._cmd4p, self._bound_bool(out.coupled, "coupled"), self._codes_p):
+            for b, code in enumerate(self._codes.tolist()):     # (-1: not coupled; 0: queued)
                 if code > 0:
                     r = self.robots[b]
                     try:

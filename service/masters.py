@@ -14,7 +14,7 @@ grasps) with linear interpolation (normalised, for the quaternions): the dissert
 """
 from __future__ import annotations
 
-import bisect
+import ctypes
 import math
 from abc import ABC, abstractmethod
 from pathlib import Path
@@ -23,6 +23,7 @@ import numpy as np
 
 from pointfence.clients.trajectory import read_trajectory, write_trajectory  # noqa: F401 (also importable here)
 from pointfence.kernels.errors import InputError
+from pointfence.native import fast, ptr
 
 
 class Master(ABC):
@@ -88,17 +89,23 @@ class ScriptedMaster(Master):
         self._ql = None if q is None else q.tolist()
         self._gl = None if g is None else g.tolist()
         self.name = name
-        self._pos = memoryview(self.position)
         self._ori = memoryview(self.orientation)   # (poll writes floats through it: no NumPy call)
         self.times = t
         self.positions = p
         self.clutches = c
-        # the trajectory as Python floats: a poll is scalar arithmetic (no NumPy call on a (3,) row).
-        # ``times`` and ``positions`` are fixed here; ``clutches`` is read at each poll (an operator
-        # script may lift the pedal by writing it)
-        self._tl = t.tolist()
-        self._pl = p.tolist()
-        self._dl = (np.diff(p, axis=0) if t.size > 1 else np.zeros((0, 3))).tolist()
+        # the trajectory as the compiled look-up reads it (``pf_script_at``: the sample, the weight
+        # and the interpolated position in one call, written into ``position``). ``times`` and
+        # ``positions`` are fixed here; ``clutches`` is read at each poll (an operator script may
+        # lift the pedal by writing it)
+        self._t = np.ascontiguousarray(t, np.float64)
+        self._p = np.ascontiguousarray(p, np.float64)
+        self._d = np.ascontiguousarray(np.diff(p, axis=0) if t.size > 1 else np.zeros((1, 3)), np.float64)
+        self._wk = np.zeros(2)                     # (w, finite) of the last look-up
+        self._wkv = memoryview(self._wk)
+        self._n = ctypes.c_int64(t.size)
+        self._args = (ptr(self._t, np.float64, "times"), ptr(self._p, np.float64, "positions"),
+                      ptr(self._d, np.float64, "steps"), self._n)
+        self._out = (ptr(self.position, np.float64, "position"), ptr(self._wk, np.float64, "weight"))
         self.t0 = float(t0)
         self.poll(self.t0 + t[0])
 
@@ -107,24 +114,12 @@ class ScriptedMaster(Master):
         return float(self.times[-1] - self.times[0])
 
     def poll(self, t: float) -> None:
-        s = t - self.t0
-        tl = self._tl
-        i = bisect.bisect_right(tl, s) - 1
-        w = -1.0
-        if i < 0:
-            x, y, z = self._pl[0]
-            i = 0
-        elif i >= len(tl) - 1:
-            x, y, z = self._pl[-1]
-            i = -1
-        else:
-            w = (s - tl[i]) / (tl[i + 1] - tl[i])
-            (dx, dy, dz), (px, py, pz) = self._dl[i], self._pl[i]
-            x, y, z = dx * w + px, dy * w + py, dz * w + pz    # (the same float64 arithmetic as before)
+        tp, pp, dp, n = self._args
+        pos, wk = self._out
+        i = fast.pf_script_at(tp, pp, dp, n, ctypes.c_double(t - self.t0), pos, wk)
+        w = self._wkv[0]
         self.clutch = bool(self.clutches[i])
-        pos = self._pos
-        pos[0], pos[1], pos[2] = x, y, z
-        self.ok = math.isfinite(x + y + z)
+        self.ok = self._wkv[1] == 1.0
         if self._ql is not None:
             a = self._ql[i]
             if w >= 0.0:                     # normalised linear interpolation (nlerp), to the samples' norms

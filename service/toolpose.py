@@ -16,6 +16,7 @@ frame filter that drops the tool from every frame at the frame's capture time (d
 """
 from __future__ import annotations
 
+import ctypes
 import math
 import threading
 from typing import Optional, Sequence
@@ -25,6 +26,7 @@ import numpy as np
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.selffilter import Capsule, SelfFilter
 from pointfence.kernels.yielding import checkpoint
+from pointfence.native import ROW_KINDS, RowField, fast, ptr
 
 from .robot.tool import ToolModel, tool_capsules
 
@@ -63,13 +65,29 @@ class ToolPoseRing:
         # record is then the readers' calls alone
         readers = [(b, _joint_reader(r)) for b, r in enumerate(self.robots) if r is not None]
         self._slots = [tuple((read, self.q[i, b]) for b, read in readers) for i in range(self.capacity)]
+        # robots whose measured joints are a live array (a hosted arm's row of the shared block,
+        # ``measured_jp_view``) are copied into the slot's row by one compiled call instead
+        views = [(b, getattr(r, "measured_jp_view", None)) for b, r in enumerate(self.robots) if r is not None]
+        self._gather = None
+        if views and all(v is not None for _, v in views):
+            rows = [(b, v()) for b, v in views]
+            if all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+                   and a.size <= self.dof for _, a in rows):
+                fields = (RowField * len(rows))(*(RowField(a.ctypes.data, b * self.dof, a.size, ROW_KINDS[a.dtype])
+                                                  for b, a in rows))
+                self._gather = (fields, ctypes.c_int64(len(rows)), ptr(self.q.reshape(self.capacity, -1), np.float64,
+                                "pose ring"), ctypes.c_int64(n * self.dof), rows)
 
     def record(self, t: float) -> None:
         """The robots' measured joints now, at time ``t`` (frames' clock; increasing)."""
         with self._lock:
             i = self.count % self.capacity
-            for read, row in self._slots[i]:
-                read(row)
+            g = self._gather
+            if g is not None:
+                fast.pf_row_gather(g[0], g[1], g[2], g[3], i)
+            else:
+                for read, row in self._slots[i]:
+                    read(row)
             self.times[i] = t
             self.count += 1
 

@@ -179,6 +179,43 @@ def test_tool_pose_ring_interpolates_and_wraps():
     np.testing.assert_array_equal(ring.at(0.0155)[1], 0.0)           # no robot on arm 1
 
 
+class _LiveJoints(_Joints):
+    """A robot whose measured joints are a live array (a hosted arm's row of the shared block)."""
+
+    def __init__(self, dof=2):
+        self.dof = dof
+        self._q = np.zeros(dof)
+
+    def measured_jp_view(self):
+        return self._q
+
+
+def test_tool_pose_ring_copies_live_joint_rows_in_one_call_as_the_readers_do():
+    """Robots that expose their joints as live arrays are recorded by the compiled row copy:
+    each into its own columns of the slot (a shorter one leaves the rest 0), the same poses
+    and look-ups as through their readers; one robot without a live array keeps every robot on
+    the readers."""
+    a, b = _LiveJoints(2), _LiveJoints(1)
+    ring = ToolPoseRing([a, None, b], capacity=8)
+    assert ring._gather is not None
+    plain = ToolPoseRing([_Joints(), None], capacity=8)
+    mixed = ToolPoseRing([a, _Joints()], capacity=8)
+    assert plain._gather is None and mixed._gather is None
+    for k in range(20):
+        a._q[:] = [k, -k]
+        b._q[:] = [2 * k]
+        plain.robots[0]._q = [k, -k]
+        ring.record(k * 0.001)
+        plain.record(k * 0.001)
+    for t in (0.0155, 0.0125, 1.0, 0.0):
+        got, want = ring.at(t), plain.at(t)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], 0.0)
+        assert got[2, 1] == 0.0 and got[2, 0] == 2 * want[0, 0]
+    np.testing.assert_allclose(ring.at(0.0155)[0], [15.5, -15.5])
+    assert ring.misses == plain.misses == 1
+
+
 # --- the robot self-filter in the feeder ---------------------------------------------------------------
 
 TABLE = """

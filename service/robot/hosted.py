@@ -69,7 +69,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from pointfence.kernels.errors import InputError
-from pointfence.native import HOST_LOST, HOST_NONFINITE, HOST_TEXTS, HostCore, HostLayout, fast, ptr
+from pointfence.native import HOST_LOST, HOST_NONFINITE, HOST_REFUSED, HOST_TEXTS, HostCore, HostLayout, fast, ptr
 
 from ..child_pipe import stop_by_flag
 from .base import RIGID_TOL, RobotMode
@@ -77,6 +77,8 @@ from .factory import robot_from_config
 from .hosted_arm import HostedRobot
 from .hosted_block import FAULT, INJECT_NAN, INJECT_NONE, RING, Block, Commands, get_text
 
+#: the flags of a read of the state record (``_after_read``)
+_READ_FLAGS = HOST_LOST | HOST_NONFINITE | HOST_TEXTS
 LOST = "robot process not answering"
 NONFINITE = "robot state non-finite"
 __all__ = ["FAULT_KINDS", "HostedRobot", "LOST", "NONFINITE", "RobotHost", "WATCHDOG_MAX_S", "WATCHDOG_S"]
@@ -289,18 +291,19 @@ class RobotHost:
         """Whether arm ``b`` is latched in FAULT (then it takes no row)."""
         self._latched[b] = latched
 
-    def command(self, T4, coupled, codes) -> None:
+    def command(self, T4, coupled, codes) -> bool:
         """Every arm's tick at once (``Devices.command_robots`` when every robot is an arm of this
         host, arm b on row b): each coupled arm's setpoint checked and queued, then every arm
         stepped, in one compiled call (``pf_host_command``). Pointers (``native.ptr``): ``T4``
         (n, 4, 4) the setpoints (world), ``coupled`` (n) bool, ``codes`` (n) int32 out: each
         arm's ``SERVO_*`` code (-1: not coupled); the arm's ``after_servo`` acts on one that is
-        not ``SERVO_QUEUED``."""
+        not ``SERVO_QUEUED``. Returns whether an arm's code says so (> 0)."""
         if self._blk is None:              # closed: nothing is sent, the arms keep their last state
-            return
+            return False
         flags = fast.pf_host_command(self._core, T4, coupled, codes, ctypes.c_double(time.monotonic()))
-        if flags:
-            self._after_read(flags)
+        if flags & _READ_FLAGS:
+            self._after_read(flags & _READ_FLAGS)
+        return bool(flags & HOST_REFUSED)
 
     def read_poses(self, T4, pos, quat, fault, present, jaw, jawed, ideal_jaw) -> None:
         """Every arm's measured pose, tip, orientation, fault, presence and jaw from the rows they

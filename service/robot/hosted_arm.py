@@ -160,6 +160,11 @@ class HostedRobot:
     def measured_jp_into(self, out: np.ndarray) -> None:
         out[: self.dof] = self._q_row
 
+    def measured_jp_view(self) -> np.ndarray:
+        """The measured joints (dof,) as a live view of the row this arm took (rad or m per
+        joint): the exchange rewrites it in place at every step (``ToolPoseRing`` copies it)."""
+        return self._q_row
+
     def measured_js(self) -> JointState:
         self._sync()
         return self._r.measured_js()
