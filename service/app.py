@@ -83,7 +83,7 @@ class Service:
     def __init__(self, cfg, masters: Sequence, robots: Optional[Sequence] = None, backend: Optional[str] = None,
                  device: Optional[str] = None, record: int = 0, architecture: Optional[str] = None,
                  record_path=None):
-        self.cfg = cfg
+        self._set_cfg(cfg)
         sc = cfg.service
         self.rate_hz = sc.rate_hz
         self.dt = 1.0 / sc.rate_hz
@@ -223,6 +223,12 @@ class Service:
         self.devices.hold_all_robots()   # until the arm couples (pedal down, teleoperation engaged, healthy)
         self._started = True
 
+    def _set_cfg(self, cfg) -> None:
+        """The configuration in use, and the tick's copies of its numbers."""
+        self.cfg = cfg
+        self._max_age_s = cfg.service.max_frame_age_s
+        self._ramp = (None, None)       # (dt, dt / force_ramp_s as a C double): ``step``
+
     def warm_up(self) -> None:
         """Compile and launch the proxy kernel once before the loop's first tick."""
         self.scene.warm_up(self.teleop.hip)
@@ -256,7 +262,7 @@ class Service:
         return change
 
     def _reconfigured(self, cfg) -> None:
-        self.cfg = cfg
+        self._set_cfg(cfg)
         self.teleop.slip_lift = slip_lift_radius(cfg)
         self.request_reanchor()      # S1: new fixture parameters move no robot by themselves
 
@@ -355,7 +361,7 @@ class Service:
                       or inp.teleop != self._teleop_prev)
         tp.law_changed = False
         self._teleop_prev = inp.teleop
-        health.assess(inp, self.cfg.service.max_frame_age_s, health_in)
+        health.assess(inp, self._max_age_s, health_in)
         proxies, states, normals = scene.batch_pointers()     # (a re-seat below keeps the batch's storage)
         if normals is not self._lift_normals:        # a new batch: III's slip lift reads its normals
             tp.bind_normals(normals)
@@ -393,8 +399,11 @@ class Service:
                                f"{self.cfg.service.max_lateness_s * 1e3:g} ms")
         # force gains (ramping over force_ramp_s) and frames; robot commands: the goal by
         # architecture, rate-limited, for coupled arms; a robot that decouples stops where it is
+        ramp = self._ramp
+        if ramp[0] != inp.dt:            # (the ramp's step per tick, as a C double: made again for another dt)
+            ramp = self._ramp = (inp.dt, ctypes.c_double(inp.dt / self.cfg.service.force_ramp_s))
         fast.pf_step_post(self._core_ref, tp.ref, health.ref, scene.renderer.ref, proxies, states, int(inp.haptics),
-                          ctypes.c_double(inp.dt / self.cfg.service.force_ramp_s))
+                          ramp[1])
         out.hold = health.mask
         out.frame_seq = scene.frame_seq
         return out
