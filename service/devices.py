@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import threading
 from ctypes import POINTER, c_double, c_int64
+from operator import is_
 from typing import Optional, Sequence
 
 import numpy as np
@@ -28,6 +29,10 @@ from .robot.base import RobotMode
 from .tick_io import TickInput, TickOutput
 
 _FAULT = RobotMode.FAULT
+#: the dtypes of the arrays each compiled call reads or writes (``Devices._pointers``)
+_ROBOT_KINDS = (np.float64, np.float64, bool, bool, np.float64, np.float64)
+_MASTER_KINDS = (np.float64, np.float64, np.float64, bool)
+_POSE_KINDS = (np.float64, np.float64)
 
 
 class Devices:
@@ -58,6 +63,7 @@ class Devices:
         self._q4 = np.zeros((n, 4))                # the measured orientations, before the ideal arms'
         self._q4p = ptr(self._q4, np.float64, "orientations")
         self._ptrs: dict = {}                      # name -> (array, pointer): ``_bound``
+        self._ptr_sets: dict = {}                  # key -> (arrays, pointers): ``_pointers``
         self._views = None                         # ``_scalar_views``
         self._bind_sources()
         #: arms whose robot takes jaw commands (``servo_jaw``) and reports its jaw (``measured_jaw``)
@@ -124,10 +130,8 @@ class Devices:
                 stale = True
         if stale:                                  # a master replaced its arrays: point at the new ones
             self._bind_sources()
-        bound = self._bound
-        pp, qp = bound(pos, "master_pos"), bound(quat, "master_orientation")
-        fast.pf_masters_take(self._src_pos_p, self._src_quat_p, self._n64, pp, qp, bound(inp.grasp, "grasp"),
-                             self._bound_bool(inp.master_ok, "master_ok"))
+        pp, qp, gp, okp = self._pointers("read_masters", (pos, quat, inp.grasp, inp.master_ok), _MASTER_KINDS)
+        fast.pf_masters_take(self._src_pos_p, self._src_quat_p, self._n64, pp, qp, gp, okp)
 
     def _bind_sources(self) -> None:
         """The masters' own position and orientation arrays, as the pointers ``pf_masters_take``
@@ -160,12 +164,10 @@ class Devices:
         or none) and fault state; an ideal robot's are ``ideal_pos``, ``ideal_quat`` and
         ``ideal_jaw`` (its commands; identity orientation and NaN jaw where not given)."""
         if self._host is not None:                 # every arm in one compiled call
-            b8 = self._bound_bool
-            self._host.read_poses(self._T4p, self._bound(inp.robot_pos, "robot_pos"),
-                                  self._bound(inp.robot_orientation, "robot_orientation"),
-                                  b8(inp.robot_fault, "robot_fault"), b8(inp.robot_present, "robot_present"),
-                                  self._bound(inp.robot_jaw, "robot_jaw"), self._jawed_p,
-                                  self._bound(self._no_jaw if ideal_jaw is None else ideal_jaw, "ideal_jaw"))
+            pos, quat, fault, present, jaw, ideal = self._pointers(
+                "read_robots", (inp.robot_pos, inp.robot_orientation, inp.robot_fault, inp.robot_present, inp.robot_jaw,
+                                self._no_jaw if ideal_jaw is None else ideal_jaw), _ROBOT_KINDS)
+            self._host.read_poses(self._T4p, pos, quat, fault, present, jaw, self._jawed_p, ideal)
             return
         np.copyto(inp.robot_present, self.present)
         fault, T4 = inp.robot_fault, self._T4_rows
@@ -202,6 +204,16 @@ class Devices:
         got = self._ptrs.get(name)
         if got is None or got[0] is not a:
             got = self._ptrs[name] = (a, ptr(a, np.float64, name))
+        return got[1]
+
+    def _pointers(self, key: str, arrays: tuple, kinds: tuple) -> tuple:
+        """The core's pointers to ``arrays`` (each of its dtype in ``kinds``), made again only
+        when one of them is another array than last time's under ``key``: one identity check
+        per array a tick instead of a look-up per array."""
+        got = self._ptr_sets.get(key)
+        if got is None or not all(map(is_, got[0], arrays)):
+            got = self._ptr_sets[key] = (arrays, tuple(ptr(a, dt, f"{key}: array {i}")
+                                                       for i, (a, dt) in enumerate(zip(arrays, kinds))))
         return got[1]
 
     def _bound_forces(self, a: np.ndarray):
@@ -260,8 +272,8 @@ class Devices:
         if self._refused_any:
             self.refused[:] = False
             self._refused_any = False
-        fast.pf_poses_of(self._bound(out.command, "command"), self._bound(out.orientation, "orientation"),
-                         self._n64, self._cmd4p)
+        cmd, ori = self._pointers("command_robots", (out.command, out.orientation), _POSE_KINDS)
+        fast.pf_poses_of(cmd, ori, self._n64, self._cmd4p)
         if self._host is not None and not self.jawed:
             return self._command_host(out, dt)
         coupled, engage, release = out.coupled.tolist(), out.engage.tolist(), out.release.tolist()
