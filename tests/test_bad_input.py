@@ -107,7 +107,7 @@ class _FakePlatform:
 
     def __init__(self, ptr, version, works):
         self.int_ptr, self.version, self.works = ptr, version, works
-        self.devs = [_FakeDevice(self, "pthread-cpu")]
+        self.devs = [_FakeDevice(self, "basic-cpu"), _FakeDevice(self, "pthread-cpu")]
 
     def get_devices(self):
         return self.devs
@@ -140,9 +140,14 @@ def test_default_device_skips_a_pocl_whose_compiler_fails_on_this_cpu(monkeypatc
                               ([old], old)):
         monkeypatch.setattr(context, "_get_platforms", lambda cl, ps=platforms: ps)
         probed.clear()
-        assert context.select_device("").platform is chosen
+        dev = context.select_device("")
+        assert dev.platform is chosen and dev.name == "pthread-cpu"    # (its in-thread "basic" device after it)
         if len(platforms) == 1:  # one PoCL: nothing probed, its build errors say what to do
             assert probed == []
+    monkeypatch.setattr(context, "_get_platforms", lambda cl: [distro, fast, old])
+    probed.clear()
+    dev = context.select_device("")
+    assert dev.platform is fast and dev.name == "pthread-cpu" and set(probed) == {3}   # the first release build works
 
 
 def test_rig_rejects_duplicate_camera_names():

@@ -190,7 +190,10 @@ def _working_pocl_first(matches: list) -> list:
     if len({p.int_ptr for p, _ in matches}) < 2:
         return matches
     ranked = sorted(matches, key=lambda m: "release" not in m[0].version.lower())
-    return sorted(ranked, key=lambda m: not _compiler_works(*m))
+    for p, d in ranked:                     # (probed in order, up to the first platform that works)
+        if _compiler_works(p, d):
+            return [m for m in ranked if m[0].int_ptr == p.int_ptr] + [m for m in ranked if m[0].int_ptr != p.int_ptr]
+    return ranked
 
 
 def _names(platform, device) -> str:
