@@ -21,8 +21,10 @@ judged on it afterwards (``bench/soak_check.py``). The JSON has ``faults_injecte
 ``max_hold_latency_ms`` (fault detectable -> arms holding; for a hung kernel call, the tick
 watchdog's sight of it), ``max_robot_motion_during_hold_mm``, ``max_penetration_mm`` (both
 arms, against the scene's true surface), ``ticks_recorded``, ``ticks_lost``,
-``loop_miss_ratio``, ``machine_busy_pct`` and ``machine_steal_ms`` (every process on the machine
-over the run: bench/machine.py), and per fault kind its count, failures and worst figures.
+``loop_miss_ratio`` (with ``loop_missed_periods_in_injected_hangs``, the periods the injected hung
+kernel calls stall by design, and ``loop_miss_ratio_outside_injected_hangs``, the loop's own),
+``machine_busy_pct`` and ``machine_steal_ms`` (every process on the machine over the run:
+bench/machine.py), and per fault kind its count, failures and worst figures.
 """
 from __future__ import annotations
 
