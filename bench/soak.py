@@ -249,7 +249,8 @@ def hung_periods(k, injected: list, hang_periods: float) -> int:
         if t is None:
             continue
         near = at[(k[at] >= t) & (k[at] <= t + 10)]
-        total += sum(min(int(gaps[i]), cap) + 1 for i in near[:1])
+        if near.size:                        # the first gap after the injection: the hang's
+            total += min(int(gaps[near[0]]), cap) + 1
     return total
 
 

@@ -155,8 +155,6 @@ _SIGNATURES = {
     "pf_step_publish": (None, [_S, _S]),
     "pf_quats_of_matrices": (None, [_D, c_int64, c_int64, _D]),
     "pf_poses_of": (None, [_D, _D, c_int64, _D]),
-    "pf_masters_valid": (None, [_D, _D, _D, c_int64, _U8]),
-    "pf_masters_gather": (None, [POINTER(_D), POINTER(_D), c_int64, _D, _D]),
     "pf_masters_take": (None, [POINTER(_D), POINTER(_D), c_int64, _D, _D, _D, _U8]),
     "pf_masters_scatter": (None, [_D, c_int64, POINTER(_D)]),
     "pf_script_at": (c_int64, [_D, _D, _D, c_int64, c_double, _D, _D]),

@@ -120,7 +120,7 @@ int32_t pf_pose_check(const double *T, double tol) {
 
 /* Every master's position (3) and orientation (4) from its own arrays (pos_src[i], quat_src[i])
  * into the tick's (n, 3) and (n, 4) arrays. */
-void pf_masters_gather(const double *const *pos_src, const double *const *quat_src, int64_t n, double *pos,
+static void pf_masters_gather(const double *const *pos_src, const double *const *quat_src, int64_t n, double *pos,
                        double *quat) {
     for (int64_t i = 0; i < n; i++) {
         memcpy(pos + 3 * i, pos_src[i], 3 * sizeof(double));
@@ -130,7 +130,7 @@ void pf_masters_gather(const double *const *pos_src, const double *const *quat_s
 
 /* A master sample is valid only if the device says so and its position, orientation (a unit
  * quaternion within PF_QUAT_TOL) and grasp are finite: ok[i] is cleared otherwise (S2). */
-void pf_masters_valid(const double *pos, const double *quat, const double *grasp, int64_t n, uint8_t *ok) {
+static void pf_masters_valid(const double *pos, const double *quat, const double *grasp, int64_t n, uint8_t *ok) {
     for (int64_t i = 0; i < n; i++) {
         const double *p = pos + 3 * i, *q = quat + 4 * i;
         int finite = isfinite(p[0]) && isfinite(p[1]) && isfinite(p[2]) && isfinite(grasp[i]);

@@ -29,10 +29,12 @@ from .robot.base import RobotMode
 from .tick_io import TickInput, TickOutput
 
 _FAULT = RobotMode.FAULT
-#: the dtypes of the arrays each compiled call reads or writes (``Devices._pointers``)
-_ROBOT_KINDS = (np.float64, np.float64, bool, bool, np.float64, np.float64)
-_MASTER_KINDS = (np.float64, np.float64, np.float64, bool)
-_POSE_KINDS = (np.float64, np.float64)
+#: the per-arm arrays each compiled call reads or writes (``Devices._pointers``): (dtype, values
+#: per arm; None: one)
+_F3, _F4, _F1, _B1 = (np.float64, 3), (np.float64, 4), (np.float64, None), (bool, None)
+_ROBOT_KINDS = (_F3, _F4, _B1, _B1, _F1, _F1)
+_MASTER_KINDS = (_F3, _F4, _F1, _B1)
+_POSE_KINDS = (_F3, _F4)
 
 
 class Devices:
@@ -62,7 +64,6 @@ class Devices:
         self._cmd4p = ptr(self._cmd4, np.float64, "command poses")
         self._q4 = np.zeros((n, 4))                # the measured orientations, before the ideal arms'
         self._q4p = ptr(self._q4, np.float64, "orientations")
-        self._ptrs: dict = {}                      # name -> (array, pointer): ``_bound``
         self._ptr_sets: dict = {}                  # key -> (arrays, pointers): ``_pointers``
         self._views = None                         # ``_scalar_views``
         self._bind_sources()
@@ -179,7 +180,7 @@ class Devices:
             jaw.fill(math.nan)
         else:                                    # (a robot without a jaw: its jaw is ideal, the command)
             np.copyto(jaw, ideal_jaw)
-        qp = self._bound(quat, "robot_orientation")
+        qp = self._pointer("robot_orientation", quat, _F4)
         if self._all_real:
             np.copyto(inp.robot_pos, self._tips)
             fast.pf_quats_of_matrices(self._T4p, self._four, self._n64, qp)
@@ -198,39 +199,28 @@ class Devices:
         for b, r in self.jawed:
             jaw[b] = r.measured_jaw()
 
-    def _bound(self, a: np.ndarray, name: str):
-        """The core's pointer to float64 array ``a`` (made again only for another array than last
-        time's under ``name``: the tick's own arrays are bound once)."""
-        got = self._ptrs.get(name)
-        if got is None or got[0] is not a:
-            got = self._ptrs[name] = (a, ptr(a, np.float64, name))
-        return got[1]
-
     def _pointers(self, key: str, arrays: tuple, kinds: tuple) -> tuple:
-        """The core's pointers to ``arrays`` (each of its dtype in ``kinds``), made again only
-        when one of them is another array than last time's under ``key``: one identity check
-        per array a tick instead of a look-up per array."""
+        """The core's pointers to the per-arm ``arrays`` (``kinds``: each one's dtype and values
+        per arm), made again only when one of them is another array than last time's under
+        ``key``: one identity check per array a tick. A new array is checked then: (n,) or
+        (n, values), C-contiguous, of its dtype."""
         got = self._ptr_sets.get(key)
         if got is None or not all(map(is_, got[0], arrays)):
+            for a, (_, k) in zip(arrays, kinds):
+                if np.shape(a) != ((self.n,) if k is None else (self.n, k)):
+                    raise InputError(f"{key}: an array of shape {np.shape(a)} for {self.n} arms; expected "
+                                     f"({self.n},{'' if k is None else f' {k}'})")
             got = self._ptr_sets[key] = (arrays, tuple(ptr(a, dt, f"{key}: array {i}")
-                                                       for i, (a, dt) in enumerate(zip(arrays, kinds))))
+                                                       for i, (a, (dt, _)) in enumerate(zip(arrays, kinds))))
         return got[1]
 
-    def _bound_forces(self, a: np.ndarray):
-        """``_bound`` for the tick's (n, 3) forces, its shape checked when it is bound."""
-        got = self._ptrs.get("force_master")
-        if got is None or got[0] is not a:
-            if np.shape(a) != (self.n, 3):
-                raise InputError(f"forces of shape {np.shape(a)} for {self.n} masters; expected ({self.n}, 3) (N)")
-            got = self._ptrs["force_master"] = (a, ptr(a, np.float64, "force_master"))
-        return got[1]
-
-    def _bound_bool(self, a: np.ndarray, name: str):
-        """``_bound`` for a bool array."""
-        got = self._ptrs.get(name)
-        if got is None or got[0] is not a:
-            got = self._ptrs[name] = (a, ptr(a, bool, name))
-        return got[1]
+    def _pointer(self, key: str, a: np.ndarray, kind: tuple):
+        """``_pointers`` of one array (its pointer), with the look-up of one."""
+        got = self._ptr_sets.get(key)
+        if got is None or got[0][0] is not a:
+            self._pointers(key, (a,), (kind,))
+            got = self._ptr_sets[key]
+        return got[1][0]
 
     def read_pedals(self, t: float, pedal: np.ndarray) -> None:
         """Only the pedals (the safe path): a master that cannot be read counts as pedal down."""
@@ -246,7 +236,7 @@ class Devices:
         """(B, 3) forces in each master's frame (N)."""
         with self.tx_lock:
             if self._stores is not None:
-                fast.pf_masters_scatter(self._bound_forces(force_master), self._n64, self._stores)
+                fast.pf_masters_scatter(self._pointer("send_forces", force_master, _F3), self._n64, self._stores)
                 return
             for m, f in zip(self.masters, force_master):
                 m.send_force(f)
@@ -315,7 +305,7 @@ class Devices:
                     r.resume()
                 elif release[b] and not coupled[b]:
                     r.hold()
-        if self._host.command(self._cmd4p, self._bound_bool(out.coupled, "coupled"), self._codes_p):
+        if self._host.command(self._cmd4p, self._pointer("coupled", out.coupled, _B1), self._codes_p):
             for b, code in enumerate(self._codes.tolist()):     # (-1: not coupled; 0: queued)
                 if code > 0:
                     r = self.robots[b]

@@ -90,21 +90,18 @@ class ScriptedMaster(Master):
         self._gl = None if g is None else g.tolist()
         self.name = name
         self._ori = memoryview(self.orientation)   # (poll writes floats through it: no NumPy call)
-        self.times = t
-        self.positions = p
+        self.times = np.ascontiguousarray(t, np.float64)
+        self.positions = np.ascontiguousarray(p, np.float64)
         self.clutches = c
         # the trajectory as the compiled look-up reads it (``pf_script_at``: the sample, the weight
         # and the interpolated position in one call, written into ``position``). ``times`` and
         # ``positions`` are fixed here; ``clutches`` is read at each poll (an operator script may
         # lift the pedal by writing it)
-        self._t = np.ascontiguousarray(t, np.float64)
-        self._p = np.ascontiguousarray(p, np.float64)
         self._d = np.ascontiguousarray(np.diff(p, axis=0) if t.size > 1 else np.zeros((1, 3)), np.float64)
         self._wk = np.zeros(2)                     # (w, finite) of the last look-up
         self._wkv = memoryview(self._wk)
-        self._n = ctypes.c_int64(t.size)
-        self._args = (ptr(self._t, np.float64, "times"), ptr(self._p, np.float64, "positions"),
-                      ptr(self._d, np.float64, "steps"), self._n)
+        self._args = (ptr(self.times, np.float64, "times"), ptr(self.positions, np.float64, "positions"),
+                      ptr(self._d, np.float64, "steps"), ctypes.c_int64(t.size))
         self._out = (ptr(self.position, np.float64, "position"), ptr(self._wk, np.float64, "weight"))
         self.t0 = float(t0)
         self.poll(self.t0 + t[0])

@@ -61,12 +61,8 @@ class ToolPoseRing:
         self.count = 0
         self.misses = 0        # look-ups older than the oldest kept pose (the oldest was used)
         self._lock = threading.Lock()
-        # per ring slot, each robot's joint reader and its row of that slot, made once: a tick's
-        # record is then the readers' calls alone
-        readers = [(b, _joint_reader(r)) for b, r in enumerate(self.robots) if r is not None]
-        self._slots = [tuple((read, self.q[i, b]) for b, read in readers) for i in range(self.capacity)]
         # robots whose measured joints are a live array (a hosted arm's row of the shared block,
-        # ``measured_jp_view``) are copied into the slot's row by one compiled call instead
+        # ``measured_jp_view``) are copied into the slot's row by one compiled call
         views = [(b, getattr(r, "measured_jp_view", None)) for b, r in enumerate(self.robots) if r is not None]
         self._gather = None
         if views and all(v is not None for _, v in views):
@@ -77,6 +73,12 @@ class ToolPoseRing:
                                                   for b, a in rows))
                 self._gather = (fields, ctypes.c_int64(len(rows)), ptr(self.q.reshape(self.capacity, -1), np.float64,
                                 "pose ring"), ctypes.c_int64(n * self.dof), rows)
+        # otherwise, per ring slot, each robot's joint reader and its row of that slot, made once:
+        # a tick's record is then the readers' calls alone
+        self._slots = None
+        if self._gather is None:
+            readers = [(b, _joint_reader(r)) for b, r in enumerate(self.robots) if r is not None]
+            self._slots = [tuple((read, self.q[i, b]) for b, read in readers) for i in range(self.capacity)]
 
     def record(self, t: float) -> None:
         """The robots' measured joints now, at time ``t`` (frames' clock; increasing)."""
