@@ -216,6 +216,8 @@ class RealSenseSource(LiveSource):
             raise PointfenceError(f"realsense source {self.target!r}: cannot open the depth stream "
                                   f"{rsd.describe_profile(self._profile)} ({e}); is another program using the camera?") from None
         self._sensor.start(self._on_frame)
+        if self._playback is not None:
+            self._playback.resume()  # a pass after the first: _stop left the playback paused
         self._streaming = True
         self.passes += 1
         self._pass_frames = 0
@@ -233,6 +235,12 @@ class RealSenseSource(LiveSource):
                     step()
                 except RuntimeError:
                     pass  # already stopped by the playback's end
+            if self._playback is not None:
+                # the sensor's stop and close only queue their work on the playback's reading thread;
+                # a playback destroyed while that work is pending corrupts the heap now and then
+                # (librealsense 2.59: "malloc_consolidate(): unaligned fastbin chunk"). pause() runs
+                # on that thread and waits for it, so everything queued before it has run on return
+                self._playback.pause()
 
     @property
     def realtime(self) -> bool:
