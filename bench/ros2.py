@@ -20,7 +20,7 @@ ticks, the machine's busy share and stolen time). The ROS run adds ``camera_late
 (a frame's ``header.stamp``, its capture on ROS time, to the moment the snapshot holding it was
 published; wall clock, one machine) and ``frames_dropped`` (frames the camera published in the
 measured seconds that no snapshot held), and ``cpu_pct_by_process`` (each process's share of one
-core in the measured seconds: the service, its robot process, master bridge and telemetry, the
+core in the measured seconds: the service, its robot process, master and camera bridges and telemetry, the
 three equipment processes). Then, with the service stopped, ``servo_rtt_us_p50/p99``:
 a CRTK arm (``robot/crtk.py``, its node in this process) streams ``servo_cp`` at 1 kHz to the
 sim-arm, which echoes each applied command's stamp in its ``measured_cp``
@@ -46,7 +46,7 @@ from .stats import pct
 EQUIPMENT_NICE = sim_rig.EQUIPMENT_NICE
 #: the processes of the ROS run, by a text of their command lines (``cpu_pct_by_process``)
 ROLES = {"robot process": "robot.hosted_child", "master bridge": "ros2.master_bridge",
-         "telemetry": "ros2.telemetry_node", "camera-node": "ros2 camera-node", "sim-arm": "ros2 sim-arm",
+         "camera bridge": "ros2.camera_bridge", "telemetry": "ros2.telemetry_node", "camera-node": "ros2 camera-node", "sim-arm": "ros2 sim-arm",
          "sim-master": "ros2 sim-master"}
 
 

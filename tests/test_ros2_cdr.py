@@ -166,3 +166,30 @@ def test_images_read_as_rclpy_reads_them(ros2_env, encoding, frame):
         for n in range(len(buf) - 20):        # (rclpy's buffer may run past the message: cut well inside it)
             with pytest.raises(cdr.CdrError):
                 dec(buf[:n])
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+@pytest.mark.parametrize("model,n_d", [("plumb_bob", 5), ("rational_polynomial", 8), ("", 0)])
+def test_camera_info_reads_rclpys_bytes(ros2_env, frame, model, n_d):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import CameraInfo
+
+    rng = np.random.default_rng(n_d + len(frame))
+    m = CameraInfo()
+    m.header.stamp.sec, m.header.stamp.nanosec = 1_700_000_000, 123_456_789
+    m.header.frame_id = frame
+    m.height, m.width = 480, 640
+    m.distortion_model = model
+    m.d = rng.normal(size=n_d).tolist()
+    m.k, m.r, m.p = rng.normal(size=9).tolist(), rng.normal(size=9).tolist(), rng.normal(size=12).tolist()
+    m.binning_x, m.binning_y = 2, 3
+    m.roi.x_offset, m.roi.y_offset, m.roi.height, m.roi.width, m.roi.do_rectify = 4, 5, 6, 7, True
+    got = cdr.decode_camera_info(serialize_message(m))
+    assert got.header.frame_id == frame and (got.header.stamp.sec, got.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
+    assert (got.height, got.width, got.distortion_model) == (480, 640, model)
+    assert got.d == tuple(m.d) and got.k == tuple(m.k) and got.r == tuple(m.r) and got.p == tuple(m.p)
+    assert (got.binning_x, got.binning_y) == (2, 3) and got.roi == (4, 5, 6, 7, True)
+    raw = serialize_message(m)
+    for cut in (3, 20, len(raw) // 2, len(raw) - 30):      # damaged: CdrError, never another exception
+        with pytest.raises(cdr.CdrError):
+            cdr.decode_camera_info(raw[:cut])

@@ -14,14 +14,16 @@ Messages (``images.py``): ``sensor_msgs/Image`` 16UC1 (mm) or 32FC1 (m), or
 source waits up to ``wait`` s (default 5) for a CameraInfo and takes its intrinsics from it
 (``depth_scale`` 0.001 unless given); with one, every image must match its size.
 
-Threads. The rclpy callbacks run on the source's own ``RosNode`` thread (rclpy's events executor)
-and only keep the newest message and its arrival time (a reference swap under a short lock); the
-image comes serialized (a raw subscription) and ``read`` (the camera reader's thread,
-``sources/threaded.py``) reads it (``cdr.decode_image``: the pixels a view into its bytes),
-decodes and checks it. A bad message (encoding, size,
-step, a CameraInfo that disagrees, a damaged compressedDepth payload, a foreign frame_id) is
-counted and reported (``last_error``, ``status()``) and skipped: the reader never stops on it,
-and while only bad messages come the camera goes stale and the service holds (S2).
+Processes and threads. rclpy runs in a bridge process of the source's own
+(ros2/camera_bridge.py): its callbacks write each image message's bytes, as the middleware
+delivered them, into shared memory (ros2/camera_block.py) and wake the source through a pipe;
+nothing of ROS runs in the service's process. ``read`` (the camera reader's thread,
+``sources/threaded.py``) waits on that pipe without the interpreter lock, then decodes the newest
+message in place (``cdr.decode_image``: the pixels a view into the block), converts and checks it
+into a new array. A bad message (encoding, size, step, a CameraInfo that disagrees, a damaged
+compressedDepth payload, a foreign frame_id) is counted and reported (``last_error``,
+``status()``) and skipped: the reader never stops on it, and while only bad messages come the
+camera goes stale and the service holds (S2). So does a bridge that dies (``problem`` says so).
 
 Time. ``DepthFrame.timestamp`` is the message's ``header.stamp`` in seconds (ROS time: seconds
 since 1970 on the publisher's clock); the service maps it onto its loop clock with this camera's offset and
@@ -37,14 +39,22 @@ Options (``ros2:/cam0?transport=compressedDepth&qos=reliable``): ``name``, ``tra
 the default, which also receives from reliable publishers; or ``reliable``), ``wait`` (s for the
 first CameraInfo), ``timeout`` (s one read waits), ``frame_id`` (the only frame_id accepted),
 ``rate_hz`` (the nominal rate: staleness is counted in its periods), ``realtime`` (ignored: a
-ROS camera is always live), ``domain_id``, and the camera keys of ``images.CAMERA_KEYS``.
+ROS camera is always live), ``domain_id``, ``max_bytes`` (the largest image message taken;
+default: 4 bytes a pixel and 64 kB for the camera given, else 1920 x 1080 x 4; larger ones are
+counted and refused), and the camera keys of ``images.CAMERA_KEYS``.
 """
 from __future__ import annotations
 
+import json
 import math
+import os
+import select
+import subprocess
+import sys
 import threading
 import time
 from collections import OrderedDict
+from multiprocessing import shared_memory
 from typing import Optional
 
 from pointfence.kernels.camera import Camera
@@ -53,11 +63,16 @@ from pointfence.kernels.frame import DepthFrame
 
 from ..sources.base import LiveSource
 from . import cdr, images
+from .camera_block import CameraBlock
 
 TRANSPORTS = ("raw", "compressedDepth")
 QOS = ("sensor_data", "reliable")
 #: delivered frames whose stamp and arrival are kept for ``frame_times``
 FRAME_LOG = 256
+#: how long the bridge process may take to create its node (rclpy's import included), s
+START_TIMEOUT_S = 30.0
+#: the largest image message taken when no camera is given: 1920 x 1080, 4 bytes a pixel
+DEFAULT_MAX_BYTES = 1920 * 1080 * 4 + 65536
 
 
 def resolve_topics(target: str, transport: Optional[str] = None, image_topic: Optional[str] = None,
@@ -81,28 +96,30 @@ def resolve_topics(target: str, transport: Optional[str] = None, image_topic: Op
     return image, info, transport
 
 
-def _qos(name: str, target: str):
-    from rclpy.qos import QoSProfile, qos_profile_sensor_data, ReliabilityPolicy, HistoryPolicy
-
-    if name == "sensor_data":
-        return qos_profile_sensor_data
-    if name == "reliable":
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2, reliability=ReliabilityPolicy.RELIABLE)
-    raise InputError(f"ros2 source {target!r}: qos = {name!r}; expected one of {', '.join(QOS)}")
-
-
 class RosDepthSource(LiveSource):
     """Depth frames from ROS 2 topics (see the module docstring)."""
 
     def __init__(self, target: str, camera: Optional[Camera] = None, *, name: Optional[str] = None,
                  transport: Optional[str] = None, image_topic: Optional[str] = None, info_topic: Optional[str] = None,
                  qos: str = "sensor_data", wait: float = 5.0, timeout: float = 1.0, frame_id: Optional[str] = None,
-                 rate_hz: float = 30.0, realtime: bool = True, domain_id: Optional[int] = None, **camera_options):
+                 rate_hz: float = 30.0, realtime: bool = True, domain_id: Optional[int] = None,
+                 max_bytes: Optional[int] = None, **camera_options):
         del realtime   # always live
         self.target = str(target)
         for key, v in (("wait", wait), ("timeout", timeout)):
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise InputError(f"ros2 source {target!r}: {key} = {v!r}; expected seconds > 0")
+        if qos not in QOS:
+            raise InputError(f"ros2 source {target!r}: qos = {qos!r}; expected one of {', '.join(QOS)}")
+        if max_bytes is None:
+            max_bytes = camera.width * camera.height * 4 + 65536 if camera is not None else DEFAULT_MAX_BYTES
+        if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or not 1024 <= max_bytes <= 1 << 30:
+            raise InputError(f"ros2 source {target!r}: max_bytes = {max_bytes!r}; expected an integer from 1024 to 2^30 "
+                             "(the largest image message, bytes)")
+        if domain_id is not None:
+            from . import dds
+
+            domain_id = dds.check_domain_id(domain_id)
         self.image_topic, self.info_topic, self.transport = resolve_topics(target, transport, image_topic, info_topic)
         self.timeout = float(timeout)
         self.frame_id = frame_id or None
@@ -111,62 +128,87 @@ class RosDepthSource(LiveSource):
             raise InputError(f"ros2 source {target!r}: camera option(s) {', '.join(sorted(camera_options))} given with a "
                              f"camera {camera.name!r} from the scene; set them in its [[camera]] entry")
         self._lock = threading.Lock()
-        self._new = threading.Event()
-        self._msg = None
-        self._msg_arrival = 0.0
-        self._info = None
-        self.received = self.delivered = self.overwritten = self.rejected = 0
+        self._taken = 0            # the last image number read
+        self._info = None          # the newest CameraInfo (cdr.CameraInfo) and its number
+        self._info_seq = 0
+        self.delivered = self.overwritten = self.rejected = 0
         self.last_error: Optional[str] = None
         self._newest_bad = False
         self._times: "OrderedDict[int, tuple]" = OrderedDict()
-        from .node import RosNode
-
-        from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-
-        profile = _qos(qos, target)
         node_name = "pointfence_camera_" + "".join(c if c.isalnum() else "_" for c in cam_name)
-        self._node = RosNode(node_name, domain_id=domain_id, executor="events")
+        spec = {"node": node_name, "image_topic": self.image_topic, "info_topic": self.info_topic,
+                "transport": self.transport, "qos": qos, "domain_id": domain_id, "capacity": int(max_bytes)}
+        self._shm = shared_memory.SharedMemory(create=True, size=CameraBlock.nbytes(int(max_bytes)))
+        self.block = CameraBlock(self._shm.buf, int(max_bytes))
+        self._rfd, wfd = os.pipe()
+        self._proc = None
         try:
-            msg_type = CompressedImage if self.transport == "compressedDepth" else Image
-            self._node.node.create_subscription(msg_type, self.image_topic, self._on_image, profile, raw=True)
-            self._node.node.create_subscription(CameraInfo, self.info_topic, self._on_info, profile)
-            self._node.start()
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "pointfence.service.ros2.camera_bridge", self._shm.name, json.dumps(spec),
+                 str(os.getpid()), str(wfd)], stdin=subprocess.DEVNULL, pass_fds=(wfd,))
+            os.close(wfd)
+            wfd = -1
+            self._wait_ready(START_TIMEOUT_S)
             self.from_info = camera is None
             if camera is None:
                 info = self._wait_info(float(wait))
                 camera = images.camera_from_info(info, cam_name, self._where(self.info_topic), **camera_options)
             super().__init__(camera, rate_hz, realtime=False)
         except BaseException:
-            self._node.close()
+            if wfd >= 0:
+                os.close(wfd)
+            self._stop_bridge()
             raise
 
-    # -- rclpy callbacks (the node's thread): keep the newest, nothing else ---------------
-    def _on_image(self, msg) -> None:
-        now = time.time()
-        with self._lock:
-            if self._msg is not None:
-                self.overwritten += 1
-            self._msg, self._msg_arrival = msg, now
-            self.received += 1
-        self._new.set()
+    # -- the bridge process ------------------------------------------------------------------
+    def _bridge_problem(self) -> Optional[str]:
+        """Why the bridge is not serving (failed, ended), or None while it runs."""
+        if self._proc is None:
+            return "the ROS 2 camera bridge process did not start"
+        why = self.block.error() if int(self.block.ctl["failed"]) else None
+        code = self._proc.poll()
+        if code is not None:
+            return why or f"the ROS 2 camera bridge process ended (exit code {code})"
+        return why
 
-    def _on_info(self, msg) -> None:
-        with self._lock:
-            self._info = msg
+    def _wait_ready(self, timeout: float) -> None:
+        end = time.monotonic() + timeout
+        while int(self.block.ctl["ready"]) == 0:
+            why = self._bridge_problem()
+            if why is not None or time.monotonic() > end:
+                raise InputError(f"ros2 source {self.target!r}: its ROS 2 bridge process did not start "
+                                 f"({why or f'not ready within {timeout:g} s'}); check that ROS 2 is installed "
+                                 "(pip install 'pointfence[ros2]') and the DDS environment (ROS_DOMAIN_ID)")
+            time.sleep(0.01)
 
     def _wait_info(self, wait: float):
         end = time.monotonic() + wait
         while time.monotonic() < end:
-            with self._lock:
-                if self._info is not None:
-                    return self._info
-            if self._node.error:
+            info = self._newest_info()
+            if info is not None:
+                return info
+            if self._bridge_problem():
                 break
             time.sleep(0.01)
-        why = f" (node error: {self._node.error})" if self._node.error else ""
+        why = self._bridge_problem()
+        why = f" ({why})" if why else ""
         raise InputError(f"ros2 source {self.target!r}: no CameraInfo on {self.info_topic} within {wait:g} s{why}; start the "
                          "camera driver (or `pointfence ros2 camera-node`), check ROS_DOMAIN_ID and the topic names "
                          "(`ros2 topic list`), or give fx, fy, cx, cy, width, height in [[camera]]")
+
+    def _newest_info(self):
+        """The newest CameraInfo (``cdr.CameraInfo``), decoded when it changed; None before the
+        first. One that cannot be read is an InputError."""
+        if int(self.block.ctl["info_seq"]) != self._info_seq:
+            got = self.block.read_info()
+            if got is not None:
+                self._info_seq = got[0]
+                try:
+                    self._info = cdr.decode_camera_info(got[1])
+                except cdr.CdrError as e:
+                    self._info = None
+                    raise InputError(f"{self._where(self.info_topic)}: {e}") from None
+        return self._info
 
     def _where(self, topic: str) -> str:
         return f"ros2 camera {self.target!r} ({topic})"
@@ -177,26 +219,43 @@ class RosDepthSource(LiveSource):
         return True
 
     def read(self, timeout: Optional[float] = None) -> Optional[DepthFrame]:
-        """The newest message as a frame; None when none came within ``timeout`` s (default the
+        """The newest image as a frame; None when none came within ``timeout`` s (default the
         ``timeout`` option) or the newest was malformed (then ``last_error`` says why)."""
         if self._closed:
             raise InputError(f"RosDepthSource for camera {self._camera.name!r} is closed; open a new source to read again")
-        if not self._new.wait(self.timeout if timeout is None else max(0.0, float(timeout))):
-            if self._node.error:
-                self.last_error = f"{self._where(self.image_topic)}: the ROS node stopped: {self._node.error}"
-            return None
+        end = time.monotonic() + (self.timeout if timeout is None else max(0.0, float(timeout)))
+        while True:
+            got = self.block.newest()
+            if got is not None and got[0] != self._taken:
+                return self._take(*got)
+            left = end - time.monotonic()
+            if left <= 0:
+                why = self._bridge_problem()
+                if why is not None:
+                    self.last_error = f"{self._where(self.image_topic)}: {why}"
+                return None
+            try:   # (waits without the interpreter lock; the bridge writes a byte per image)
+                if select.select([self._rfd], [], [], min(left, 0.1))[0]:
+                    os.read(self._rfd, 4096)
+            except (OSError, ValueError):   # closed under the reader
+                return None
+
+    def _take(self, c: int, raw, arrival: float) -> Optional[DepthFrame]:
         with self._lock:
-            self._new.clear()
-            msg, arrival, info = self._msg, self._msg_arrival, self._info
-            self._msg = None
-        if msg is None:
-            return None
+            if self._taken and c > self._taken + 1:
+                self.overwritten += c - self._taken - 1
+            self._taken = c
         try:
-            frame = self._frame_of(msg, info)
+            frame = self._frame_of(raw)
+            if not self.block.intact(c):   # the bridge came round to this slot while it was read
+                with self._lock:
+                    self.overwritten += 1
+                return None
         except InputError as e:
-            self.rejected += 1
-            self.last_error = str(e)
-            self._newest_bad = True
+            with self._lock:
+                self.rejected += 1
+                self.last_error = str(e)
+                self._newest_bad = True
             return None
         with self._lock:
             self._newest_bad = False
@@ -206,13 +265,14 @@ class RosDepthSource(LiveSource):
                 self._times.popitem(last=False)
         return frame
 
-    def _frame_of(self, raw: bytes, info) -> DepthFrame:
+    def _frame_of(self, raw) -> DepthFrame:
         where = self._where(self.image_topic)
         cam = self._camera
         try:
             msg = cdr.decode_compressed_image(raw) if self.transport == "compressedDepth" else cdr.decode_image(raw)
         except cdr.CdrError as e:
             raise InputError(f"{where}: {e}") from None
+        info = self._newest_info()
         if info is None:
             raise InputError(f"{where}: an image came but no CameraInfo on {self.info_topic} yet; the driver must publish both")
         images.check_info_matches(info, cam, self.from_info, self._where(self.info_topic))
@@ -226,11 +286,6 @@ class RosDepthSource(LiveSource):
         self._seq += 1
         return DepthFrame(cam.name, depth, stamp, seq)
 
-    def threads(self) -> list:
-        """The node's thread (its callbacks take the interpreter lock; the feed raises it)."""
-        th = self._node.thread
-        return [th] if th is not None else []
-
     def frame_times(self, seq: int) -> Optional[tuple]:
         """(header.stamp, arrival on ``time.time()``) in s of delivered frame ``seq`` (the last
         ``FRAME_LOG`` frames), or None."""
@@ -238,25 +293,51 @@ class RosDepthSource(LiveSource):
             return self._times.get(int(seq))
 
     def status(self) -> dict:
-        """Counters and the last error: received (messages in), delivered (frames out),
-        overwritten (replaced by a newer message before read took them), rejected (malformed)."""
+        """Counters and the last error: received (image messages in), delivered (frames out),
+        overwritten (replaced by a newer message before read took them), rejected (malformed, or
+        larger than ``max_bytes``); the bridge process's pid and problem (None while it runs)."""
+        ctl = self.block.ctl
         with self._lock:
             return {"image_topic": self.image_topic, "info_topic": self.info_topic, "transport": self.transport,
-                    "received": self.received, "delivered": self.delivered, "overwritten": self.overwritten,
-                    "rejected": self.rejected, "camera_info": self._info is not None, "last_error": self.last_error,
-                    "node_error": self._node.error}
+                    "received": int(ctl["received"]), "delivered": self.delivered, "overwritten": self.overwritten,
+                    "rejected": self.rejected + int(ctl["oversize"]), "camera_info": int(ctl["info_seq"]) > 0,
+                    "last_error": self.last_error or (self.block.error() if int(ctl["oversize"]) else None),
+                    "bridge_pid": self._proc.pid if self._proc is not None else None,
+                    "node_error": self._bridge_problem()}
 
     @property
     def problem(self) -> Optional[str]:
         """Why frames are not coming, as far as the source knows (the last rejected message or
-        the node's failure); None while the newest message was good."""
-        return self.last_error if self._newest_bad else self._node.error
+        the bridge's failure); None while the newest message was good."""
+        return self.last_error if self._newest_bad else self._bridge_problem()
 
     def describe(self) -> str:
         return f"ros2 camera {self._camera.name!r} ({self.image_topic})"
 
+    def _stop_bridge(self) -> None:
+        if self._shm is None:
+            return
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            self.block.ctl["stop"] = 1
+            try:
+                proc.wait(timeout=3.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if self._rfd >= 0:
+            os.close(self._rfd)
+            self._rfd = -1
+        self.block.detach()
+        shm, self._shm = self._shm, None
+        try:
+            shm.close()
+        except BufferError:   # a view still alive (a reader mid-read): the mapping goes when it does
+            pass
+        shm.unlink()
+
     def _close(self) -> None:
-        self._node.close()
+        self._stop_bridge()
 
     def __repr__(self) -> str:
         return (f"RosDepthSource({self.image_topic!r}, {self.transport}, camera={self._camera.name!r}, "

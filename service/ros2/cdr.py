@@ -1,5 +1,6 @@
-"""The 1 kHz messages in their serialized form: CDR encode and decode of ``geometry_msgs/PoseStamped``,
-``geometry_msgs/WrenchStamped`` and ``sensor_msgs/JointState`` with ``struct``, for rclpy's raw
+"""Messages in their serialized form: CDR encode and decode of the 1 kHz ``geometry_msgs/PoseStamped``,
+``geometry_msgs/WrenchStamped`` and ``sensor_msgs/JointState``, and decode of the camera's
+``sensor_msgs/Image``, ``CompressedImage`` and ``CameraInfo``, with ``struct``, for rclpy's raw
 subscriptions (``create_subscription(..., raw=True)``: the callback gets the message's bytes) and
 raw publishing (``Publisher.publish(bytes)``).
 
@@ -290,3 +291,61 @@ def decode_compressed_image(buf) -> CompressedImage:
     except struct.error:
         raise CdrError(f"CompressedImage: {len(buf)} bytes end inside the message") from None
     return CompressedImage(header, fmt, data)
+
+
+class RegionOfInterest(NamedTuple):
+    x_offset: int
+    y_offset: int
+    height: int
+    width: int
+    do_rectify: bool
+
+
+class CameraInfo(NamedTuple):
+    """A ``sensor_msgs/CameraInfo`` read from its bytes (the fields ``images.py`` reads by name)."""
+    header: Header
+    height: int
+    width: int
+    distortion_model: str
+    d: tuple
+    k: tuple
+    r: tuple
+    p: tuple
+    binning_x: int
+    binning_y: int
+    roi: RegionOfInterest
+
+
+#: the most distortion coefficients a CameraInfo decoder accepts (rational_polynomial has 8)
+MAX_DISTORTION = 64
+
+
+def decode_camera_info(buf) -> CameraInfo:
+    """A serialized ``sensor_msgs/CameraInfo`` (K, R, P and D as tuples of floats)."""
+    e = _order(buf, "CameraInfo")
+    header, off = _stamped_header(buf, e, "CameraInfo")
+    u32 = _U32[e]
+    try:
+        off = _pad(off, 4)
+        height, width, n = struct.unpack_from(e + "III", buf, off)
+        model = _string(buf, off + 12, n, "CameraInfo distortion_model")
+        off = _pad(off + 12 + n, 4)
+        (count,) = u32.unpack_from(buf, off)
+        if count > MAX_DISTORTION:
+            raise CdrError(f"CameraInfo d: {count} coefficients; at most {MAX_DISTORTION} accepted")
+        off += 4
+        d = ()
+        if count:
+            off = _pad(off, 8)
+            d = struct.unpack_from(f"{e}{count}d", buf, off)
+            off += 8 * count
+        off = _pad(off, 8)
+        k = struct.unpack_from(e + "9d", buf, off)
+        r = struct.unpack_from(e + "9d", buf, off + 72)
+        p = struct.unpack_from(e + "12d", buf, off + 144)
+        off += 240
+        bx, by, x0, y0, rh, rw = struct.unpack_from(e + "6I", buf, off)
+        rect = buf[off + 24]
+    except (struct.error, IndexError):
+        raise CdrError(f"CameraInfo: {len(buf)} bytes end inside the message") from None
+    return CameraInfo(header, height, width, model, d, k, r, p, bx, by, RegionOfInterest(x0, y0, rh, rw, bool(rect)))
