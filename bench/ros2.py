@@ -1,8 +1,9 @@
 """`pointfence bench ros2`: the ROS 2 path on this machine's loopback, beside the same loop without it.
 
-Two live runs of the same scene (the embedded defaults' camera and Raven II arm, the fixture the
+Live runs of the same scene (the embedded defaults' camera and Raven II arm, the fixture the
 objects above the table, one circling master pressing into it, architecture III), one after the
-other in one call (the service's own defaults otherwise: PoCL's pool under SCHED_IDLE, raised by
+other in one call: ROS off, ROS on, ROS off again (``*_ros_off_after``: the machine's drift over
+the call shows as the difference between the two ROS-off runs) (the service's own defaults otherwise: PoCL's pool under SCHED_IDLE, raised by
 ``service/build_watch.py`` while builds starve):
 
 * **ROS off**: ``bench loop``'s run: 30 pre-rendered frames served in real time, a scripted
@@ -165,6 +166,7 @@ def run(args) -> dict:
         cfg_path, cfg = _scene(tmp)
         off = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {})
         on = _ros_run(cfg, cfg_path, tmp, env, args.seconds, args.warmup, args.backend, args.device)
+        after = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {})
         rtt = _servo_rtt(env, tmp, cfg_path, args.rtt_seconds)
     keys = ("tick_us_p50", "loop_late_us_p99", "loop_miss_ratio", "loop_missed_ticks", "busy_pct", "steal_ms")
     return {"seconds": args.seconds, "rate_hz": cfg.service.rate_hz, **rtt,
@@ -172,5 +174,7 @@ def run(args) -> dict:
             "frames_dropped": on["frames_dropped"], "cpu_pct_by_process": on["cpu_pct_by_process"],
             "loop_miss_ratio": on["loop_miss_ratio"], "loop_late_us_p99": on["loop_late_us_p99"],
             "loop_miss_ratio_ros_off": off["loop_miss_ratio"], "loop_late_us_p99_ros_off": off["loop_late_us_p99"],
-            "ros_on": on, "ros_off": {k: off.get(k) for k in keys},
+            "loop_miss_ratio_ros_off_after": after["loop_miss_ratio"],
+            "loop_late_us_p99_ros_off_after": after["loop_late_us_p99"],
+            "ros_on": on, "ros_off": {k: off.get(k) for k in keys}, "ros_off_after": {k: after.get(k) for k in keys},
             "note": "one machine: the camera-node, sim-master and sim-arm processes share its cores with the service"}
