@@ -85,6 +85,10 @@ def machine_floor(cfg, seconds: float, busy_s: float, load: int = 0) -> dict:
             "scheduling": loop.scheduling, **cpu}
 
 
+#: a run's loop figures that a comparison run beside it reports (``--record-compare``, ``bench ros2``)
+LOOP_KEYS = ("tick_us_p50", "loop_late_us_p99", "loop_miss_ratio", "loop_missed_ticks", "busy_pct", "steal_ms")
+
+
 def add_arguments(p):
     p.add_argument("--seconds", type=float, default=10.0, help="measured seconds per proxy count (default 10)")
     p.add_argument("--warmup", type=float, default=1.0, help="seconds run before measuring (default 1)")
@@ -99,6 +103,10 @@ def add_arguments(p):
     p.add_argument("--record", action="store_true",
                    help="record each run to an MCAP file (service/mcap_record.py) in a temporary folder, as "
                         "`serve --record` does; adds the recording's disk rate and losses to the JSON")
+    p.add_argument("--record-compare", action="store_true",
+                   help="with --record: also run each proxy count without recording just before and just after "
+                        "the recorded run, in the same call (`record_off`, `record_off_after`: the recording's cost "
+                        "beside the machine's drift)")
     p.add_argument("--ros2-telemetry", action="store_true",
                    help="publish ROS 2 telemetry during each run (service/ros2/telemetry.py, the [ros2] table's rates) "
                         "on a machine-local DDS domain (loopback only); adds its counts to the JSON")
@@ -201,8 +209,21 @@ def run(args) -> dict:
         probe = _one(cfg, counts[-1], 2.0, args.warmup, args.backend, args.device, args.render_live, cache)
         load = (os.cpu_count() or 1) if args.floor_load is None else args.floor_load
         floor = machine_floor(cfg, args.floor, probe["tick_us_p50"] * 1e-6, load)
-    runs = [_one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache,
-                 getattr(args, "record", False), telemetry) for n in counts]
+    record = getattr(args, "record", False)
+    compare = record and getattr(args, "record_compare", False)
+
+    def one(n: int, rec: bool) -> dict:
+        return _one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache, rec, telemetry)
+
+    runs = []
+    for n in counts:
+        if not compare:
+            runs.append(one(n, record))
+            continue
+        before, r, after = one(n, False), one(n, True), one(n, False)
+        r["record_off"] = {k: before.get(k) for k in LOOP_KEYS}
+        r["record_off_after"] = {k: after.get(k) for k in LOOP_KEYS}
+        runs.append(r)
     from pointfence.kernels import get_backend
 
     be = get_backend(args.backend or cfg.backend, args.device or cfg.device)

@@ -39,7 +39,7 @@ import numpy as np
 
 from pointfence.service.ros2 import sim_rig
 
-from .loop import _one
+from .loop import LOOP_KEYS, _one
 from .machine import cpu_times, cpu_usage, process_times, process_usage
 from .stats import pct
 
@@ -168,7 +168,6 @@ def run(args) -> dict:
         on = _ros_run(cfg, cfg_path, tmp, env, args.seconds, args.warmup, args.backend, args.device)
         after = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {})
         rtt = _servo_rtt(env, tmp, cfg_path, args.rtt_seconds)
-    keys = ("tick_us_p50", "loop_late_us_p99", "loop_miss_ratio", "loop_missed_ticks", "busy_pct", "steal_ms")
     return {"seconds": args.seconds, "rate_hz": cfg.service.rate_hz, **rtt,
             "camera_latency_ms_p50": on["camera_latency_ms_p50"], "camera_latency_ms_p99": on["camera_latency_ms_p99"],
             "frames_dropped": on["frames_dropped"], "cpu_pct_by_process": on["cpu_pct_by_process"],
@@ -176,5 +175,5 @@ def run(args) -> dict:
             "loop_miss_ratio_ros_off": off["loop_miss_ratio"], "loop_late_us_p99_ros_off": off["loop_late_us_p99"],
             "loop_miss_ratio_ros_off_after": after["loop_miss_ratio"],
             "loop_late_us_p99_ros_off_after": after["loop_late_us_p99"],
-            "ros_on": on, "ros_off": {k: off.get(k) for k in keys}, "ros_off_after": {k: after.get(k) for k in keys},
+            "ros_on": on, "ros_off": {k: off.get(k) for k in LOOP_KEYS}, "ros_off_after": {k: after.get(k) for k in LOOP_KEYS},
             "note": "one machine: the camera-node, sim-master and sim-arm processes share its cores with the service"}

@@ -397,3 +397,15 @@ def test_an_image_larger_than_max_bytes_is_refused_and_named(ros2_env):
             open_source(f"ros2:{ns}?max_bytes=10", wait=10)
     finally:
         fake.close()
+
+
+def test_without_rclpy_the_source_says_how_to_install_it(monkeypatch):
+    import importlib.util
+
+    from pointfence.kernels.errors import BackendUnavailable
+    from pointfence.service.sources import open_source
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rclpy" else real(name, *a))
+    with pytest.raises(BackendUnavailable, match=r"no rclpy.*pointfence\[ros2\]"):
+        open_source("ros2:/pf_no_ros", wait=0.5)

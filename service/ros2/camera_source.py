@@ -45,6 +45,7 @@ counted and refused), and the camera keys of ``images.CAMERA_KEYS``.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import os
@@ -58,7 +59,7 @@ from multiprocessing import shared_memory
 from typing import Optional
 
 from pointfence.kernels.camera import Camera
-from pointfence.kernels.errors import InputError
+from pointfence.kernels.errors import BackendUnavailable, InputError
 from pointfence.kernels.frame import DepthFrame
 
 from ..sources.base import LiveSource
@@ -116,9 +117,11 @@ class RosDepthSource(LiveSource):
         if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or not 1024 <= max_bytes <= 1 << 30:
             raise InputError(f"ros2 source {target!r}: max_bytes = {max_bytes!r}; expected an integer from 1024 to 2^30 "
                              "(the largest image message, bytes)")
-        if domain_id is not None:
-            from . import dds
+        from . import dds
 
+        if importlib.util.find_spec("rclpy") is None:   # (the bridge imports it; this process need not)
+            raise BackendUnavailable(f"ros2 source {target!r}: ROS 2 is not available here (no rclpy); {dds.INSTALL_HINT}")
+        if domain_id is not None:
             domain_id = dds.check_domain_id(domain_id)
         self.image_topic, self.info_topic, self.transport = resolve_topics(target, transport, image_topic, info_topic)
         self.timeout = float(timeout)
