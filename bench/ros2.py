@@ -19,8 +19,10 @@ the call shows as the difference between the two ROS-off runs) (the service's ow
 Each run gives the loop's figures (``loop_miss_ratio``, ``loop_late_us_p99``, tick p50, missed
 ticks, the machine's busy share and stolen time). The ROS run adds ``camera_latency_ms_p50/p99``
 (a frame's ``header.stamp``, its capture on ROS time, to the moment the snapshot holding it was
-published; wall clock, one machine) and ``frames_dropped`` (frames the camera published in the
-measured seconds that no snapshot held), and ``cpu_pct_by_process`` (each process's share of one
+published; wall clock, one machine), ``frames_dropped`` (frames the camera published in the
+measured seconds that no snapshot held), ``camera_messages`` (the ``ros2:`` source's counts in
+those seconds: images received by its bridge, read as frames, replaced before the reader took
+them, refused; a dropped frame that was read was passed over by the builds), and ``cpu_pct_by_process`` (each process's share of one
 core in the measured seconds: the service, its robot process, master and camera bridges and telemetry, the
 three equipment processes). Then, with the service stopped, ``servo_rtt_us_p50/p99``:
 a CRTK arm (``robot/crtk.py``, its node in this process) streams ``servo_cp`` at 1 kHz to the
@@ -95,11 +97,12 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
         run.wait(warmup)
         run.mark()
         measuring[0] = True
-        c0, p0 = cpu_times(), process_times(ROLES)
+        c0, p0, s0 = cpu_times(), process_times(ROLES), source.status()
         run.wait(seconds)
         tm = run.timing()
         cpu = cpu_usage(c0, cpu_times())
         by_process = process_usage(p0, process_times(ROLES))
+        s1 = source.status()
         measuring[0] = False
         st = run.service.status()
     finally:
@@ -116,6 +119,9 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
             "camera_latency_ms_p50": round(pct(lat, 50) * 1e3, 2) if lat else None,
             "camera_latency_ms_p99": round(pct(lat, 99) * 1e3, 2) if lat else None,
             "camera_frames_published": int(expected), "frames_dropped": int(expected - len(stamps)),
+            # the source's counts over the measured seconds: images the bridge received, frames
+            # read, images replaced before the reader took them, images refused
+            "camera_messages": {k: s1[k] - s0[k] for k in ("received", "delivered", "overwritten", "rejected")},
             "holds_at_end": st["hold"], "telemetry": st.get("telemetry"), "cpu_pct_by_process": by_process}
 
 
@@ -170,7 +176,8 @@ def run(args) -> dict:
         rtt = _servo_rtt(env, tmp, cfg_path, args.rtt_seconds)
     return {"seconds": args.seconds, "rate_hz": cfg.service.rate_hz, **rtt,
             "camera_latency_ms_p50": on["camera_latency_ms_p50"], "camera_latency_ms_p99": on["camera_latency_ms_p99"],
-            "frames_dropped": on["frames_dropped"], "cpu_pct_by_process": on["cpu_pct_by_process"],
+            "frames_dropped": on["frames_dropped"], "camera_messages": on["camera_messages"],
+            "cpu_pct_by_process": on["cpu_pct_by_process"],
             "loop_miss_ratio": on["loop_miss_ratio"], "loop_late_us_p99": on["loop_late_us_p99"],
             "loop_miss_ratio_ros_off": off["loop_miss_ratio"], "loop_late_us_p99_ros_off": off["loop_late_us_p99"],
             "loop_miss_ratio_ros_off_after": after["loop_miss_ratio"],
