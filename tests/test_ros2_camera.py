@@ -409,3 +409,27 @@ def test_without_rclpy_the_source_says_how_to_install_it(monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "rclpy" else real(name, *a))
     with pytest.raises(BackendUnavailable, match=r"no rclpy.*pointfence\[ros2\]"):
         open_source("ros2:/pf_no_ros", wait=0.5)
+
+
+def test_an_image_rewritten_while_read_is_dropped_not_delivered_torn(ros2_env, monkeypatch):
+    """The reader decodes in place: an image whose slot the bridge rewrote meanwhile is counted as
+    overwritten and never delivered (nor counted as a malformed message), and reading goes on."""
+    from pointfence.service.sources import open_source
+
+    ns = f"/pf_torn_{os.getpid()}"
+    fake = FakeCamera(ns, False)
+    try:
+        fake.image = FakeCamera.make_image(_depth())
+        with open_source(f"ros2:{ns}", wait=10) as src:
+            assert _wait(lambda: src.read(timeout=0.5) is not None)
+            before = src.status()
+            monkeypatch.setattr(src.block, "intact", lambda c: False)
+            assert src.read(timeout=1.0) is None
+            st = src.status()
+            assert st["overwritten"] > before["overwritten"] and st["rejected"] == before["rejected"]
+            assert st["delivered"] == before["delivered"] and src.problem is None
+            monkeypatch.undo()
+            f = src.read(timeout=1.0)
+            assert f is not None and np.array_equal(f.depth, _depth())
+    finally:
+        fake.close()

@@ -249,16 +249,19 @@ class RosDepthSource(LiveSource):
                 self.overwritten += c - self._taken - 1
             self._taken = c
         try:
-            frame = self._frame_of(raw)
-            if not self.block.intact(c):   # the bridge came round to this slot while it was read
-                with self._lock:
-                    self.overwritten += 1
-                return None
+            frame = self._frame_of(raw, c)
         except InputError as e:
             with self._lock:
+                if not self.block.intact(c):   # read while the bridge rewrote it: not the message's fault
+                    self.overwritten += 1
+                    return None
                 self.rejected += 1
                 self.last_error = str(e)
                 self._newest_bad = True
+            return None
+        if frame is None:   # the bridge came round to this slot while it was read
+            with self._lock:
+                self.overwritten += 1
             return None
         with self._lock:
             self._newest_bad = False
@@ -268,7 +271,9 @@ class RosDepthSource(LiveSource):
                 self._times.popitem(last=False)
         return frame
 
-    def _frame_of(self, raw) -> DepthFrame:
+    def _frame_of(self, raw, c: int) -> Optional[DepthFrame]:
+        """Image ``c`` (``raw``: its bytes in the block) as a frame; None when its slot was
+        rewritten while it was read."""
         where = self._where(self.image_topic)
         cam = self._camera
         try:
@@ -285,6 +290,8 @@ class RosDepthSource(LiveSource):
         else:
             depth = images.depth_from_image(msg, cam, where)
         stamp = images.stamp_seconds(msg.header.stamp)
+        if not self.block.intact(c):
+            return None
         seq = self._seq
         self._seq += 1
         return DepthFrame(cam.name, depth, stamp, seq)
