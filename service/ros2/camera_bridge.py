@@ -9,10 +9,10 @@ the pipe ``FD`` so the source's reader thread, blocked on the pipe's other end, 
 is written whenever it changes other than in its stamp. Decoding and every check stay in the
 source (one place for what a malformed message is).
 
-**Why a process (measured).** In the service's process, the executor's take of each 600 kB depth
-image (the middleware's buffer copied into a Python ``bytes`` under the interpreter lock) kept the
-1 kHz loop waiting for the lock once a frame, 20-170 us late (bench/HISTORY.md, the ros2 section
-of stop 36); here that copy runs beside the loop instead of in front of it.
+**Why a process.** In the service's process, the executor's take of each 600 kB depth image (the
+middleware's buffer copied into a Python ``bytes`` under the interpreter lock) kept the 1 kHz
+loop waiting for the lock once a frame (measured: bench/HISTORY.md, the ros2 section, stop 36);
+here that copy runs beside the loop instead of in front of it.
 
 It ends when told to (``ctl["stop"]``), when its parent is gone, or when its node fails.
 """
