@@ -25,7 +25,6 @@ import math
 import os
 import sys
 import time
-from multiprocessing import shared_memory
 
 import numpy as np
 
@@ -38,6 +37,7 @@ from .cable_block import ALERT_TEXT, CONTROLLER, FAULT_TEXT, HELD, INJECT_NONE, 
 from .cable_settings import CableTable, load_curve, load_params
 from .clock import RealClock
 from .periodic import PeriodicLoop
+from .robot.hosted_block import attach_child
 
 #: fastest jaw setpoint motion (rad/s): a grasp command far from the jaw is reached in a ramp
 JAW_SPEED = 4.0
@@ -218,13 +218,7 @@ class ChildGrasper:
 
 
 def main(shm_name: str, table: dict, parent: int, rt_priority: int) -> None:
-    shm = shared_memory.SharedMemory(name=shm_name)
-    try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:
-        pass
+    shm = attach_child(shm_name)
     grasper = None
     try:
         blk = GrasperBlock(shm.buf)

@@ -15,6 +15,7 @@ must see the NaN to fault on it (hosted.py reports a non-finite state as a robot
 from __future__ import annotations
 
 import ctypes
+from multiprocessing import shared_memory
 from typing import Optional
 
 import numpy as np
@@ -214,3 +215,17 @@ def put_text(dst: np.ndarray, s: Optional[str]) -> None:
 def get_text(src: np.ndarray) -> Optional[str]:
     b = bytes(src).rstrip(b"\0")
     return b.decode("utf-8", "replace") if b else None
+
+
+def attach_child(name: str) -> shared_memory.SharedMemory:
+    """The parent's shared-memory block ``name``, attached in a child process. The parent owns it:
+    this process's resource tracker is told to leave it, or it would unlink the block when the
+    child exits."""
+    shm = shared_memory.SharedMemory(name=name)
+    try:
+        from multiprocessing import resource_tracker
+
+        resource_tracker.unregister(shm._name, "shared_memory")
+    except Exception:   # noqa: BLE001 -- a tracker that does not know the block: nothing to undo
+        pass
+    return shm

@@ -15,7 +15,6 @@ import math
 import os
 import sys
 import time
-from multiprocessing import shared_memory
 from typing import Optional
 
 import numpy as np
@@ -26,7 +25,7 @@ from ..clock import RealClock
 from ..periodic import PeriodicLoop
 from .factory import robot_from_config
 from .hosted_block import (ENABLE, FAULT, HOLD, INJECT_NAN, POISONED, RESUME, RING, Block, Commands, RowLayout,
-                           put_text)
+                           attach_child, put_text)
 
 
 def write_state(L: RowLayout, row: np.ndarray, text: np.ndarray, r, applied: tuple, texts: list,
@@ -120,13 +119,7 @@ def main(shm_name: str, tables: list, dof: int, rate_hz: float, rt_priority: int
          start_q: Optional[list] = None) -> None:
     """Build the arms (placed at ``start_q``, one joint list or None per arm, after a restart),
     then step them until told to stop (or until the parent is gone)."""
-    shm = shared_memory.SharedMemory(name=shm_name)
-    try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:
-        pass
+    shm = attach_child(shm_name)
     try:
         blk = Block(shm.buf, len(tables), dof)
         robots = [robot_from_config(t) for t in tables]

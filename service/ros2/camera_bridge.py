@@ -22,9 +22,8 @@ import json
 import os
 import sys
 import time
-from multiprocessing import shared_memory
 
-from ..robot.hosted_block import put_text
+from ..robot.hosted_block import attach_child, put_text
 from .camera_block import CameraBlock
 
 #: the main loop's period (heartbeat, parent and stop checks), s
@@ -62,13 +61,7 @@ class Forwarder:
 
 
 def main(shm_name: str, spec: dict, parent: int, fd: int) -> int:
-    shm = shared_memory.SharedMemory(name=shm_name)
-    try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:
-        pass
+    shm = attach_child(shm_name)
     blk = CameraBlock(shm.buf, spec["capacity"])
     ctl = blk.ctl
     os.set_blocking(fd, False)

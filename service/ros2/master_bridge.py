@@ -22,14 +22,13 @@ import math
 import os
 import sys
 import time
-from multiprocessing import shared_memory
 from typing import Optional
 
 import numpy as np
 
 from . import cdr
 from .crtk_device import CrtkDevice
-from ..robot.hosted_block import put_text
+from ..robot.hosted_block import attach_child, put_text
 from .master_block import (COMMAND_LAYOUT, ERROR_TEXT, FRAME_TEXT, REJECT_PEDAL, REJECT_UNREADABLE, STATE_LAYOUT,
                            MasterBlock)
 
@@ -206,13 +205,7 @@ class DeviceSide:
 
 
 def main(shm_name: str, devices: list, parent: int) -> int:
-    shm = shared_memory.SharedMemory(name=shm_name)
-    try:   # the parent owns the block: this process's resource tracker must not unlink it at exit
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")
-    except Exception:
-        pass
+    shm = attach_child(shm_name)
     blk = MasterBlock(shm.buf, len(devices))
     ctl = blk.ctl
     node = None
