@@ -345,7 +345,7 @@ class LiveFrames(_FeedBase):
 
     def set_rt_priority(self, priority: int) -> str:
         """SCHED_FIFO ``priority`` for the running reader and ingest threads, and the sources' own
-        (``DepthSource.threads``: a ROS camera's node), where the OS allows it (0: leave them
+        (``DepthSource.threads``: Python threads a source runs itself), where the OS allows it (0: leave them
         normal). They hold Python's interpreter lock between blocking calls, and one preempted by
         lower-priority work would keep the haptic loop waiting for the lock as long as it waits
         for a core. Returns what was applied (for the status)."""

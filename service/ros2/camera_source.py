@@ -63,7 +63,7 @@ from pointfence.kernels.errors import BackendUnavailable, InputError
 from pointfence.kernels.frame import DepthFrame
 
 from ..sources.base import LiveSource
-from . import cdr, images
+from . import cdr, dds, images
 from .camera_block import CameraBlock
 
 TRANSPORTS = ("raw", "compressedDepth")
@@ -117,8 +117,6 @@ class RosDepthSource(LiveSource):
         if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or not 1024 <= max_bytes <= 1 << 30:
             raise InputError(f"ros2 source {target!r}: max_bytes = {max_bytes!r}; expected an integer from 1024 to 2^30 "
                              "(the largest image message, bytes)")
-        from . import dds
-
         if importlib.util.find_spec("rclpy") is None:   # (the bridge imports it; this process need not)
             raise BackendUnavailable(f"ros2 source {target!r}: ROS 2 is not available here (no rclpy); {dds.INSTALL_HINT}")
         if domain_id is not None:
@@ -166,8 +164,6 @@ class RosDepthSource(LiveSource):
     # -- the bridge process ------------------------------------------------------------------
     def _bridge_problem(self) -> Optional[str]:
         """Why the bridge is not serving (failed, ended), or None while it runs."""
-        if self._proc is None:
-            return "the ROS 2 camera bridge process did not start"
         why = self.block.error() if int(self.block.ctl["failed"]) else None
         code = self._proc.poll()
         if code is not None:
@@ -312,7 +308,7 @@ class RosDepthSource(LiveSource):
                     "received": int(ctl["received"]), "delivered": self.delivered, "overwritten": self.overwritten,
                     "rejected": self.rejected + int(ctl["oversize"]), "camera_info": int(ctl["info_seq"]) > 0,
                     "last_error": self.last_error or (self.block.error() if int(ctl["oversize"]) else None),
-                    "bridge_pid": self._proc.pid if self._proc is not None else None,
+                    "bridge_pid": self._proc.pid,
                     "node_error": self._bridge_problem()}
 
     @property

@@ -1,7 +1,7 @@
 """One rclpy node with its own context, spun by an executor in its own thread.
 
-Every ROS 2 part of pointfence (a camera source, a camera node, a CRTK arm's bridge, the
-telemetry) owns one ``RosNode``: its callbacks run on the node's thread, never on the 1 kHz
+Every ROS 2 part of pointfence (a camera source's bridge, a camera node, a CRTK arm's bridge,
+the telemetry) owns one ``RosNode``: its callbacks run on the node's thread, never on the 1 kHz
 haptic loop's, and they hand data over through the owner's own buffers. A context of its own
 per node lets several nodes live in one process and be shut down independently (tests).
 

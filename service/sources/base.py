@@ -116,9 +116,10 @@ class DepthSource(ABC):
         return frame
 
     def threads(self) -> list:
-        """The source's own threads that run Python (a ROS node's callbacks): they take the
-        interpreter lock the haptic loop needs, so the live feed raises them with its readers
-        (``frames.LiveFrames.set_rt_priority``). None here."""
+        """The source's own threads that run Python: they take the interpreter lock the haptic
+        loop needs, so the live feed raises them with its readers
+        (``frames.LiveFrames.set_rt_priority``). None here, nor in the sources pointfence ships
+        (a ROS camera's node runs in its bridge process: ros2/camera_bridge.py)."""
         return []
 
     def __iter__(self) -> Iterator[DepthFrame]:
