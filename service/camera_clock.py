@@ -28,6 +28,14 @@ import numpy as np
 MAX_DRIFT = 1e-3
 
 
+def _slope(x: np.ndarray, y: np.ndarray) -> float:
+    """The least-squares slope of ``y`` in ``x`` (the closed form: ``np.polyfit``'s result, in a
+    tenth of its time; a camera's reader thread runs this once a frame, holding the interpreter
+    lock)."""
+    dx = x - x.mean()
+    return float(np.dot(dx, y - y.mean()) / np.dot(dx, dx))
+
+
 class CameraClock:
     """The service clock minus a camera's clock, estimated from (stamp, arrival) pairs (s).
 
@@ -82,7 +90,7 @@ class CameraClock:
         if used.sum() >= 8:
             bs = self._bin_s[used] - stamp
             if np.ptp(bs) >= self.drift_window_s / 3:
-                b = min(max(float(np.polyfit(bs, self._bin_g[used], 1)[0]), -MAX_DRIFT), MAX_DRIFT)
+                b = min(max(_slope(bs, self._bin_g[used]), -MAX_DRIFT), MAX_DRIFT)
         k = min(self._n, cap)
         s, g = self._stamp[:k] - stamp, self._gap[:k]
         keep = s >= -self.window_s

@@ -109,3 +109,15 @@ def test_sources_of_one_clock_domain_share_an_estimate_and_keep_their_stamps():
     srcs = [_ClockedSource("a", 0.0, 0.0, "rig"), _ClockedSource("b", 0.0, 0.0, "rig"), _ClockedSource("c", 1.0, 0.0)]
     clocks = camera_clocks(srcs)
     assert clocks[0] is clocks[1] and clocks[2] is not clocks[0]
+
+
+def test_the_drift_fit_is_the_least_squares_slope():
+    """The closed-form slope the clock fits once a frame equals numpy's least-squares fit (on
+    the bins' time spans and gaps: seconds before the newest stamp, gaps of milliseconds)."""
+    from pointfence.service.camera_clock import _slope
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        x = -np.sort(rng.uniform(0, 30, rng.integers(8, 121)))
+        y = 0.004 + 8e-5 * x + rng.uniform(0, 2e-3, x.size)
+        assert _slope(x, y) == pytest.approx(np.polyfit(x, y, 1)[0], rel=1e-9, abs=1e-15)

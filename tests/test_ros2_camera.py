@@ -288,6 +288,28 @@ def test_32fc1_metres_become_codes_and_nan_is_no_reading(ros2_env):
         fake.close()
 
 
+def test_decoding_an_image_steps_aside_for_a_running_tick(ros2_env):
+    """The reader decodes an image (Python, holding the interpreter lock) after a checkpoint:
+    with a haptic tick running it waits for the tick first (kernels/yielding.py)."""
+    from pointfence.kernels import yielding
+    from pointfence.service.sources import open_source
+
+    ns = f"/pf_gate_{os.getpid()}"
+    fake = FakeCamera(ns)
+    gate = yielding.Gate(max_wait_s=0.001)
+    gate.busy = True                    # a tick that never ends: each checkpoint waits max_wait_s
+    try:
+        with open_source(f"ros2:{ns}", wait=10) as src:
+            fake.image = FakeCamera.make_image(_depth())
+            yielding.install(gate)
+            got = []
+            assert _wait(lambda: got.append(src.read(timeout=0.5)) or got[-1] is not None)
+            assert gate.waits >= 1 and np.array_equal(got[-1].depth, _depth())
+    finally:
+        yielding.install(None)
+        fake.close()
+
+
 def test_no_camera_info_is_a_clear_error(ros2_env):
     from pointfence.service.sources import open_source
 

@@ -2,9 +2,15 @@
 import threading
 import time
 
+import numpy as np
+
 from pointfence.kernels import yielding
+from pointfence.kernels.camera import Camera
+from pointfence.kernels.frame import DepthFrame
 from pointfence.service.clock import FakeClock
 from pointfence.service.loop import HapticLoop
+from pointfence.service.sources.base import DepthSource
+from pointfence.service.sources.threaded import CameraReader
 
 
 class Clock:
@@ -113,3 +119,46 @@ def test_offline_loops_install_no_gate():
     loop = HapticLoop(_Target(), FakeClock(), rate_hz=1000.0, switch_interval_s=None)
     loop.run_ticks(10)
     assert loop.gate is None and yielding.installed() is None
+
+
+class _Frames(DepthSource):
+    """Frames on demand: a 4x4 image stamped seq / 30 s."""
+
+    def _frame(self, seq):
+        return DepthFrame(self.camera.name, np.full((4, 4), 800, np.uint16), seq / 30.0, seq)
+
+
+def test_a_camera_readers_python_steps_aside_for_a_running_tick():
+    """A camera reader's Python each frame (the source's ``_frame``, then the reader's bookkeeping
+    and ``on_frame``, where the live feed fits the camera's clock) passes two checkpoints: with a
+    tick running, each waits for it (here a tick that never ends, so each waits max_wait_s)."""
+    g = yielding.Gate(now=Clock(), max_wait_s=0.001)
+    g.busy = True
+    seen = []
+    src = _Frames(Camera("c", 4, 4, 4.0, 4.0, 1.5, 1.5), rate_hz=200.0)
+    reader = CameraReader(src, on_frame=lambda f: seen.append(g.waits))
+    yielding.install(g)
+    try:
+        reader.start()
+        end = time.monotonic() + 5.0
+        while len(seen) < 5 and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        reader.stop()
+        yielding.install(None)
+    assert seen[:5] == [2, 4, 6, 8, 10]
+
+
+def test_a_camera_reader_without_a_gate_never_waits():
+    seen = []
+    src = _Frames(Camera("c", 4, 4, 4.0, 4.0, 1.5, 1.5), rate_hz=500.0)
+    reader = CameraReader(src, on_frame=lambda f: seen.append(f.seq))
+    yielding.install(None)
+    reader.start()
+    try:
+        end = time.monotonic() + 5.0
+        while len(seen) < 5 and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        reader.stop()
+    assert seen[:5] == [0, 1, 2, 3, 4]

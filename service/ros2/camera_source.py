@@ -61,6 +61,7 @@ from typing import Optional
 from pointfence.kernels.camera import Camera
 from pointfence.kernels.errors import BackendUnavailable, InputError
 from pointfence.kernels.frame import DepthFrame
+from pointfence.kernels.yielding import checkpoint
 
 from ..sources.base import LiveSource
 from . import cdr, dds, images
@@ -226,6 +227,7 @@ class RosDepthSource(LiveSource):
         while True:
             got = self.block.newest()
             if got is not None and got[0] != self._taken:
+                checkpoint()     # decoding is Python: not while a haptic tick is due (kernels/yielding.py)
                 return self._take(*got)
             left = end - time.monotonic()
             if left <= 0:

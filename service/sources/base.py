@@ -18,6 +18,7 @@ from typing import Iterator, Optional
 from pointfence.kernels.camera import Camera
 from pointfence.kernels.errors import InputError, PointfenceError
 from pointfence.kernels.frame import DepthFrame
+from pointfence.kernels.yielding import checkpoint
 
 
 class DepthSource(ABC):
@@ -108,6 +109,7 @@ class DepthSource(ABC):
                     time.sleep(max(0.0, timeout))
                     return None
                 time.sleep(wait)
+        checkpoint()     # making the frame is the source's Python: not while a haptic tick is due
         frame = self._frame(self._seq)
         if frame is None:
             self._ended = True

@@ -23,6 +23,7 @@ from typing import Callable, Iterable, Optional
 
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
+from pointfence.kernels.yielding import checkpoint
 
 from ..osthread import name_this_thread
 from .base import DepthSource
@@ -93,6 +94,10 @@ class CameraReader:
                         break
                     continue
                 now = self._clock()
+                # the frame's bookkeeping and ``on_frame`` (the camera's clock fit) are Python that
+                # holds the interpreter lock: step aside while a tick of the haptic loop runs or
+                # is about to (kernels/yielding.py; a no-op without the loop's gate)
+                checkpoint()
                 with self._new:
                     self._frame = frame
                     self._arrived = now
