@@ -1,6 +1,7 @@
 """Clocks for the haptic loop: the real monotonic clock and a fake one for deterministic tests.
 
-The loop asks a clock for ``now()`` (seconds, monotonic) and ``sleep_until(t)``. ``RealClock``
+The loop asks a clock for ``now()`` (seconds, monotonic) and ``sleep_until(t)``, which returns
+the reading at which it saw ``t`` pass (the tick's start: service/periodic.py). ``RealClock``
 sleeps with ``time.sleep`` until ``spin_s`` before the deadline and spins on
 ``time.perf_counter`` for the rest. The default is no spin: a spinning Python thread holds the
 interpreter lock, every other thread of the service (frame ingest, camera readers, UDP) forces
@@ -32,17 +33,19 @@ class RealClock:
     def now() -> float:
         return time.perf_counter()
 
-    def sleep_until(self, t: float) -> None:
+    def sleep_until(self, t: float) -> float:
+        """Return at ``t`` or later: the clock reading (s) at which the wait saw ``t`` pass."""
         pc = time.perf_counter
         rest = t - pc() - self.spin_s
         if rest > 0:
             time.sleep(rest)
         if self.spin_yield:
-            while pc() < t:
+            while (now := pc()) < t:
                 time.sleep(0)
         else:
-            while pc() < t:
+            while (now := pc()) < t:
                 pass
+        return now
 
 
 class FakeClock:
@@ -56,9 +59,10 @@ class FakeClock:
     def now(self) -> float:
         return self.t
 
-    def sleep_until(self, t: float) -> None:
+    def sleep_until(self, t: float) -> float:
         if t > self.t:
             self.t = float(t)
+        return self.t
 
     def advance(self, dt: float) -> None:
         self.t += float(dt)

@@ -114,6 +114,9 @@ class HapticLoop:
         self.error: Optional[str] = None
         self.errors = 0
         self._thread: Optional[threading.Thread] = None
+        #: set when the loop's thread ends (stopped, or died): what another thread waits on
+        #: instead of polling ``running`` (each poll takes the interpreter lock the ticks need)
+        self.finished = threading.Event()
         self._saved_switch = None
         self._note = getattr(target, "note_tick_us", None)
         self.rt_priority = int(rt_priority)
@@ -212,6 +215,7 @@ class HapticLoop:
         if self.cooperate:
             self.gate = yielding.Gate(now=self.clock.now)
             yielding.install(self.gate)
+        self.finished.clear()
         self._thread = threading.Thread(target=self._run, name="pointfence-haptic-loop", daemon=True)
         self._thread.start()
         if self.watchdog_s > 0 and hasattr(self.target, "on_stall"):
@@ -230,8 +234,11 @@ class HapticLoop:
                 self.scheduling = f"SCHED_FIFO {self.rt_priority}"
             except (AttributeError, OSError) as e:
                 self.scheduling = f"normal (SCHED_FIFO refused: {e})"
-        while not self.periodic.stopping:
-            self._one()
+        try:
+            while not self.periodic.stopping:
+                self._one()
+        finally:
+            self.finished.set()
 
     def stop(self) -> None:
         if self.watchdog is not None:

@@ -19,8 +19,12 @@ is a miss too. ``periods`` (= ``k`` after the last tick) counts the periods so f
 skipped: ``misses / periods`` is the miss ratio.
 
 Lateness and overruns. ``late`` is the tick's start minus the deadline of the period it was due
-to run (before any skip); a tick with ``late > max_lateness_s`` is an overrun (``overrun`` is
-True during it and ``overruns`` counts them). The last ``ring`` ticks' lateness and compute
+to run (before any skip). The start is the clock reading at which the wait saw the deadline
+pass (what ``sleep_until`` returns; a clock that returns None: a reading after it): a wake-up
+delayed by the machine, or a wait for the interpreter lock, is lateness; the Python between the
+wait's return and the tick's first line is the tick's own time (``compute``). A tick with
+``late > max_lateness_s`` is an overrun (``overrun`` is True during it and ``overruns`` counts
+them). The last ``ring`` ticks' lateness and compute
 time (``end - start``), seconds, are kept in ``late`` and ``compute`` (tick ``i`` at
 ``i % ring``), preallocated: a tick allocates nothing.
 
@@ -102,8 +106,8 @@ class PeriodicLoop:
         if self.t0 is None:
             self.t0 = clock.now()
         due = self.t0 + self.k * P
-        clock.sleep_until(due)
-        start = clock.now()
+        woke = clock.sleep_until(due)
+        start = clock.now() if woke is None else woke
         late = start - due
         if late >= P:                        # whole periods lost: skipped, each a miss
             skip = int(late // P)

@@ -151,11 +151,13 @@ class LiveRun:
         self._mark = self.loop.mark()
 
     def wait(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            if not self.loop.running:
-                raise RuntimeError(f"haptic loop thread ended: {self.loop.error}")
-            time.sleep(min(0.05, max(0.0, end - time.monotonic())))
+        """Let the loop run ``seconds`` (s); RuntimeError as soon as its thread ends. The calling
+        thread sleeps the whole time: a thread of normal priority that woke to poll would take
+        the interpreter lock, and the loop's thread, waking for a tick while such a thread holds
+        it (or was preempted holding it), starts the tick late."""
+        loop = self.loop
+        if not loop.running or loop.finished.wait(max(0.0, float(seconds))) or not loop.running:
+            raise RuntimeError(f"haptic loop thread ended: {loop.error}")
 
     def wait_clear(self, clear_s: float, timeout: float = 10.0) -> None:
         """Wait until no arm has held for ``clear_s`` seconds on end (start-up holds such as an

@@ -260,10 +260,18 @@ def run(args) -> int:
             os.replace(part, dest)
         last = time.monotonic()
         while not stop["now"]:
-            if args.duration is not None and time.monotonic() - t_start >= args.duration:
+            now = time.monotonic()
+            if args.duration is not None and now - t_start >= args.duration:
                 break
-            time.sleep(0.05)
-            if not run_.loop.running:
+            # this thread wakes at most twice a second (a SIGTERM's stop is noticed within the nap,
+            # the loop's end at once): each wake takes the interpreter lock, which a tick that is
+            # due then waits for (runner.LiveRun.wait)
+            nap = 0.5
+            if args.duration is not None:
+                nap = min(nap, t_start + args.duration - now)
+            if args.status_every:
+                nap = min(nap, last + args.status_every - now)
+            if run_.loop.finished.wait(max(0.0, nap)) or not run_.loop.running:
                 raise RuntimeError(f"haptic loop thread ended: {run_.loop.error}")
             if args.status_every and time.monotonic() - last >= args.status_every:
                 last = time.monotonic()

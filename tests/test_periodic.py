@@ -1,6 +1,7 @@
 """The one periodic loop (service/periodic.py) on a simulated clock: absolute deadlines, skipped
 periods counted as misses, dt after a skip, lateness, overruns, stop; and its three users."""
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -60,6 +61,44 @@ def test_a_late_start_within_the_period_is_lateness_not_a_skip():
     assert [g[2] for g in got] == [1, 1, 1]
     assert got[1][3] == pytest.approx(0.7 * MS) and [g[4] for g in got] == [False, True, False]
     assert loop.overruns == 1 and loop.misses == 1    # tick 0 ended past its period
+
+
+class _WakeClock(FakeClock):
+    """A wait that sees its deadline pass ``wake_late`` s after it, then ``after`` s of Python
+    before the caller's next clock reading."""
+
+    def __init__(self, wake_late, after):
+        super().__init__()
+        self.wake_late, self.after = wake_late, after
+
+    def sleep_until(self, t):
+        self.t = max(self.t, t + self.wake_late)
+        woke = self.t
+        self.t += self.after
+        return woke
+
+
+def test_lateness_is_measured_where_the_wait_saw_the_deadline_pass():
+    """A tick starts when the wait saw its deadline pass (the clock reading the wait returns):
+    the Python between the wait and the tick is the tick's (compute), not lateness."""
+    clock = _WakeClock(2e-6, 0.7e-6)
+    loop = PeriodicLoop(MS, clock)
+    for k in range(3):
+        loop.begin()
+        assert loop.late_s == pytest.approx(2e-6, abs=1e-12) and loop.started == pytest.approx(k * MS + 2e-6)
+        clock.advance(10e-6)
+        loop.end()
+    np.testing.assert_allclose(loop.compute[:3], 10.7e-6, atol=1e-12)
+    np.testing.assert_allclose(loop.late[:3], 2e-6, atol=1e-12)
+
+
+def test_the_real_clock_reports_a_reading_at_or_after_the_deadline():
+    from pointfence.service.clock import RealClock
+
+    for clock in (RealClock(), RealClock(spin_s=0.0), RealClock(spin_yield=True)):
+        t = time.perf_counter() + 0.002
+        woke = clock.sleep_until(t)
+        assert t <= woke <= time.perf_counter()
 
 
 def test_run_ticks_until_stop_or_keep_going_says_no():

@@ -135,3 +135,56 @@ def test_bench_loop_machine_floor_runs_the_same_loop_on_a_spinning_tick():
     assert 0 <= f["loop_missed_ticks"] <= min(f["loop_misses"], f["ticks"])
     if f.get("busy_pct") is not None:   # Linux: the cores were busy (the spinning tick, the busy process)
         assert 0 < f["busy_pct"] <= 100 and f["steal_ms"] >= 0
+
+
+class _DiesAfterTicks:
+    """A target whose per-tick note raises after a few ticks: the loop's thread ends."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def tick(self, k, t, dt, overrun, now):
+        pass
+
+    def safe_tick(self, k, t, dt, now):
+        pass
+
+    def note_tick_us(self, us):
+        self.n -= 1
+        if self.n == 0:
+            raise RuntimeError("note failed")
+
+
+def test_a_run_wait_sleeps_through_and_ends_as_soon_as_the_loops_thread_does():
+    """``LiveRun.wait`` blocks on the loop's ``finished`` event (no polling that would take the
+    interpreter lock from the ticks): it returns after its time while the loop runs, and raises
+    as soon as the loop's thread ends, not at the end of its time."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from pointfence.service.runner import LiveRun
+
+    loop = HapticLoop(_DiesAfterTicks(10 ** 9), rate_hz=1000.0)
+    loop.start()
+    try:
+        LiveRun.wait(SimpleNamespace(loop=loop), 0.05)      # the loop runs on: returns
+        assert loop.running and not loop.finished.is_set()
+    finally:
+        loop.stop()
+    assert loop.finished.is_set()
+    with pytest.raises(RuntimeError, match="haptic loop thread ended"):
+        LiveRun.wait(SimpleNamespace(loop=loop), 30.0)      # stopped: at once
+
+    old = threading.excepthook
+    threading.excepthook = lambda args: None                # (the dying thread's traceback)
+    try:
+        loop = HapticLoop(_DiesAfterTicks(50), rate_hz=1000.0)
+        loop.start()
+        t0 = time.monotonic()
+        with pytest.raises(RuntimeError, match="haptic loop thread ended"):
+            LiveRun.wait(SimpleNamespace(loop=loop), 30.0)
+        assert time.monotonic() - t0 < 10.0 and loop.finished.is_set() and not loop.running
+        loop.stop()
+    finally:
+        threading.excepthook = old
