@@ -16,6 +16,8 @@ tick) and what the whole machine did over the measured seconds (``busy_pct`` of 
 
 ``--floor SECONDS`` first measures the machine's own floor in the same run: the same loop on a
 tick that only spins as long as the service's median tick, beside one busy process per core.
+``--late-causes`` traces the kernel's scheduler over each measured run and sorts its late ticks
+by cause (``late_causes``: bench/late_causes.py).
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ from pointfence.service.loop import HapticLoop
 from pointfence.service.masters import ScriptedMaster
 from pointfence.service.runner import LiveRun
 
+from .late_causes import RunTrace
 from .machine import cpu_times, cpu_usage
 
 
@@ -110,6 +113,10 @@ def add_arguments(p):
     p.add_argument("--ros2-telemetry", action="store_true",
                    help="publish ROS 2 telemetry during each run (service/ros2/telemetry.py, the [ros2] table's rates) "
                         "on a machine-local DDS domain (loopback only); adds its counts to the JSON")
+    p.add_argument("--late-causes", action="store_true",
+                   help="trace the kernel's scheduler over each measured run (Linux, as root) and sort its ticks "
+                        "later than 5 us by cause (bench/late_causes.py: waits for the interpreter lock and the "
+                        "threads that held it, late timer wake-ups, waits for a core, stalls the guest never saw)")
     p.add_argument("--render-live", action="store_true",
                    help="render synthetic frames on the reader threads while the loop runs (default: 30 frames "
                         "pre-rendered and served at the camera rate, as a real camera's C driver would cost)")
@@ -126,7 +133,7 @@ def circling_master(i: int, n: int, duration: float) -> ScriptedMaster:
 
 
 def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool, cache: dict,
-         record: bool = False, telemetry: bool = False) -> dict:
+         record: bool = False, telemetry: bool = False, late_causes: bool = False) -> dict:
     import tempfile
 
     masters = [circling_master(i, n, seconds + warmup + 5.0) for i in range(n)]
@@ -139,13 +146,18 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         run.stop()
         raise RuntimeError(f"ROS 2 telemetry did not start: {run.telemetry.error}")
     t_start = time.monotonic()
+    trace = RunTrace(run) if late_causes else None
     run.start()
     try:
         run.wait(warmup)
         run.mark()
+        if trace is not None:
+            trace.begin()
         first = run.service.ticks
         c0 = cpu_times()
         run.wait(seconds)
+        if trace is not None:
+            trace.end()
         tm = run.timing()
         cpu = cpu_usage(c0, cpu_times())
         kt = run.service.kernel_timing(since=first)
@@ -155,6 +167,10 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
         tel = st.get("telemetry")
         ingest = list(run.frames.ingest_ms)
         frames = sum(run.frames.frames_in)
+    except BaseException:
+        if trace is not None:
+            trace.abort()
+        raise
     finally:
         run.stop()
     rec_stats = {}
@@ -171,6 +187,8 @@ def _one(cfg, n: int, seconds: float, warmup: float, backend, device, live: bool
     if tel is not None:    # the publisher's counts at the end of the measured seconds
         rec_stats["telemetry"] = {k: tel[k] for k in ("lost", "rows_sent", "rows_lost", "messages_published",
                                                       "clouds_published", "cloud_points", "error")}
+    if trace is not None:
+        rec_stats["late_causes"] = trace.result()
     in_contact = int((run.service.batch.states != 0).sum())
     return {**rec_stats,
         "proxies": n, "ticks": tm.ticks, "periods": tm.periods,
@@ -213,7 +231,8 @@ def run(args) -> dict:
     compare = record and getattr(args, "record_compare", False)
 
     def one(n: int, rec: bool) -> dict:
-        return _one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache, rec, telemetry)
+        return _one(cfg, n, args.seconds, args.warmup, args.backend, args.device, args.render_live, cache, rec, telemetry,
+                    getattr(args, "late_causes", False))
 
     runs = []
     for n in counts:
@@ -221,8 +240,8 @@ def run(args) -> dict:
             runs.append(one(n, record))
             continue
         before, r, after = one(n, False), one(n, True), one(n, False)
-        r["record_off"] = {k: before.get(k) for k in LOOP_KEYS}
-        r["record_off_after"] = {k: after.get(k) for k in LOOP_KEYS}
+        r["record_off"] = {k: before.get(k) for k in LOOP_KEYS + ("late_causes",) if k in before}
+        r["record_off_after"] = {k: after.get(k) for k in LOOP_KEYS + ("late_causes",) if k in after}
         runs.append(r)
     from pointfence.kernels import get_backend
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from pointfence.service.ros2 import sim_rig
 
+from .late_causes import RunTrace
 from .loop import LOOP_KEYS, _one
 from .machine import cpu_times, cpu_usage, process_times, process_usage
 from .stats import pct
@@ -56,6 +57,9 @@ ROLES = {"robot process": "robot.hosted_child", "master bridge": "ros2.master_br
 def add_arguments(p):
     p.add_argument("--seconds", type=float, default=10.0, help="measured seconds of each live run (default 10)")
     p.add_argument("--warmup", type=float, default=2.0, help="seconds run before measuring (default 2)")
+    p.add_argument("--late-causes", action="store_true",
+                   help="trace the kernel's scheduler over each run's measured seconds (Linux, as root) and sort "
+                        "its ticks later than 5 us by cause, ROS on and off (bench/late_causes.py)")
     p.add_argument("--rtt-seconds", type=float, default=5.0, help="seconds of servo_cp at 1 kHz for the round trip (default 5)")
 
 
@@ -69,14 +73,15 @@ def _scene(tmp: Path):
     return path, config_mod.load(str(path))
 
 
-def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: float, backend, device) -> dict:
+def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: float, backend, device,
+             late_causes: bool = False) -> dict:
     from pointfence.service.ros2.crtk_device import CrtkDevice
     from pointfence.service.ros2.crtk_master import CrtkMasterHost
     from pointfence.service.runner import LiveRun
 
     gear = sim_rig.SimEquipment(cfg, cfg_path, tmp, env, nice=EQUIPMENT_NICE)
     rate = gear.rate_hz
-    host = run = None
+    host = run = trace = None
     try:
         source = gear.source(cfg)
         host = CrtkMasterHost([CrtkDevice(namespace=sim_rig.MASTER_NS)], env=env)
@@ -96,15 +101,24 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
         run.start(first_frame_timeout=60.0)
         run.wait(warmup)
         run.mark()
+        trace = RunTrace(run) if late_causes else None
+        if trace is not None:
+            trace.begin()
         measuring[0] = True
         c0, p0, s0 = cpu_times(), process_times(ROLES), source.status()
         run.wait(seconds)
+        if trace is not None:
+            trace.end()
         tm = run.timing()
         cpu = cpu_usage(c0, cpu_times())
         by_process = process_usage(p0, process_times(ROLES))
         s1 = source.status()
         measuring[0] = False
         st = run.service.status()
+    except BaseException:
+        if trace is not None:
+            trace.abort()
+        raise
     finally:
         if run is not None:
             run.stop()
@@ -122,7 +136,8 @@ def _ros_run(cfg, cfg_path: Path, tmp: Path, env: dict, seconds: float, warmup: 
             # the source's counts over the measured seconds: images the bridge received, frames
             # read, images replaced before the reader took them, images refused
             "camera_messages": {k: s1[k] - s0[k] for k in ("received", "delivered", "overwritten", "rejected")},
-            "holds_at_end": st["hold"], "telemetry": st.get("telemetry"), "cpu_pct_by_process": by_process}
+            "holds_at_end": st["hold"], "telemetry": st.get("telemetry"), "cpu_pct_by_process": by_process,
+            **({"late_causes": trace.result()} if trace is not None else {})}
 
 
 def _servo_rtt(env: dict, tmp: Path, cfg_path: Path, seconds: float) -> dict:
@@ -170,9 +185,10 @@ def run(args) -> dict:
         dds.apply(env)
         env = {**os.environ, **env}
         cfg_path, cfg = _scene(tmp)
-        off = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {})
-        on = _ros_run(cfg, cfg_path, tmp, env, args.seconds, args.warmup, args.backend, args.device)
-        after = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {})
+        causes = getattr(args, "late_causes", False)
+        off = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {}, late_causes=causes)
+        on = _ros_run(cfg, cfg_path, tmp, env, args.seconds, args.warmup, args.backend, args.device, causes)
+        after = _one(cfg, 1, args.seconds, args.warmup, args.backend, args.device, False, {}, late_causes=causes)
         rtt = _servo_rtt(env, tmp, cfg_path, args.rtt_seconds)
     return {"seconds": args.seconds, "rate_hz": cfg.service.rate_hz, **rtt,
             "camera_latency_ms_p50": on["camera_latency_ms_p50"], "camera_latency_ms_p99": on["camera_latency_ms_p99"],
@@ -182,5 +198,6 @@ def run(args) -> dict:
             "loop_miss_ratio_ros_off": off["loop_miss_ratio"], "loop_late_us_p99_ros_off": off["loop_late_us_p99"],
             "loop_miss_ratio_ros_off_after": after["loop_miss_ratio"],
             "loop_late_us_p99_ros_off_after": after["loop_late_us_p99"],
-            "ros_on": on, "ros_off": {k: off.get(k) for k in LOOP_KEYS}, "ros_off_after": {k: after.get(k) for k in LOOP_KEYS},
+            "ros_on": on, "ros_off": {k: off.get(k) for k in LOOP_KEYS + ("late_causes",) if k in off},
+            "ros_off_after": {k: after.get(k) for k in LOOP_KEYS + ("late_causes",) if k in after},
             "note": "one machine: the camera-node, sim-master and sim-arm processes share its cores with the service"}

@@ -258,6 +258,12 @@ class HapticLoop:
             self._saved_switch = None
 
     @property
+    def thread_id(self) -> Optional[int]:
+        """The loop thread's id as the kernel knows it (None while no thread runs)."""
+        th = self._thread
+        return None if th is None else th.native_id
+
+    @property
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 

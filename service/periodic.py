@@ -24,9 +24,9 @@ pass (what ``sleep_until`` returns; a clock that returns None: a reading after i
 delayed by the machine, or a wait for the interpreter lock, is lateness; the Python between the
 wait's return and the tick's first line is the tick's own time (``compute``). A tick with
 ``late > max_lateness_s`` is an overrun (``overrun`` is True during it and ``overruns`` counts
-them). The last ``ring`` ticks' lateness and compute
-time (``end - start``), seconds, are kept in ``late`` and ``compute`` (tick ``i`` at
-``i % ring``), preallocated: a tick allocates nothing.
+them). The last ``ring`` ticks' lateness, compute
+time (``end - start``) and start, seconds, are kept in ``late``, ``compute`` and ``starts`` (tick
+``i`` at ``i % ring``), preallocated: a tick allocates nothing.
 
 The clock gives ``now()`` and ``sleep_until(t)`` (``clock.RealClock``, or ``clock.FakeClock``
 for deterministic tests: there time moves only by ``advance`` and ``sleep_until``).
@@ -73,6 +73,7 @@ class PeriodicLoop:
         self.ring = int(ring)
         self.compute = np.zeros(self.ring)   # s, end - start of each tick
         self.late = np.zeros(self.ring)      # s, start - deadline of each tick
+        self.starts = np.zeros(self.ring)    # s, each tick's start (clock reading)
         self.t0: Optional[float] = None      # clock reading of period 0's deadline
         self.k = 0                           # index of the next period
         self.ticks = 0                       # ticks run
@@ -130,6 +131,7 @@ class PeriodicLoop:
         i = self.ticks & (self.ring - 1)
         self.compute[i] = end - self.started
         self.late[i] = self.late_s
+        self.starts[i] = self.started
         if end > self.t0 + (k + 1) * self.period:
             self.misses += 1
         self.ticks += 1
@@ -173,3 +175,9 @@ class PeriodicLoop:
             return np.zeros(0), np.zeros(0)
         idx = np.arange(lo, self.ticks) & (self.ring - 1)
         return self.late[idx], self.compute[idx]
+
+    def recent_starts(self, since_tick: int = 0) -> tuple:
+        """(start, lateness) of the same ticks as ``recent``, seconds, oldest first (copies)."""
+        lo = max(int(since_tick), self.ticks - self.ring)
+        idx = np.arange(lo, max(lo, self.ticks)) & (self.ring - 1)
+        return self.starts[idx], self.late[idx]
