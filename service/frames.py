@@ -192,6 +192,7 @@ class _FeedBase:
         self.published_arrival = max(self.published_arrival, arrival)
         self.snapshot_frames[info.seq] = tuple(int(f.seq) for f in frames)
         if self.on_snapshot is not None:
+            checkpoint()      # (the recorder's copy of the frames, the telemetry's cloud: Python)
             self.on_snapshot(info.seq, built)
         return True
 

@@ -162,3 +162,22 @@ def test_a_camera_reader_without_a_gate_never_waits():
     finally:
         reader.stop()
     assert seen[:5] == [0, 1, 2, 3, 4]
+
+
+def test_a_snapshots_consumers_run_after_a_checkpoint(monkeypatch):
+    """What the feed hands a built snapshot to (``on_snapshot``: the recorder's frame copy, the
+    telemetry's cloud) is Python of the frame thread: a checkpoint comes right before it."""
+    from pointfence.kernels import PipelineParams, Workspace, get_backend
+    from pointfence.service import frames as frames_mod
+
+    from pointfence.kernels import backend as backend_mod
+
+    events = []
+    monkeypatch.setattr(frames_mod, "checkpoint", lambda: events.append("checkpoint"))
+    monkeypatch.setattr(backend_mod, "checkpoint", lambda: events.append("build's checkpoint"))
+    cam = Camera("c", 4, 4, 4.0, 4.0, 1.5, 1.5)
+    params = PipelineParams(workspace=Workspace((-1, -1, 0.1), (1, 1, 2.0)), cell_size=0.05)
+    feed = frames_mod.SimFrames(get_backend("numpy").pipeline([cam], params), [_Frames(cam, rate_hz=30.0)])
+    feed.on_snapshot = lambda seq, built: events.append("on_snapshot")
+    assert feed.poll(0.0)
+    assert events == ["checkpoint", "build's checkpoint", "checkpoint", "on_snapshot"] and feed.snapshots == 1
