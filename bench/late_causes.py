@@ -55,7 +55,8 @@ def tracefs() -> tuple:
 class SchedTrace:
     """The scheduler's switch and wake-up events between ``start()`` and ``stop()`` (which
     returns the trace's text), stamped on CLOCK_MONOTONIC. Tracing is the machine's (one trace
-    at a time); ``stop`` leaves the tracer as it found it (events off, buffer emptied).
+    at a time); ``stop`` leaves the tracer as it found it (its events, clock, buffer size and
+    on/off), its buffer emptied.
     ``buffer_kb``: per-core buffer (a 2-core machine writes about 5 MB a second of loop)."""
 
     def __init__(self, buffer_kb: int = 65536):
@@ -75,9 +76,10 @@ class SchedTrace:
     def start(self) -> None:
         if self.path is None:
             raise RuntimeError(f"cannot trace the scheduler: {self.problem}")
-        clock = self._read("trace_clock")
-        self._saved = {"trace_clock": re.search(r"\[(\w+)\]", clock).group(1),
-                       "buffer_size_kb": self._read("buffer_size_kb").split()[0]}
+        self._saved = {"tracing_on": self._read("tracing_on").strip(),
+                       "trace_clock": re.search(r"\[(\w+)\]", self._read("trace_clock")).group(1),
+                       "buffer_size_kb": self._read("buffer_size_kb").split()[0],
+                       "set_event": " ".join(self._read("set_event").split())}
         self._write("tracing_on", "0")
         self._write("trace_clock", "mono")
         self._write("buffer_size_kb", str(self.buffer_kb))
@@ -95,12 +97,12 @@ class SchedTrace:
         self.started = False
         try:
             return self._read("trace")
-        finally:
+        finally:       # the tracer as it was (the events it had, on or off), the buffer emptied
             self._write("set_event", "")
             self._write("trace", "")
-            for name, value in self._saved.items():
-                if value.isdigit() or name == "trace_clock":
-                    self._write(name, value)
+            for name in ("trace_clock", "buffer_size_kb", "set_event", "tracing_on"):
+                if self._saved.get(name):
+                    self._write(name, self._saved[name])
 
 
 def parse(text: str) -> tuple:

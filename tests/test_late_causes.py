@@ -101,3 +101,30 @@ def test_without_tracefs_a_run_trace_says_why_and_the_run_goes_on(monkeypatch):
     trace.begin()                                      # nothing to start: the run is not touched
     trace.end()
     assert trace.result() == {"error": "not traced: no tracefs here"}
+
+
+def test_a_real_trace_sees_this_threads_switches_and_leaves_the_tracer_as_it_was():
+    import threading
+    import time
+
+    path, why = lc.tracefs()
+    if path is None:
+        pytest.skip(why)
+
+    def state():
+        return {name: open(f"{path}/{name}").read() for name in ("set_event", "trace_clock", "buffer_size_kb",
+                                                                  "tracing_on")}
+
+    before = state()
+    trace = lc.SchedTrace(buffer_kb=4096)
+    trace.start()
+    try:
+        for _ in range(20):
+            time.sleep(0.001)                   # each sleep: a switch away and a wake-up
+    finally:
+        text = trace.stop()
+    assert state() == before
+    me = threading.get_native_id()
+    t, cpu, kind, a, b, st = lc.parse(text)
+    assert ((kind == 1) & np.array([p[0] == me for p in a])).sum() >= 10
+    assert sum(1 for k, p, s in zip(kind, a, st) if k == 0 and p[0] == me and s.startswith("S")) >= 10
