@@ -1,8 +1,8 @@
 """Why a live loop's late ticks were late: the kernel's scheduler trace beside the loop's ticks.
 
 ``pointfence bench loop --late-causes`` (Linux, as root: the kernel's tracefs) records the
-scheduler's switch and wake-up events (ftrace, stamped on CLOCK_MONOTONIC, the clock of
-``time.perf_counter`` and so of the loop) over the measured seconds, and sorts every tick that
+scheduler's switch and wake-up events and the interrupts (ftrace, stamped on CLOCK_MONOTONIC, the
+clock of ``time.perf_counter`` and so of the loop) over the measured seconds, and sorts every tick that
 started more than ``threshold_us`` after its deadline by what the loop's thread did between
 its clock's wake-up (``clock.RealClock`` sleeps until ``spin_s`` before the deadline, then
 spins) and the tick's start:
@@ -15,15 +15,19 @@ spins) and the tick's start:
   machine (a halted virtual CPU the host did not run in time, a delayed timer interrupt);
 * ``cpu``: it was woken in time but waited more than ``cpu_wait_us`` for a core (a task of
   higher priority, or the core's interrupts);
-* ``stall``: it woke in time and ran, with no scheduler event until the tick started late: time
-  the guest's scheduler never saw (the hypervisor took the virtual CPU, an interrupt, a page
-  fault);
+* ``irq``: it woke in time and ran, and an interrupt, an inter-processor interrupt or a page
+  fault hit its core before the tick started late (``irq_events`` names them; traced where the
+  kernel has those events: device and soft interrupts everywhere, the timer, IPIs and faults on
+  x86);
+* ``stall``: it woke in time and ran, with no event at all on its core until the tick started
+  late: time the guest never saw (the hypervisor took the virtual CPU);
 * ``untraced``: no wake-up of the loop's thread from 0.2 ms before its clock's sleep was to end
   until the start (the trace lost events, or the previous tick overran into this one).
 
 Each cause comes with its ticks' count and mean lateness (us). Only the count of late ticks
 depends on the threshold; which cause a tick has does not. The trace costs the loop little
-(two events a context switch) but is not free: compare runs that all trace, or none.
+(a few events a context switch or interrupt) but is not free: compare runs that all trace, or
+none.
 """
 from __future__ import annotations
 
@@ -35,8 +39,14 @@ import numpy as np
 
 TRACEFS = ("/sys/kernel/tracing", "/sys/kernel/debug/tracing")
 EVENTS = "sched:sched_switch sched:sched_wakeup"
+#: what else can take the loop's core without a switch, traced where the kernel has the event:
+#: device interrupts, soft interrupts, and on x86 the timer interrupt, the IPIs and page faults
+INTERRUPTS = ("irq:irq_handler_entry", "irq:softirq_entry", "irq_vectors:local_timer_entry",
+              "irq_vectors:reschedule_entry", "irq_vectors:call_function_entry",
+              "irq_vectors:call_function_single_entry", "exceptions:page_fault_user",
+              "exceptions:page_fault_kernel")
 
-_LINE = re.compile(r"^\s*(.+?)-(\d+)\s+\[(\d+)\]\s+\S+\s+([\d.]+): (sched_switch|sched_wakeup): (.*)$")
+_LINE = re.compile(r"^\s*(.+?)-(\d+)\s+\[(\d+)\]\s+\S+\s+([\d.]+): (\w+): (.*)$")
 _SWITCH = re.compile(r"prev_comm=(.*?) prev_pid=(\d+) prev_prio=\d+ prev_state=(\S+) ==> next_comm=(.*?) next_pid=(\d+)")
 _WAKE = re.compile(r"comm=(.*?) pid=(\d+) ")
 
@@ -84,7 +94,8 @@ class SchedTrace:
         self._write("trace_clock", "mono")
         self._write("buffer_size_kb", str(self.buffer_kb))
         self._write("trace", "")
-        self._write("set_event", EVENTS)
+        have = set(self._read("available_events").split())
+        self._write("set_event", " ".join([EVENTS] + [e for e in INTERRUPTS if e in have]))
         self.started = True
         self._write("tracing_on", "1")
 
@@ -106,15 +117,23 @@ class SchedTrace:
 
 
 def parse(text: str) -> tuple:
-    """The trace's events as (times s, cpus, kinds: 0 switch / 1 wake-up, a, b, prev_state):
-    for a switch a = the task that ran until it, b = the task after it; for a wake-up a = b =
-    the task woken; tasks as (pid, comm)."""
+    """The trace's events as (times s, cpus, kinds: 0 switch / 1 wake-up / 2 other, a, b,
+    prev_state): for a switch a = the task that ran until it, b = the task after it; for a
+    wake-up a = b = the task woken; tasks as (pid, comm); for another event (an interrupt) a = the
+    task it interrupted, b = the event's name."""
     t, cpu, kind, a, b, st = [], [], [], [], [], []
     for line in text.splitlines():
         m = _LINE.match(line)
         if m is None:
             continue
-        if m.group(5) == "sched_switch":
+        if m.group(5) not in ("sched_switch", "sched_wakeup"):
+            t.append(float(m.group(4)))
+            cpu.append(int(m.group(3)))
+            kind.append(2)
+            a.append((int(m.group(2)), m.group(1).strip()))
+            b.append(m.group(5))
+            st.append("")
+        elif m.group(5) == "sched_switch":
             s = _SWITCH.search(m.group(6))
             if s is None:
                 continue
@@ -172,10 +191,14 @@ def attribute(events: tuple, starts: np.ndarray, lates: np.ndarray, loop_pid: in
     loop_in = np.array([k == 0 and events[4][i][0] == loop_pid for i, k in enumerate(kind)] if len(kind) else [], bool)
     loop_out = np.array([k == 0 and p[0] == loop_pid for k, p in zip(kind, tasks)] if len(kind) else [], bool)
     wake_t, in_t, out_t = t[mine], t[loop_in], t[loop_out]
+    in_cpu = events[1][loop_in]
     out_state = [state[i] for i in np.nonzero(loop_out)[0]]
-    counts = {c: 0 for c in ("lock", "timer", "cpu", "stall", "untraced")}
+    other = np.nonzero(kind == 2)[0]
+    o_t, o_cpu = t[other], events[1][other]
+    counts = {c: 0 for c in ("lock", "timer", "cpu", "irq", "stall", "untraced")}
     late_sum = {c: 0.0 for c in counts}
     holders: dict = {}
+    irqs: dict = {}
     span = (t[0], t[-1]) if len(t) else (0.0, -1.0)
     sel = (lates * 1e6 > threshold_us) & (starts > span[0]) & (starts < span[1])
     for start, late in zip(starts[sel], lates[sel]):
@@ -203,13 +226,21 @@ def attribute(events: tuple, starts: np.ndarray, lates: np.ndarray, loop_pid: in
                 ins = in_t[(in_t >= w[0]) & (in_t <= start)]
                 waited = (ins[0] - w[0]) if ins.size else 0.0
                 cause = "cpu" if waited > cpu_wait_us * 1e-6 else "stall"
+                j = int(np.searchsorted(in_t, start)) - 1      # the core the loop ran on
+                if cause == "stall" and j >= 0:
+                    hit = other[(o_t > w[0]) & (o_t <= start) & (o_cpu == in_cpu[j])]
+                    if hit.size:
+                        cause = "irq"
+                        key = " + ".join(sorted({events[4][i] for i in hit}))
+                        irqs[key] = irqs.get(key, 0) + 1
         counts[cause] += 1
         late_sum[cause] += float(late)
     n = int(sel.sum())
     return {"threshold_us": threshold_us, "late_ticks": n, "ticks": int(((starts > span[0]) & (starts < span[1])).sum()),
             **{f"{c}_ticks": counts[c] for c in counts},
             **{f"{c}_late_us_mean": round(late_sum[c] / counts[c] * 1e6, 1) for c in counts if counts[c]},
-            "lock_holders": dict(sorted(holders.items(), key=lambda kv: -kv[1]))}
+            "lock_holders": dict(sorted(holders.items(), key=lambda kv: -kv[1])),
+            "irq_events": dict(sorted(irqs.items(), key=lambda kv: -kv[1]))}
 
 
 def thread_ids() -> dict:

@@ -1,6 +1,6 @@
 """Sorting a live loop's late ticks by cause from the kernel's scheduler trace (bench/late_causes.py),
-on a trace written here: one tick of each cause, one on time, and one whose lock holder's switch
-onto its core the trace lost."""
+on a trace written here: one tick of each cause, one on time, one whose lock holder's switch
+onto its core the trace lost, and one with an interrupt on the other core (still a stall)."""
 import numpy as np
 import pytest
 
@@ -20,6 +20,10 @@ def _switch(t, cpu, prev, nxt, state="S"):
     return (t, f"{prev[1]:>16}-{prev[0]:<7} [{cpu:03d}] d..2. {t:.6f}: sched_switch: prev_comm={prev[1]} "
                f"prev_pid={prev[0]} prev_prio=120 prev_state={state} ==> next_comm={nxt[1]} next_pid={nxt[0]} "
                "next_prio=19")
+
+
+def _event(t, cpu, task, what):
+    return (t, f"{task[1]:>16}-{task[0]:<7} [{cpu:03d}] d.h1. {t:.6f}: {what}")
 
 
 def _scene():
@@ -66,7 +70,17 @@ def _scene():
               _switch(d + 60 * us, 1, INGEST, OTHER, "S"), _wake(d + 61 * us, 0, LOOP, INGEST),
               _switch(d + 62 * us, 0, IDLE0, LOOP, "R")]
     tick(d, 63 * us)
-    lines += [_switch(10.0069, 0, LOOP, IDLE0, "S"), _switch(10.007, 1, OTHER, IDLE1, "S")]
+    # 7: woken and running in time, a timer interrupt on its core before it started 12 us late: 'irq'
+    d = 10.007
+    lines += [_switch(d - 900 * us, 0, LOOP, IDLE0, "S"), _wake(d - SPIN, 0, LOOP),
+              _switch(d - SPIN + us, 0, IDLE0, LOOP, "R"), _event(d + 5 * us, 0, LOOP, "local_timer_entry: vector=236")]
+    tick(d, 12 * us)
+    # 8: the same with the interrupt on the other core: 'stall'
+    d = 10.008
+    lines += [_switch(d - 900 * us, 0, LOOP, IDLE0, "S"), _wake(d - SPIN, 0, LOOP),
+              _switch(d - SPIN + us, 0, IDLE0, LOOP, "R"), _event(d + 5 * us, 1, OTHER, "local_timer_entry: vector=236")]
+    tick(d, 12 * us)
+    lines += [_switch(10.0089, 0, LOOP, IDLE0, "S"), _switch(10.009, 1, OTHER, IDLE1, "S")]
     text = "# tracer: nop\n" + "\n".join(line for _, line in sorted(lines, key=lambda x: x[0])) + "\n"
     return text, np.array(starts), np.array(lates)
 
@@ -75,11 +89,12 @@ def test_each_late_tick_gets_its_cause_and_the_lock_its_holder():
     text, starts, lates = _scene()
     ev = lc.parse(text)
     got = lc.attribute(ev, starts, lates, LOOP[0], {LOOP[0], CAM[0], INGEST[0], 1}, SPIN, threshold_us=5.0)
-    assert got["ticks"] == 6 and got["late_ticks"] == 5
-    assert (got["lock_ticks"], got["timer_ticks"], got["cpu_ticks"], got["stall_ticks"], got["untraced_ticks"]) == \
-        (2, 1, 1, 1, 0)
+    assert got["ticks"] == 8 and got["late_ticks"] == 7
+    assert (got["lock_ticks"], got["timer_ticks"], got["cpu_ticks"], got["irq_ticks"], got["stall_ticks"],
+            got["untraced_ticks"]) == (2, 1, 1, 1, 2, 0)
     assert got["lock_holders"] == {"pf-cam-x": 1, "pf-ingest": 1}     # another process is never a holder
-    assert got["lock_late_us_mean"] == pytest.approx(53.0) and got["stall_late_us_mean"] == pytest.approx(30.0)
+    assert got["irq_events"] == {"local_timer_entry": 1}
+    assert got["lock_late_us_mean"] == pytest.approx(53.0) and got["stall_late_us_mean"] == pytest.approx(21.0)
 
 
 def test_the_threshold_counts_late_ticks_without_changing_their_causes():
@@ -92,7 +107,7 @@ def test_a_tick_without_the_loops_wakeup_in_the_trace_is_untraced_not_guessed():
     text, starts, lates = _scene()
     kept = "\n".join(line for line in text.splitlines() if "sched_wakeup" not in line)
     got = lc.attribute(lc.parse(kept), starts, lates, LOOP[0], {CAM[0]}, SPIN)
-    assert got["untraced_ticks"] == 5 and got["lock_ticks"] == 0
+    assert got["untraced_ticks"] == 7 and got["lock_ticks"] == 0
 
 
 def test_without_tracefs_a_run_trace_says_why_and_the_run_goes_on(monkeypatch):
