@@ -25,6 +25,7 @@ from typing import Callable, Optional
 
 from pointfence.kernels.errors import KernelError
 from pointfence.service.holds import INGEST, KERNEL, MASTER, ROBOT, STALE, WATCHDOG
+from pointfence.service.robot.hosted import NONFINITE
 
 from .soak_check import AVAILABILITY
 
@@ -187,6 +188,14 @@ def _robot(kind: str):
             host.restart()
         else:
             host.inject("none")
+        if kind == "nan":
+            # the fault is gone once the service has read a finite state of the arm again: the
+            # robot process publishes one in its next period (at normal priority: milliseconds
+            # on a loaded machine), and an operator's clear before that is refused for the arm
+            # (HostedRobot.enable: not ready), as it should be
+            end = time.monotonic() + 2.0
+            while (host.ready(0) or "").startswith(NONFINITE) and time.monotonic() < end:
+                rig.sleep(0.001)
         ev.restore = rig.tick()
     return run
 
