@@ -29,8 +29,8 @@ MAX_DRIFT = 1e-3
 
 
 def _slope(x: np.ndarray, y: np.ndarray) -> float:
-    """The least-squares slope of ``y`` in ``x`` (the closed form: ``np.polyfit``'s result, in a
-    tenth of its time; a camera's reader thread runs this once a frame, holding the interpreter
+    """The least-squares slope of ``y`` in ``x`` (the closed form: ``np.polyfit``'s result in a
+    third of its time; a camera's reader thread runs this once a frame, holding the interpreter
     lock)."""
     dx = x - x.mean()
     return float(np.dot(dx, y - y.mean()) / np.dot(dx, dx))

@@ -24,9 +24,9 @@ pass (what ``sleep_until`` returns; a clock that returns None: a reading after i
 delayed by the machine, or a wait for the interpreter lock, is lateness; the Python between the
 wait's return and the tick's first line is the tick's own time (``compute``). A tick with
 ``late > max_lateness_s`` is an overrun (``overrun`` is True during it and ``overruns`` counts
-them). The last ``ring`` ticks' lateness, compute
-time (``end - start``) and start, seconds, are kept in ``late``, ``compute`` and ``starts`` (tick
-``i`` at ``i % ring``), preallocated: a tick allocates nothing.
+them). The last ``ring`` ticks' lateness, compute time (``end - start``) and start, seconds, are
+kept in ``late``, ``compute`` and ``starts`` (tick ``i`` at ``i % ring``), preallocated: a tick
+allocates nothing.
 
 The clock gives ``now()`` and ``sleep_until(t)`` (``clock.RealClock``, or ``clock.FakeClock``
 for deterministic tests: there time moves only by ``advance`` and ``sleep_until``).
