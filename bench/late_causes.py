@@ -121,39 +121,28 @@ def parse(text: str) -> tuple:
     prev_state): for a switch a = the task that ran until it, b = the task after it; for a
     wake-up a = b = the task woken; tasks as (pid, comm); for another event (an interrupt) a = the
     task it interrupted, b = the event's name."""
-    t, cpu, kind, a, b, st = [], [], [], [], [], []
+    rows = []
     for line in text.splitlines():
         m = _LINE.match(line)
         if m is None:
             continue
-        if m.group(5) not in ("sched_switch", "sched_wakeup"):
-            t.append(float(m.group(4)))
-            cpu.append(int(m.group(3)))
-            kind.append(2)
-            a.append((int(m.group(2)), m.group(1).strip()))
-            b.append(m.group(5))
-            st.append("")
-        elif m.group(5) == "sched_switch":
-            s = _SWITCH.search(m.group(6))
+        event, fields = m.group(5), m.group(6)
+        if event == "sched_switch":
+            s = _SWITCH.search(fields)
             if s is None:
                 continue
-            t.append(float(m.group(4)))
-            cpu.append(int(m.group(3)))
-            kind.append(0)
-            a.append((int(s.group(2)), s.group(1)))
-            b.append((int(s.group(5)), s.group(4)))
-            st.append(s.group(3))
-        else:
-            w = _WAKE.search(m.group(6))
+            row = (0, (int(s.group(2)), s.group(1)), (int(s.group(5)), s.group(4)), s.group(3))
+        elif event == "sched_wakeup":
+            w = _WAKE.search(fields)
             if w is None:
                 continue
-            t.append(float(m.group(4)))
-            cpu.append(int(m.group(3)))
-            kind.append(1)
-            a.append((int(w.group(2)), w.group(1)))
-            b.append(a[-1])
-            st.append("")
-    return np.array(t), np.array(cpu, int), np.array(kind, int), a, b, st
+            task = (int(w.group(2)), w.group(1))
+            row = (1, task, task, "")
+        else:
+            row = (2, (int(m.group(2)), m.group(1).strip()), event, "")
+        rows.append((float(m.group(4)), int(m.group(3))) + row)
+    t, cpu, kind, a, b, st = zip(*rows) if rows else ((),) * 6
+    return np.array(t, float), np.array(cpu, int), np.array(kind, int), list(a), list(b), list(st)
 
 
 def _ran_between(events: tuple, lo: float, hi: float) -> set:
@@ -185,11 +174,12 @@ def attribute(events: tuple, starts: np.ndarray, lates: np.ndarray, loop_pid: in
     ``lates``: their lateness, s) sorted by cause (see the module docstring). ``loop_pid``: the
     loop thread's id; ``process_pids``: the ids of the service process's threads (the lock's
     possible holders); ``spin_s``: how long before the deadline the clock's sleep ends."""
-    t = events[0]
-    kind, tasks, state = events[2], events[3], events[5]
-    mine = np.array([k == 1 and p[0] == loop_pid for k, p in zip(kind, tasks)] if len(kind) else [], bool)
-    loop_in = np.array([k == 0 and events[4][i][0] == loop_pid for i, k in enumerate(kind)] if len(kind) else [], bool)
-    loop_out = np.array([k == 0 and p[0] == loop_pid for k, p in zip(kind, tasks)] if len(kind) else [], bool)
+    t, kind, state = events[0], events[2], events[5]
+    pid_a = np.array([p[0] for p in events[3]], int)                       # the task of each event
+    pid_b = np.array([p[0] if k != 2 else -1 for k, p in zip(kind, events[4])], int)   # a switch's next
+    mine = (kind == 1) & (pid_a == loop_pid)        # the loop's wake-ups
+    loop_in = (kind == 0) & (pid_b == loop_pid)     # switches onto the loop
+    loop_out = (kind == 0) & (pid_a == loop_pid)    # switches away from it
     wake_t, in_t, out_t = t[mine], t[loop_in], t[loop_out]
     in_cpu = events[1][loop_in]
     out_state = [state[i] for i in np.nonzero(loop_out)[0]]

@@ -260,16 +260,21 @@ def _bytes_field(buf, e: str, off: int, what: str) -> tuple:
     return memoryview(buf)[off + 4:off + 4 + n], off + 4 + n
 
 
+def _size_and_string(buf, e: str, off: int, what: str) -> tuple:
+    """(height, width, the string after them, the offset after it): the fields that open an
+    Image (encoding) and a CameraInfo (distortion_model), right after the header."""
+    off = _pad(off, 4)
+    height, width, n = struct.unpack_from(e + "III", buf, off)
+    return height, width, _string(buf, off + 12, n, what), off + 12 + n
+
+
 def decode_image(buf) -> Image:
     """A serialized ``sensor_msgs/Image`` (its pixels a view into ``buf``)."""
     e = _order(buf, "Image")
     header, off = _stamped_header(buf, e, "Image")
     u32 = _U32[e]
     try:
-        off = _pad(off, 4)
-        height, width, n = struct.unpack_from(e + "III", buf, off)
-        encoding = _string(buf, off + 12, n, "Image encoding")
-        off += 12 + n
+        height, width, encoding, off = _size_and_string(buf, e, off, "Image encoding")
         is_bigendian = buf[off]
         off = _pad(off + 1, 4)
         (step,) = u32.unpack_from(buf, off)
@@ -326,10 +331,8 @@ def decode_camera_info(buf) -> CameraInfo:
     header, off = _stamped_header(buf, e, "CameraInfo")
     u32 = _U32[e]
     try:
+        height, width, model, off = _size_and_string(buf, e, off, "CameraInfo distortion_model")
         off = _pad(off, 4)
-        height, width, n = struct.unpack_from(e + "III", buf, off)
-        model = _string(buf, off + 12, n, "CameraInfo distortion_model")
-        off = _pad(off + 12 + n, 4)
         (count,) = u32.unpack_from(buf, off)
         if count > MAX_DISTORTION:
             raise CdrError(f"CameraInfo d: {count} coefficients; at most {MAX_DISTORTION} accepted")
