@@ -54,6 +54,7 @@ from pointfence.kernels.errors import InputError
 from pointfence.kernels.frame import DepthFrame
 
 from .depth_mesh import MeshDistance, depth_blocks, depth_triangles, depth_vertices
+from .depth_steps import DepthSteps
 
 #: pixels a hole is filled across for the true surface
 FILL_PX = 3
@@ -64,25 +65,32 @@ HINGE = 0.1
 #: the true surface is the recording's depth smoothed over this many pixels (a Gaussian's sigma),
 #: within half a code of each recorded depth (``dequantize``)
 DEQUANTIZE_PX = 1.5
+#: smoothing passes for a recording in disparity steps (``depth_steps``): its treads are up to
+#: about ten pixels wide on a slanted surface, ``DEQUANTIZE_PX`` * sqrt(passes) px of smoothing
+DEQUANTIZE_PASSES = 16
 #: the scene kept around the contact point (m): the true surface and the moving cloud beyond it
 #: (the evaluation's workspace lies within) are left out, except what is nearer the camera
 KEEP = 0.3
 MOTIONS = ("toward", "sideways", "rocking")
 
 
-def dequantize(depth_m: np.ndarray, code: float, sigma_px: float = DEQUANTIZE_PX) -> np.ndarray:
-    """The smooth surface within the codes of a depth image (m, 0 = none; ``code``: its depth
-    step, m): the valid pixels' depths smoothed (a Gaussian of ``sigma_px`` over the valid
-    neighbours), each kept within half a code of its recorded depth, so that the image is still
-    this surface's quantisation."""
+def dequantize(depth_m: np.ndarray, code, sigma_px: float = DEQUANTIZE_PX, passes: int = 1) -> np.ndarray:
+    """The smooth surface within the steps of a depth image (m, 0 = none; ``code``: its depth
+    step, m, one value or one per pixel, ``DepthSteps.step_at``): the valid pixels' depths
+    smoothed (a Gaussian of ``sigma_px`` over the valid neighbours), each kept within half a
+    step of its recorded depth, so that the image is still this surface's quantisation;
+    ``passes`` times (each smoothing the last one's surface: treads several pixels wide, as
+    disparity steps make them, need more than one)."""
     from scipy import ndimage
 
     ok = depth_m > 0
-    num = ndimage.gaussian_filter(np.where(ok, depth_m, 0.0), sigma_px, mode="nearest")
     den = ndimage.gaussian_filter(ok.astype(np.float64), sigma_px, mode="nearest")
-    smooth = np.where(ok, num / np.maximum(den, 1e-12), 0.0)
-    half = 0.499 * code
-    return np.where(ok, np.clip(smooth, depth_m - half, depth_m + half), 0.0)
+    half = 0.499 * np.asarray(code, np.float64)
+    smooth = depth_m
+    for _ in range(max(1, int(passes))):
+        num = ndimage.gaussian_filter(np.where(ok, smooth, 0.0), sigma_px, mode="nearest")
+        smooth = np.where(ok, np.clip(num / np.maximum(den, 1e-12), depth_m - half, depth_m + half), 0.0)
+    return smooth
 
 
 def load_real(frames, index: int = 0) -> tuple[np.ndarray, Camera]:
@@ -148,12 +156,13 @@ def ray_depth(tri: np.ndarray, cam: Camera, u: np.ndarray, v: np.ndarray, z: np.
     return np.where(np.isfinite(best), best, z)
 
 
-def close_gaps(img: np.ndarray, win: np.ndarray, tri: np.ndarray, cam: Camera) -> None:
+def close_gaps(img: np.ndarray, win: np.ndarray, tri: np.ndarray, cam: Camera, steps: DepthSteps) -> None:
     """Fill, in place, the empty pixels of ``img`` (depth codes, (H, W)) between two drawn ones
     (left and right, else above and below) where the pixel's ray crosses the true surface around
     either neighbour's point: the one-pixel gaps a surface coming closer opens between its
     re-projected pixels. ``win`` (H, W): the index into ``tri`` (N, K, 3, 3: each drawn point's
-    triangles, camera frame) of the point drawn in each pixel, -1 for none."""
+    triangles, camera frame) of the point drawn in each pixel, -1 for none; ``steps``: the
+    camera's depth levels."""
     for axis in (1, 0):
         lo = np.roll(win, 1, axis=axis)
         hi = np.roll(win, -1, axis=axis)
@@ -168,7 +177,7 @@ def close_gaps(img: np.ndarray, win: np.ndarray, tri: np.ndarray, cam: Camera) -
         both = np.concatenate([tri[lo[r, c]], tri[hi[r, c]]], axis=1)
         z = ray_depth(both, cam, c.astype(np.float64), r.astype(np.float64), np.zeros(r.size))
         hit = z > 0
-        img[r[hit], c[hit]] = np.clip(np.rint(z[hit] / cam.depth_scale), 1, min(cam.max_code, 65535) - 1)
+        img[r[hit], c[hit]] = np.clip(steps.quantize(z[hit]), 1, min(cam.max_code, 65535) - 1)
         win[r[hit], c[hit]] = lo[r[hit], c[hit]]
 
 
@@ -240,7 +249,8 @@ class MovingRealFrame:
         ok = z > 0
         if np.count_nonzero(ok) < 100:
             raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
-        z = dequantize(z, cam.depth_scale)
+        self.steps = DepthSteps.fit(np.where(ok, depth, 0), cam.depth_scale)
+        z = dequantize(z, self.steps.step_at(z), passes=DEQUANTIZE_PASSES if self.steps.disparity else 1)
         self.depth_m = z
         self.valid_fraction = float(np.mean(ok))
         self.filled = fill_holes(z)
@@ -315,7 +325,7 @@ class MovingRealFrame:
         tri = np.einsum("nkij,lj->nkil", self._ring_triangles(self._pixels[keep]), R) + c
         z = ray_depth(tri, cam, u[inside], v[inside], p[inside, 2])
         lin = v[inside] * cam.width + u[inside]
-        code = np.clip(np.rint(z / cam.depth_scale), 1, min(cam.max_code, 65535) - 1).astype(np.int64)
+        code = np.clip(self.steps.quantize(z), 1, min(cam.max_code, 65535) - 1).astype(np.int64)
         order = np.argsort(lin * 65536 + code, kind="stable")       # per pixel, nearest first
         lin, code = lin[order], code[order]
         first = np.ones(lin.size, bool)
@@ -325,7 +335,7 @@ class MovingRealFrame:
         img[lin[first]] = code[first]
         win[lin[first]] = order[first]
         img, win = img.reshape(cam.height, cam.width), win.reshape(cam.height, cam.width)
-        close_gaps(img, win, tri, cam)
+        close_gaps(img, win, tri, cam, self.steps)
         return DepthFrame(cam.name, img, float(t), int(seq))
 
     def distance(self, motion: Motion, q, t: float) -> np.ndarray:
