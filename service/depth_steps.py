@@ -24,6 +24,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: the true surface is the recording's depth smoothed over this many pixels (a Gaussian's sigma),
+#: within half a step of each recorded depth (``dequantize``)
+DEQUANTIZE_PX = 1.5
+#: smoothing passes for a recording in disparity steps (``DepthSteps.disparity``): its treads are up to
+#: about ten pixels wide on a slanted surface, ``DEQUANTIZE_PX`` * sqrt(passes) px of smoothing
+DEQUANTIZE_PASSES = 16
 #: a disparity camera is recognised from its distinct depths whose step is at least this many codes
 #: (where the codes' own rounding, half a code, is at most a sixth of a step)
 MIN_STEP_CODES = 3.0
@@ -32,6 +38,25 @@ MIN_LEVELS = 10
 #: their mean distance to the nearest level (in steps) must stay below this: depths spread at
 #: random over the steps give 0.25, depths on the levels rounded to whole codes about 0.04-0.08
 MAX_MEAN_RESIDUAL = 0.12
+
+
+def dequantize(depth_m: np.ndarray, code, sigma_px: float = DEQUANTIZE_PX, passes: int = 1) -> np.ndarray:
+    """The smooth surface within the steps of a depth image (m, 0 = none; ``code``: its depth
+    step, m, one value or one per pixel, ``DepthSteps.step_at``): the valid pixels' depths
+    smoothed (a Gaussian of ``sigma_px`` over the valid neighbours), each kept within half a
+    step of its recorded depth, so that the image is still this surface's quantisation;
+    ``passes`` times (each smoothing the last one's surface: treads several pixels wide, as
+    disparity steps make them, need more than one)."""
+    from scipy import ndimage
+
+    ok = depth_m > 0
+    den = ndimage.gaussian_filter(ok.astype(np.float64), sigma_px, mode="nearest")
+    half = 0.499 * np.asarray(code, np.float64)
+    smooth = depth_m
+    for _ in range(max(1, int(passes))):
+        num = ndimage.gaussian_filter(np.where(ok, smooth, 0.0), sigma_px, mode="nearest")
+        smooth = np.where(ok, np.clip(num / np.maximum(den, 1e-12), depth_m - half, depth_m + half), 0.0)
+    return smooth
 
 
 @dataclass(frozen=True)
@@ -53,6 +78,12 @@ class DepthSteps:
         it is larger."""
         z = np.asarray(z, np.float64)
         return np.maximum(self.unit, self.inv_step * z * z)
+
+    def surface(self, depth_m: np.ndarray) -> np.ndarray:
+        """The smooth surface (m, 0 = none) within half a local step of each recorded depth of
+        ``depth_m`` (m, 0 = none): ``dequantize`` with ``DEQUANTIZE_PASSES`` for a disparity
+        camera, one pass for whole codes (as the evaluation has used since stop 33)."""
+        return dequantize(depth_m, self.step_at(depth_m), passes=DEQUANTIZE_PASSES if self.disparity else 1)
 
     def quantize(self, z) -> np.ndarray:
         """Depths ``z`` (m, > 0) as the camera reports them, in whole codes (float64, not yet

@@ -16,8 +16,8 @@ and, given a ``stop`` time, halts there (a stroke of known length: the hold case
 ``dynamic_real``).
 
 The frame the camera sees at t is the real cloud (its valid pixels) moved and re-projected
-into the camera with a depth test (the nearest point per pixel wins), quantised to 1 mm as the
-recording was: the real holes, clutter and edges move with the scene, and the re-projection
+into the camera with a depth test (the nearest point per pixel wins), quantised as the
+recording was (``depth_steps``: whole codes, and a disparity camera's levels): the real holes, clutter and edges move with the scene, and the re-projection
 adds the holes a moving scene opens (one-pixel gaps between two pixels of one surface are
 closed, ``close_gaps``: a surface coming closer spreads over more pixels). Each moved point
 lands between pixel centres; the pixel it lands in gets the depth at which the pixel's ray
@@ -30,9 +30,12 @@ that each moved it 3.3 mm.
 
 Only the scene within ``KEEP`` of the contact point (and what is nearer the camera than it) is
 kept: the evaluation's workspace lies within. The true surface is the real depth image,
-dequantised (``dequantize``: smoothed, each depth kept within half a code of the recorded one,
-so that the recording is this surface as its camera quantised it; the moved scene is quantised
-again where the rays sample it, as a camera would, not in unison), with its small holes filled
+dequantised (``DepthSteps.surface``: smoothed, each depth kept within half a step of the
+recorded one, so that the recording is this surface as its camera quantised it; the moved
+scene is quantised again where the rays sample it, as a camera would, not in unison; a
+disparity camera's levels stay at their depths while the surface moves through them: moving
+the recorded staircase with the scene would make its treads slide under a proxy as no real
+camera's do), with its small holes filled
 (nearest valid pixel within ``FILL_PX`` pixels: the warping-hole grid of a registered image),
 triangulated (``depth_mesh``: two triangles per 2 x 2 block of pixels whose depths agree
 within ``JUMP`` of their depth; depth steps are edges, not surface). Its signed distance to a
@@ -62,35 +65,10 @@ FILL_PX = 3
 JUMP = 0.02
 #: hinge of the rocking motion: this far (m) from the anchor along the camera's +x axis
 HINGE = 0.1
-#: the true surface is the recording's depth smoothed over this many pixels (a Gaussian's sigma),
-#: within half a code of each recorded depth (``dequantize``)
-DEQUANTIZE_PX = 1.5
-#: smoothing passes for a recording in disparity steps (``depth_steps``): its treads are up to
-#: about ten pixels wide on a slanted surface, ``DEQUANTIZE_PX`` * sqrt(passes) px of smoothing
-DEQUANTIZE_PASSES = 16
 #: the scene kept around the contact point (m): the true surface and the moving cloud beyond it
 #: (the evaluation's workspace lies within) are left out, except what is nearer the camera
 KEEP = 0.3
 MOTIONS = ("toward", "sideways", "rocking")
-
-
-def dequantize(depth_m: np.ndarray, code, sigma_px: float = DEQUANTIZE_PX, passes: int = 1) -> np.ndarray:
-    """The smooth surface within the steps of a depth image (m, 0 = none; ``code``: its depth
-    step, m, one value or one per pixel, ``DepthSteps.step_at``): the valid pixels' depths
-    smoothed (a Gaussian of ``sigma_px`` over the valid neighbours), each kept within half a
-    step of its recorded depth, so that the image is still this surface's quantisation;
-    ``passes`` times (each smoothing the last one's surface: treads several pixels wide, as
-    disparity steps make them, need more than one)."""
-    from scipy import ndimage
-
-    ok = depth_m > 0
-    den = ndimage.gaussian_filter(ok.astype(np.float64), sigma_px, mode="nearest")
-    half = 0.499 * np.asarray(code, np.float64)
-    smooth = depth_m
-    for _ in range(max(1, int(passes))):
-        num = ndimage.gaussian_filter(np.where(ok, smooth, 0.0), sigma_px, mode="nearest")
-        smooth = np.where(ok, np.clip(num / np.maximum(den, 1e-12), depth_m - half, depth_m + half), 0.0)
-    return smooth
 
 
 def load_real(frames, index: int = 0) -> tuple[np.ndarray, Camera]:
@@ -250,7 +228,7 @@ class MovingRealFrame:
         if np.count_nonzero(ok) < 100:
             raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
         self.steps = DepthSteps.fit(np.where(ok, depth, 0), cam.depth_scale)
-        z = dequantize(z, self.steps.step_at(z), passes=DEQUANTIZE_PASSES if self.steps.disparity else 1)
+        z = self.steps.surface(z)
         self.depth_m = z
         self.valid_fraction = float(np.mean(ok))
         self.filled = fill_holes(z)

@@ -36,6 +36,7 @@ from pointfence.kernels import DepthFrame, PipelineParams, RadiusModel, Workspac
 from pointfence.kernels.camera import KINECT_NOISE_A, KINECT_NOISE_B, Camera, NoiseModel
 from pointfence.kernels.errors import InputError
 from pointfence.kernels.haptics import HapticParams, HapticScene, haptic_pipeline_params
+from pointfence.service.depth_steps import DepthSteps
 from pointfence.service.real_rig import SMOOTH, Surface, cloud, data_folder
 
 RATE_HZ = 30.0
@@ -45,18 +46,23 @@ TICK_HZ = 1000.0
 @dataclass(frozen=True)
 class NoiseFit:
     """A fitted sigma_z = a + b Z^2 (a in m, b in 1/m) with the bins it was fitted to:
-    ``bins`` rows (median depth m, sigma_z m, blocks)."""
+    ``bins`` rows (median depth m, sigma_z m, blocks), and the frames' depth levels (``steps``,
+    ``depth_steps.DepthSteps``: a disparity camera's steps are part of sigma_z; None: unknown)."""
 
     a: float
     b: float
     bins: tuple
+    steps: DepthSteps | None = None
 
     def model(self) -> NoiseModel:
         return NoiseModel(self.a, self.b)
 
     def summary(self) -> dict:
-        return {"a_mm": round(self.a * 1e3, 4), "b_per_m": round(self.b, 6),
-                "sigma_z_mm_at": {f"{z:.2f}m": round(s * 1e3, 3) for z, s, _ in self.bins}}
+        out = {"a_mm": round(self.a * 1e3, 4), "b_per_m": round(self.b, 6),
+               "sigma_z_mm_at": {f"{z:.2f}m": round(s * 1e3, 3) for z, s, _ in self.bins}}
+        if self.steps is not None:
+            out["depth_steps"] = self.steps.describe()
+        return out
 
 
 def block_sigmas(depth: np.ndarray, cam: Camera, patch: int = 8, min_valid: float = 0.5) -> tuple:
@@ -101,11 +107,14 @@ def fit_noise(frames, *, patch: int = 8, bin_width: float = 0.1, min_blocks: int
     """Fit sigma_z = a + b Z^2 to ``frames``, an iterable of (uint16 depth, Camera), as the
     module docstring describes. Raises InputError when fewer than two depth bins have
     ``min_blocks`` flat blocks."""
-    zs, ss = [], []
+    zs, ss, codes = [], [], []
+    unit = None
     for depth, cam in frames:
         z, s = block_sigmas(depth, cam, patch)
         zs.append(z)
         ss.append(s)
+        codes.append(np.unique(depth[(depth > 0) & (depth < cam.max_code)]))
+        unit = cam.depth_scale
     z, s = np.concatenate(zs), np.concatenate(ss)
     rows = []
     if len(z):
@@ -125,7 +134,8 @@ def fit_noise(frames, *, patch: int = 8, bin_width: float = 0.1, min_blocks: int
         a, b = 0.0, float(np.sum(wts * wts * sb * zb * zb) / np.sum(wts * wts * zb ** 4))
     if b < 0:
         a, b = float(np.sum(wts * wts * sb) / np.sum(wts * wts)), 0.0
-    return NoiseFit(float(a), float(b), tuple(rows))
+    steps = DepthSteps.fit(np.concatenate(codes), unit)
+    return NoiseFit(float(a), float(b), tuple(rows), steps)
 
 
 def recording_frames(name: str, *, data=None, every: int = 5):
@@ -190,18 +200,26 @@ def real_site(name: str, depth: np.ndarray, cam: Camera, pixel) -> RealSite:
     return RealSite(name, cam, t, p, n)
 
 
-def _noisy_frame(truth: np.ndarray, cam: Camera, noise: NoiseModel, rng) -> np.ndarray:
+def _noisy_frame(truth: np.ndarray, cam: Camera, noise: NoiseModel, rng, steps: DepthSteps | None = None) -> np.ndarray:
     """The true depth (m, 0: none) plus zero-mean Gaussian noise of ``noise``, rounded to the
-    camera's depth units (uint16)."""
+    camera's depth units (uint16). With a disparity camera's ``steps``: the noise beyond its
+    quantisation (sigma_z^2 less step^2 / 12, the variance of rounding to a step), then the
+    depth put on its levels (``DepthSteps.quantize``), as such a camera reports it."""
     ok = truth > 0
-    z = truth + rng.standard_normal(truth.shape) * noise.sigma_z(truth)
-    d = np.where(ok & (z > 0), np.round(z / cam.depth_scale), 0)
+    sigma = noise.sigma_z(truth)
+    if steps is not None and steps.disparity:
+        sigma = np.sqrt(np.maximum(sigma ** 2 - steps.step_at(truth) ** 2 / 12.0, 0.0))
+    z = truth + rng.standard_normal(truth.shape) * sigma
+    if steps is not None:
+        d = np.where(ok & (z > 0), steps.quantize(np.where(z > 0, z, 1.0)), 0)
+    else:
+        d = np.where(ok & (z > 0), np.round(z / cam.depth_scale), 0)
     return np.clip(d, 0, cam.max_code - 1).astype(np.uint16)
 
 
 def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.02, k_sigma: float = 2.0,
                     half: float = 0.06, duration: float = 0.5, backend: str = "opencl", device: str | None = None,
-                    seed: int = 0, sequence=None) -> list:
+                    seed: int = 0, sequence=None, steps: DepthSteps | None = None) -> list:
     """Fixture proxies pressed 3 cm into real ``sites`` of one frame (same camera), one proxy per
     site along its normal (each HIP comes down from r_f + 5 cm outside at 0.8 m/s, then
     presses), with fresh frames of the true depth plus ``noise`` at 30 Hz. Every point of the
@@ -211,7 +229,8 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
     the true surface within ``half`` of the site (safety, mm), the proxy's closest approach to
     that surface (mm), the median gap outside it in the
     second half of the run (submittance, mm), sigma_z there and the mean and spread of all the
-    frame's radii (mm).
+    frame's radii (mm). ``steps``: the camera's depth levels the modelled frames are put on
+    (``_noisy_frame``; None: whole codes).
 
     ``sequence`` (a ``real_rig.RigCamera`` whose first frame the sites were picked on): the
     frames are instead the recording's own consecutive frames with their own poses, played back
@@ -229,7 +248,7 @@ def radius_real_run(sites, noise: NoiseModel, adaptive: bool, *, r_f: float = 0.
         if sequence is not None:
             i = sequence.index(seq)
             return DepthFrame(cam.name, sequence.depths[i], seq / RATE_HZ, seq, T_world_cam=sequence.poses[i])
-        return DepthFrame(cam.name, _noisy_frame(truth_img, cam, noise, rng), seq / RATE_HZ, seq)
+        return DepthFrame(cam.name, _noisy_frame(truth_img, cam, noise, rng, steps), seq / RATE_HZ, seq)
 
     first = frame_at(0)
     r_max = r_f + 0.04
@@ -335,7 +354,8 @@ def real_sites(data=None) -> list:
 def radius_real_study(fit: NoiseFit, *, noise_scales=(1.0, 2.0), data=None, window: int = 8, **options) -> list:
     """Rows of ``radius_real_run`` over the kitchen's sites (``real_sites``), fixed and adaptive:
     with the recording's own first ``window`` frames (``noise_scale`` "recorded"; 0: skipped),
-    and with the noise ``fit`` (fitted on the kitchen's own frames) times each scale."""
+    and with the noise ``fit`` (fitted on the kitchen's own frames) times each scale, on the
+    frames' own depth levels (``fit.steps``)."""
     from pointfence.service.real_rig import load_rig
 
     sites = real_sites(data)
@@ -349,7 +369,7 @@ def radius_real_study(fit: NoiseFit, *, noise_scales=(1.0, 2.0), data=None, wind
     for m in noise_scales:
         model = NoiseModel(fit.a * m, fit.b * m)
         for adaptive in (False, True):
-            for r in radius_real_run(sites, model, adaptive, **options):
+            for r in radius_real_run(sites, model, adaptive, steps=fit.steps, **options):
                 r["noise_scale"] = m
                 rows.append(r)
     return rows
@@ -357,8 +377,12 @@ def radius_real_study(fit: NoiseFit, *, noise_scales=(1.0, 2.0), data=None, wind
 
 def summarize(rows: list) -> dict:
     """Per noise scale, fixed against adaptive at the same mean radius: the worst penetration of
-    the nominal r_f region over the sites, and the worst (smallest) closest approach to the
-    true surface over the sites (mm; the larger, the safer)."""
+    the nominal r_f region over the sites, the worst (smallest) closest approach to the true
+    surface over the sites (mm; the larger, the safer; below 0: the proxy touched it), and the
+    worst margin in the site's own noise, min over the sites of closest approach / sigma_z
+    (how many standard deviations of the depth error separate the proxy from the surface where
+    that is fewest: the chance of touching it; the nominal region's penetration charges an
+    adaptive radius for the radius it moves away from a quiet site by design)."""
     out = {}
     for m in dict.fromkeys(r["noise_scale"] for r in rows):
         d = {}
@@ -366,6 +390,7 @@ def summarize(rows: list) -> dict:
             rs = [r for r in rows if r["noise_scale"] == m and r["adaptive"] == adaptive]
             d[key] = {"worst_penetration_mm": max(r["safety_penetration_mm"] for r in rs),
                       "worst_closest_approach_mm": min(r["closest_approach_mm"] for r in rs),
+                      "worst_margin_sigmas": round(min(r["closest_approach_mm"] / r["sigma_z_mm"] for r in rs), 2),
                       "mean_gap_mm": round(float(np.mean([r["submittance_gap_mm"] for r in rs])), 3)}
         out["recorded_frames" if m == "recorded" else f"noise_x{m:g}"] = d
     return out

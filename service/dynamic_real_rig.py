@@ -13,8 +13,11 @@ as the service does, leaving the tool's shadow as a hole.
 
 Safety is measured at every tick, exactly (``real_rig.Surface``: the nearest points, as brute
 force finds them): the signed distance of the proxy and of the robot to the true surface, the
-fused cloud of both cameras without the tool, as measured (``raw``) and denoised over
-``SMOOTH`` (``mean``); penetration of the forbidden region is max(0, r_f - distance).
+fused cloud of both cameras without the tool, as measured (``raw``), denoised over ``SMOOTH``
+(``mean``), and dequantised (``deq``: each camera's depths moved within half of its Kinect's
+disparity step onto a smooth surface, ``depth_steps``; as measured, the cloud is two staircases
+of 18 mm steps at 2.5 m, one per camera, whose treads the other camera's points sit behind);
+penetration of the forbidden region is max(0, r_f - distance).
 
 Findings the figures rest on (``rig_figures``): the rig's parallax at the site is 4.4 degrees,
 so a tool along camera A's line of sight shades B almost as much as A when rendered into both
@@ -59,14 +62,15 @@ class Rig:
     site: Site
     _truth: dict = field(default_factory=dict)
 
-    def truth(self, ia: int, ib: int, smooth: float = 0.0) -> Surface:
+    def truth(self, ia: int, ib: int, smooth: float = 0.0, dequantized: bool = False) -> Surface:
         """The true surface while A shows window frame ``ia`` and B frame ``ib``: the fused
-        cloud as measured (``smooth`` = 0) or denoised over ``smooth`` m (``Surface``)."""
-        key = (ia, ib, smooth)
+        cloud as measured (``smooth`` = 0), denoised over ``smooth`` m (``Surface``), or of the
+        dequantised images (``RigCamera.points``)."""
+        key = (ia, ib, smooth, dequantized)
         if key not in self._truth:
             box = self.site.box(HALF)
-            self._truth[key] = Surface(np.vstack([self.a.points(ia, box), self.b.points(ib, box)]), self.site.normal,
-                                       smooth=smooth)
+            pts = [self.a.points(ia, box, dequantized), self.b.points(ib, box, dequantized)]
+            self._truth[key] = Surface(np.vstack(pts), self.site.normal, smooth=smooth)
         return self._truth[key]
 
 
@@ -97,6 +101,8 @@ class RigRun:
     robot_raw: float
     proxy_mean: float
     robot_mean: float
+    proxy_deq: float
+    robot_deq: float
     robot_min_distance: float
     ticks: int
     trace: dict | None = None
@@ -107,6 +113,8 @@ class RigRun:
                 "proxy_penetration_mm": r(self.proxy_raw), "robot_penetration_mm": r(self.robot_raw),
                 "proxy_penetration_mean_surface_mm": r(self.proxy_mean),
                 "robot_penetration_mean_surface_mm": r(self.robot_mean),
+                "proxy_penetration_dequantized_mm": r(self.proxy_deq),
+                "robot_penetration_dequantized_mm": r(self.robot_deq),
                 "robot_min_distance_mm": round(self.robot_min_distance * 1e3, 3)}
 
 
@@ -156,19 +164,20 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
     travel = (start_out + push) / depth_rate
     n_ticks = int(round((travel / speed + hold) * TICK_HZ))
     seq = -1
-    truth = mean = None
+    truth = mean = deq = None
     xr = robot.measured_cp_position()
     # the tick's positions, measured against the frame's true surfaces when the frame ends (the
     # surfaces are constant over it: every tick is measured, in one query per frame)
     pos = np.zeros((n_ticks, 3, 3))  # proxy, robot, command per tick
-    dist = np.zeros((n_ticks, 4))    # signed distances: proxy, robot (raw); proxy, robot (mean)
+    dist = np.zeros((n_ticks, 6))    # signed distances: proxy, robot (raw); (mean); (deq)
     first = 0
 
     def measure(end):
         if end > first:
             p = pos[first:end, :2].reshape(-1, 3)
             dist[first:end, :2] = truth.signed_distance(p).reshape(-1, 2)
-            dist[first:end, 2:] = mean.signed_distance(p).reshape(-1, 2)
+            dist[first:end, 2:4] = mean.signed_distance(p).reshape(-1, 2)
+            dist[first:end, 4:] = deq.signed_distance(p).reshape(-1, 2)
 
     normals = np.zeros((n_ticks, 3)) if trace else None
     for k in range(n_ticks):
@@ -188,6 +197,7 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
             hs.ingest(filt.apply(frames, caps) if caps else frames)
             truth = R.truth(R.a.index(seq), R.b.index(seq))
             mean = R.truth(R.a.index(seq), R.b.index(seq), SMOOTH)
+            deq = R.truth(R.a.index(seq), R.b.index(seq), dequantized=True)
         dev[0] = start + min(speed * t, travel) * n_dir
         tp.map_masters(dev, pedal, ok)
         tp.update_hip(xr[None])
@@ -208,7 +218,7 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
         t = np.arange(n_ticks) / TICK_HZ
         tr = {"t": t, "master": start + np.minimum(speed * t, travel)[:, None] * n_dir, "proxy": pos[:, 0],
               "robot": pos[:, 1], "cmd": pos[:, 2], "normal": normals, "d_proxy": dist[:, 0], "d_robot": dist[:, 1],
-              "m_proxy": dist[:, 2], "m_robot": dist[:, 3]}
+              "m_proxy": dist[:, 2], "m_robot": dist[:, 3], "q_proxy": dist[:, 4], "q_robot": dist[:, 5]}
     return RigRun(cameras, r_f, *np.maximum(worst, 0.0).tolist(), dmin_r, n_ticks, tr)
 
 

@@ -67,15 +67,27 @@ class RigCamera:
         d = self.depths[i] if depth is None else depth
         return DepthFrame(self.camera.name, d, t, seq, T_world_cam=self.poses[i])
 
-    def points(self, i: int, box=None) -> np.ndarray:
-        """World points (N, 3) of window frame ``i``, float64, optionally inside ``box`` = (lo, hi)."""
-        return cloud(self.camera, self.depths[i], self.poses[i], box)
+    def points(self, i: int, box=None, dequantized: bool = False) -> np.ndarray:
+        """World points (N, 3) of window frame ``i``, float64, optionally inside ``box`` = (lo, hi);
+        ``dequantized``: each pixel's depth moved onto the smooth surface within half of the
+        camera's depth step (``DepthSteps.surface``: a Kinect v1's disparity steps are 18 mm at
+        2.5 m), instead of the staircase the camera reports."""
+        d = self.depths[i]
+        z = None
+        if dequantized:
+            from .depth_steps import DepthSteps
+
+            ok = (d > 0) & (d < self.camera.max_code)
+            z = DepthSteps.fit(np.where(ok, d, 0), self.camera.depth_scale).surface(
+                np.where(ok, d.astype(np.float64) * self.camera.depth_scale, 0.0))
+        return cloud(self.camera, d, self.poses[i], box, z=z)
 
 
-def cloud(cam: Camera, depth: np.ndarray, T_world_cam: np.ndarray, box=None) -> np.ndarray:
+def cloud(cam: Camera, depth: np.ndarray, T_world_cam: np.ndarray, box=None, z=None) -> np.ndarray:
     """Back-projection of a uint16 depth image through ``cam``'s pinhole (no distortion), world
-    frame, m; only readings inside the camera's z range (and ``box`` = (lo, hi), world m)."""
-    z = depth.astype(np.float64) * cam.depth_scale
+    frame, m; only readings inside the camera's z range (and ``box`` = (lo, hi), world m).
+    ``z``: the pixels' depths (m, float) to use instead of the image's codes (its valid pixels)."""
+    z = depth.astype(np.float64) * cam.depth_scale if z is None else np.asarray(z, np.float64)
     v, u = np.nonzero((depth > 0) & (depth < cam.max_code) & (z >= cam.z_min) & (z <= cam.z_max))
     zz = z[v, u]
     p = np.stack([(u - cam.cx) / cam.fx * zz, (v - cam.cy) / cam.fy * zz, zz], axis=1)

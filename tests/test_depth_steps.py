@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from pointfence.service import dynamic_real as dr
-from pointfence.service.depth_steps import DepthSteps
-from pointfence.service.dynamic_real_frames import Motion, dequantize
+from pointfence.service.depth_steps import DepthSteps, dequantize
+from pointfence.service.dynamic_real_frames import Motion, deproject
 
 KINECT = 1.0 / (8 * 580.0 * 0.075)     # 1/z step (1/m) of a 1/8-px disparity step, f 580 px, baseline 7.5 cm
 
@@ -100,7 +100,6 @@ def test_the_moved_kinect_frame_keeps_the_cameras_levels():
     cam = s.cam
     z = f.depth.astype(np.float64) * cam.depth_scale
     v, u = np.nonzero(z > 0)
-    from pointfence.service.dynamic_real_frames import deproject
     pts = deproject(z[v, u], cam, u.astype(float), v.astype(float))
     R, c = m.pose(4 / 30)
     near = np.linalg.norm(pts - (R @ a + c), axis=1) < 0.03

@@ -7,7 +7,8 @@ import pytest
 from pointfence.kernels.grid import Grid
 from pointfence.kernels.motion import CELL_MEASURED, MotionEstimator, MotionModel, cell_moments
 from pointfence.service import dynamic_real as dr
-from pointfence.service.dynamic_real_frames import Motion, deproject, dequantize
+from pointfence.service.depth_steps import dequantize
+from pointfence.service.dynamic_real_frames import Motion, deproject
 
 SCENES = ("apc_shelfbin_50f", "7scenes_kitchen_50f")
 

@@ -63,6 +63,24 @@ def test_one_camera_lets_the_tool_in_two_cameras_hold(kitchen):
     assert two.proxy_mean <= 0.002        # the proxy, pushed in at 0.2 m/s, within 2 mm
 
 
+def test_the_dequantized_truth_lies_within_half_a_step_of_the_measured_cloud(kitchen):
+    """The cameras' dequantised points (the true surface of ``proxy_deq``) are the measured ones
+    moved along their rays by at most half of the Kinect's step there (18 mm at 2.5 m), and by
+    a few mm in the median: a smooth surface through the staircase, not another estimate."""
+    raw = kitchen.a.points(0)
+    deq = kitchen.a.points(0, dequantized=True)
+    assert raw.shape == deq.shape
+    from pointfence.service.depth_steps import DepthSteps
+
+    d = kitchen.a.depths[0]
+    steps = DepthSteps.fit(np.where(d < kitchen.a.camera.max_code, d, 0), 1e-3)
+    cam_t = kitchen.a.poses[0][:3, 3]
+    rng_raw, rng_deq = np.linalg.norm(raw - cam_t, axis=1), np.linalg.norm(deq - cam_t, axis=1)
+    moved = np.abs(rng_deq - rng_raw)
+    assert np.all(moved <= 0.5 * steps.step_at(rng_raw) * 1.05 + 1e-6)
+    assert 0.5e-3 < np.median(moved) < 5e-3
+
+
 def test_push_direction_along_the_surface_is_refused(kitchen):
     s = kitchen.site
     along = np.cross(s.normal, [0.0, 0.0, 1.0])
@@ -113,6 +131,37 @@ def test_kitchen_noise_is_kinect_like(shared_data):
     for z in (1.5, 2.5):  # within a factor of two of the built-in model, growing with depth
         assert 0.5 < fit.model().sigma_z(z) / kinect.sigma_z(z) < 2.0
     assert fit.model().sigma_z(2.5) > 2 * fit.model().sigma_z(1.2)
+    assert fit.steps.disparity and "disparity" in fit.summary()["depth_steps"]
+
+
+def test_modelled_frames_sit_on_the_cameras_levels_with_the_fitted_sigma():
+    """A flat wall at 2.5 m modelled with a Kinect's levels: every depth on a level, the error's
+    spread the model's sigma_z (quantisation and the noise beyond it together, within 15 %); in
+    whole codes (no steps) the same sigma."""
+    from pointfence.service.depth_steps import DepthSteps
+
+    steps = DepthSteps(1e-3, 1.0 / (8 * 580.0 * 0.075), 0.0004)
+    cam = Camera("c", 160, 120, 150.0, 150.0, 80.0, 60.0)
+    truth = np.full((120, 160), 2.5) + np.linspace(0, 0.05, 160)[None, :]   # a gentle slope across the steps
+    noise = NoiseModel(0.0006, 0.001)
+    rng = np.random.default_rng(3)
+    for st in (steps, None):
+        d = drn._noisy_frame(truth, cam, noise, rng, st).astype(np.float64)
+        if st is not None:
+            assert np.array_equal(st.quantize(d * 1e-3), d)
+        err = d * 1e-3 - truth
+        assert np.std(err) == pytest.approx(float(np.mean(noise.sigma_z(truth))), rel=0.15)
+
+
+def test_summary_gives_the_worst_margin_in_sigmas():
+    rows = [dict(noise_scale=1.0, adaptive=a, safety_penetration_mm=p, closest_approach_mm=c, sigma_z_mm=s,
+                 submittance_gap_mm=0.0)
+            for a, p, c, s in ((False, 0.0, 21.0, 2.0), (False, 0.0, 25.0, 8.0), (True, 3.0, 17.0, 2.0),
+                               (True, 0.0, 32.0, 8.0))]
+    out = drn.summarize(rows)["noise_x1"]
+    assert out["fixed"]["worst_margin_sigmas"] == pytest.approx(25.0 / 8.0, abs=0.01)
+    assert out["adaptive"]["worst_margin_sigmas"] == pytest.approx(4.0, abs=0.01)
+    assert out["adaptive"]["worst_penetration_mm"] == 3.0
 
 
 # --- the slip lift ---------------------------------------------------------------------------------
