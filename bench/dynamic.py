@@ -48,6 +48,9 @@ def add_arguments(p):
                    help="with --real: skip the real-rig figures (occlusion, fused rig, radius study)")
     p.add_argument("--no-propagation", action="store_true",
                    help="with --real: the estimator without neighbour propagation (min_neighbours = 0), to compare")
+    p.add_argument("--near-reading", action="store_true",
+                   help="with --real: the cameras take each reading at the near end of its depth step "
+                        "([[camera]] near_reading; the recordings' fitted steps)")
     p.add_argument("--quick", action="store_true",
                    help="with --real: a short sweep (one scene, 0.1 and 0.3 m/s, toward the camera), seconds")
     p.add_argument("--speeds", type=_floats, default=None, metavar="V,V,...",
@@ -99,8 +102,10 @@ def run_real(args) -> dict:
         if getattr(args, key, None):
             opts[key] = getattr(args, key)
     mo = {"min_neighbours": 0} if args.no_propagation else {}
-    res = dr.sweep(scenes, backend=b, device=dev, model_options=mo, **opts)
-    out = {"backend": b, "motion_options": mo, "frame_rate_hz": dr.RATE_HZ, "tick_rate_hz": dr.TICK_HZ,
+    near = bool(getattr(args, "near_reading", False))
+    res = dr.sweep(scenes, backend=b, device=dev, model_options=mo, near_reading=near, **opts)
+    out = {"backend": b, "motion_options": mo, "near_reading": near, "frame_rate_hz": dr.RATE_HZ,
+           "tick_rate_hz": dr.TICK_HZ,
            "robot_speed_limit_mps": dr.ROBOT_SPEED,
            "real_scenes": res["scenes"], "real_rows": res["rows"],
            "real_held_speed_mps": dr.held_speeds(res["rows"], proxy_mm=0.5, robot_mm=1.0),

@@ -8,7 +8,9 @@ pixel is its depth minus the plane's depth along the same ray. Per capture the r
 variance, less the depth-code quantisation (depth_scale^2 / 12), gives sigma_z at the mean
 depth Z; a non-negative least-squares fit of sigma = a + b Z^2 over the captures gives a and b
 (dissertation 6.2, eq. 6.1; SPEC section 1). Disparity quantisation of structured-light
-sensors is part of what the sensor delivers and stays in the model.
+sensors is part of what the sensor delivers and stays in the model. The captures' distinct depths
+also give such a sensor's depth step in inverse depth (``service/depth_steps.py``): written as
+``depth_step_inv`` where the depths come on disparity levels, for ``near_reading``.
 """
 from __future__ import annotations
 
@@ -185,6 +187,15 @@ def run(args) -> int:
             labels.append(p.name)
     fit = fit_noise(captures, camera, labels, args.roi)
     print(fit.report())
-    emit(args, args.name, {"noise": {"a": fit.a, "b": fit.b}},
+    from pointfence.service.depth_steps import DepthSteps
+
+    codes = np.concatenate([np.unique(np.asarray(f)) for cap in captures
+                            for f in (cap if isinstance(cap, (list, tuple)) else [cap])])
+    steps = DepthSteps.fit(codes[codes < camera.max_code], camera.depth_scale)
+    print(f"depth steps: {steps.describe()}")
+    keys = {"noise": {"a": fit.a, "b": fit.b}}
+    if steps.disparity:
+        keys["depth_step_inv"] = round(steps.inv_step, 7)
+    emit(args, args.name, keys,
          f"pointfence calib noise: {len(fit.samples)} distances {min(s.z for s in fit.samples):.2f}-{max(s.z for s in fit.samples):.2f} m")
     return 0

@@ -43,6 +43,14 @@ class Camera:
         noise: axial noise model.
         z_min, z_max: valid depth range, m; readings outside are dropped.
         max_code: the sensor's "no reading" saturation code (dropped, as is 0).
+        depth_step_inv: a disparity camera's depth step in inverse depth, 1/m (its readings
+            come on levels of 1/z this far apart: inv_step * z^2 m apart in depth; a Kinect v1
+            0.0029, 9 mm at 1.8 m); 0: the readings are one code (``depth_scale``) apart.
+        near_reading: take each reading at the near end of the depth step it stands for,
+            z - max(depth_scale, depth_step_inv z^2) / 2 (``near_bias``): the true surface lies
+            within half a step of the reading along the ray, so a fixture built on readings
+            moved this way is not entered through the sensor's quantisation; it stands half a
+            step further from the surface (submittance).
     """
 
     name: str
@@ -59,6 +67,8 @@ class Camera:
     z_min: float = 0.1
     z_max: float = 10.0
     max_code: int = 65535
+    depth_step_inv: float = 0.0
+    near_reading: bool = False
 
     def __post_init__(self):
         for key in ("width", "height"):
@@ -84,6 +94,20 @@ class Camera:
             raise InputError(f"camera {self.name!r}: noise = {self.noise}; expected finite a >= 0, b >= 0")
         if not 0 < int(self.max_code) <= 65535:
             raise InputError(f"camera {self.name!r}: max_code = {self.max_code}; expected 1..65535")
+        v = self.depth_step_inv
+        if not isinstance(v, (int, float, np.floating, np.integer)) or not math.isfinite(v) or not 0 <= v < 1.0:
+            raise InputError(f"camera {self.name!r}: depth_step_inv = {v!r}; expected a finite step in inverse depth "
+                             "0 <= step < 1 1/m (0: readings one code apart; a Kinect v1: about 0.0029)")
+        if not isinstance(self.near_reading, (bool, np.bool_)):
+            raise InputError(f"camera {self.name!r}: near_reading = {self.near_reading!r}; expected true or false")
+
+    @property
+    def near_bias(self) -> tuple:
+        """(a m, b 1/m): a reading z is taken at z - max(a, b z^2), the near end of its depth
+        step with ``near_reading`` (half a code, half the disparity step), else (0, 0): as read."""
+        if not self.near_reading:
+            return 0.0, 0.0
+        return 0.5 * float(self.depth_scale), 0.5 * float(self.depth_step_inv)
 
     @property
     def K(self) -> np.ndarray:

@@ -76,14 +76,16 @@ class Rig:
         return poses
 
     def pack(self, frames: list, lateral_px: float) -> np.ndarray:
-        """float32 (n_cameras, CAM_FLOATS): R (9, row-major), t (3), 4 unused, then depth_scale,
-        z_min, z_max, noise a, noise b, lateral footprint (lateral_px / min(fx, fy), m per m of
-        depth), has colour (0/1), has mask (0/1). Columns 0-15 and 16-23 are the device
-        kernels' ``pose`` (float16) and ``cam`` (float8) arguments."""
+        """float32 (n_cameras, CAM_FLOATS): R (9, row-major), t (3), the near bias a, b
+        (``Camera.near_bias``: a reading z is taken at z - max(a, b z^2)), 2 unused, then
+        depth_scale, z_min, z_max, noise a, noise b, lateral footprint (lateral_px / min(fx, fy),
+        m per m of depth), has colour (0/1), has mask (0/1). Columns 0-15 and 16-23 are the
+        device kernels' ``pose`` (float16) and ``cam`` (float8) arguments."""
         out = np.zeros((len(self.cameras), CAM_FLOATS), dtype=np.float32)
         for i, (cam, T, f) in enumerate(zip(self.cameras, self.poses(frames), frames)):
             out[i, 0:9] = T[:3, :3].reshape(-1)
             out[i, 9:12] = T[:3, 3]
+            out[i, 12:14] = cam.near_bias
             out[i, 16:24] = [cam.depth_scale, cam.z_min, cam.z_max, cam.noise.a, cam.noise.b,
                              lateral_px / min(cam.fx, cam.fy), f.color is not None, f.mask is not None]
         return out

@@ -103,6 +103,8 @@ def _camera(t: CameraTable) -> CameraConfig:
     where = f"[[camera]] {t.name!r}"
     kw: dict = {k: getattr(t, k) for k in ("depth_scale", "z_min", "z_max", "max_code", "dist", "T_world_cam")
                 if getattr(t, k) is not None}
+    if t.depth_step_inv or t.near_reading:
+        kw.update(depth_step_inv=float(t.depth_step_inv), near_reading=bool(t.near_reading))
     if t.noise is not None:
         kw["noise"] = NoiseModel(t.noise.a, t.noise.b)
     given = [k for k in INTRINSIC_KEYS if getattr(t, k) is not None]

@@ -136,7 +136,8 @@ def _approach(anchor) -> np.ndarray:
 
 def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f: float = 0.01, master: str = "hold",
              backend: str = "opencl", device: str | None = None, model: MotionModel | None = None,
-             probe=None, advance: float | None = None, on_tick=None, slip_lift: bool = True) -> RealRun:
+             probe=None, advance: float | None = None, on_tick=None, slip_lift: bool = True,
+             near_reading: bool = False) -> RealRun:
     """One run of the loop in the module docstring on ``surface`` (a ``MovingRealFrame`` with
     ``motion``, or the synthetic plane with motion None). ``model``: the motion model (default:
     ``MotionModel(enabled=predict)``). ``probe(hs, t)``: called after every ingest (the
@@ -145,7 +146,9 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     advances from its place at engagement before it stops (default r_f + 2 cm; inf: it moves
     for the whole run; a ``motion`` with its own ``stop`` keeps it). ``slip_lift``: the robot's
     command raised along the proxy's normal while it trails a slipping proxy (``[teleop]
-    slip_lift``, on by default in the service; False: the bare rate-limited proxy)."""
+    slip_lift``, on by default in the service; False: the bare rate-limited proxy).
+    ``near_reading``: the camera's readings taken at the near end of their depth steps
+    (``Camera.near_reading``; the steps of ``surface.cam``: a real frame's fitted ones)."""
     if master not in ("hold", "push"):
         raise InputError(f"master = {master!r}; expected 'hold' or 'push'")
     if advance is not None and not (isinstance(advance, (int, float)) and advance > 0):
@@ -192,7 +195,8 @@ def run_case(surface, motion: Motion | None, speed: float, predict: bool, *, r_f
     start = moved(anchor + n * (r_f + p.band / 2 + 1e-3), t0)
     hold = moved(anchor + n * (r_f + 0.01), t0)
     pushed = anchor - n * 0.02
-    hs = HapticScene([surface.cam], [start], p, pp, backend=backend, device=device)
+    cam = replace(surface.cam, near_reading=bool(near_reading))
+    hs = HapticScene([cam], [start], p, pp, backend=backend, device=device)
 
     def ingest(seq):
         hs.ingest([surface.render(motion, seq / RATE_HZ, seq)])
@@ -254,13 +258,13 @@ def real_surface(frames) -> MovingRealFrame:
 
 def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backend: str = "opencl",
           device: str | None = None, synthetic: bool = True, model_options: dict | None = None,
-          slip_lift: bool = True) -> dict:
+          slip_lift: bool = True, near_reading: bool = False) -> dict:
     """Every scene x case x r_f x speed, with and without prediction. Returns {"rows": [...],
     "scenes": {name: {valid_fraction, anchor_depth_m}}}; a row: scene, motion, master, r_f_mm,
     speed_mps, and proxy/robot max penetration (mm) and proxy popped, without and with prediction.
     ``synthetic``: add the synthetic plane (toward, hold and push) for comparison.
     ``model_options``: MotionModel fields for the prediction runs (besides enabled).
-    ``slip_lift``: the robot command's slip lift (``run_case``)."""
+    ``slip_lift``: the robot command's slip lift, ``near_reading``: the camera's (``run_case``)."""
     rows, info = [], {}
     mo = dict(model_options or {})
     targets = [(real_surface(s), s) for s in scenes]
@@ -281,7 +285,7 @@ def sweep(scenes=REAL_SCENES, *, speeds=SPEEDS, radii=RADII, cases=CASES, backen
                     motion = Motion(kind, v, tuple(s.anchor())) if surf is not None else None
                     model = MotionModel(enabled=predict, **(mo if predict else {}))
                     r = run_case(s, motion, v, predict, r_f=r_f, master=master, backend=backend, device=device,
-                                 model=model, slip_lift=slip_lift)
+                                 model=model, slip_lift=slip_lift, near_reading=near_reading)
                     row[f"proxy_mm_{tag}"] = round(r.proxy_penetration * 1e3, 2)
                     row[f"robot_mm_{tag}"] = round(r.robot_penetration * 1e3, 2)
                     row[f"popped_{tag}"] = r.proxy_popped

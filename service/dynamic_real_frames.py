@@ -47,7 +47,7 @@ point beside a hole or in a gap between objects, with the surface behind it, is 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -218,7 +218,6 @@ class MovingRealFrame:
     at t, ``distance(q, t)`` the signed distance (m) of points q (N, 3) to the true surface."""
 
     def __init__(self, depth: np.ndarray, cam: Camera, name: str = "real", keep: float = KEEP):
-        self.cam = cam
         self.name = name
         z = np.asarray(depth, np.float64) * cam.depth_scale
         z[(depth >= min(cam.max_code, 65535))] = 0.0
@@ -228,6 +227,8 @@ class MovingRealFrame:
         if np.count_nonzero(ok) < 100:
             raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
         self.steps = DepthSteps.fit(np.where(ok, depth, 0), cam.depth_scale)
+        # the camera knows its steps (``Camera.near_reading`` uses them where a run turns it on)
+        self.cam = cam = replace(cam, depth_step_inv=self.steps.inv_step)
         z = self.steps.surface(z)
         self.depth_m = z
         self.valid_fraction = float(np.mean(ok))

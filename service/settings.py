@@ -156,6 +156,10 @@ class CameraTable:
                                      default_doc=f"the source's, else {Camera.z_max:g}")
     max_code: Optional[int] = setting(None, positive=True, doc="largest valid depth code (0 and max_code are invalid)",
                                       default_doc=f"the source's, else {Camera.max_code}")
+    depth_step_inv: float = setting(0.0, lo=0, hi=1.0, doc="a disparity camera's depth step in inverse depth (1/m; "
+                                    "Kinect v1 about 0.0029: 9 mm at 1.8 m); 0: readings one code apart")
+    near_reading: bool = setting(False, doc="take each reading at the near end of its depth step (half a code or half "
+                                 "the disparity step nearer): the sensor's quantisation cannot let the tool in")
     rate_hz: float = setting(30.0, positive=True, doc="frame rate (Hz)")
     options: dict = setting(factory=dict, doc="options of the source (synthetic: seed, dropout, speed, color, ...)")
 

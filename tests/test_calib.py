@@ -261,3 +261,32 @@ def test_cli_table_and_runs(tmp_path, capsys):
     assert "RMS residual 0.00 mm" in capsys.readouterr().out
     assert cli.main(["intrinsics", str(tmp_path / "none.png")]) == 1
     assert "not found" in capsys.readouterr().err
+
+
+def test_cli_noise_writes_a_disparity_cameras_depth_step(tmp_path, capsys):
+    """Plane captures from a Kinect-like camera whose depths come on levels of 1/z (a 1/8-pixel
+    disparity of 580 px x 7.5 cm) written as 16-bit PNGs: ``calib noise`` reports the levels and
+    writes ``depth_step_inv`` within 1 % of the camera's, which the scene file then loads."""
+    import cv2
+
+    from pointfence.calib import cli
+    from pointfence.service.depth_steps import DepthSteps
+
+    kinect = DepthSteps(1e-3, 1.0 / (8 * 580.0 * 0.075), 0.0004)
+    caps, _ = synthetic_captures(distances=(1.0, 1.6, 2.2, 2.8), frames=1)
+    dirs = []
+    for i, cap in enumerate(caps):
+        d = tmp_path / f"plane{i}"
+        d.mkdir()
+        raw = np.repeat(np.repeat(cap[0], 2, axis=0), 2, axis=1)      # the CLI's default 640 x 480 camera
+        img = raw.astype(np.float64) * 1e-3
+        q = np.where(raw > 0, kinect.quantize(np.where(img > 0, img, 1.0)), 0).astype(np.uint16)
+        assert cv2.imwrite(str(d / "0.png"), q)
+        dirs.append(str(d))
+    out = tmp_path / "noise.toml"
+    assert cli.main(["noise", *dirs, "--name", "k", "--source", "synthetic:plane", "--out", str(out)]) == 0
+    assert "disparity levels" in capsys.readouterr().out
+    from pointfence.service import config
+
+    cam = config.load(out).cameras[0].camera
+    assert cam.depth_step_inv == pytest.approx(kinect.inv_step, rel=0.01)

@@ -150,3 +150,21 @@ def test_service_priorities(tmp_path, line, message):
         config.load(write(tmp_path, text))
     ok = config.load(write(tmp_path, text.replace(line, "rt_priority = 0\nbuild_nice = 19")))
     assert (ok.service.rt_priority, ok.service.build_nice) == (0, 19)
+
+
+def test_near_reading_and_depth_step_reach_the_camera(tmp_path):
+    """``near_reading`` and ``depth_step_inv`` of a ``[[camera]]`` reach its Camera (full
+    intrinsics and a synthetic source's defaults alike); off by default; a negative step is
+    refused with the key named."""
+    text = GOOD.replace('noise = { a = 0.0005, b = 0.002 }', 'noise = { a = 0.0005, b = 0.002 }\nnear_reading = true\n'
+                        'depth_step_inv = 0.0029')
+    text = text.replace('name = "right"\nsource = "synthetic:plane"', 'name = "right"\nsource = "synthetic:plane"\n'
+                        'near_reading = true')
+    c = config.load(write(tmp_path, text))
+    left, right = c.cameras[0].camera, c.cameras[1].camera
+    assert left.near_reading and left.depth_step_inv == 0.0029 and left.near_bias == (0.0005, 0.00145)
+    assert right.near_reading and right.depth_step_inv == 0.0 and right.near_bias == (0.0005, 0.0)
+    plain = config.load(write(tmp_path, GOOD))
+    assert not plain.cameras[0].camera.near_reading and plain.cameras[0].camera.near_bias == (0.0, 0.0)
+    with pytest.raises(InputError, match="depth_step_inv"):
+        config.load(write(tmp_path, GOOD.replace('noise = { a = 0.0005, b = 0.002 }', 'depth_step_inv = -0.01')))

@@ -109,3 +109,18 @@ def test_the_moved_kinect_frame_keeps_the_cameras_levels():
     # the rigidly moved recording: 3.3 mm per frame off the levels
     moved = np.rint((s.depth_m[s.depth_m > 0] - 0.1 * 4 / 30) / 1e-3)
     assert np.mean(s.steps.quantize(moved * 1e-3) == moved) < 0.8
+
+
+@_needs("7scenes_kitchen_50f")
+def test_near_reading_keeps_the_proxy_out_of_the_kinects_steps():
+    """7-Scenes pushed at 0.1 m/s toward the tool, 1 cm fixture, prediction on: the proxy rests
+    on the Kinect's levels, up to half a 9 mm step behind the true surface, and enters the
+    fixture's region by more than 0.5 mm; with ``near_reading`` (the fitted step on the camera)
+    the readings stand at the near end of their steps and it stays within 0.2 mm."""
+    s = dr.real_surface("7scenes_kitchen_50f")
+    assert s.cam.depth_step_inv == s.steps.inv_step > 0
+    m = Motion("toward", 0.1, tuple(s.anchor()))
+    as_read = dr.run_case(s, m, 0.1, True, r_f=0.01, master="push")
+    near = dr.run_case(s, m, 0.1, True, r_f=0.01, master="push", near_reading=True)
+    assert as_read.proxy_penetration > 0.5e-3
+    assert near.proxy_penetration < 0.2e-3 and near.robot_penetration < 0.2e-3

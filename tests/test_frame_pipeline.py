@@ -191,3 +191,56 @@ def test_empty_and_all_invalid_frames_give_empty_valid_snapshots(backend):
     assert s.n_points == 0 and s.cell_start.max() == 0
     nb = pipe.neighbors([[0.0, 0.0, 0.8]], radius=0.01)
     assert nb.count[0] == 0 and nb.nearest[0] == -1 and np.isinf(nb.nearest_dist[0])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_near_reading_matches_reference(backend):
+    """``Camera.near_reading`` on a random rig, one camera in whole codes, one a disparity
+    camera (``depth_step_inv``): every backend gives the reference's snapshot."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(11)
+    cams, frames = random_rig(rng, n_cams=2)
+    cams = [replace(cams[0], near_reading=True), replace(cams[1], near_reading=True, depth_step_inv=0.0029)]
+    params = params_for("all")
+    ref = get_backend("numpy").pipeline(cams, params)
+    dev = get_backend(backend).pipeline(cams, params)
+    ref.ingest(frames)
+    dev.ingest(frames)
+    assert_same_snapshot(ref.host_snapshot(), dev.host_snapshot(), contracts_fma(backend))
+
+
+@pytest.mark.parametrize("near,step_inv", [(False, 0.0), (True, 0.0), (True, 0.0029), (False, 0.0029)])
+def test_near_reading_takes_each_reading_at_the_near_end_of_its_step(near, step_inv):
+    """A fronto-parallel wall at 0.4 m (code 400) and one at 2.5 m (code 2500), camera looking
+    down the world -z: with ``near_reading`` each point stands half a step nearer the camera,
+    half a code (0.5 mm) or half the disparity step (0.0029 * 2.5^2 / 2 = 9.1 mm at 2.5 m, the
+    code's 0.5 mm at 0.4 m where the disparity step is finer); without it, where it was read.
+    The disparity step alone moves nothing."""
+    T = pose(0.0, 0.0, 3.0, pitch=np.pi)
+    cam = Camera("c", 64, 48, 60.0, 60.0, 31.5, 23.5, T_world_cam=T, near_reading=near, depth_step_inv=step_inv)
+    depth = np.full((48, 64), 400, np.uint16)
+    depth[:, 32:] = 2500
+    params = PipelineParams(workspace=Workspace((-5, -5, -5), (5, 5, 5)), cell_size=0.1)
+    pipe = get_backend("numpy").pipeline([cam], params)
+    pipe.ingest([DepthFrame("c", depth, 0.0)])
+    s = pipe.host_snapshot()
+    z = 3.0 - s.points[:, 2]                          # depth along the camera axis
+    far = (s.pixel % 64) >= 32
+    if near:
+        np.testing.assert_allclose(z[~far], 0.4 - 0.0005, atol=2e-6)
+        np.testing.assert_allclose(z[far], 2.5 - (0.5 * step_inv * 2.5 ** 2 if step_inv else 0.0005), atol=2e-6)
+    else:
+        np.testing.assert_allclose(z[~far], 0.4, atol=2e-6)
+        np.testing.assert_allclose(z[far], 2.5, atol=2e-6)
+
+
+def test_near_reading_settings_are_checked():
+    from pointfence.kernels import InputError
+
+    with pytest.raises(InputError, match="depth_step_inv = -0.001"):
+        Camera("c", 4, 4, 3.0, 3.0, 2.0, 2.0, depth_step_inv=-0.001)
+    with pytest.raises(InputError, match="near_reading = 'yes'"):
+        Camera("c", 4, 4, 3.0, 3.0, 2.0, 2.0, near_reading="yes")
+    assert Camera("c", 4, 4, 3.0, 3.0, 2.0, 2.0).near_bias == (0.0, 0.0)
+    assert Camera("c", 4, 4, 3.0, 3.0, 2.0, 2.0, near_reading=True, depth_step_inv=0.002).near_bias == (0.0005, 0.001)

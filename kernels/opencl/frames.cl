@@ -1,6 +1,7 @@
 // Frame pipeline and spatial hash build (SPEC 1). Mirrors kernels/reference/pipeline.py.
 // Launched once per camera with that camera's parameters as uniform arguments:
-//   pose = R (row-major, 9), t (3), unused (4)            camera -> world
+//   pose = R (row-major, 9), t (3), near bias a, b, unused (2)   camera -> world; a reading z is
+//          taken at z - max(a, b z^2), the near end of its depth step (Camera.near_bias; 0, 0: as read)
 //   cam  = depth_scale, z_min, z_max, noise a, noise b, lateral (m per m of depth), has_color, has_mask
 //   cami = pixel offset in the rig, pixel count, max_code, camera index
 // The hash is a counting sort of pixel indices: classify (attributes and cell per pixel, written
@@ -24,6 +25,7 @@ inline int world_point(int pix, __global const ushort *depth, __global const flo
                        float *x, float *y, float *w, float *zc) {
     uint d = depth[pix];
     float z = (float)d * cam.s0;
+    z = z - fmax(pose.sc, pose.sd * z * z);
     float2 r = rays[pix];
     float xc = r.x * z, yc = r.y * z;
     *x = pose.s0 * xc + pose.s1 * yc + pose.s2 * z + pose.s9;

@@ -26,6 +26,7 @@ def deproject(rig: Rig, frames: list, packed: np.ndarray) -> dict:
     P = packed[cam]  # (n_pixels, CAM_FLOATS) float32
     max_code = rig.ints[cam, 2].astype(np.uint32)
     z = depth.astype(F) * P[:, 16]
+    z = z - np.maximum(P[:, 12], P[:, 13] * z * z)          # the near end of the reading's step (Camera.near_bias)
     valid = (depth != 0) & (depth != max_code) & (z >= P[:, 17]) & (z <= P[:, 18])
     rx, ry = rig.rays[:, 0], rig.rays[:, 1]
     xc, yc, zc = rx * z, ry * z, z

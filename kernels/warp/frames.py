@@ -22,6 +22,8 @@ class CamArgs:
     index: int  # camera id
     max_code: wp.uint32
     depth_scale: float
+    bias_a: float  # a reading z is taken at z - max(bias_a, bias_b z^2) (Camera.near_bias; 0, 0: as read)
+    bias_b: float
     z_min: float
     z_max: float
     noise_a: float
@@ -84,6 +86,7 @@ def classify(depth: wp.array(dtype=wp.uint16), rays: wp.array(dtype=wp.vec2), ca
     pix = cam.offset + i
     d = wp.uint32(depth[pix])
     z = float(d) * cam.depth_scale
+    z = z - wp.max(cam.bias_a, cam.bias_b * z * z)
     r = rays[pix]
     xc = r[0] * z
     yc = r[1] * z

@@ -136,6 +136,7 @@ class WarpPipeline(FramePipeline):
         ch = self._cams_np
         ch["R"] = packed[:, 0:9].reshape(-1, 3, 3)
         ch["t"] = packed[:, 9:12]
+        ch["bias_a"], ch["bias_b"] = packed[:, 12], packed[:, 13]
         for j, name in enumerate(("depth_scale", "z_min", "z_max", "noise_a", "noise_b", "lateral")):
             ch[name] = packed[:, 16 + j]
         ch["has_color"], ch["has_mask"] = packed[:, 22], packed[:, 23]
