@@ -31,7 +31,7 @@ command can move the robot, and no command shaping removes them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -129,14 +129,16 @@ def _robot(start, max_velocity: float):
 def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, start_out: float = 0.03,
               push: float = 0.03, speed: float = 0.1, hold: float = 0.5, max_robot_speed: float = 0.5,
               tool=TOOL, tool_axis=None, shade: str = "A", slip_lift: bool = False, backend: str = "opencl",
-              device: str | None = None, trace: bool = False) -> RigRun:
+              device: str | None = None, trace: bool = False, near_reading: bool = False) -> RigRun:
     """Architecture III on the real rig: the master starts ``start_out`` m outside the surface
     (normal distance) on the line through the protected point along ``direction`` (the push,
     default -normal), moves along it at ``speed`` m/s until it is ``push`` m beneath the
     surface (normal depth), and holds there for ``hold`` s. ``cameras``: 2 (A and B fused) or 1 (A only). ``tool``: the tool's parts
     (``TOOL``; None: no tool rendered), along ``tool_axis`` (default: -direction, up out of the
     surface), rendered into the cameras named in ``shade`` ("A", "B", "AB"). ``slip_lift``: the
-    teleop's slip lift at the fixture radius (``Teleop``), the proxies' normals bound."""
+    teleop's slip lift at the fixture radius (``Teleop``), the proxies' normals bound.
+    ``near_reading``: each camera takes its readings at the near end of their depth steps
+    (``Camera.near_reading``, with the step ``RigCamera.steps`` fitted from its frames)."""
     site = R.site
     n_dir = -site.normal if direction is None else np.asarray(direction, np.float64)
     n_dir = n_dir / np.linalg.norm(n_dir)
@@ -151,7 +153,9 @@ def arch3_run(R: Rig, *, cameras: int = 2, r_f: float = 0.01, direction=None, st
         raise InputError(f"push direction {n_dir} meets the surface at {np.degrees(np.arccos(depth_rate)):.0f} deg "
                          "from its normal; expected a push into it (within 78 deg of -normal)")
     start = site.point - (start_out / depth_rate) * n_dir
-    hs = HapticScene([c.camera for c in cams], [start], p, pp, backend=backend, device=device)
+    seen = [replace(c.camera, depth_step_inv=c.steps().inv_step, near_reading=True) if near_reading else c.camera
+            for c in cams]
+    hs = HapticScene(seen, [start], p, pp, backend=backend, device=device)
     filt = SelfFilter([c.camera for c in cams], margin=0.003)
     robot = _robot(start, max_robot_speed)
     tp = Teleop(1, scale=1.0, max_robot_speed=max_robot_speed, dt=1.0 / TICK_HZ, architecture="III",
@@ -258,7 +262,8 @@ def push_figures(*, quick: bool = False, **options) -> dict:
 
 
 def rig_figures(backend: str = "opencl", device: str | None = None, quick: bool = False, data=None) -> dict:
-    """Chapter 6 on real frames: the rig's site, the occlusion and push runs, the noise fit and
+    """Chapter 6 on real frames: the rig's site, the occlusion and push runs (and, in full, the
+    same with ``near_reading``), the noise fit and
     the fixed vs adaptive radius study (``dynamic_real_noise``: on the kitchen's 8 recorded
     frames, and with the fitted noise x1, x2). ``quick``: fewer and shorter
     runs (seconds, for tests). All in simulated time: the same frames give the same figures."""
@@ -275,6 +280,11 @@ def rig_figures(backend: str = "opencl", device: str | None = None, quick: bool 
     kw = dict(backend=backend, device=device, data=data)
     out["occlusion"] = occlusion_figures(quick=quick, **kw)
     out["push"] = push_figures(quick=quick, **kw)
+    if not quick:  # the same with the cameras' readings at the near end of their Kinect steps
+        occ = occlusion_figures(near_reading=True, **kw)
+        push = push_figures(near_reading=True, **kw)
+        out["near_reading"] = {"occlusion": {k: occ[k] for k in ("one_camera", "two_cameras")},
+                               "push_slip_lift": {k: v["slip_lift"] for k, v in push.items()}}
     every = 25 if quick else 5
     kitchen = drn.fit_noise(drn.recording_frames("7scenes_kitchen_50f", data=data, every=every))
     out["noise_model"] = {"built_in_kinect": {"a_mm": drn.kinect_model().a * 1e3, "b_per_m": drn.kinect_model().b},

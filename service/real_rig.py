@@ -67,6 +67,13 @@ class RigCamera:
         d = self.depths[i] if depth is None else depth
         return DepthFrame(self.camera.name, d, t, seq, T_world_cam=self.poses[i])
 
+    def steps(self):
+        """The camera's depth levels (``depth_steps.DepthSteps``) fitted from its window's frames."""
+        from .depth_steps import DepthSteps
+
+        codes = np.concatenate([np.unique(d[(d > 0) & (d < self.camera.max_code)]) for d in self.depths])
+        return DepthSteps.fit(codes, self.camera.depth_scale)
+
     def points(self, i: int, box=None, dequantized: bool = False) -> np.ndarray:
         """World points (N, 3) of window frame ``i``, float64, optionally inside ``box`` = (lo, hi);
         ``dequantized``: each pixel's depth moved onto the smooth surface within half of the
