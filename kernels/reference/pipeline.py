@@ -1,6 +1,6 @@
 """Frame pipeline and spatial hash, NumPy reference (SPEC 1).
 
-Per pixel: validity -> deprojection through the camera's ray table -> world transform ->
+Per pixel: depth (at the near end of its step with ``Camera.near_reading``) -> validity -> deprojection through the camera's ray table -> world transform ->
 noise covariance and its largest eigenvalue -> fixture radius -> protected selection ->
 workspace crop -> cell. Then a stable counting sort of the surviving points by cell.
 
