@@ -13,10 +13,13 @@ depth on the camera's level and code, as that camera would report it; ``step_at`
 local step (m), the width within which the recorded depth says where the surface is. A camera
 whose distinct depths are one code apart keeps the code as its step (``inv_step`` 0).
 
-Used by ``dynamic_real_frames``: the true surface is the recording dequantised within half of
-its local step (a smooth surface, not the staircase of its levels), and the moved scene is
-re-quantised onto the same levels, so that the camera's steps stay where the camera puts them
-(fixed depths) while the surface moves through them.
+Used by the real-frame evaluation: in ``dynamic_real_frames`` the true surface is the recording
+dequantised within half of its local step (a smooth surface, not the staircase of its levels),
+and the moved scene is re-quantised onto the same levels, so that the camera's steps stay where
+the camera puts them (fixed depths) while the surface moves through them; ``real_rig`` and
+``dynamic_real_noise`` take the same levels for the rig's cameras and the modelled noise. In the
+product, ``pointfence calib noise`` writes a disparity camera's ``inv_step`` as its
+``[[camera]] depth_step_inv``, which ``Camera.near_reading`` uses.
 """
 from __future__ import annotations
 
