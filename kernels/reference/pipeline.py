@@ -2,7 +2,8 @@
 
 Per pixel: depth (at the near end of its step with ``Camera.near_reading``) -> validity ->
 deprojection through the camera's ray table -> world transform -> noise covariance and its
-largest eigenvalue -> fixture radius -> protected selection -> workspace crop -> cell. Then a stable counting sort of the surviving points by cell.
+largest eigenvalue -> fixture radius -> protected selection -> workspace crop -> cell. Then a
+stable counting sort of the surviving points by cell.
 
 Positions are computed in float32 in the same operation order as the device kernels so that
 backends agree to rounding; the eigenvalue is computed exactly (float64 eigvalsh).
