@@ -218,7 +218,8 @@ class McapRecorder:
         cams = [{"name": c.name, "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy,
                  "depth_scale": c.depth_scale, "T_world_cam": np.asarray(c.T_world_cam, float).ravel().tolist(),
                  "dist": [float(x) for x in c.dist], "noise": {"a": c.noise.a, "b": c.noise.b}, "z_min": c.z_min,
-                 "z_max": c.z_max, "max_code": c.max_code, "source": cc.source, "rate_hz": cc.rate_hz}
+                 "z_max": c.z_max, "max_code": c.max_code, "depth_step_inv": c.depth_step_inv,
+                 "near_reading": bool(c.near_reading), "source": cc.source, "rate_hz": cc.rate_hz}
                 for c, cc in zip(cameras, cfg.cameras)]
         self.describe({"epoch_ns": self.epoch_ns, "cameras": cams, "config": config_text,
                        "config_path": cfg.path})

@@ -163,7 +163,9 @@ def recording_config(recording, radius: Optional[float] = None):
         cams.append({"name": c["name"], "source": c["source"], "rate_hz": c["rate_hz"], "fx": c["fx"], "fy": c["fy"],
                      "cx": c["cx"], "cy": c["cy"], "width": c["width"], "height": c["height"],
                      "depth_scale": c["depth_scale"], "T_world_cam": c["T_world_cam"], "dist": c["dist"],
-                     "noise": c["noise"], "z_min": c["z_min"], "z_max": c["z_max"], "max_code": c["max_code"]})
+                     "noise": c["noise"], "z_min": c["z_min"], "z_max": c["z_max"], "max_code": c["max_code"],
+                     # (recordings before stop 38 hold neither: their cameras read as read)
+                     "depth_step_inv": c.get("depth_step_inv", 0.0), "near_reading": c.get("near_reading", False)})
     if not cams:
         raise InputError(f"{recording.path}: the recording names no cameras")
     doc["camera"] = cams

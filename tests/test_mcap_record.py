@@ -31,17 +31,18 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
 
 
-def _serve(tmp_path, record: Path, seconds: float, backend: str = "opencl", client: bool = True):
+def _serve(tmp_path, record: Path, seconds: float, backend: str = "opencl", client: bool = True, scene_text=None):
     """A `pointfence serve --record` process (at most 120 s) with a device-sim client that drives the master
     for ``seconds`` once it has connected; returns (serve, client). The client tolerates a loaded
-    machine (late ticks, the longest session timeout): these tests are about the recording."""
+    machine (late ticks, the longest session timeout): these tests are about the recording.
+    ``scene_text``: the scene instead of ``bench.e2e.LIGHT_SCENE``."""
     from pointfence.bench.e2e import LIGHT_SCENE
 
     key = tmp_path / "pf.key"
     subprocess.run([sys.executable, "-m", "pointfence", "serve", "--new-key", str(key)], env=ENV, check=True,
                    capture_output=True)
     scene = tmp_path / "scene.toml"
-    scene.write_text(LIGHT_SCENE)
+    scene.write_text(LIGHT_SCENE if scene_text is None else scene_text)
     ready = tmp_path / "ready.json"
     serve = subprocess.Popen([sys.executable, "-m", "pointfence", "serve", "--key-file", str(key), "--port", "0",
                               "--no-control", "--config", str(scene), "--ready-file", str(ready), "--backend", backend,
@@ -579,6 +580,30 @@ def test_a_recorded_numpy_run_replays_exactly(tmp_path):
         _stop(serve, dev)
     r = open_recording(rec)
     assert r.meta["backend"] == "numpy" and r.rows[:, r.layout.cols[("in", "master_ok")][0]].any()
+    _, check = replay(r)
+    _assert_exact_up_to_dropped_snapshots(r, check)
+
+
+def test_a_run_with_near_reading_replays_with_it(tmp_path):
+    """A camera whose readings are taken at the near end of their steps (``near_reading``, a
+    disparity step) is recorded with both settings, and the replay's cameras have them: the run
+    replays exactly (without them the replay's fixture would sit half a step further back)."""
+    from pointfence.bench.e2e import LIGHT_SCENE
+    from pointfence.service.mcap_replay import recording_config
+
+    assert LIGHT_SCENE.count("[[camera]]") == 1
+    scene = LIGHT_SCENE.replace("[[camera]]\n", "[[camera]]\nnear_reading = true\ndepth_step_inv = 0.0029\n")
+    rec = tmp_path / "near.mcap"
+    serve, dev = _serve(tmp_path, rec, 3.0, scene_text=scene)
+    try:
+        _finish(serve, dev)
+    finally:
+        _stop(serve, dev)
+    r = open_recording(rec)
+    cam = r.meta["cameras"][0]
+    assert cam["near_reading"] is True and cam["depth_step_inv"] == 0.0029
+    replayed = recording_config(r).cameras[0].camera
+    assert replayed.near_reading and replayed.depth_step_inv == 0.0029
     _, check = replay(r)
     _assert_exact_up_to_dropped_snapshots(r, check)
 
