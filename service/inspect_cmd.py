@@ -104,6 +104,7 @@ def _cameras(meta: dict, sc) -> list:
         out.append({"name": c["name"], "source": c.get("source"), "width": c["width"], "height": c["height"],
                     "fx": c["fx"], "fy": c["fy"], "cx": c["cx"], "cy": c["cy"], "dist": c.get("dist"),
                     "depth_scale": c.get("depth_scale"), "configured_rate_hz": c.get("rate_hz"),
+                    "near_reading": bool(c.get("near_reading", False)), "depth_step_inv": c.get("depth_step_inv", 0.0),
                     "frames": 0 if depth is None else depth.count,
                     "frame_rate_hz": None if depth is None or depth.rate_hz is None else round(depth.rate_hz, 2)})
     return out
@@ -159,9 +160,13 @@ def text(rep: dict) -> str:
     for c in rep["cameras"]:
         dist = "none" if not c["dist"] or not any(c["dist"]) else " ".join(f"{d:g}" for d in c["dist"])
         rate = "-" if c["frame_rate_hz"] is None else f"{c['frame_rate_hz']:.1f} Hz"
+        near = ""
+        if c["near_reading"] or c["depth_step_inv"]:
+            step = f", disparity step {c['depth_step_inv']:g} 1/m" if c["depth_step_inv"] else ""
+            near = f", readings {'at the near end of their steps' if c['near_reading'] else 'as read'}{step}"
         L.append(f"  {c['name']}: {c['width']}x{c['height']}, fx {c['fx']:g} fy {c['fy']:g} cx {c['cx']:g} "
-                 f"cy {c['cy']:g} px, distortion {dist}, depth scale {c['depth_scale']:g} m; {c['frames']} frames "
-                 f"recorded ({rate}; configured {c['configured_rate_hz']:g} Hz); source {c['source']}")
+                 f"cy {c['cy']:g} px, distortion {dist}, depth scale {c['depth_scale']:g} m{near}; {c['frames']} "
+                 f"frames recorded ({rate}; configured {c['configured_rate_hz']:g} Hz); source {c['source']}")
     L.append(f"arms       {len(rep['arms'])}")
     for a in rep["arms"]:
         L.append(f"  arm {a['arm']}: robot {a['robot']} ({a['robot_model']}), master {a['master']}")

@@ -604,6 +604,10 @@ def test_a_run_with_near_reading_replays_with_it(tmp_path):
     assert cam["near_reading"] is True and cam["depth_step_inv"] == 0.0029
     replayed = recording_config(r).cameras[0].camera
     assert replayed.near_reading and replayed.depth_step_inv == 0.0029
+    from pointfence.service import inspect_cmd
+
+    report, _ = inspect_cmd.build(rec, measure=False)
+    assert "readings at the near end of their steps, disparity step 0.0029 1/m" in inspect_cmd.text(report)
     _, check = replay(r)
     _assert_exact_up_to_dropped_snapshots(r, check)
 
