@@ -189,9 +189,8 @@ def run(args) -> int:
     print(fit.report())
     from pointfence.service.depth_steps import DepthSteps
 
-    codes = np.concatenate([np.unique(np.asarray(f)) for cap in captures
-                            for f in (cap if isinstance(cap, (list, tuple)) else [cap])])
-    steps = DepthSteps.fit(codes[codes < camera.max_code], camera.depth_scale)
+    images = [np.asarray(f) for cap in captures for f in (cap if isinstance(cap, (list, tuple)) else [cap])]
+    steps = DepthSteps.fit_frames(images, camera.depth_scale, camera.max_code)
     print(f"depth steps: {steps.describe()}")
     keys = {"noise": {"a": fit.a, "b": fit.b}}
     if steps.disparity:

@@ -136,6 +136,12 @@ class DepthSteps:
             return plain
         return cls(float(unit), step, offset)
 
+    @classmethod
+    def fit_frames(cls, depths, unit: float, max_code: int = 65535) -> "DepthSteps":
+        """``fit`` over the valid readings (0 < code < ``max_code``) of one or more depth images
+        (uint16 codes of ``unit`` m) of one camera."""
+        return cls.fit(np.concatenate([np.unique(d[(d > 0) & (d < max_code)]) for d in depths]), unit)
+
     def describe(self) -> str:
         """One line for reports: the code and, for a disparity camera, its step at 1 and 2 m."""
         if not self.disparity:

@@ -226,7 +226,7 @@ class MovingRealFrame:
         ok = z > 0
         if np.count_nonzero(ok) < 100:
             raise InputError(f"{name}: {np.count_nonzero(ok)} valid depth pixels; expected a real depth image")
-        self.steps = DepthSteps.fit(np.where(ok, depth, 0), cam.depth_scale)
+        self.steps = DepthSteps.fit_frames([np.asarray(depth)], cam.depth_scale, cam.max_code)
         # the camera knows its steps (``Camera.near_reading`` uses them where a run turns it on)
         self.cam = cam = replace(cam, depth_step_inv=self.steps.inv_step)
         z = self.steps.surface(z)

@@ -107,14 +107,13 @@ def fit_noise(frames, *, patch: int = 8, bin_width: float = 0.1, min_blocks: int
     """Fit sigma_z = a + b Z^2 to ``frames``, an iterable of (uint16 depth, Camera), as the
     module docstring describes. Raises InputError when fewer than two depth bins have
     ``min_blocks`` flat blocks."""
-    zs, ss, codes = [], [], []
-    unit = None
+    zs, ss, depths = [], [], []
+    cam = None
     for depth, cam in frames:
         z, s = block_sigmas(depth, cam, patch)
         zs.append(z)
         ss.append(s)
-        codes.append(np.unique(depth[(depth > 0) & (depth < cam.max_code)]))
-        unit = cam.depth_scale
+        depths.append(depth)
     z, s = np.concatenate(zs), np.concatenate(ss)
     rows = []
     if len(z):
@@ -134,7 +133,7 @@ def fit_noise(frames, *, patch: int = 8, bin_width: float = 0.1, min_blocks: int
         a, b = 0.0, float(np.sum(wts * wts * sb * zb * zb) / np.sum(wts * wts * zb ** 4))
     if b < 0:
         a, b = float(np.sum(wts * wts * sb) / np.sum(wts * wts)), 0.0
-    steps = DepthSteps.fit(np.concatenate(codes), unit)
+    steps = DepthSteps.fit_frames(depths, cam.depth_scale, cam.max_code)
     return NoiseFit(float(a), float(b), tuple(rows), steps)
 
 

@@ -71,8 +71,7 @@ class RigCamera:
         """The camera's depth levels (``depth_steps.DepthSteps``) fitted from its window's frames."""
         from .depth_steps import DepthSteps
 
-        codes = np.concatenate([np.unique(d[(d > 0) & (d < self.camera.max_code)]) for d in self.depths])
-        return DepthSteps.fit(codes, self.camera.depth_scale)
+        return DepthSteps.fit_frames(self.depths, self.camera.depth_scale, self.camera.max_code)
 
     def points(self, i: int, box=None, dequantized: bool = False) -> np.ndarray:
         """World points (N, 3) of window frame ``i``, float64, optionally inside ``box`` = (lo, hi);
@@ -84,9 +83,10 @@ class RigCamera:
         if dequantized:
             from .depth_steps import DepthSteps
 
-            ok = (d > 0) & (d < self.camera.max_code)
-            z = DepthSteps.fit(np.where(ok, d, 0), self.camera.depth_scale).surface(
-                np.where(ok, d.astype(np.float64) * self.camera.depth_scale, 0.0))
+            cam = self.camera
+            ok = (d > 0) & (d < cam.max_code)
+            z = DepthSteps.fit_frames([d], cam.depth_scale, cam.max_code).surface(
+                np.where(ok, d.astype(np.float64) * cam.depth_scale, 0.0))
         return cloud(self.camera, d, self.poses[i], box, z=z)
 
 
