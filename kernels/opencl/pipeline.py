@@ -178,7 +178,9 @@ class OpenCLPipeline(FramePipeline):
             return k
 
         pose0, cam0 = np.zeros(16, np.float32), np.zeros(8, np.float32)
-        self._classify = [[bound("classify", self.depth, self.rays, pose0, cam0, rig.ints[i].copy(), self.wmin, self.wmax,
+        # a camera taking its readings at the near end of their steps has a kernel of its own
+        name = ["classify_near" if cam.near_reading else "classify" for cam in rig.cameras]
+        self._classify = [[bound(name[i], self.depth, self.rays, pose0, cam0, rig.ints[i].copy(), self.wmin, self.wmax,
                                  self.gridf, self.dims, *self.sel_args, self.color, self.mask, self.radius_arg,
                                  self.pix_cell, self.pix_prot, slot.pts, slot.sigma) for i in range(len(rig))]
                           for slot in self.buffers.slots]
