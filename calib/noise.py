@@ -97,6 +97,11 @@ def plane_residuals(depth: np.ndarray, camera: Camera, roi: float = 0.5, label: 
     return res, z[inl], n
 
 
+def capture_frames(cap) -> list:
+    """The depth images of one capture: a list of frames of one plane, or a single image."""
+    return list(cap) if isinstance(cap, (list, tuple)) else [cap]
+
+
 def fit_noise(captures: Sequence, camera: Camera, labels=None, roi: float = 0.5, show_progress: bool = True) -> NoiseFit:
     """Fit sigma_z = a + b Z^2. ``captures``: a list of depth images, or of lists of depth images
     (several frames of the same plane at one distance, pooled)."""
@@ -104,7 +109,7 @@ def fit_noise(captures: Sequence, camera: Camera, labels=None, roi: float = 0.5,
     samples = []
     q2 = camera.depth_scale ** 2 / 12.0
     for cap, lab in progress(list(zip(captures, labels)), "fitting planes", enabled=show_progress):
-        frames = cap if isinstance(cap, (list, tuple)) else [cap]
+        frames = capture_frames(cap)
         res, zs, tilts = [], [], []
         for k, f in enumerate(frames):
             r, z, n = plane_residuals(f, camera, roi, f"{lab}" + (f" frame {k}" if len(frames) > 1 else ""))
@@ -189,7 +194,7 @@ def run(args) -> int:
     print(fit.report())
     from pointfence.service.depth_steps import DepthSteps
 
-    images = [np.asarray(f) for cap in captures for f in (cap if isinstance(cap, (list, tuple)) else [cap])]
+    images = [np.asarray(f) for cap in captures for f in capture_frames(cap)]
     steps = DepthSteps.fit_frames(images, camera.depth_scale, camera.max_code)
     print(f"depth steps: {steps.describe()}")
     keys = {"noise": {"a": fit.a, "b": fit.b}}
