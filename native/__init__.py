@@ -159,7 +159,6 @@ _SIGNATURES = {
     "pf_masters_scatter": (None, [_D, c_int64, POINTER(_D)]),
     "pf_script_at": (c_int64, [_D, _D, _D, c_int64, c_double, _D, _D]),
     "pf_pose_check": (c_int32, [c_void_p, c_double]),
-    "pf_proxy_unpack": (None, [_F, c_int64, _F, _F, _F, _I32, _I32, _U8]),
     "pf_crc32": (ctypes.c_uint32, [c_void_p, c_int64]),
     "pf_chan_write": (None, [_CH, c_void_p]),
     "pf_chan_read": (c_int32, [_CH, c_void_p, c_int32]),

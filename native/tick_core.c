@@ -66,7 +66,6 @@ static void shrink3(double *v, double length) {
 }
 
 #include "tick_quat.h"
-#include "proxy_out.h"
 
 /* --- teleoperation (service/teleop.py) ---------------------------------------------------- */
 

@@ -186,3 +186,36 @@ def test_fixture_mode_ignores_unprotected_points():
     for z in np.linspace(0.05, -0.01, 80):
         fx.step([[0.05 * side, 0.0, z]])
     assert fx.states[0] != FREE and fx.proxies[0, 2] == pytest.approx(0.01, abs=0.0006)  # 1 cm spheres
+
+
+@pytest.mark.parametrize("shape,inline", [("cpu", True), ("cpu", False), ("gpu", False)])
+def test_results_land_in_the_batch_arrays_when_capacity_exceeds_the_batch(shape, inline):
+    """The kernels write each result straight into the batch's arrays, laid out for the batch's
+    capacity (kernels/opencl/proxy.py, ``out_block``): after growing to 5 proxies (capacity 6)
+    and shrinking to 2, every output still equals the reference's to the bit, on the in-thread
+    device, the worker pool and the GPU-shaped kernel (work-groups of 32 on PoCL)."""
+    from pointfence.kernels.opencl.kernel_shape import ANY, GroupSizing
+
+    rng = np.random.default_rng(7)
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = get_backend("opencl").pipeline(cams, params_for("mask", adaptive=True, cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    p = HapticParams(max_steps=40)
+    sizing = GroupSizing(group_sizes=((ANY, 32),)) if shape == "gpu" else None
+    surf = snap.points[rng.integers(0, snap.n_points, 5), :3].astype(np.float64)
+    start = surf + rng.normal(0, 0.01, (5, 3)) + [0, 0, -0.015]
+    dev = pipe.proxies(start[:3], p, inline=inline, kernel_shape=shape, sizing=sizing)
+    dev.reset(start)    # capacity 6 (twice 3) for 5 proxies
+    assert dev.device_kind == ("in-thread" if inline and pipe.inline_ctx is not None else "pool")
+    for rows in (slice(0, 5), slice(3, 5)):
+        dev.reset(start[rows])
+        ref = NumpyProxies(pipe, start[rows], p, snapshot=snap, lanes=LANES)
+        seen = set()
+        for hips in random_walk(rng, start[rows], 60, drift=(0, 0, 0.0008)):
+            dev.step(hips)
+            ref.step(hips)
+            for name in ("positions", "normals", "states", "steps", "converged", "nearest"):
+                np.testing.assert_array_equal(getattr(dev, name), getattr(ref, name), err_msg=name)
+            seen.update(dev.states.tolist())
+        assert len(seen) >= 2   # free and in contact: the states and the steps vary

@@ -313,17 +313,32 @@ inline float3 normal_of(float3 ns) {
     return nn > 0.0f ? ns / nn : (float3)(0.0f);
 }
 
-// out[p] (float8): x, y, z, nearest clearance, nx, ny, nz, packed int: state | converged << 2 | steps << 3
+// The tick's results of proxy p, written in the layout of the batch's host arrays for a batch of
+// ocap proxies (kernels/opencl/proxy.py, ``out_block``), so that the host reads them straight into
+// those arrays (on PoCL's in-thread device the kernel writes them there itself): the positions
+// (3 ocap floats, world m), the nearest clearances (ocap floats, m), the normals (3 ocap floats),
+// the states and the steps (ocap ints each), the converged flags (ocap bytes).
+inline void write_out(__global float *out, int ocap, int p, float3 X, float min_e, float3 nrm, int st, int steps,
+                      int conv) {
+    vstore3(X, p, out);
+    out[3 * ocap + p] = min_e;
+    vstore3(nrm, p, out + 4 * ocap);
+    ((__global int *)(out + 7 * ocap))[p] = st;
+    ((__global int *)(out + 8 * ocap))[p] = steps;
+    ((__global uchar *)(out + 9 * ocap))[p] = (uchar)conv;
+}
+
+// hips: 3 floats a proxy (world m); out: see write_out (ocap: the batch's capacity)
 __kernel void proxy_tick(__global const float4 *pts, __global const int *order, __global const int *start,
-                         float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float4 *hips,
-                         __global float8 *out, __global float *wsbuf, int cap, __constant float *prm,
+                         float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float *hips,
+                         __global float *out, __global float *wsbuf, int cap, __constant float *prm,
                          int fixture, int max_steps, int gspan, int rspan, __global const float4 *vel, float dt,
-                         __global int *nearbuf) {
+                         __global int *nearbuf, int ocap) {
     int p = get_global_id(0);
     if (p >= n_proxies) return;
     __global float *ws = wsbuf + (size_t)p * 4 * cap;
     __global int *nl = nearbuf + (size_t)p * (cap / VW);
-    float3 X = pos[p].xyz, H = hips[p].xyz, X0 = X;
+    float3 X = pos[p].xyz, H = vload3(p, hips), X0 = X;
     const float r1 = P_R1, band = P_BAND, nreach = P_NREACH, skin2 = P_SKIN * P_SKIN;
     // A step's limit F is at most band / 2 (slack >= 0) and its length at most step, so a point
     // with clearance e >= band / 2 + margin + step cannot stop it: its hit time t >= e - F -
@@ -400,5 +415,5 @@ __kernel void proxy_tick(__global const float4 *pts, __global const int *order, 
         ++steps;
     }
     pos[p] = (float4)(X, 0.0f);
-    out[p] = (float8)(X.x, X.y, X.z, min_e, nrm.x, nrm.y, nrm.z, as_float(st | (conv << 2) | (steps << 3)));
+    write_out(out, ocap, p, X, min_e, nrm, st, steps, conv);
 }

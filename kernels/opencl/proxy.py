@@ -3,15 +3,15 @@
 Device buffers (proxy positions, HIPs, packed outputs, per-proxy working sets) are allocated
 when the batch is created and grow only when the number of proxies grows. The proxies'
 positions stay on the device between ticks. A tick is: one non-blocking HIP upload, the kernel
-(every step inside it) against the front snapshot, one blocking read of the packed outputs into
-a preallocated host array, and a few in-place unpacking copies.
+(every step inside it) against the front snapshot, and one blocking read of the results, which
+the kernel writes in the layout of the batch's host arrays (``out_block``), straight into them.
 
 On PoCL a batch of up to ``INLINE_MAX`` proxies runs on the in-thread device (the kernel
 executes in the thread that calls ``step``, reading the snapshot's shared host memory: no
 worker hand-off, no wait behind a frame build); larger batches run on the worker pool. In-thread,
 the HIPs and the outputs are host arrays the kernel addresses directly, and a tick makes no
 blocking call: the calling thread keeps Python's interpreter lock from the HIP write to the
-unpacking (the haptic loop relies on this, ``service/loop.py``).
+results (the haptic loop relies on this, ``service/loop.py``).
 
 Two kernels give the same results bit for bit (``kernels/opencl/kernel_shape.py``): the
 CPU-shaped ``proxy_tick`` (a work-item a proxy, working sets in global memory) and, on GPUs, the
@@ -19,11 +19,7 @@ GPU-shaped ``proxy_tick_wg`` (a work-group a proxy, its working set in local mem
 """
 from __future__ import annotations
 
-from ctypes import c_int64
-
 import numpy as np
-
-from pointfence.native import fast, ptr
 
 from ..errors import KernelError
 from ..motion import extra_span
@@ -31,6 +27,7 @@ from ..neighbors import search_span
 from ..proxy import LANES, WS_CAPACITY, ProxyBatch
 from .context import build
 from .kernel_shape import GroupSizing, check_shape, resolve_shape
+from .shared_host import aligned_zeros
 
 #: device memory the working sets of a batch may take together (bytes)
 WS_BUDGET = 512 << 20
@@ -47,6 +44,21 @@ def _program(pipeline, inline: bool, shape: str):
         files = ("proxy.cl", "proxy_gpu.cl") if shape == "gpu" else ("proxy.cl",)
         progs[key] = build(pipeline.inline_ctx if inline else pipeline.ctx, *files)
     return progs[key]
+
+
+def out_block(cap: int):
+    """(block, views) for a batch of ``cap`` proxies: one page-aligned byte block (PoCL's
+    in-thread kernel writes into it in place) in the layout of the kernels' ``write_out``
+    (proxy.cl), and the batch's arrays as views of it: positions (cap, 3) float32 (world m),
+    nearest clearances (cap,) float32 (m, inf at first), normals (cap, 3) float32, states and
+    steps (cap,) int32, converged flags (cap,) bool."""
+    block = aligned_zeros(37 * cap, np.uint8)
+    f = block[:36 * cap].view(np.float32)
+    i = block[:36 * cap].view(np.int32)
+    nearest = f[3 * cap:4 * cap]
+    nearest.fill(np.inf)
+    return block, (f[:3 * cap].reshape(cap, 3), nearest, f[4 * cap:7 * cap].reshape(cap, 3), i[7 * cap:8 * cap],
+                   i[8 * cap:9 * cap], block[36 * cap:].view(np.bool_))
 
 
 class OpenCLProxies(ProxyBatch):
@@ -122,6 +134,18 @@ class OpenCLProxies(ProxyBatch):
             self._spans = spans
 
     # --- storage -------------------------------------------------------------------------------
+    def _alloc(self, n: int):
+        """The batch's result arrays as views of one block in the kernel's output layout
+        (``out_block``): a tick reads its results straight into them, and on PoCL's in-thread
+        device the kernel writes them there itself."""
+        if n <= self._cap:
+            return
+        cap = max(n, 2 * self._cap, 1)
+        self._out_block, views = out_block(cap)
+        self._positions, self._nearest, self._normals, self._states, self._steps, self._converged = views
+        self._cap = cap
+        self._grow(cap)
+
     def _grow(self, cap: int):
         inline = self._inline_allowed and cap <= INLINE_MAX
         if inline != self._inline:
@@ -138,21 +162,15 @@ class OpenCLProxies(ProxyBatch):
             self._near = cl.Buffer(ctx, mf.READ_WRITE, 4 * (self.ws_cap // VW) * cap)   # clip's chunk lists
         self._pos_host = np.zeros((cap, 4), np.float32)
         if self._inline:   # shared with the in-thread kernel: no copies in a tick
-            from .shared_host import aligned_zeros, host_buffer
+            from .shared_host import host_buffer
 
-            self._hips_host = aligned_zeros(16 * cap, np.float32, (cap, 4))
-            self._out_host = aligned_zeros(32 * cap, np.float32, (cap, 8))
+            self._hips_host = aligned_zeros(12 * cap, np.float32, (cap, 3))
             self._hips = host_buffer(cl, ctx, self._hips_host, read_only=True)
-            self._out = host_buffer(cl, ctx, self._out_host)
+            self._out = host_buffer(cl, ctx, self._out_block)
         else:
-            self._hips_host = np.zeros((cap, 4), np.float32)
-            self._out_host = np.zeros((cap, 8), np.float32)
-            self._hips = cl.Buffer(ctx, mf.READ_ONLY, 16 * cap)
-            self._out = cl.Buffer(ctx, mf.WRITE_ONLY, 32 * cap)
-        self._unpack = (ptr(self._out_host, np.float32, "proxy output"), ptr(self._positions, np.float32, "positions"),
-                        ptr(self._nearest, np.float32, "nearest"), ptr(self._normals, np.float32, "normals"),
-                        ptr(self._states, np.int32, "states"), ptr(self._steps, np.int32, "steps"),
-                        ptr(self._converged, np.bool_, "converged"))
+            self._hips_host = np.zeros((cap, 3), np.float32)
+            self._hips = cl.Buffer(ctx, mf.READ_ONLY, 12 * cap)
+            self._out = cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=self._out_block)
         self._arg_slot = None
         self._set_batch_args()
 
@@ -164,6 +182,7 @@ class OpenCLProxies(ProxyBatch):
         k.set_arg(9, self._ws)
         k.set_arg(10, np.int32(self.ws_cap))
         k.set_arg(18, self._near)
+        k.set_arg(22 if self.shape == "gpu" else 19, np.int32(self._cap))   # out_block's layout
         self._n_arg = None
         self._sized_for = None
 
@@ -193,7 +212,7 @@ class OpenCLProxies(ProxyBatch):
         cl, n, k = self.cl, self.n, self.kernel
         if n == 0:
             return
-        self._hips_host[:n, :3] = hips
+        np.copyto(self._hips_host[:n], hips)
         if self._n_arg != n:
             k.set_arg(5, np.int32(n))
             self._n_arg = n
@@ -205,7 +224,6 @@ class OpenCLProxies(ProxyBatch):
                 self._gsize = (n if ls is None else (n + ls - 1) // ls * ls,)
                 self._lsize = None if ls is None else (ls,)
         q = self.queue
-        out = self._out_host
         buf = self.pipeline.buffers
         i = buf.acquire()   # the front slot: no build overwrites it during the tick
         try:
@@ -230,13 +248,11 @@ class OpenCLProxies(ProxyBatch):
                 else:
                     ev = cl.enqueue_copy(q, self._hips, self._hips_host[:n], is_blocking=False)
                     cl.enqueue_nd_range_kernel(q, k, self._gsize, self._lsize)
-                    cl.enqueue_copy(q, out[:n], self._out, is_blocking=True)
+                    cl.enqueue_copy(q, self._out_block, self._out, is_blocking=True)   # into the batch's arrays
                     del ev   # complete by now: its destructor does not wait (see opencl/pipeline.py)
             except cl.Error as e:
                 raise KernelError(f"OpenCL proxy kernel failed on {self.pipeline.backend.device_name} "
                                   f"({self.device_kind}): {e}") from e
         finally:
             buf.release(i)
-        u = self._unpack       # out's rows into positions, nearest, normals, states, steps, converged
-        fast.pf_proxy_unpack(u[0], c_int64(n), u[1], u[2], u[3], u[4], u[5], u[6])
 

@@ -223,13 +223,14 @@ inline int wg_gather(__global const float4 *pts, __global const float4 *vel, flo
 }
 
 // Arguments 0-18 as proxy_tick's (wsbuf and nearbuf unused; cap: points of the local working
-// set), then the local working set (cap float4), the term buffer (3 tb floats) and tb (a
-// multiple of the work-group size and of 8). One work-group of W <= GW_MAXW work-items a proxy.
+// set), then the local working set (cap float4), the term buffer (3 tb floats), tb (a multiple
+// of the work-group size and of 8) and ocap (proxy_tick's argument 19). One work-group of
+// W <= GW_MAXW work-items a proxy.
 __kernel void proxy_tick_wg(__global const float4 *pts, __global const int *order, __global const int *start,
-                            float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float4 *hips,
-                            __global float8 *out, __global float *wsbuf, int cap, __constant float *prm,
+                            float4 grid, int4 dims, int n_proxies, __global float4 *pos, __global const float *hips,
+                            __global float *out, __global float *wsbuf, int cap, __constant float *prm,
                             int fixture, int max_steps, int gspan, int rspan, __global const float4 *vel, float dt,
-                            __global int *nearbuf, __local float4 *ws, __local float *T, int tb) {
+                            __global int *nearbuf, __local float4 *ws, __local float *T, int tb, int ocap) {
     __local int rowa[GW_ROWS], rowp[GW_ROWS + 1], scan[2 * GW_MAXW], red[3];
     __local float S[48];
     const int p = get_group_id(0), lid = get_local_id(0);
@@ -237,7 +238,7 @@ __kernel void proxy_tick_wg(__global const float4 *pts, __global const int *orde
     if (lid < 3) red[lid] = GW_NONE;
     barrier(CLK_LOCAL_MEM_FENCE);
     int rn = 0, sp = 0;
-    float3 X = pos[p].xyz, H = hips[p].xyz, X0 = X;
+    float3 X = pos[p].xyz, H = vload3(p, hips), X0 = X;
     const float r1 = P_R1, band = P_BAND, nreach = P_NREACH, skin2 = P_SKIN * P_SKIN;
     const float rclip = 0.5f * band + P_MARGIN + P_STEP * 1.0001f + 1.0e-6f;   // as proxy_tick
     int n = wg_gather(pts, vel, dt, order, start, grid, dims, gspan, X0, P_GATHER, fixture, r1, ws, cap, rowa, rowp,
@@ -334,6 +335,6 @@ __kernel void proxy_tick_wg(__global const float4 *pts, __global const int *orde
     }
     if (lid == 0) {
         pos[p] = (float4)(X, 0.0f);
-        out[p] = (float8)(X.x, X.y, X.z, min_e, nrm.x, nrm.y, nrm.z, as_float(st | (conv << 2) | (steps << 3)));
+        write_out(out, ocap, p, X, min_e, nrm, st, steps, conv);
     }
 }
