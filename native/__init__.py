@@ -169,6 +169,7 @@ _SIGNATURES = {
     "pf_host_read_poses": (None, [_HO, c_double, _D, _D, _D, _U8, _U8, _D, _U8, _D]),
     "pf_host_command": (c_int32, [_HO, _D, _U8, _I32, c_double]),
     "pf_row_gather": (None, [_RF, c_int64, _D, c_int64, c_int32]),
+    "pf_neighbor_rows": (None, [c_void_p, c_void_p, c_int64, c_int64, c_void_p]),
 }
 
 

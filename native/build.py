@@ -32,7 +32,7 @@ EXCHANGE = _HERE / "shm_exchange.c"
 #: and the copy of a tick's structs into a recording's row
 ROWS = _HERE / "tick_rows.c"
 #: the headers tick_core.c includes (part of the source: hashed with it), found in this folder
-HEADERS = (_HERE / "tick_quat.h",)
+HEADERS = (_HERE / "tick_quat.h", _HERE / "neighbor_rows.h")
 #: the C client's folder (``pointfence.clients``' ``c/``: a sibling package in a checkout and
 #: in an installation alike)
 _CLIENT_C = _HERE.parent / "clients" / "c"

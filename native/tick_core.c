@@ -66,6 +66,7 @@ static void shrink3(double *v, double length) {
 }
 
 #include "tick_quat.h"
+#include "neighbor_rows.h"
 
 /* --- teleoperation (service/teleop.py) ---------------------------------------------------- */
 

@@ -147,7 +147,8 @@ def _make_kernel(bd: int):
                        protected_only: int, res: wp.array(dtype=int)):
         """Query b of B (one block) into ``res``: ``res[b]`` the count, ``res[B + b]`` the nearest
         hit (-1 if none), ``res[2 B + b]`` the bits of its distance (m, float32; inf if none),
-        and the first min(count, K) hits in scan order from ``res[3 B + b K]`` on, -1 after."""
+        and the first min(count, K) hits in scan order from ``res[3 B + b K]`` on; the rest of
+        the row is not written (the host pads it: ``WarpPipeline._neighbors``)."""
         b, lane = wp.tid()
         B = queries.shape[0]
         row = 3 * B + b * K
@@ -205,8 +206,6 @@ def _make_kernel(bd: int):
                             at += rk[1]
                     n += sc[1]
         best = block_argmin(best, BD)
-        for j in range(n + lane, K, BD):
-            res[row + j] = -1
         if lane == 0:
             res[b] = n
             if n > 0:

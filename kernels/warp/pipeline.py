@@ -11,9 +11,12 @@ memory) spares the ingest its one host copy.
 from __future__ import annotations
 
 import threading
+from ctypes import c_int64, c_void_p
 
 import numpy as np
 import warp as wp
+
+from pointfence.native import fast
 
 from ..backend import FramePipeline
 from ..double_buffer import DoubleBuffer
@@ -300,7 +303,6 @@ class WarpPipeline(FramePipeline):
             return Neighbors(np.zeros(0, np.int32), np.zeros((0, K), np.int32), np.zeros(0, np.int32),
                              np.zeros(0, np.float32))
         bd = self.backend.tuning.query_block_dim if self.cuda else 1
-        n = 3 * B + B * K
         values = (float(radius), search_span(radius, self.grid.h), K, int(protected_only))
         try:
             # (the buffers serve one call at a time: callers on other threads wait here)
@@ -311,8 +313,13 @@ class WarpPipeline(FramePipeline):
                 if self.cuda:
                     wp.synchronize_stream(self.query_stream)
                 r = self._nq_res_np
-                return Neighbors(r[:B].copy(), r[3 * B: n].reshape(B, K).copy(), r[B: 2 * B].copy(),
-                                 r[2 * B: 3 * B].view(np.float32).copy())
+                count = r[:B].copy()
+                # each row's hits, -1 after them (the kernel writes no padding, so most of the
+                # B x K rows cross the bus neither way): native/neighbor_rows.h
+                index = np.empty((B, K), np.int32)
+                fast.pf_neighbor_rows(c_void_p(r[3 * B:].ctypes.data), c_void_p(count.ctypes.data), c_int64(B), c_int64(K),
+                                      c_void_p(index.ctypes.data))
+                return Neighbors(count, index, r[B: 2 * B].copy(), r[2 * B: 3 * B].view(np.float32).copy())
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp neighbour query failed on {self.backend.device_name}: {e}") from e
 
