@@ -156,14 +156,18 @@ class ProxyBatch(ABC):
         if n <= self._cap:
             return
         cap = max(n, 2 * self._cap, 1)
-        self._positions = np.zeros((cap, 3), np.float32)
-        self._normals = np.zeros((cap, 3), np.float32)
-        self._states = np.zeros(cap, np.int32)
-        self._steps = np.zeros(cap, np.int32)
-        self._converged = np.zeros(cap, bool)
-        self._nearest = np.full(cap, np.inf, np.float32)
+        (self._positions, self._normals, self._nearest, self._states, self._steps,
+         self._converged) = self._result_arrays(cap)
+        self._nearest.fill(np.inf)
         self._cap = cap
         self._grow(cap)
+
+    def _result_arrays(self, cap: int) -> tuple:
+        """Backend hook: the batch's result arrays for ``cap`` proxies, where the backend wants
+        them (its kernels may write them in place): positions and normals (cap, 3) float32,
+        nearest clearances (cap,) float32, states and steps (cap,) int32, converged (cap,) bool."""
+        return (np.zeros((cap, 3), np.float32), np.zeros((cap, 3), np.float32), np.zeros(cap, np.float32),
+                np.zeros(cap, np.int32), np.zeros(cap, np.int32), np.zeros(cap, bool))
 
     def _grow(self, cap: int) -> None:
         """Backend hook: (re)allocate per-proxy storage for ``cap`` proxies."""

@@ -27,7 +27,7 @@ from ..neighbors import search_span
 from ..proxy import LANES, WS_CAPACITY, ProxyBatch
 from .context import build
 from .kernel_shape import GroupSizing, check_shape, resolve_shape
-from .shared_host import aligned_zeros
+from .shared_host import aligned_zeros, host_buffer
 
 #: device memory the working sets of a batch may take together (bytes)
 WS_BUDGET = 512 << 20
@@ -50,15 +50,13 @@ def out_block(cap: int):
     """(block, views) for a batch of ``cap`` proxies: one page-aligned byte block (PoCL's
     in-thread kernel writes into it in place) in the layout of the kernels' ``write_out``
     (proxy.cl), and the batch's arrays as views of it: positions (cap, 3) float32 (world m),
-    nearest clearances (cap,) float32 (m, inf at first), normals (cap, 3) float32, states and
+    nearest clearances (cap,) float32 (m), normals (cap, 3) float32, states and
     steps (cap,) int32, converged flags (cap,) bool."""
     block = aligned_zeros(37 * cap, np.uint8)
     f = block[:36 * cap].view(np.float32)
     i = block[:36 * cap].view(np.int32)
-    nearest = f[3 * cap:4 * cap]
-    nearest.fill(np.inf)
-    return block, (f[:3 * cap].reshape(cap, 3), nearest, f[4 * cap:7 * cap].reshape(cap, 3), i[7 * cap:8 * cap],
-                   i[8 * cap:9 * cap], block[36 * cap:].view(np.bool_))
+    return block, (f[:3 * cap].reshape(cap, 3), f[3 * cap:4 * cap], f[4 * cap:7 * cap].reshape(cap, 3),
+                   i[7 * cap:8 * cap], i[8 * cap:9 * cap], block[36 * cap:].view(np.bool_))
 
 
 class OpenCLProxies(ProxyBatch):
@@ -134,17 +132,12 @@ class OpenCLProxies(ProxyBatch):
             self._spans = spans
 
     # --- storage -------------------------------------------------------------------------------
-    def _alloc(self, n: int):
-        """The batch's result arrays as views of one block in the kernel's output layout
-        (``out_block``): a tick reads its results straight into them, and on PoCL's in-thread
-        device the kernel writes them there itself."""
-        if n <= self._cap:
-            return
-        cap = max(n, 2 * self._cap, 1)
-        self._out_block, views = out_block(cap)
-        self._positions, self._nearest, self._normals, self._states, self._steps, self._converged = views
-        self._cap = cap
-        self._grow(cap)
+    def _result_arrays(self, cap: int) -> tuple:
+        """Views of one block in the kernels' output layout (``out_block``): a tick reads its
+        results straight into them, and on PoCL's in-thread device the kernel writes them there
+        itself."""
+        self._out_block, (pos, nearest, normals, states, steps, conv) = out_block(cap)
+        return pos, normals, nearest, states, steps, conv
 
     def _grow(self, cap: int):
         inline = self._inline_allowed and cap <= INLINE_MAX
@@ -162,8 +155,6 @@ class OpenCLProxies(ProxyBatch):
             self._near = cl.Buffer(ctx, mf.READ_WRITE, 4 * (self.ws_cap // VW) * cap)   # clip's chunk lists
         self._pos_host = np.zeros((cap, 4), np.float32)
         if self._inline:   # shared with the in-thread kernel: no copies in a tick
-            from .shared_host import host_buffer
-
             self._hips_host = aligned_zeros(12 * cap, np.float32, (cap, 3))
             self._hips = host_buffer(cl, ctx, self._hips_host, read_only=True)
             self._out = host_buffer(cl, ctx, self._out_block)

@@ -85,26 +85,17 @@ class WarpProxies(ProxyBatch):
             return host
         return wp.array(ptr=host.ptr, dtype=dtype, shape=length, device=self.dev)
 
-    def _alloc(self, n: int):
-        if n <= self._cap:
-            return
-        cap = max(n, 2 * self._cap, 1)
+    def _result_arrays(self, cap: int) -> tuple:
+        """The result arrays (and the HIPs') in host memory the CUDA kernels read and write
+        directly (pinned), kept with their Warp arrays in ``_host``."""
         pinned = self.cuda
         host = {}
         for name, dtype in (("positions", wp.vec3), ("normals", wp.vec3), ("nearest", wp.float32),
                             ("states", wp.int32), ("steps", wp.int32), ("converged", wp.bool), ("hips", wp.vec3)):
             host[name] = (wp.zeros(cap, dtype=dtype, device="cpu", pinned=pinned), dtype)
         self._host = host
-        self._positions = host["positions"][0].numpy()
-        self._normals = host["normals"][0].numpy()
-        self._nearest = host["nearest"][0].numpy()
-        self._nearest.fill(np.inf)
-        self._states = host["states"][0].numpy()
-        self._steps = host["steps"][0].numpy()
-        self._converged = host["converged"][0].numpy()
         self._hips_np = host["hips"][0].numpy()
-        self._cap = cap
-        self._grow(cap)
+        return tuple(host[k][0].numpy() for k in ("positions", "normals", "nearest", "states", "steps", "converged"))
 
     def _grow(self, cap: int):
         self.close()   # a resident kernel holds the old arrays
