@@ -21,6 +21,10 @@ def test_defaults_pick_by_batch_size():
     assert [t.block_dim_for(n) for n in (1, 64, 65, 4096, 4097, 10**6)] == [256, 256, 128, 128, 32, 32]
     assert [t.ws_capacity_for(n) for n in (1, 64, 65, 4096, 4097)] == [2496, 2496, 1536, 1536, 768]
     assert t.maxreg_for(256) == 0 and t.maxreg_for(512) == 128 and t.maxreg_for(1024) == 64
+    # the default tables' launched block sizes: one block an SM more than uncapped
+    assert t.maxreg_for(128) == 168 and t.maxreg_for(32) == 152 and t.maxreg_for(64) == 0
+    assert 3 * 128 * t.maxreg_for(128) <= 65536 and 13 * 32 * t.maxreg_for(32) <= 65536
+    assert WarpTuning(maxregs=((64, 96),)).maxreg_for(64) == 96 and WarpTuning(maxregs=()).maxreg_for(128) == 0
     one = WarpTuning(block_dim=512, maxreg=96)
     assert one.block_dim_for(1) == one.block_dim_for(10**6) == 512 and one.maxreg_for(512) == 96
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -39,6 +43,9 @@ def test_defaults_pick_by_batch_size():
     ("zero_copy_max", 1.5, "zero_copy_max = 1.5"),
     ("ws_cache_max", True, "ws_cache_max = True"),
     ("maxreg", 300, "maxreg = 300"),
+    ("maxregs", ((48, 128),), "maxregs = ((48, 128),)"),
+    ("maxregs", ((128, 300),), "caps from 32 to 255"),
+    ("maxregs", "many", "maxregs = 'many'"),
     ("run_pixels", 0, "run_pixels = 0; expected an integer from 1"),
     ("gather_skin", float("nan"), "gather_skin = nan"),
     ("gather_skin", -1e-3, "gather_skin = -0.001"),

@@ -7,7 +7,8 @@ away from the deepest points, for one point at a time; the working-set passes
 in the world frame, m; w the fixture radius, m) taken where the tick predicts them, p + v dt
 (kernels/motion.py). The hash path scans the cells within ``span`` of the proxy in global
 memory, each thread of the block taking every ``bd``-th point of a row: the cold path, for a
-working set that does not fit in shared memory.
+working set that does not fit in shared memory (each pass has one call site, in
+kernels/warp/steps.py's hash loop, where it is inlined).
 """
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import warp as wp
 
 from .args import ProxyArgs
 from .frames import GridArgs
-from .primitives import div_fast, mul_rn, rows, rsqrt_fast
+from .primitives import div_fast, mul_rn, rsqrt_fast
 
 
 @wp.func
@@ -136,7 +137,7 @@ def cell_box(X: wp.vec3, g: GridArgs, span: int) -> wp.vec3i:
 
 # --- the hash path: a thread's share of each pass over the cells within reach ---------------
 
-@wp.func(inline=False)  # cold path: kept out of the step loop's code
+@wp.func
 def hash_eval(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, c: wp.vec3i, span: int,
               lane: int, bd: int):
@@ -155,7 +156,7 @@ def hash_eval(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: 
     return ns, me
 
 
-@wp.func(inline=False)  # cold path: kept out of the step loop's code
+@wp.func
 def hash_clip(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, u: wp.vec3, off: float,
               c: wp.vec3i, span: int, lane: int, bd: int) -> float:
@@ -173,7 +174,7 @@ def hash_clip(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: 
     return tm
 
 
-@wp.func(inline=False)  # cold path: kept out of the step loop's code
+@wp.func
 def hash_away(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
               start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, off: float, c: wp.vec3i,
               span: int, lane: int, bd: int) -> wp.vec3:

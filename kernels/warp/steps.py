@@ -10,13 +10,17 @@ the block. A proxy reads its working set in shared memory (kernels/warp/working_
 where none fits, the hash in global memory (kernels/warp/points.py), and gathers again when it
 has wandered further than its skin.
 
-Two loops run these steps. ``run_steps``, the hot one, knows only the working set: its code is
-small enough to stay in the instruction cache (the profiles ranked instruction fetch among the
-step's first stalls when the hash path, the away pass and their call sites sat in the loop).
-Where no working set fits (the first gather or a regather gave -1), it hands the proxy, from
-that step on, to ``run_steps_any``, a function of its own that also scans the hash. Both are
-one source (``make_loop``; ``wp.static`` leaves the hash path out of the hot loop's code), so
-the results do not depend on which loop ran a step.
+Two loops run these steps, and the tick kernel calls no function that is not inlined. A call
+that the compiler cannot inline makes it keep, around the call, every value live across it and
+the callee's own registers on top: the gather, the hash loop and the away pass called that way
+put the kernel at about 240 registers a thread, two blocks of 128 threads an SM, where the loop
+over a working set needs about 130. So ``run_steps`` is a small driver: it gathers (the one
+call site of ``gather`` in the kernel), runs ``run_steps_ws`` (the hot loop: the working set
+only) or, where no set fits, ``run_steps_hash`` (the hash in global memory), and gathers again
+where a loop returns the step at which the proxy wandered further than its skin. Both loops are
+one source (``make_loop``; ``wp.static`` picks each one's passes), so the results do not depend
+on which loop ran a step, and a register cap (``WarpTuning.maxreg_for``) spills only in the cold
+code around them (bench/HISTORY.md, stop 43).
 """
 from __future__ import annotations
 
@@ -76,27 +80,36 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
     (``make_working_set(cap, bd)``)."""
     BD = bd
 
-    @wp.func(inline=False)  # rare: both the push-out and the contact direction blocked, buried
-    def away_dir(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
+    def make_away(HASH: bool):
+        """The push away from the deepest points (the third clip try) over the working set
+        (HASH False) or over the hash."""
+
+        def away(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
                  order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3,
                  off: float, n_ws: int, c: wp.vec3i, span: int, lane: int, par: int):
-        """The direction away from the deepest points (unit, its length before normalising) and
-        the next reduction's ``par``."""
-        av = wp.vec3(0.0)
-        if n_ws >= 0:
-            av = ws_away(X, a, off, n_ws, lane, BD)
-        else:
-            av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, BD)
-        ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, BD)
-        au, al = unit_len(wp.vec3(ra[0], ra[1], ra[2]))
-        return au, al, 1 - par
+            """The direction away from the deepest points (unit, its length before normalising)
+            and the next reduction's ``par``."""
+            av = wp.vec3(0.0)
+            if wp.static(HASH):
+                av = hash_away(spts, svel, dt, order, start, g, a, X, off, c, span, lane, BD)
+            else:
+                av = ws_away(X, a, off, n_ws, lane, BD)
+            ra = block_reduce4(wp.vec4(av[0], av[1], av[2], 0.0), 0, par, BD)
+            au, al = unit_len(wp.vec3(ra[0], ra[1], ra[2]))
+            return au, al, 1 - par
+
+        away.__name__ = away.__qualname__ = "away_hash" if HASH else "away_ws"
+        return wp.func(away)
 
     def make_loop(HASH: bool):
-        """The step loop from step ``it0`` on (``steps`` taken, ``uprev`` the last slide): over
-        the working set only (HASH False: ``run_steps``; where a gather finds no set that fits it
-        hands the proxy on to the other loop from that step), or over the working set where one
-        fits and the hash where none does (HASH True: ``run_steps_any``). One source for both:
-        ``wp.static`` leaves the hash path out of the hot loop's code."""
+        """The step loop from step ``it0`` on (``steps`` taken, ``uprev`` the last slide) over the
+        working set (HASH False: ``run_steps_ws``, the hot loop) or over the hash where no set fits
+        (HASH True: ``run_steps_hash``, the cold one). Neither calls a function that is not
+        inlined, nor gathers: where the proxy has wandered further than its skin a loop returns
+        that step's number (nothing of it done) and ``run_steps`` gathers there and goes on with
+        the loop the new set asks for. One source for both (``wp.static`` picks the passes), so
+        the results do not depend on which loop ran a step."""
+        away_dir = make_away(HASH)
 
         def loop(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float,
                  order: wp.array(dtype=int), start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs,
@@ -106,31 +119,24 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
             st = int(0)
             nrm = wp.vec3(0.0)
             min_e = float(wp.inf)
-            it_any = int(-1)
+            it_out = int(-1)
             for it in range(it0, a.max_steps + 1):
                 if it > it0:
                     dx = X[0] - X0[0]
                     dy = X[1] - X0[1]
                     dz = X[2] - X0[2]
                     if dx * dx + dy * dy + dz * dz > skin * skin:  # wandered off its working set
-                        X0 = X
-                        n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
-                c = wp.vec3i(0)
-                if wp.static(not HASH):
-                    if n_ws < 0:   # no working set fits here: the hash path from this step on
-                        it_any = it
+                        it_out = it
                         break
+                c = wp.vec3i(0)
 
                 # 1. clearances, normal sum, smallest clearance within the normal band
                 ns = wp.vec3(0.0)
                 me = float(wp.inf)
                 nnear = int(0)
                 if wp.static(HASH):
-                    if n_ws >= 0:
-                        ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
-                    else:
-                        c = cell_box(X, g, span)
-                        ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, BD)
+                    c = cell_box(X, g, span)
+                    ns, me = hash_eval(spts, svel, dt, order, start, g, a, X, c, span, lane, BD)
                 else:
                     ns, me, nnear = ws_eval(X, a, n_ws, lane, wbase)
                 rd = block_reduce4(wp.vec4(ns[0], ns[1], ns[2], me), 8, par, BD)
@@ -155,10 +161,7 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
                 while attempt < 3:
                     tm = float(wp.inf)
                     if wp.static(HASH):
-                        if n_ws >= 0:
-                            tm = ws_clip(X, u, a, off, nnear, lane, wbase)
-                        else:
-                            tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
+                        tm = hash_clip(spts, svel, dt, order, start, g, a, X, u, off, c, span, lane, BD)
                     else:
                         tm = ws_clip(X, u, a, off, nnear, lane, wbase)
                     t = block_min(tm, par, BD)
@@ -176,8 +179,9 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
                         if not buried:
                             break
                         along_n = True  # both blocked: away from the deepest points
-                        au, al, par = away_dir(spts, svel, dt, order, start, g, a, X, off, n_ws, c, span, lane,
-                                               par)
+                        au = wp.vec3(0.0)
+                        al = float(0.0)
+                        au, al, par = away_dir(spts, svel, dt, order, start, g, a, X, off, n_ws, c, span, lane, par)
                         s = 0.0
                         if not (al > 0.0):
                             break
@@ -194,17 +198,12 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
                     uprev = u
                 X = X + s * u
                 steps += 1
-            if wp.static(not HASH):
-                if it_any >= 0:
-                    return run_steps_any(spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0,
-                                         n_ws, par, skin, it_any, steps, uprev)
-            return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
+            return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin, it_out, uprev
 
-        loop.__name__ = loop.__qualname__ = "run_steps_any" if HASH else "run_steps_ws"
-        # the cold path (a proxy with no working set in shared memory) is a function of its own
-        return wp.func(loop) if not HASH else wp.func(inline=False)(loop)
+        loop.__name__ = loop.__qualname__ = "run_steps_hash" if HASH else "run_steps_ws"
+        return wp.func(loop)
 
-    run_steps_any = make_loop(True)
+    run_steps_hash = make_loop(True)
     run_steps_ws = make_loop(False)
 
     @wp.func
@@ -212,7 +211,7 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
                   start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, H: wp.vec3, span: int,
                   grad: float, lane: int, wbase: int, X0: wp.vec3, n_ws: int, par: int, skin: float):
         """One tick's steps of a proxy at X towards H over its working set (gathered around X0:
-        ``n_ws`` points, -1 for the hash path); returns (X, normal, nearest, state, steps,
+        ``n_ws`` points, -1 for the hash path, -2 for none yet: gathered around X first); returns (X, normal, nearest, state, steps,
         converged, and the working set's X0, n_ws, par, skin for the next tick)."""
         # A step's limit F is at most band / 2 (slack >= 0) and its length at most a.step, so a
         # point with clearance e >= band / 2 + margin + step cannot shorten it: the step reaches
@@ -220,7 +219,25 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
         # >= L. ProxyArgs.rclip adds 1e-4 step and 1 um, which keep float32 rounding of e and of
         # the hit time out of the decision (as kernels/opencl/proxy.cl): the clip scans only each
         # thread's points below rclip (ws_eval) and gets the very same step length.
-        return run_steps_ws(spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin,
-                            0, 0, wp.vec3(0.0))
+        it = int(0)
+        steps = int(0)
+        uprev = wp.vec3(0.0)
+        nrm = wp.vec3(0.0)
+        min_e = float(wp.inf)
+        st = int(0)
+        conv = int(0)
+        while it >= 0:   # (a loop returns -1 when the tick's steps are done)
+            if n_ws == -2 or it > 0:   # no set yet, or wandered off it at step it: gather around X
+                X0 = X
+                n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
+            if n_ws >= 0:
+                X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin, it, uprev = run_steps_ws(
+                    spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin, it,
+                    steps, uprev)
+            else:   # no working set fits here: the hash from this step on
+                X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin, it, uprev = run_steps_hash(
+                    spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin, it,
+                    steps, uprev)
+        return X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin
 
     return run_steps

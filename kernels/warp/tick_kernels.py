@@ -38,7 +38,7 @@ def tick_kernel(cap: int, maxreg: int = 0, bd: int = 1, resident: bool = False):
 def _make_tick_kernels(cap: int, maxreg: int, bd: int):
     BD = bd
     wset = make_working_set(cap, bd)
-    ws, gather, WL, NJ = wset.ws, wset.gather, wset.wl, wset.nj
+    ws, WL, NJ = wset.ws, wset.wl, wset.nj
     run_steps = make_run_steps(bd, wset.gather, wset.ws_eval, wset.ws_clip, wset.ws_away)
     opts = {"cuda_max_registers": maxreg} if maxreg else {}
 
@@ -94,8 +94,7 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
                     ws(1, k, wsc[p * cap + k])
                 wset.pad(n_ws, lane)
                 block_sync()
-        if hit == 0:
-            n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
+        # (where n_ws is still -2, run_steps gathers the set around X0 = X first)
         Xs = X0
         X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
             spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
@@ -188,9 +187,8 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
             # (block 0 takes the next tick only after the host has seen this one done, and a
             # block counts itself done after reductions that every one of its threads reached
             # with its inputs read)
-            if fresh:
-                X0 = X
-                n_ws, par, skin = gather(spts, svel, dt, order, start, g, a, X0, grad, lane, BD, par)
+            if fresh:   # run_steps gathers the set around X first
+                n_ws = -2
             X, nrm, min_e, st, steps, conv, X0, n_ws, par, skin = run_steps(
                 spts, svel, dt, order, start, g, a, X, H, span, grad, lane, wbase, X0, n_ws, par, skin)
             if lane == 0:

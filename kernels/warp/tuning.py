@@ -47,8 +47,13 @@ class WarpTuning:
         thread a block whatever this says.
     block_dim: one block size for every batch instead (None: ``block_dims``); a multiple of 32
         from 32 to 1024.
-    maxreg: register cap of the tick kernel (0: the largest that lets a block of the launch's
-        size run, 65,536 registers an SM, the compiler's choice up to 255).
+    maxreg: register cap of the tick kernel for every block size (0: ``maxregs``).
+    maxregs: register caps by block size, ((threads, cap), ...): the cap that fits one more block
+        an SM than the compiler's choice (about 200 registers a thread), with no spill in the
+        step loop (the cold code around it spills a little): 168 for 128 threads (3 blocks an
+        SM, against 2), 152 for 32 (13, against 10; shared memory allows 13). Block sizes not
+        listed: none up to 256 threads, else the largest that lets a block run (65,536
+        registers an SM).
     ws_caps: points of a proxy's working set held in shared memory (16 bytes a point), by batch
         size ((largest batch, points), ...): a small batch has an SM per proxy and takes what
         static shared memory allows (48 KB a block), a large one leaves room for more blocks an
@@ -72,6 +77,7 @@ class WarpTuning:
     block_dims: tuple = ((64, 256), (4096, 128), (ANY, 32))
     block_dim: int | None = None
     maxreg: int = 0
+    maxregs: tuple = ((32, 152), (128, 168))
     ws_caps: tuple = ((64, 2496), (4096, 1536), (ANY, 768))
     zero_copy_max: int = 4096
     gather_skin: float = 1.5e-3
@@ -83,6 +89,14 @@ class WarpTuning:
     def __post_init__(self):
         object.__setattr__(self, "block_dims", _table("block_dims", self.block_dims))
         object.__setattr__(self, "ws_caps", _table("ws_caps", self.ws_caps))
+        try:
+            caps = tuple((int(bd), int(c)) for bd, c in self.maxregs)
+        except (TypeError, ValueError):
+            caps = None
+        if caps is None or any(bd % 32 or not 32 <= bd <= 1024 or not 32 <= c <= 255 for bd, c in caps):
+            raise InputError(f"WarpTuning maxregs = {self.maxregs!r}; expected ((threads, cap), ...) with threads a "
+                             "multiple of 32 from 32 to 1024 and caps from 32 to 255")
+        object.__setattr__(self, "maxregs", caps)
         for _, bd in self.block_dims:
             if bd % 32 or not 32 <= bd <= 1024:
                 raise InputError(f"WarpTuning block_dims = {self.block_dims}: {bd} threads; expected multiples "
@@ -129,10 +143,14 @@ class WarpTuning:
         return next(bd for most, bd in self.block_dims if n <= most)
 
     def maxreg_for(self, bd: int) -> int:
-        """Register cap for blocks of ``bd`` threads (0: none): the kernel needs about 220
-        registers a thread, more than a block of 512 or 1,024 threads can have."""
+        """Register cap for blocks of ``bd`` threads (0: none): ``maxreg``, else ``maxregs``' cap
+        for this size, else none up to 256 threads and, for larger blocks, the most a block can
+        have (the kernel takes about 200 registers a thread uncapped)."""
         if self.maxreg:
             return self.maxreg
+        for threads, cap in self.maxregs:
+            if threads == bd:
+                return cap
         return 0 if bd <= 256 else (65536 // bd) & ~7
 
     def ws_capacity_for(self, n: int) -> int:

@@ -284,7 +284,7 @@ def make_working_set(cap: int, bd: int) -> WorkingSet:
             k += bd
             j += 1
 
-    @wp.func(inline=False)  # one copy for the first gather and the regathers
+    @wp.func  # (one call site, kernels/warp/steps.py's run_steps: inlined there)
     def gather(spts: wp.array(dtype=wp.vec4), svel: wp.array(dtype=wp.vec4), dt: float, order: wp.array(dtype=int),
                start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X0: wp.vec3, grad: float, lane: int,
                bd: int, par: int):
