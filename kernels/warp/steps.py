@@ -13,8 +13,9 @@ has wandered further than its skin.
 Two loops run these steps, and the tick kernel calls no function that is not inlined. A call
 that the compiler cannot inline makes it keep, around the call, every value live across it and
 the callee's own registers on top: the gather, the hash loop and the away pass called that way
-put the kernel at about 240 registers a thread, two blocks of 128 threads an SM, where the loop
-over a working set needs about 130. So ``run_steps`` is a small driver: it gathers (the one
+put the kernel at about 240 registers a thread (two blocks of 128 threads an SM); inlined, about
+200, and the loop over a working set runs without a spill under a cap of 168 (three blocks an
+SM; ``WarpTuning.maxregs``). So ``run_steps`` is a small driver: it gathers (the one
 call site of ``gather`` in the kernel), runs ``run_steps_ws`` (the hot loop: the working set
 only) or, where no set fits, ``run_steps_hash`` (the hash in global memory), and gathers again
 where a loop returns the step at which the proxy wandered further than its skin. Both loops are
@@ -179,8 +180,6 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
                         if not buried:
                             break
                         along_n = True  # both blocked: away from the deepest points
-                        au = wp.vec3(0.0)
-                        al = float(0.0)
                         au, al, par = away_dir(spts, svel, dt, order, start, g, a, X, off, n_ws, c, span, lane, par)
                         s = 0.0
                         if not (al > 0.0):
