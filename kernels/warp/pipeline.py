@@ -317,8 +317,8 @@ class WarpPipeline(FramePipeline):
                 # each row's hits, -1 after them (the kernel writes no padding, so most of the
                 # B x K rows cross the bus neither way): native/neighbor_rows.h
                 index = np.empty((B, K), np.int32)
-                fast.pf_neighbor_rows(c_void_p(r[3 * B:].ctypes.data), c_void_p(count.ctypes.data), c_int64(B), c_int64(K),
-                                      c_void_p(index.ctypes.data))
+                fast.pf_neighbor_rows(c_void_p(r[3 * B:].ctypes.data), c_void_p(count.ctypes.data), c_int64(B),
+                                      c_int64(K), c_void_p(index.ctypes.data))
                 return Neighbors(count, index, r[B: 2 * B].copy(), r[2 * B: 3 * B].view(np.float32).copy())
         except Exception as e:  # Warp raises plain RuntimeError on launch failures
             raise KernelError(f"Warp neighbour query failed on {self.backend.device_name}: {e}") from e

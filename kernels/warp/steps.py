@@ -210,8 +210,9 @@ def make_run_steps(bd: int, gather, ws_eval, ws_clip, ws_away):
                   start: wp.array(dtype=int), g: GridArgs, a: ProxyArgs, X: wp.vec3, H: wp.vec3, span: int,
                   grad: float, lane: int, wbase: int, X0: wp.vec3, n_ws: int, par: int, skin: float):
         """One tick's steps of a proxy at X towards H over its working set (gathered around X0:
-        ``n_ws`` points, -1 for the hash path, -2 for none yet: gathered around X first); returns (X, normal, nearest, state, steps,
-        converged, and the working set's X0, n_ws, par, skin for the next tick)."""
+        ``n_ws`` points, -1 for the hash path, -2 for none yet: gathered around X first);
+        returns (X, normal, nearest, state, steps, converged, and the working set's X0, n_ws,
+        par, skin for the next tick)."""
         # A step's limit F is at most band / 2 (slack >= 0) and its length at most a.step, so a
         # point with clearance e >= band / 2 + margin + step cannot shorten it: the step reaches
         # that point's swept sphere (radius rho + F + margin) no sooner than e - F - margin >= step
