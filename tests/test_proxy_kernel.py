@@ -84,8 +84,10 @@ def test_empty_snapshot_is_free_motion(backend):
     np.testing.assert_allclose(hs.proxies[1], [0, 0.001, 0], atol=1e-7)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("backend", ["numpy", "opencl", "warp"])
 def test_bad_hips_raise_and_change_nothing(backend):
+    if backend == "warp":
+        pytest.importorskip("warp", reason="warp-lang is not installed: pip install 'pointfence[warp]'")
     hs, src = synthetic_scene("plane", positions=[(0.0, 0.0, 0.03), (0.0, 0.01, 0.03)], backend=backend)
     hs.ingest([src.read()])
     hs.step([[0, 0, 0.02], [0, 0.01, 0.02]])
