@@ -206,3 +206,47 @@ def test_each_snapshot_slots_query_follows_grown_buffers():
         q = (snap.points[rng.integers(0, snap.n_points, B), :3] + rng.normal(0, 0.003, (B, 3))).astype(np.float32)
         K = (8, 1, 8)[round_]   # (the results fit the first buffer: only the queries grow)
         assert_same(pipe.neighbors(q, 0.01, max_neighbors=K), reference_neighbors(snap, q, 0.01, K))
+
+
+def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
+    """On CUDA's zero-copy path the first blocks to start copy every proxy's position and HIP
+    and the tick's arguments from host memory into device memory for the others
+    (kernels/warp/tick_inputs.py); the copying path's graph copies them instead. Both run the
+    same step code on the same inputs, so every tick's results agree bit for bit: across batch
+    sizes whose copy takes one block or several and whose 3 n floats leave a tail (n = 7, 300,
+    1,030), positions the host resets between ticks (the staged copy must be this tick's), and
+    sizes changing back and forth (the protocol's words at rest between ticks)."""
+    from pointfence.kernels.haptics import HapticParams
+
+    if not get_backend("warp").device.is_cuda:
+        pytest.skip("the staged inputs are CUDA's zero-copy path")
+    rng = np.random.default_rng(53)
+    cams, frames = random_rig(rng, n_cams=2)
+    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    p = HapticParams(max_steps=40)
+    staged = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0))
+    copies = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0, zero_copy_max=0))
+    assert staged.zero_copy(1030) and not copies.zero_copy(7)
+    moved = 0
+    for B in (300, 7, 1030, 300):
+        surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
+        start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
+        staged.reset(start)
+        copies.reset(start)
+        h = start.copy()
+        for k in range(12):
+            if k == 6:   # the host moves every proxy between two ticks
+                jump = staged.positions + rng.normal(0, 0.003, (B, 3))
+                staged.reset(jump)
+                copies.reset(jump)
+            h = h + rng.normal(0, 0.0015, h.shape) + [0, 0, 0.0008]
+            staged.step(h)
+            copies.step(h)
+            for name in ("positions", "normals", "nearest", "states", "steps", "converged"):
+                np.testing.assert_array_equal(getattr(staged, name), getattr(copies, name), err_msg=f"{name}, B={B}")
+            moved += int(staged.steps.sum())
+    staged.close()
+    copies.close()
+    assert moved > 1000

@@ -3,9 +3,10 @@
 The kernels (one thread block a proxy) are in kernels/warp/tick_kernels.py; this class owns the
 batch's buffers, allocated once per size, and launches them with explicit dimensions. On CUDA
 the tick is captured once per snapshot slot into a CUDA graph and replayed each tick. For
-batches up to ``WarpTuning.zero_copy_max`` the graph is the kernel alone: it reads the HIPs, the
-positions and the tick's arguments from pinned host memory and writes the results straight into
-the batch's (pinned) host arrays, so a tick has no copy nodes and nothing to unpack. Larger
+batches up to ``WarpTuning.zero_copy_max`` the graph is the kernel alone: its first blocks copy
+the HIPs, the positions and the tick's arguments from pinned host memory into device memory for
+every block (kernels/warp/tick_inputs.py), and each block writes its results straight into the
+batch's (pinned) host arrays, so a tick has no copy nodes and nothing to unpack. Larger
 batches upload the HIPs and download the results with copies inside the graph. A launched tick
 of up to ``WarpTuning.ws_cache_max`` proxies keeps each working set in device memory for the
 next tick, keyed by the snapshot's build, dt, the search span and where it was gathered, and
@@ -28,6 +29,7 @@ from ..proxy import ProxyBatch
 from .args import TickArgs, proxy_args
 from .resident import ResidentTick, resident_max
 from .resident_protocol import next_tick
+from .tick_inputs import SYNC_WORDS
 from .tick_kernels import tick_kernel
 from .tuning import WarpTuning
 
@@ -71,6 +73,13 @@ class WarpProxies(ProxyBatch):
         self._tick = wp.zeros(1, dtype=TickArgs, device=self.dev)
         self._tick_host = wp.zeros(1, dtype=TickArgs, device="cpu", pinned=self.cuda)
         self._tick_view = self._device_view(self._tick_host, TickArgs, 1)
+        # the zero-copy tick's inputs, staged in device memory by its first blocks
+        # (kernels/warp/tick_inputs.py): the tick's arguments as four words, their copy, and the
+        # protocol's words (unused on the CPU device)
+        self._tick4 = (wp.array(ptr=self._tick_host.ptr, dtype=wp.vec4i, shape=1, device=self.dev) if self.cuda
+                       else wp.zeros(1, dtype=wp.vec4i, device=self.dev))
+        self._dtick = wp.zeros(1, dtype=wp.vec4i, device=self.dev)
+        self._sync = wp.zeros(SYNC_WORDS, dtype=wp.int32, device=self.dev)
         self._tick_np = self._tick_host.numpy()
         self._tick_dt_set = None
         self._tick_build = None   # the build number in the tick's arguments
@@ -195,9 +204,13 @@ class WarpProxies(ProxyBatch):
             arr, tick = self._dev, self._tick
             wp.copy(arr["hips"], self._host["hips"][0], count=n)
             wp.copy(tick, self._tick_host)
+        # on CUDA's zero-copy path the first blocks stage the inputs in device memory for all
+        staged = int(self.cuda and self.zero_copy(n))
+        stage = self._dev if self.cuda else arr
         wp.launch_tiled(kernel, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
                         self.args, arr["positions"], arr["hips"], bd, slot.sorted_vel, tick, arr["normals"],
-                        arr["nearest"], arr["states"], arr["steps"], arr["converged"], *self._cache_for(n)],
+                        arr["nearest"], arr["states"], arr["steps"], arr["converged"], *self._cache_for(n),
+                        staged, n, self._tick4, stage["positions"], stage["hips"], self._dtick, self._sync],
                         block_dim=bd, device=self.dev)
         if self.cuda and not self.zero_copy(n):
             for k in ("positions", "normals", "nearest", "states", "steps", "converged"):

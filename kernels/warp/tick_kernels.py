@@ -1,10 +1,11 @@
 """The Warp proxy tick kernels: one thread block a proxy, all proxies in one launch.
 
 ``proxy_tick`` is the launched tick (a CUDA graph replayed each tick, or a plain launch on
-Warp's CPU device): a block reads its proxy's inputs, takes its working set from the device
-memory cache where it still holds (kernels/warp/proxy.py keeps it for batches of up to
-``WarpTuning.ws_cache_max`` proxies) or gathers it (kernels/warp/working_set.py), runs the
-tick's steps (kernels/warp/steps.py) and writes its results. ``proxy_resident`` is its resident
+Warp's CPU device): a block reads its proxy's inputs (on CUDA's zero-copy path from device
+memory, where the tick's first blocks copy every block's: kernels/warp/tick_inputs.py), takes
+its working set from the device memory cache where it still holds (kernels/warp/proxy.py keeps
+it for batches of up to ``WarpTuning.ws_cache_max`` proxies) or gathers it
+(kernels/warp/working_set.py), runs the tick's steps (kernels/warp/steps.py) and writes its results. ``proxy_resident`` is its resident
 form (CUDA only; the protocol in kernels/warp/resident_protocol.py, the host's driver in
 kernels/warp/resident.py): the blocks stay on their SMs and run a tick each time the host posts
 one. The working-set capacity, the register cap and the block size are constants of a kernel's
@@ -21,6 +22,7 @@ from .primitives import bits_float, block_sync, float_bits, shared4, sharedi4
 from .resident_protocol import (IN_HEAD, MB_ALIVE, bits_vec3, command_put, command_wait, mailbox_set,
                                 positions_in, staged4, tick_done, tick_in)
 from .steps import make_run_steps
+from .tick_inputs import stage_inputs, staged3, staged_tick, tick_end
 from .working_set import make_working_set
 
 _KERNELS: dict = {}
@@ -48,21 +50,36 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
                    svel: wp.array(dtype=wp.vec4), tick: wp.array(dtype=TickArgs), nrm_out: wp.array(dtype=wp.vec3),
                    near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
                    steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool), caching: int,
-                   wsc: wp.array(dtype=wp.vec4), wsk: wp.array(dtype=wp.vec4), wsi: wp.array(dtype=wp.vec4i)):
-        """One tick of proxy p (a block of ``bd`` threads). ``caching``: whether the working sets
-        persist from tick to tick in ``wsc`` (``cap`` points a proxy), with each proxy's
-        (X0 m, skin m) in ``wsk`` and (build, dt bits, span, points or -1) in ``wsi``."""
+                   wsc: wp.array(dtype=wp.vec4), wsk: wp.array(dtype=wp.vec4), wsi: wp.array(dtype=wp.vec4i),
+                   staged: int, n: int, tick4: wp.array(dtype=wp.vec4i), dpos: wp.array(dtype=wp.vec3),
+                   dhips: wp.array(dtype=wp.vec3), dtick: wp.array(dtype=wp.vec4i), sync: wp.array(dtype=wp.int32)):
+        """One tick of proxy p (a block of ``bd`` threads) of ``n``. ``caching``: whether the working
+        sets persist from tick to tick in ``wsc`` (``cap`` points a proxy), with each proxy's
+        (X0 m, skin m) in ``wsk`` and (build, dt bits, span, points or -1) in ``wsi``. ``staged``
+        (CUDA, the zero-copy path): the inputs in host memory (``pos``, ``hips``, ``tick``, and
+        ``tick4``: the same as four words) are copied by the first blocks into ``dpos``, ``dhips``
+        and ``dtick`` and read from there (kernels/warp/tick_inputs.py; ``sync``: its words)."""
         p, lane = wp.tid()
-        # one thread reads the proxy's inputs (pinned host memory on the zero-copy path) and
-        # shares them with the block
+        if staged != 0:
+            stage_inputs(pos, hips, tick4, dpos, dhips, dtick, sync, n, lane, BD)
+        # one thread reads the proxy's inputs and shares them with the block
         if lane == 0:
-            tk = tick[0]
-            x = pos[p]
-            hh = hips[p]
-            shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
-            shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
-            shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
-            sharedi4(1, 0, wp.vec4i(tk.build, 0, 0, 0))
+            if staged != 0:
+                tw = staged_tick(dtick)
+                x = staged3(dpos, p)
+                hh = staged3(dhips, p)
+                shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
+                shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
+                shared4(1, 2, wp.vec4(bits_float(tw[0]), float(tw[1]), bits_float(tw[2]), 0.0))
+                sharedi4(1, 0, wp.vec4i(tw[3], 0, 0, 0))
+            else:
+                tk = tick[0]
+                x = pos[p]
+                hh = hips[p]
+                shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
+                shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
+                shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
+                sharedi4(1, 0, wp.vec4i(tk.build, 0, 0, 0))
         block_sync()
         xv = shared4(0, 0, wp.vec4(0.0))
         hv = shared4(0, 1, wp.vec4(0.0))
@@ -107,6 +124,8 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
                 wsk[p] = wp.vec4(X0[0], X0[1], X0[2], skin)
         if lane == 0:
             results_out(p, X, nrm, min_e, st, steps, conv, pos, nrm_out, near_out, state_out, steps_out, conv_out)
+            if staged != 0:
+                tick_end(sync, n)
 
     @wp.kernel(enable_backward=False, module="unique", **opts)
     def proxy_resident(spts: wp.array(dtype=wp.vec4), order: wp.array(dtype=int), start: wp.array(dtype=int),
