@@ -62,7 +62,9 @@ class WarpTuning:
         copies in the CUDA graph).
     gather_skin: working-set skin on the GPU, m: a proxy gathers the points within reach + this
         (at least HapticParams.skin) and gathers again when it has moved further; a set that does
-        not fit in shared memory is gathered with HapticParams.skin instead.
+        not fit in shared memory is gathered with HapticParams.skin instead. 2.5 mm: a tick that
+        spends its step budget gathers again less often (a gather costs about 15,000 cycles, 7 us,
+        of its block), for sets about 12 % larger (bench/HISTORY.md, stops 13 and 44).
     ws_cache_max: largest batch whose launched tick keeps each proxy's working set in device
         memory from tick to tick (``ws_capacity_for(n)`` points a proxy: 25 MB for 1,024
         proxies); 0: never.
@@ -80,7 +82,7 @@ class WarpTuning:
     maxregs: tuple = ((32, 152), (128, 168))
     ws_caps: tuple = ((64, 2496), (4096, 1536), (ANY, 768))
     zero_copy_max: int = 4096
-    gather_skin: float = 1.5e-3
+    gather_skin: float = 2.5e-3
     ws_cache_max: int = 4096
     resident_max: int = 32
     run_pixels: int = 16
