@@ -214,8 +214,9 @@ def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
     (kernels/warp/tick_inputs.py); the copying path's graph copies them instead. Both run the
     same step code on the same inputs, so every tick's results agree bit for bit: across batch
     sizes whose copy takes one block or several and whose 3 n floats leave a tail (n = 7, 300,
-    1,030), positions the host resets between ticks (the staged copy must be this tick's), and
-    sizes changing back and forth (the protocol's words at rest between ticks)."""
+    1,030) or are nothing but a tail (n = 1), positions the host resets between ticks (the staged
+    copy must be this tick's), and sizes changing back and forth (the protocol's words at rest
+    between ticks)."""
     from pointfence.kernels.haptics import HapticParams
 
     if not get_backend("warp").device.is_cuda:
@@ -230,7 +231,7 @@ def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
     copies = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0, zero_copy_max=0))
     assert staged.zero_copy(1030) and not copies.zero_copy(7)
     moved = 0
-    for B in (300, 7, 1030, 300):
+    for B in (300, 1, 7, 1030, 2, 300):
         surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)
         start = surf + rng.normal(0, 0.01, (B, 3)) + [0, 0, -0.015]
         staged.reset(start)
