@@ -12,9 +12,9 @@ kernels/warp/resident_protocol.py). One 16-byte load a thread keeps the kernel's
 they were: each load kept in flight holds four registers in the code around the step loop too.
 
 "First to start" are the bodies that take tickets 0 to k - 1 (k: the copy's 16-byte chunks
-over the block size, at least 1), not blocks 0 to k - 1: a body that waits for the copy waits for bodies
-that are running, whatever order the hardware starts blocks in. Three words of device memory
-(``sync``, zero when allocated) hold the protocol:
+over the block size, at least 1), not blocks 0 to k - 1: a body that waits for the copy waits
+for bodies that are running, whatever order the hardware starts blocks in. Three words of device
+memory (``sync``, zero when allocated) hold the protocol:
 
 * ``[0]`` the tickets: every body takes one (``atomicInc`` wraps to 0 after the n-th);
 * ``[1]`` the slices copied: each copying body adds one when its slice is in device memory, and
@@ -41,7 +41,7 @@ SYNC_WORDS = 4
     if (lane == 0) ticket = atomicInc(sy, (unsigned)(n - 1));
     __syncthreads();
     // the positions and the HIPs (3 n floats each, 16-byte aligned) as 16-byte chunks, bd a body
-    // (k >= 1: body 0 also copies the tails and the tick's arguments, even where n = 1 leaves no chunk)
+    // (k >= 1: body 0 also copies the tails and the tick's arguments, even where n = 1 has no chunk)
     const int nf = 3 * n, n4 = nf >> 2, jobs = 2 * n4, k = jobs > bd ? (jobs + bd - 1) / bd : 1;
     const int t = (int)ticket;
     if (t < k) {
