@@ -5,10 +5,10 @@ Warp's CPU device): a block reads its proxy's inputs (on CUDA's zero-copy path f
 memory, where the tick's first blocks copy every block's: kernels/warp/tick_inputs.py), takes
 its working set from the device memory cache where it still holds (kernels/warp/proxy.py keeps
 it for batches of up to ``WarpTuning.ws_cache_max`` proxies) or gathers it
-(kernels/warp/working_set.py), runs the tick's steps (kernels/warp/steps.py) and writes its results. ``proxy_resident`` is its resident
-form (CUDA only; the protocol in kernels/warp/resident_protocol.py, the host's driver in
-kernels/warp/resident.py): the blocks stay on their SMs and run a tick each time the host posts
-one. The working-set capacity, the register cap and the block size are constants of a kernel's
+(kernels/warp/working_set.py), runs the tick's steps (kernels/warp/steps.py) and writes its
+results. ``proxy_resident`` is its resident form (CUDA only; the protocol in
+kernels/warp/resident_protocol.py, the host's driver in kernels/warp/resident.py): the blocks
+stay on their SMs and run a tick each time the host posts one. The working-set capacity, the register cap and the block size are constants of a kernel's
 code: ``tick_kernel`` makes and keeps one pair of kernels per triple.
 """
 from __future__ import annotations
