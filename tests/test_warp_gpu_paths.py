@@ -227,9 +227,9 @@ def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
     pipe.ingest(frames)
     snap = pipe.host_snapshot()
     p = HapticParams(max_steps=40)
-    staged = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0))
+    staged = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0, stage_min=1))
     copies = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0, zero_copy_max=0))
-    assert staged.zero_copy(1030) and not copies.zero_copy(7)
+    assert staged.staged(1) and staged.staged(1030) and not copies.zero_copy(7) and not copies.staged(7)
     moved = 0
     for B in (300, 1, 7, 1030, 2, 300):
         surf = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64)

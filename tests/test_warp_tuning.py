@@ -41,6 +41,7 @@ def test_defaults_pick_by_batch_size():
     ("resident_max", RESIDENT_CAP + 1, f"resident_max = {RESIDENT_CAP + 1}; expected an integer from 0 to {RESIDENT_CAP}"),
     ("resident_max", -1, "resident_max = -1"),
     ("zero_copy_max", 1.5, "zero_copy_max = 1.5"),
+    ("stage_min", -2, "stage_min = -2; expected an integer from 0"),
     ("ws_cache_max", True, "ws_cache_max = True"),
     ("maxreg", 300, "maxreg = 300"),
     ("maxregs", ((48, 128),), "maxregs = ((48, 128),)"),

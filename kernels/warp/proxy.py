@@ -178,6 +178,12 @@ class WarpProxies(ProxyBatch):
         """Whether a tick of ``n`` proxies reads and writes host memory directly (no copies)."""
         return self.cuda and (self.n if n is None else n) <= self.tuning.zero_copy_max
 
+    def staged(self, n: int | None = None) -> bool:
+        """Whether a launched zero-copy tick of ``n`` proxies has its first blocks copy every
+        block's inputs into device memory (kernels/warp/tick_inputs.py)."""
+        n = self.n if n is None else n
+        return self.zero_copy(n) and n >= self.tuning.stage_min
+
     def _set_tick(self, dt: float, extra: float):
         tk = self._tick_np[0]
         tk["dt"] = dt
@@ -205,7 +211,7 @@ class WarpProxies(ProxyBatch):
             wp.copy(arr["hips"], self._host["hips"][0], count=n)
             wp.copy(tick, self._tick_host)
         # on CUDA's zero-copy path the first blocks stage the inputs in device memory for all
-        staged = int(self.cuda and self.zero_copy(n))
+        staged = int(self.staged(n))
         stage = self._dev if self.cuda else arr
         wp.launch_tiled(kernel, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
                         self.args, arr["positions"], arr["hips"], bd, slot.sorted_vel, tick, arr["normals"],

@@ -60,6 +60,10 @@ class WarpTuning:
         SM. A proxy with more points within reach + skin scans the hash in global memory.
     zero_copy_max: largest batch whose tick reads and writes pinned host memory directly (no
         copies in the CUDA graph).
+    stage_min: smallest zero-copy batch whose first blocks copy every block's inputs into device
+        memory (kernels/warp/tick_inputs.py); smaller batches read their own over the bus, where
+        few blocks' reads do not queue and the copy's handshake costs 1-5 us more (neutral at 64
+        proxies, 7-10 us faster at 128; bench/HISTORY.md, stop 44).
     gather_skin: working-set skin on the GPU, m: a proxy gathers the points within reach + this
         (at least HapticParams.skin) and gathers again when it has moved further; a set that does
         not fit in shared memory is gathered with HapticParams.skin instead. 2.5 mm: a tick that
@@ -82,6 +86,7 @@ class WarpTuning:
     maxregs: tuple = ((32, 152), (128, 168))
     ws_caps: tuple = ((64, 2496), (4096, 1536), (ANY, 768))
     zero_copy_max: int = 4096
+    stage_min: int = 64
     gather_skin: float = 2.5e-3
     ws_cache_max: int = 4096
     resident_max: int = 32
@@ -109,7 +114,7 @@ class WarpTuning:
         bd = self.block_dim
         if bd is not None and (isinstance(bd, bool) or not isinstance(bd, int) or bd % 32 or not 32 <= bd <= 1024):
             raise InputError(f"WarpTuning block_dim = {bd!r}; expected None or a multiple of 32 from 32 to 1024")
-        for key, hi in (("maxreg", 255), ("zero_copy_max", None), ("ws_cache_max", None),
+        for key, hi in (("maxreg", 255), ("zero_copy_max", None), ("stage_min", None), ("ws_cache_max", None),
                         ("resident_max", RESIDENT_CAP), ("run_pixels", None)):
             v = getattr(self, key)
             lo = 1 if key == "run_pixels" else 0
