@@ -27,6 +27,10 @@ def test_defaults_pick_by_batch_size():
     assert WarpTuning(maxregs=((64, 96),)).maxreg_for(64) == 96 and WarpTuning(maxregs=()).maxreg_for(128) == 0
     one = WarpTuning(block_dim=512, maxreg=96)
     assert one.block_dim_for(1) == one.block_dim_for(10**6) == 512 and one.maxreg_for(512) == 96
+    # the GPU skin: wider where the sets have room (up to 64 proxies), unless one is given for all
+    assert [t.gather_skin_for(n) for n in (1, 64, 65, 10**6)] == [2.5e-3, 2.5e-3, 1.5e-3, 1.5e-3]
+    assert WarpTuning(gather_skin=0.0).gather_skin_for(1) == 0.0 == WarpTuning(gather_skin=0).gather_skin_for(10**6)
+    assert WarpTuning(gather_skins=((ANY, 0.002),)).gather_skin_for(7) == 0.002
     with pytest.raises(dataclasses.FrozenInstanceError):
         t.gather_skin = 0.0
 
@@ -50,6 +54,9 @@ def test_defaults_pick_by_batch_size():
     ("run_pixels", 0, "run_pixels = 0; expected an integer from 1"),
     ("gather_skin", float("nan"), "gather_skin = nan"),
     ("gather_skin", -1e-3, "gather_skin = -0.001"),
+    ("gather_skins", ((64, 2e-3),), "gather_skins = ((64, 0.002),); expected rows of (largest batch, skin"),
+    ("gather_skins", ((64, -1.0), (ANY, 1e-3)), "skin >= 0 m"),
+    ("gather_skins", "wide", "gather_skins = 'wide'"),
 ])
 def test_bad_tuning_is_an_input_error_naming_the_field(field, value, words):
     with pytest.raises(InputError, match=words.replace("(", r"\(").replace(")", r"\)")):
@@ -112,6 +119,15 @@ def test_backend_reads_the_environment_when_made_and_passes_its_tuning_on(monkey
     other = WarpTuning(gather_skin=0.0)
     batch = pipe.proxies(np.zeros((2, 3)) + [0, 0, 0.8], p, tuning=other)
     assert batch.tuning is other and batch.skin == pytest.approx(p.skin)
+    # by batch size: the skin follows the batch through resets across a row of gather_skins
+    batch = pipe.proxies(np.zeros((2, 3)) + [0, 0, 0.8], p, tuning=WarpTuning(gather_skins=((4, 0.003), (ANY, 0.001))))
+    skins = []
+    for n in (2, 5, 4, 9):
+        batch.reset(np.zeros((n, 3)) + [0, 0, 0.8])
+        batch.step(np.zeros((n, 3)) + [0, 0.004, 0.8])   # (free motion: 4 mm along y)
+        np.testing.assert_allclose(batch.positions[:, 1], 0.004, atol=1e-6)
+        skins.append(batch.skin)
+    assert skins == pytest.approx([0.003, 0.001, 0.003, 0.001])
     with pytest.raises(InputError, match="expected a WarpTuning"):
         pipe.proxies(np.zeros((2, 3)), p, tuning=0.004)
 

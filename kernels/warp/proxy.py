@@ -67,9 +67,8 @@ class WarpProxies(ProxyBatch):
         self._graphs = {}
         self._last = (None, 0, None)   # (slot, n, graph) of the last tick
         super().__init__(pipeline, positions, params)
-        h = self._h = pipeline.grid.h
-        self.args = proxy_args(self.params, self.reach, tuning.gather_skin, h)
-        self.skin = self.args.skin
+        self._h = pipeline.grid.h
+        self._set_args(self.n)
         self._tick = wp.zeros(1, dtype=TickArgs, device=self.dev)
         self._tick_host = wp.zeros(1, dtype=TickArgs, device="cpu", pinned=self.cuda)
         self._tick_view = self._device_view(self._tick_host, TickArgs, 1)
@@ -82,6 +81,7 @@ class WarpProxies(ProxyBatch):
         self._sync = wp.zeros(SYNC_WORDS, dtype=wp.int32, device=self.dev)
         self._tick_np = self._tick_host.numpy()
         self._tick_dt_set = None
+        self._tick_extra = 0.0
         self._tick_build = None   # the build number in the tick's arguments
         self._set_tick(0.0, 0.0)
         self._prepare_resident()
@@ -142,6 +142,8 @@ class WarpProxies(ProxyBatch):
         self._resident_n = self.cuda and self.resident()
         # a tick number skipped: no resident kernel keeps a proxy's position past a reset
         self._tick_no = next_tick(self._tick_no)
+        if hasattr(self, "args"):   # (not yet during __init__, which sets them itself)
+            self._set_args(self.n)
         if self.cuda:   # the copying path keeps its positions on the device
             wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
             if hasattr(self, "args"):   # (not yet during __init__, which prepares them itself)
@@ -184,6 +186,20 @@ class WarpProxies(ProxyBatch):
         n = self.n if n is None else n
         return self.zero_copy(n) and n >= self.tuning.stage_min
 
+    def _set_args(self, n: int):
+        """The batch's kernel constants for ``n`` proxies (``ProxyArgs``: the working-set skin
+        depends on the batch size, ``WarpTuning.gather_skin_for``), and the gather radius of the
+        tick's arguments with them. A graph or resident kernel holds the constants of its own
+        batch size."""
+        skin = self.tuning.gather_skin_for(n)
+        if getattr(self, "_gather_skin", None) == skin:
+            return
+        self._gather_skin = skin
+        self.args = proxy_args(self.params, self.reach, skin, self._h)
+        self.skin = self.args.skin
+        if getattr(self, "_tick_dt_set", None) is not None:   # (none yet while __init__ runs)
+            self._set_tick(self._tick_dt_set, self._tick_extra)
+
     def _set_tick(self, dt: float, extra: float):
         tk = self._tick_np[0]
         tk["dt"] = dt
@@ -191,7 +207,7 @@ class WarpProxies(ProxyBatch):
         # + 1 um: the float32 rounding of the box's corners (cell_of) cannot drop a point
         tk["grad"] = self.reach + self.skin + extra + 1.0e-6
         self._tick_vals = (float(tk["dt"]), int(tk["span"]), float(tk["grad"]))   # (for the resident tick)
-        self._tick_dt_set = dt
+        self._tick_dt_set, self._tick_extra = dt, extra
 
     def _set_build(self, build: int):
         """The snapshot's build number in the tick's arguments (the working-set cache's key),

@@ -64,11 +64,14 @@ class WarpTuning:
         memory (kernels/warp/tick_inputs.py); smaller batches read their own over the bus, where
         few blocks' reads do not queue and the copy's handshake costs 1-5 us more (neutral at 64
         proxies, 7-10 us faster at 128; bench/HISTORY.md, stop 44).
-    gather_skin: working-set skin on the GPU, m: a proxy gathers the points within reach + this
-        (at least HapticParams.skin) and gathers again when it has moved further; a set that does
-        not fit in shared memory is gathered with HapticParams.skin instead. 2.5 mm: a tick that
-        spends its step budget gathers again less often (a gather costs about 15,000 cycles, 7 us,
-        of its block), for sets about 12 % larger (bench/HISTORY.md, stops 13 and 44).
+    gather_skins: working-set skin on the GPU by batch size, ((largest batch, m), ...): a proxy
+        gathers the points within reach + this (at least HapticParams.skin) and gathers again when
+        it has moved further; a set that does not fit in shared memory is gathered with
+        HapticParams.skin instead. 2.5 mm up to 64 proxies: a tick that spends its step budget
+        gathers again less often (a gather costs about 15,000 cycles, 7 us, of its block), and
+        their sets have room for the 12 % more points; 1.5 mm above, where the smaller sets would
+        overflow and be counted twice (bench/HISTORY.md, stops 13 and 44).
+    gather_skin: one skin for every batch instead (None: ``gather_skins``), m.
     ws_cache_max: largest batch whose launched tick keeps each proxy's working set in device
         memory from tick to tick (``ws_capacity_for(n)`` points a proxy: 25 MB for 1,024
         proxies); 0: never.
@@ -87,7 +90,8 @@ class WarpTuning:
     ws_caps: tuple = ((64, 2496), (4096, 1536), (ANY, 768))
     zero_copy_max: int = 4096
     stage_min: int = 64
-    gather_skin: float = 2.5e-3
+    gather_skins: tuple = ((64, 2.5e-3), (ANY, 1.5e-3))
+    gather_skin: float | None = None
     ws_cache_max: int = 4096
     resident_max: int = 32
     run_pixels: int = 16
@@ -122,8 +126,18 @@ class WarpTuning:
                 raise InputError(f"WarpTuning {key} = {v!r}; expected an integer from {lo}"
                                  + (f" to {hi}" if hi is not None else ""))
         g = self.gather_skin
-        if isinstance(g, bool) or not isinstance(g, (int, float)) or not math.isfinite(g) or g < 0:
-            raise InputError(f"WarpTuning gather_skin = {g!r}; expected a finite length >= 0 m")
+        if g is not None and (isinstance(g, bool) or not isinstance(g, (int, float)) or not math.isfinite(g) or g < 0):
+            raise InputError(f"WarpTuning gather_skin = {g!r}; expected None or a finite length >= 0 m")
+        try:
+            skins = tuple((int(most), float(v)) for most, v in self.gather_skins)
+        except (TypeError, ValueError):
+            skins = ()
+        sizes = [most for most, _ in skins]
+        if (not skins or sizes != sorted(set(sizes)) or sizes[-1] < ANY
+                or any(not math.isfinite(v) or v < 0 for _, v in skins)):
+            raise InputError(f"WarpTuning gather_skins = {self.gather_skins!r}; expected rows of (largest batch, "
+                             f"skin >= 0 m) by ascending batch size, the last row's size at least {ANY} (every batch)")
+        object.__setattr__(self, "gather_skins", skins)
 
     @classmethod
     def from_environment(cls, environ=None, base: "WarpTuning | None" = None) -> "WarpTuning":
@@ -159,6 +173,12 @@ class WarpTuning:
             if threads == bd:
                 return cap
         return 0 if bd <= 256 else (65536 // bd) & ~7
+
+    def gather_skin_for(self, n: int) -> float:
+        """Working-set skin on the GPU for a batch of ``n`` proxies, m."""
+        if self.gather_skin is not None:
+            return float(self.gather_skin)
+        return next(v for most, v in self.gather_skins if n <= most)
 
     def ws_capacity_for(self, n: int) -> int:
         """Working-set points in shared memory per proxy for a batch of ``n`` proxies."""
