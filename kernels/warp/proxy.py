@@ -66,6 +66,9 @@ class WarpProxies(ProxyBatch):
         self.stream = pipeline.query_stream
         self._graphs = {}
         self._last = (None, 0, None)   # (slot, n, graph) of the last tick
+        self._gather_skin = None   # the skin of the batch's constants (``_set_args``)
+        self._tick_dt_set = None   # the tick's arguments: none yet (``_set_tick``)
+        self._tick_extra = 0.0
         super().__init__(pipeline, positions, params)
         self._h = pipeline.grid.h
         self._set_args(self.n)
@@ -80,8 +83,6 @@ class WarpProxies(ProxyBatch):
         self._dtick = wp.zeros(1, dtype=wp.vec4i, device=self.dev)
         self._sync = wp.zeros(SYNC_WORDS, dtype=wp.int32, device=self.dev)
         self._tick_np = self._tick_host.numpy()
-        self._tick_dt_set = None
-        self._tick_extra = 0.0
         self._tick_build = None   # the build number in the tick's arguments
         self._set_tick(0.0, 0.0)
         self._prepare_resident()
@@ -142,12 +143,11 @@ class WarpProxies(ProxyBatch):
         self._resident_n = self.cuda and self.resident()
         # a tick number skipped: no resident kernel keeps a proxy's position past a reset
         self._tick_no = next_tick(self._tick_no)
-        if hasattr(self, "args"):   # (not yet during __init__, which sets them itself)
-            self._set_args(self.n)
         if self.cuda:   # the copying path keeps its positions on the device
             wp.copy(self._dev["positions"], self._host["positions"][0], count=self.n)
-            if hasattr(self, "args"):   # (not yet during __init__, which prepares them itself)
-                self._prepare_resident()
+        if hasattr(self, "args"):   # (not yet during __init__, which makes them itself)
+            self._set_args(self.n)
+            self._prepare_resident()
 
     def _prepare_resident(self):
         """Make both snapshot slots' resident kernels for this batch size now (their buffers and
@@ -192,12 +192,12 @@ class WarpProxies(ProxyBatch):
         tick's arguments with them. A graph or resident kernel holds the constants of its own
         batch size."""
         skin = self.tuning.gather_skin_for(n)
-        if getattr(self, "_gather_skin", None) == skin:
+        if self._gather_skin == skin:
             return
         self._gather_skin = skin
         self.args = proxy_args(self.params, self.reach, skin, self._h)
         self.skin = self.args.skin
-        if getattr(self, "_tick_dt_set", None) is not None:   # (none yet while __init__ runs)
+        if self._tick_dt_set is not None:   # (none yet while __init__ runs)
             self._set_tick(self._tick_dt_set, self._tick_extra)
 
     def _set_tick(self, dt: float, extra: float):
