@@ -251,3 +251,39 @@ def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
     staged.close()
     copies.close()
     assert moved > 1000
+
+
+def test_a_copy_needing_more_blocks_than_fit_at_once_still_finishes():
+    """The bodies that copy a staged tick's inputs are at most the device's SM count, each taking
+    more chunks where the copy is larger: every one of them is on the GPU before any body can
+    finish waiting. A zero-copy batch of 65,536 proxies at 32 threads a proxy needs 3,072 bodies
+    of 32 chunks, more than an H100 or H200 holds at once (13 blocks an SM); with a body a slice,
+    every resident body would wait for a copier that cannot start, and the tick would never end.
+    Its results are the copying path's, bit for bit."""
+    from pointfence.kernels.haptics import HapticParams
+    from pointfence.kernels.warp.tuning import ANY
+
+    dev = get_backend("warp").device
+    if not dev.is_cuda:
+        pytest.skip("the staged inputs are CUDA's zero-copy path")
+    B = 65536
+    assert -(-2 * (3 * B // 4) // 32) > 16 * dev.sm_count   # (more bodies than fit at once)
+    rng = np.random.default_rng(59)
+    cams, frames = random_rig(rng, n_cams=1)
+    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
+    pipe.ingest(frames)
+    snap = pipe.host_snapshot()
+    p = HapticParams(max_steps=20)
+    start = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64) + [0.0, 0.0, -0.012]
+    tuned = dict(resident_max=0, block_dims=((ANY, 32),), ws_caps=((ANY, 256),))
+    staged = pipe.proxies(start, p, tuning=WarpTuning(zero_copy_max=B, **tuned))
+    copies = pipe.proxies(start, p, tuning=WarpTuning(zero_copy_max=0, **tuned))
+    assert staged.staged() and not copies.zero_copy()
+    h = start.copy()
+    for _ in range(3):
+        h = h + rng.normal(0, 0.001, h.shape) + [0, 0, 0.0008]
+        staged.step(h)
+        copies.step(h)
+        np.testing.assert_array_equal(staged.positions, copies.positions)
+        np.testing.assert_array_equal(staged.steps, copies.steps)
+    assert staged.steps.sum() > B // 2

@@ -232,7 +232,8 @@ class WarpProxies(ProxyBatch):
         wp.launch_tiled(kernel, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
                         self.args, arr["positions"], arr["hips"], bd, slot.sorted_vel, tick, arr["normals"],
                         arr["nearest"], arr["states"], arr["steps"], arr["converged"], *self._cache_for(n),
-                        staged, n, self._tick4, stage["positions"], stage["hips"], self._dtick, self._sync],
+                        staged, n, max(1, self.dev.sm_count), self._tick4, stage["positions"], stage["hips"],
+                        self._dtick, self._sync],
                         block_dim=bd, device=self.dev)
         if self.cuda and not self.zero_copy(n):
             for k in ("positions", "normals", "nearest", "states", "steps", "converged"):

@@ -12,9 +12,14 @@ kernels/warp/resident_protocol.py). One 16-byte load a thread keeps the kernel's
 they were: each load kept in flight holds four registers in the code around the step loop too.
 
 "First to start" are the bodies that take tickets 0 to k - 1 (k: the copy's 16-byte chunks
-over the block size, at least 1), not blocks 0 to k - 1: a body that waits for the copy waits
-for bodies that are running, whatever order the hardware starts blocks in. Three words of device
-memory (``sync``, zero when allocated) hold the protocol:
+over the block size, at least 1 and at most ``kmax``, the device's SM count: a larger copy takes
+more chunks a thread), not blocks 0 to k - 1. No body finishes before the copy is in, so the
+bodies on the GPU until then are the first to start, and they hold the first tickets; every SM
+holds at least one block of the kernel, so all k copying bodies are among them, whatever order
+the hardware starts blocks in and however few blocks fit at once. (Without the bound, a batch
+whose copy needs more bodies than fit at once would have every resident body waiting for a
+copier that cannot start.) Three words of device memory (``sync``, zero when allocated) hold the
+protocol:
 
 * ``[0]`` the tickets: every body takes one (``atomicInc`` wraps to 0 after the n-th);
 * ``[1]`` the slices copied: each copying body adds one when its slice is in device memory, and
@@ -41,12 +46,13 @@ SYNC_WORDS = 4
     if (lane == 0) ticket = atomicInc(sy, (unsigned)(n - 1));
     __syncthreads();
     // the positions and the HIPs (3 n floats each, 16-byte aligned) as 16-byte chunks, bd a body
-    // (k >= 1: body 0 also copies the tails and the tick's arguments, even where n = 1 has no chunk)
-    const int nf = 3 * n, n4 = nf >> 2, jobs = 2 * n4, k = jobs > bd ? (jobs + bd - 1) / bd : 1;
+    // and round (k >= 1: body 0 also copies the tails and the tick's arguments, even where n = 1
+    // has no chunk; k <= kmax: every copying body is on the GPU before any body can finish)
+    const int nf = 3 * n, n4 = nf >> 2, jobs = 2 * n4;
+    const int k = max(1, min((jobs + bd - 1) / bd, kmax));
     const int t = (int)ticket;
     if (t < k) {
-        const int j = t * bd + lane;
-        if (j < jobs) {
+        for (int j = t * bd + lane; j < jobs; j += k * bd) {
             const float4 v = j < n4 ? ((const float4*)pos.data)[j] : ((const float4*)hips.data)[j - n4];
             if (j < n4) ((float4*)dpos.data)[j] = v; else ((float4*)dhips.data)[j - n4] = v;
         }
@@ -71,11 +77,11 @@ SYNC_WORDS = 4
 """)
 def stage_inputs(pos: wp.array(dtype=wp.vec3), hips: wp.array(dtype=wp.vec3), tick: wp.array(dtype=wp.vec4i),
                  dpos: wp.array(dtype=wp.vec3), dhips: wp.array(dtype=wp.vec3), dtick: wp.array(dtype=wp.vec4i),
-                 sync: wp.array(dtype=wp.int32), n: int, lane: int, bd: int):
+                 sync: wp.array(dtype=wp.int32), n: int, kmax: int, lane: int, bd: int):
     """Every thread of a body of a tick of ``n`` proxies (``bd`` threads a body): the bodies with
-    the first tickets copy the positions, the HIPs and the tick's arguments (``tick``:
-    ``TickArgs`` as four words) from host memory into ``dpos``, ``dhips`` and ``dtick``, a slice
-    each; every body waits until all slices are in."""
+    the first tickets (at most ``kmax``: the device's SM count) copy the positions, the HIPs and
+    the tick's arguments (``tick``: ``TickArgs`` as four words) from host memory into ``dpos``,
+    ``dhips`` and ``dtick``, a slice each; every body waits until all slices are in."""
     ...
 
 

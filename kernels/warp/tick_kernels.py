@@ -51,17 +51,18 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
                    near_out: wp.array(dtype=float), state_out: wp.array(dtype=wp.int32),
                    steps_out: wp.array(dtype=wp.int32), conv_out: wp.array(dtype=wp.bool), caching: int,
                    wsc: wp.array(dtype=wp.vec4), wsk: wp.array(dtype=wp.vec4), wsi: wp.array(dtype=wp.vec4i),
-                   staged: int, n: int, tick4: wp.array(dtype=wp.vec4i), dpos: wp.array(dtype=wp.vec3),
+                   staged: int, n: int, kmax: int, tick4: wp.array(dtype=wp.vec4i), dpos: wp.array(dtype=wp.vec3),
                    dhips: wp.array(dtype=wp.vec3), dtick: wp.array(dtype=wp.vec4i), sync: wp.array(dtype=wp.int32)):
         """One tick of proxy p (a block of ``bd`` threads) of ``n``. ``caching``: whether the working
         sets persist from tick to tick in ``wsc`` (``cap`` points a proxy), with each proxy's
         (X0 m, skin m) in ``wsk`` and (build, dt bits, span, points or -1) in ``wsi``. ``staged``
         (CUDA, the zero-copy path): the inputs in host memory (``pos``, ``hips``, ``tick``, and
         ``tick4``: the same as four words) are copied by the first blocks into ``dpos``, ``dhips``
-        and ``dtick`` and read from there (kernels/warp/tick_inputs.py; ``sync``: its words)."""
+        and ``dtick`` and read from there (kernels/warp/tick_inputs.py; ``sync``: its words; ``kmax``:
+        the most bodies that copy, the device's SM count)."""
         p, lane = wp.tid()
         if staged != 0:
-            stage_inputs(pos, hips, tick4, dpos, dhips, dtick, sync, n, lane, BD)
+            stage_inputs(pos, hips, tick4, dpos, dhips, dtick, sync, n, kmax, lane, BD)
         # one thread reads the proxy's inputs and shares them with the block
         if lane == 0:
             if staged != 0:
