@@ -18,7 +18,9 @@ bodies on the GPU until then are the first to start, and they hold the first tic
 holds at least one block of the kernel, so all k copying bodies are among them, whatever order
 the hardware starts blocks in and however few blocks fit at once. (Without the bound, a batch
 whose copy needs more bodies than fit at once would have every resident body waiting for a
-copier that cannot start.) Three words of device memory (``sync``, zero when allocated) hold the
+copier that cannot start; tests/test_warp_gpu_paths.py has such a batch. Another kernel holding
+SMs, a frame build or another batch's resident kernel, can delay the copy until it leaves them,
+not stop it.) Three words of device memory (``sync``, zero when allocated) hold the
 protocol:
 
 * ``[0]`` the tickets: every body takes one (``atomicInc`` wraps to 0 after the n-th);
