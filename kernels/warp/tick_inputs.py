@@ -5,9 +5,9 @@ are in pinned host memory: every proxy's position (m, world frame) and HIP, and 
 arguments (``TickArgs``). A block that reads its own inputs over the bus queues behind every
 other block's small reads: with three blocks an SM, a 1,024-proxy tick's blocks took 7.6 us to
 reach their step loop, most of it these reads (bench/HISTORY.md, stop 43). So the first blocks
-to start copy them all into device memory, 16 bytes a thread, every load of every one of them in
-flight at once (one round trip over the bus), and the others wait for them, then read theirs
-from device memory (the resident kernel's block 0 does the same for its ticks:
+to start copy them all into device memory, 16 bytes a thread a round, every load of a round in
+flight at once (one round, one trip over the bus, for every default zero-copy batch: 4,096
+proxies take 48 bodies of 128 threads), and the others wait for them, then read theirs from device memory (the resident kernel's block 0 does the same for its ticks:
 kernels/warp/resident_protocol.py). One 16-byte load a thread keeps the kernel's registers as
 they were: each load kept in flight holds four registers in the code around the step loop too.
 
