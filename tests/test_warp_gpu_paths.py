@@ -208,6 +208,17 @@ def test_each_snapshot_slots_query_follows_grown_buffers():
         assert_same(pipe.neighbors(q, 0.01, max_neighbors=K), reference_neighbors(snap, q, 0.01, K))
 
 
+def _cuda_rig(rng, n_cams):
+    """(pipeline on CUDA, its snapshot) of a random rig, all points protected, 2 cm cells; skips
+    where Warp has no CUDA device (the staged inputs are CUDA's zero-copy path)."""
+    if not get_backend("warp").device.is_cuda:
+        pytest.skip("the staged inputs are CUDA's zero-copy path")
+    cams, frames = random_rig(rng, n_cams=n_cams)
+    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
+    pipe.ingest(frames)
+    return pipe, pipe.host_snapshot()
+
+
 def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
     """On CUDA's zero-copy path the first blocks to start copy every proxy's position and HIP
     and the tick's arguments from host memory into device memory for the others
@@ -219,13 +230,8 @@ def test_inputs_staged_by_the_first_blocks_move_proxies_as_the_copies_do():
     between ticks)."""
     from pointfence.kernels.haptics import HapticParams
 
-    if not get_backend("warp").device.is_cuda:
-        pytest.skip("the staged inputs are CUDA's zero-copy path")
     rng = np.random.default_rng(53)
-    cams, frames = random_rig(rng, n_cams=2)
-    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
-    pipe.ingest(frames)
-    snap = pipe.host_snapshot()
+    pipe, snap = _cuda_rig(rng, n_cams=2)
     p = HapticParams(max_steps=40)
     staged = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0, stage_min=1))
     copies = pipe.proxies(np.zeros((1, 3)), p, tuning=WarpTuning(resident_max=0, zero_copy_max=0))
@@ -263,16 +269,10 @@ def test_a_copy_needing_more_blocks_than_fit_at_once_still_finishes():
     from pointfence.kernels.haptics import HapticParams
     from pointfence.kernels.warp.tuning import ANY
 
-    dev = get_backend("warp").device
-    if not dev.is_cuda:
-        pytest.skip("the staged inputs are CUDA's zero-copy path")
-    B = 65536
-    assert -(-2 * (3 * B // 4) // 32) > 16 * dev.sm_count   # (more bodies than fit at once)
     rng = np.random.default_rng(59)
-    cams, frames = random_rig(rng, n_cams=1)
-    pipe = get_backend("warp").pipeline(cams, params_for("all", cell=0.02))
-    pipe.ingest(frames)
-    snap = pipe.host_snapshot()
+    pipe, snap = _cuda_rig(rng, n_cams=1)
+    B = 65536
+    assert -(-2 * (3 * B // 4) // 32) > 16 * pipe.device.sm_count   # (more bodies than fit at once)
     p = HapticParams(max_steps=20)
     start = snap.points[rng.integers(0, snap.n_points, B), :3].astype(np.float64) + [0.0, 0.0, -0.012]
     tuned = dict(resident_max=0, block_dims=((ANY, 32),), ws_caps=((ANY, 256),))

@@ -82,6 +82,7 @@ class WarpProxies(ProxyBatch):
                        else wp.zeros(1, dtype=wp.vec4i, device=self.dev))
         self._dtick = wp.zeros(1, dtype=wp.vec4i, device=self.dev)
         self._sync = wp.zeros(SYNC_WORDS, dtype=wp.int32, device=self.dev)
+        self._kmax = max(1, self.dev.sm_count)   # the most bodies that copy (tick_inputs.py)
         self._tick_np = self._tick_host.numpy()
         self._tick_build = None   # the build number in the tick's arguments
         self._set_tick(0.0, 0.0)
@@ -232,8 +233,8 @@ class WarpProxies(ProxyBatch):
         wp.launch_tiled(kernel, dim=[n], inputs=[slot.sorted_pts, slot.order, slot.start, self.pipeline.grid_args,
                         self.args, arr["positions"], arr["hips"], bd, slot.sorted_vel, tick, arr["normals"],
                         arr["nearest"], arr["states"], arr["steps"], arr["converged"], *self._cache_for(n),
-                        staged, n, max(1, self.dev.sm_count), self._tick4, stage["positions"], stage["hips"],
-                        self._dtick, self._sync],
+                        staged, n, self._kmax, self._tick4, stage["positions"], stage["hips"], self._dtick,
+                        self._sync],
                         block_dim=bd, device=self.dev)
         if self.cuda and not self.zero_copy(n):
             for k in ("positions", "normals", "nearest", "states", "steps", "converged"):

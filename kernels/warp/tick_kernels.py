@@ -8,8 +8,9 @@ it for batches of up to ``WarpTuning.ws_cache_max`` proxies) or gathers it
 (kernels/warp/working_set.py), runs the tick's steps (kernels/warp/steps.py) and writes its
 results. ``proxy_resident`` is its resident form (CUDA only; the protocol in
 kernels/warp/resident_protocol.py, the host's driver in kernels/warp/resident.py): the blocks
-stay on their SMs and run a tick each time the host posts one. The working-set capacity, the register cap and the block size are constants of a kernel's
-code: ``tick_kernel`` makes and keeps one pair of kernels per triple.
+stay on their SMs and run a tick each time the host posts one. The working-set capacity, the
+register cap and the block size are constants of a kernel's code: ``tick_kernel`` makes and
+keeps one pair of kernels per triple.
 """
 from __future__ import annotations
 
@@ -65,22 +66,23 @@ def _make_tick_kernels(cap: int, maxreg: int, bd: int):
             stage_inputs(pos, hips, tick4, dpos, dhips, dtick, sync, n, kmax, lane, BD)
         # one thread reads the proxy's inputs and shares them with the block
         if lane == 0:
+            # the tick's arguments as four words (dt bits, span, grad bits, build), the position, the HIP
+            tw = wp.vec4i(0)
+            x = wp.vec3(0.0)
+            hh = wp.vec3(0.0)
             if staged != 0:
                 tw = staged_tick(dtick)
                 x = staged3(dpos, p)
                 hh = staged3(dhips, p)
-                shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
-                shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
-                shared4(1, 2, wp.vec4(bits_float(tw[0]), float(tw[1]), bits_float(tw[2]), 0.0))
-                sharedi4(1, 0, wp.vec4i(tw[3], 0, 0, 0))
             else:
                 tk = tick[0]
+                tw = wp.vec4i(float_bits(tk.dt), tk.span, float_bits(tk.grad), tk.build)
                 x = pos[p]
                 hh = hips[p]
-                shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
-                shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
-                shared4(1, 2, wp.vec4(tk.dt, float(tk.span), tk.grad, 0.0))
-                sharedi4(1, 0, wp.vec4i(tk.build, 0, 0, 0))
+            shared4(1, 0, wp.vec4(x[0], x[1], x[2], 0.0))
+            shared4(1, 1, wp.vec4(hh[0], hh[1], hh[2], 0.0))
+            shared4(1, 2, wp.vec4(bits_float(tw[0]), float(tw[1]), bits_float(tw[2]), 0.0))
+            sharedi4(1, 0, wp.vec4i(tw[3], 0, 0, 0))
         block_sync()
         xv = shared4(0, 0, wp.vec4(0.0))
         hv = shared4(0, 1, wp.vec4(0.0))

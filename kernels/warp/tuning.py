@@ -23,16 +23,17 @@ ANY = 1 << 62
 ENVIRONMENT = {"POINTFENCE_WARP_RESIDENT_MAX": "resident_max", "POINTFENCE_WARP_WS_CACHE_MAX": "ws_cache_max"}
 
 
-def _table(name: str, rows) -> tuple:
+def _table(name: str, rows, value=int, ok=lambda v: v >= 1, what: str = "value >= 1") -> tuple:
     """A by-batch-size table ((largest batch, value), ...), checked: ascending sizes, the last
-    covering every batch, positive integer values."""
+    covering every batch, every value converted by ``value`` and passing ``ok`` (``what`` says
+    how, in the error; default: positive integers)."""
     try:
-        rows = tuple((int(most), int(v)) for most, v in rows)
+        rows = tuple((int(most), value(v)) for most, v in rows)
     except (TypeError, ValueError):
-        raise InputError(f"WarpTuning {name} = {rows!r}; expected ((largest batch, value), ...) integers") from None
+        raise InputError(f"WarpTuning {name} = {rows!r}; expected ((largest batch, {what}), ...)") from None
     sizes = [most for most, _ in rows]
-    if not rows or sizes != sorted(set(sizes)) or sizes[-1] < ANY or any(v < 1 for _, v in rows):
-        raise InputError(f"WarpTuning {name} = {rows!r}; expected rows of (largest batch, value >= 1) by ascending "
+    if not rows or sizes != sorted(set(sizes)) or sizes[-1] < ANY or not all(ok(v) for _, v in rows):
+        raise InputError(f"WarpTuning {name} = {rows!r}; expected rows of (largest batch, {what}) by ascending "
                          f"batch size, the last row's size at least {ANY} (every batch)")
     return rows
 
@@ -128,16 +129,8 @@ class WarpTuning:
         g = self.gather_skin
         if g is not None and (isinstance(g, bool) or not isinstance(g, (int, float)) or not math.isfinite(g) or g < 0):
             raise InputError(f"WarpTuning gather_skin = {g!r}; expected None or a finite length >= 0 m")
-        try:
-            skins = tuple((int(most), float(v)) for most, v in self.gather_skins)
-        except (TypeError, ValueError):
-            skins = ()
-        sizes = [most for most, _ in skins]
-        if (not skins or sizes != sorted(set(sizes)) or sizes[-1] < ANY
-                or any(not math.isfinite(v) or v < 0 for _, v in skins)):
-            raise InputError(f"WarpTuning gather_skins = {self.gather_skins!r}; expected rows of (largest batch, "
-                             f"skin >= 0 m) by ascending batch size, the last row's size at least {ANY} (every batch)")
-        object.__setattr__(self, "gather_skins", skins)
+        object.__setattr__(self, "gather_skins", _table("gather_skins", self.gather_skins, float,
+                                                         lambda v: math.isfinite(v) and v >= 0, "skin >= 0 m"))
 
     @classmethod
     def from_environment(cls, environ=None, base: "WarpTuning | None" = None) -> "WarpTuning":
